@@ -1,0 +1,77 @@
+"""Shared helpers of the benchmark scripts: real terrains from ../shared/data, result writing."""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def puget_sound_1k():
+    """Puget Sound 1025² at 160 m (elevation = value * 0.1), or None when ../shared/data is absent."""
+    from PIL import Image
+
+    from terralod import Heightfield
+
+    p = SHARED / "dem" / "puget_sound_1k_u16.png"
+    if not p.exists():
+        return None
+    z = np.asarray(Image.open(p)).astype(np.float32) * 0.1
+    return Heightfield.from_array(z, 160.0, source=str(p))
+
+
+def mirror_tile(z: np.ndarray, reps: int) -> np.ndarray:
+    """Reflect ``z`` reps x reps times sharing edge rows: (n-1)*reps+1 samples a side, C0-continuous."""
+    rows = [z if i % 2 == 0 else z[::-1] for i in range(reps)]
+    col = np.concatenate([rows[0]] + [r[1:] for r in rows[1:]], axis=0)
+    cols = [col if i % 2 == 0 else col[:, ::-1] for i in range(reps)]
+    return np.ascontiguousarray(np.concatenate([cols[0]] + [c[:, 1:] for c in cols[1:]], axis=1))
+
+
+def puget_sound_4k():
+    """4097² mirror-tiled from the real Puget Sound 1k (4 x 4 reflections), 160 m; None when absent."""
+    from terralod import Heightfield
+
+    hf = puget_sound_1k()
+    if hf is None:
+        return None
+    z = mirror_tile(hf.elevation_m, 4)
+    return Heightfield.from_array(z, 160.0, source="puget_sound_1k mirror-tiled 4x4 (4097²)")
+
+
+def write_results(name: str, payload: dict[str, Any], table_md: str) -> None:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "machine": {"python": sys.version.split()[0], "platform": platform.platform(), "cpus": _cpus()},
+        **payload,
+    }
+    (RESULTS / f"{name}.json").write_text(json.dumps(payload, indent=2, default=float))
+    (RESULTS / f"{name}.md").write_text(table_md)
+    print(table_md)
+
+
+def _cpus() -> int:
+    import os
+
+    return os.cpu_count() or 1
+
+
+def md_table(headers: list[str], rows: list[list[Any]]) -> str:
+    def fmt(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:,.3f}" if abs(v) < 1000 else f"{v:,.0f}"
+        if isinstance(v, int):
+            return f"{v:,}"
+        return str(v)
+
+    out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
+    out += ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]
+    return "\n".join(out) + "\n"

@@ -1,0 +1,47 @@
+"""terralod: real-time terrain level of detail with measured geometric error.
+
+Public API (metres everywhere, x east, y north, z up):
+
+- :func:`read_heightfield`, :func:`sample_heightfield` → :class:`Heightfield`
+- :func:`measure_error` → :class:`ErrorReport` (max/RMS vertical error, one-sided Hausdorff distance)
+- :func:`build_store` → a ``.terra`` :class:`TileStore`, opened again with :func:`open_store`
+- :class:`TilePyramid`, tile codes ``(level, x, y)``
+"""
+
+from terralod.build.builder import BuildReport, build_store
+from terralod.error import ErrorReport, measure_error
+from terralod.errors import (
+    BuildMismatchError,
+    CorruptStoreError,
+    InputError,
+    InputNotFoundError,
+    StoreError,
+    TerralodError,
+)
+from terralod.heightfield import Heightfield
+from terralod.io.reader import read_heightfield, sample_heightfield
+from terralod.store import Tile, TileStore, open_store
+from terralod.tiles import TilePyramid
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BuildMismatchError",
+    "BuildReport",
+    "CorruptStoreError",
+    "ErrorReport",
+    "Heightfield",
+    "InputError",
+    "InputNotFoundError",
+    "StoreError",
+    "TerralodError",
+    "Tile",
+    "TilePyramid",
+    "TileStore",
+    "__version__",
+    "build_store",
+    "measure_error",
+    "open_store",
+    "read_heightfield",
+    "sample_heightfield",
+]

@@ -1,0 +1,3 @@
+from terralod.cli import main
+
+main()

@@ -1,0 +1,1 @@
+"""Readers: rasters (rasterio), PNG heightmaps and encoded tiles (Pillow), arrays, point clouds."""

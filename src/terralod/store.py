@@ -1,0 +1,429 @@
+"""TileStore: the level-of-detail tiles of one terrain in one SQLite file (``*.terra``, WAL mode).
+
+Layout
+------
+``meta(key, value)``  JSON values: format, version, source, source digest, CRS (WKT), transform,
+                      spacing, width/height, tile size M, max level, method, build options, per-level
+                      quantisation (horizontal fractional bits, vertical step), ``complete`` flag.
+``tiles``             one row per tile code (level, x, y): monotone ``error_m`` (one-sided Hausdorff) and
+                      ``vertical_error_m``, the raw measured values, RMS, covered sample count, z-range,
+                      the quantised geometry and a CRC-32 of everything in the row.
+
+Quantisation (quantized-mesh style, 16 bits per axis, but on a lattice shared by a whole level so the
+boundary vertices of neighbouring tiles dequantise to identical coordinates):
+``col = col0 + u / 2^f``, ``row = row0 + v / 2^f`` (f per level, see ``TilePyramid.xy_frac_bits``) and
+``z = (z0_index + q) * z_step_m`` with one ``z_step_m`` per level. Blobs: the three uint16 columns
+zig-zag delta coded, then zlib; triangle indices delta coded, then zlib.
+
+Writes go through transactions (the builder commits batches of finished tiles), so a store killed mid-build
+opens with every committed tile and ``complete = false``. The store never imports the builder.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from affine import Affine
+
+from terralod.errors import CorruptStoreError, StoreError
+from terralod.tiles import TileCode, TilePyramid
+
+FORMAT_NAME = "terralod-store"
+FORMAT_VERSION = 1
+#: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
+APPLICATION_ID = 0x544C4F44
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS tiles (
+    level INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL,
+    error_m REAL NOT NULL, vertical_error_m REAL NOT NULL,
+    measured_error_m REAL NOT NULL, measured_vertical_error_m REAL NOT NULL,
+    rms_error_m REAL NOT NULL, n_samples INTEGER NOT NULL,
+    z_min_m REAL NOT NULL, z_max_m REAL NOT NULL,
+    n_vertices INTEGER NOT NULL, n_triangles INTEGER NOT NULL, z0_index INTEGER NOT NULL,
+    vertices BLOB NOT NULL, triangles BLOB NOT NULL, checksum INTEGER NOT NULL,
+    PRIMARY KEY (level, x, y)
+) WITHOUT ROWID;
+"""
+
+
+# -- blob coding ---------------------------------------------------------------------------------------
+def _zigzag_delta_u16(a: np.ndarray) -> np.ndarray:
+    d = np.diff(a.astype(np.int32), prepend=np.int32(0))
+    return ((d << 1) ^ (d >> 31)).astype(np.uint32)
+
+
+def _undo_zigzag_delta(z: np.ndarray) -> np.ndarray:
+    z = z.astype(np.int64)
+    d = (z >> 1) ^ -(z & 1)
+    return np.cumsum(d)
+
+
+def encode_vertices(q: np.ndarray) -> bytes:
+    """(N, 3) uint16 quantised (u, v, h) → zlib of zig-zag deltas per column (uint32, little-endian)."""
+    cols = [_zigzag_delta_u16(q[:, k]) for k in range(3)]
+    return zlib.compress(np.concatenate(cols).astype("<u4").tobytes(), 6)
+
+
+def decode_vertices(blob: bytes, n: int) -> np.ndarray:
+    raw = np.frombuffer(zlib.decompress(blob), dtype="<u4")
+    if raw.size != 3 * n:
+        raise ValueError(f"Expected {3 * n} vertex codes, got {raw.size}")
+    return np.stack([_undo_zigzag_delta(raw[k * n : (k + 1) * n]) for k in range(3)], axis=1).astype(np.uint16)
+
+
+def encode_triangles(t: np.ndarray) -> bytes:
+    flat = t.astype(np.int64).ravel()
+    d = np.diff(flat, prepend=np.int64(0))
+    zz = ((d << 1) ^ (d >> 63)).astype(np.uint64)
+    return zlib.compress(zz.astype("<u4").tobytes(), 6)
+
+
+def decode_triangles(blob: bytes, k: int) -> np.ndarray:
+    raw = np.frombuffer(zlib.decompress(blob), dtype="<u4")
+    if raw.size != 3 * k:
+        raise ValueError(f"Expected {3 * k} indices, got {raw.size}")
+    return _undo_zigzag_delta(raw).astype(np.uint32).reshape(k, 3)
+
+
+def row_checksum(values: tuple[Any, ...], vblob: bytes, tblob: bytes) -> int:
+    """CRC-32 of a tile row: the scalar fields (packed) and both blobs."""
+    head = struct.pack("<3q6d2d3q", *values)
+    return zlib.crc32(tblob, zlib.crc32(vblob, zlib.crc32(head)))
+
+
+# -- records -------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class EncodedTile:
+    """A tile ready for the store (what the builder produces)."""
+
+    code: TileCode
+    error_m: float
+    vertical_error_m: float
+    measured_error_m: float
+    measured_vertical_error_m: float
+    rms_error_m: float
+    n_samples: int
+    z_min_m: float
+    z_max_m: float
+    n_vertices: int
+    n_triangles: int
+    z0_index: int
+    vertices: bytes
+    triangles: bytes
+
+    def scalars(self) -> tuple[Any, ...]:
+        return (
+            *self.code,
+            self.error_m,
+            self.vertical_error_m,
+            self.measured_error_m,
+            self.measured_vertical_error_m,
+            self.rms_error_m,
+            float(self.n_samples),
+            self.z_min_m,
+            self.z_max_m,
+            self.n_vertices,
+            self.n_triangles,
+            self.z0_index,
+        )
+
+    @property
+    def checksum(self) -> int:
+        return row_checksum(self.scalars(), self.vertices, self.triangles)
+
+
+@dataclass(frozen=True, eq=False)
+class Tile:
+    """One decoded tile.
+
+    Attributes
+    ----------
+    code : (level, x, y)
+    vertices : (N, 3) float64 world metres (x east, y north, z up), exactly as stored (dequantised)
+    triangles : (K, 3) uint32, counter-clockwise seen from above
+    error_m : one-sided Hausdorff distance from every covered source sample to the tile surface, metres,
+        made monotone over the pyramid (>= every descendant's)
+    vertical_error_m : max vertical distance over the same samples (monotone; an upper bound of error_m)
+    measured_error_m, measured_vertical_error_m : the tile's own measurements before the monotone pass
+    rms_error_m : RMS vertical distance, metres; n_samples : covered valid source samples
+    z_min_m, z_max_m : elevation range of the vertices, metres
+    """
+
+    code: TileCode
+    vertices: np.ndarray
+    triangles: np.ndarray
+    grid_rc: np.ndarray
+    error_m: float
+    vertical_error_m: float
+    measured_error_m: float
+    measured_vertical_error_m: float
+    rms_error_m: float
+    n_samples: int
+    z_min_m: float
+    z_max_m: float
+
+
+@dataclass(frozen=True)
+class LevelQuantisation:
+    """The shared 16-bit lattice of one level."""
+
+    xy_frac_bits: int
+    z_step_m: float
+
+    @property
+    def xy_bound_samples(self) -> float:
+        """Largest horizontal rounding error, in source samples (0 for grid vertices)."""
+        return 0.5 / (1 << self.xy_frac_bits)
+
+    @property
+    def z_bound_m(self) -> float:
+        """Largest vertical rounding error, metres."""
+        return 0.5 * self.z_step_m
+
+
+# -- the store -----------------------------------------------------------------------------------------
+class TileStore:
+    """A ``.terra`` file. Open with :func:`open_store` (read) or :meth:`TileStore.create` (build)."""
+
+    def __init__(self, path: str | os.PathLike[str], conn: sqlite3.Connection, writable: bool) -> None:
+        self.path = Path(path)
+        self._conn = conn
+        self.writable = writable
+        self.meta = self._read_meta()
+        self.pyramid = TilePyramid(int(self.meta["width"]), int(self.meta["height"]), int(self.meta["tile_size"]))
+        t = self.meta["transform"]
+        self.transform = Affine(*t[:6])
+        self.quantisation = {
+            int(k): LevelQuantisation(int(v["xy_frac_bits"]), float(v["z_step_m"]))
+            for k, v in self.meta["quantisation"].items()
+        }
+
+    # -- opening ---------------------------------------------------------------------------------------
+    @classmethod
+    def open(cls, path: str | os.PathLike[str], *, writable: bool = False) -> TileStore:
+        p = Path(path)
+        if not p.exists():
+            raise StoreError("store not found", str(p))
+        if p.is_dir():
+            raise StoreError("is a directory, not a tile store", str(p))
+        with open(p, "rb") as fh:
+            head = fh.read(100)
+        if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
+            raise CorruptStoreError("not a terralod store (not an SQLite database)", str(p))
+        if int.from_bytes(head[68:72], "big") != APPLICATION_ID:
+            raise CorruptStoreError("not a terralod store (foreign SQLite database)", str(p))
+        try:
+            uri = f"file:{p.resolve()}" + ("" if writable else "?mode=ro")
+            conn = sqlite3.connect(uri, uri=True, check_same_thread=False)
+            conn.execute("PRAGMA query_only = %d" % (0 if writable else 1))
+            ok = conn.execute("PRAGMA quick_check").fetchone()[0]
+        except sqlite3.DatabaseError as exc:
+            raise CorruptStoreError(f"corrupted store ({exc})", str(p)) from exc
+        if ok != "ok":
+            conn.close()
+            raise CorruptStoreError(f"corrupted store (SQLite integrity check: {ok})", str(p))
+        try:
+            return cls(p, conn, writable)
+        except (KeyError, ValueError, TypeError, sqlite3.DatabaseError) as exc:
+            conn.close()
+            raise CorruptStoreError(f"corrupted store metadata ({exc})", str(p)) from exc
+
+    @classmethod
+    def create(cls, path: str | os.PathLike[str], meta: dict[str, Any]) -> TileStore:
+        """Create a new store with ``meta`` (fails if the file exists)."""
+        p = Path(path)
+        if p.exists():
+            raise StoreError("already exists", str(p))
+        parent = p.resolve().parent
+        if not parent.is_dir():
+            raise StoreError(f"output folder {parent} does not exist", str(p))
+        if not os.access(parent, os.W_OK):
+            raise StoreError(f"output folder {parent} is not writable", str(p))
+        try:
+            conn = sqlite3.connect(str(p), check_same_thread=False)
+            conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+            conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
+            conn.execute("PRAGMA journal_mode = WAL")
+            with conn:
+                conn.executescript(_SCHEMA)
+                full = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "complete": False, **meta}
+                conn.executemany(
+                    "INSERT INTO meta(key, value) VALUES (?, ?)",
+                    [(k, json.dumps(v, sort_keys=True)) for k, v in full.items()],
+                )
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot write ({exc})", str(p)) from exc
+        return cls(p, conn, True)
+
+    def _read_meta(self) -> dict[str, Any]:
+        try:
+            rows = self._conn.execute("SELECT key, value FROM meta").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise CorruptStoreError(f"not a terralod store ({exc})", str(self.path)) from exc
+        meta = {k: json.loads(v) for k, v in rows}
+        if meta.get("format") != FORMAT_NAME:
+            raise CorruptStoreError("not a terralod store (no format marker)", str(self.path))
+        if meta.get("version") != FORMAT_VERSION:
+            raise CorruptStoreError(
+                f"store format version {meta.get('version')}, this terralod reads {FORMAT_VERSION}", str(self.path)
+            )
+        return meta
+
+    def close(self) -> None:
+        self._conn.close()
+
+    def __enter__(self) -> TileStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- metadata --------------------------------------------------------------------------------------
+    @property
+    def levels(self) -> list[int]:
+        """Levels present in the plan, coarsest (0) first."""
+        return self.pyramid.levels
+
+    @property
+    def tile_size(self) -> int:
+        return self.pyramid.tile_size
+
+    @property
+    def complete(self) -> bool:
+        return bool(json.loads(self._conn.execute("SELECT value FROM meta WHERE key='complete'").fetchone()[0]))
+
+    @property
+    def crs(self) -> str | None:
+        return self.meta.get("crs")
+
+    @property
+    def spacing_m(self) -> tuple[float, float]:
+        return float(self.transform.a), float(-self.transform.e)
+
+    def set_meta(self, key: str, value: Any) -> None:
+        with self._conn:
+            self._conn.execute(
+                "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, json.dumps(value, sort_keys=True))
+            )
+        self.meta[key] = value
+
+    # -- tiles -----------------------------------------------------------------------------------------
+    def tile_codes(self, level: int | None = None) -> list[TileCode]:
+        """Codes of the stored tiles (of one level, or all), sorted by (level, y, x)."""
+        q = "SELECT level, x, y FROM tiles"
+        args: tuple[int, ...] = ()
+        if level is not None:
+            q += " WHERE level = ?"
+            args = (level,)
+        return sorted(((int(k), int(x), int(y)) for k, x, y in self._conn.execute(q, args)), key=lambda c: (c[0], c[2], c[1]))
+
+    def __contains__(self, code: object) -> bool:
+        if not (isinstance(code, tuple) and len(code) == 3):
+            return False
+        r = self._conn.execute("SELECT 1 FROM tiles WHERE level=? AND x=? AND y=?", code).fetchone()
+        return r is not None
+
+    def tile_errors(self) -> dict[TileCode, tuple[float, float]]:
+        """{code: (error_m, vertical_error_m)} of every stored tile (cheap: no geometry)."""
+        rows = self._conn.execute("SELECT level, x, y, error_m, vertical_error_m FROM tiles")
+        return {(k, x, y): (e, v) for k, x, y, e, v in rows}
+
+    def tile_summaries(self) -> list[dict[str, Any]]:
+        """Per-tile scalars (no geometry): code, errors, z-range, counts."""
+        cols = (
+            "level, x, y, error_m, vertical_error_m, measured_error_m, measured_vertical_error_m, rms_error_m, "
+            "n_samples, z_min_m, z_max_m, n_vertices, n_triangles, length(vertices) + length(triangles)"
+        )
+        names = [c.strip() for c in cols.split(",")]
+        names[-1] = "bytes"
+        return [dict(zip(names, r, strict=True)) for r in self._conn.execute(f"SELECT {cols} FROM tiles")]
+
+    def write_tiles(self, tiles: list[EncodedTile]) -> None:
+        """Insert finished tiles in one transaction."""
+        if not self.writable:
+            raise StoreError("store opened read-only", str(self.path))
+        rows = [(*t.scalars()[:8], t.n_samples, *t.scalars()[9:], t.vertices, t.triangles, t.checksum) for t in tiles]
+        try:
+            with self._conn:
+                self._conn.executemany(
+                    "INSERT OR REPLACE INTO tiles VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)", rows
+                )
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot write tiles ({exc})", str(self.path)) from exc
+
+    def raw_tile(self, level: int, x: int, y: int) -> EncodedTile:
+        """The stored row of a tile, checksum verified."""
+        r = self._conn.execute("SELECT * FROM tiles WHERE level=? AND x=? AND y=?", (level, x, y)).fetchone()
+        if r is None:
+            raise KeyError(f"tile {(level, x, y)} is not in {self.path}")
+        (k, tx, ty, e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, vb, tb, ck) = r
+        t = EncodedTile((k, tx, ty), e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, bytes(vb), bytes(tb))
+        if t.checksum != ck:
+            raise CorruptStoreError(f"tile {(level, x, y)} fails its checksum", str(self.path))
+        return t
+
+    def tile(self, level: int, x: int, y: int) -> Tile:
+        """Decode tile (level, x, y): vertices in world metres exactly as stored."""
+        t = self.raw_tile(level, x, y)
+        try:
+            q = decode_vertices(t.vertices, t.n_vertices)
+            tris = decode_triangles(t.triangles, t.n_triangles)
+        except (zlib.error, ValueError) as exc:
+            raise CorruptStoreError(f"tile {(level, x, y)} cannot be decoded ({exc})", str(self.path)) from exc
+        rows, cols, z = self.dequantise(t.code, q, t.z0_index)
+        x0, y0 = self.transform.c + 0.5 * self.transform.a, self.transform.f + 0.5 * self.transform.e
+        verts = np.empty((t.n_vertices, 3), np.float64)
+        verts[:, 0] = x0 + cols * self.transform.a
+        verts[:, 1] = y0 + rows * self.transform.e
+        verts[:, 2] = z
+        return Tile(
+            t.code, verts, tris, np.stack([rows, cols], axis=1), t.error_m, t.vertical_error_m,
+            t.measured_error_m, t.measured_vertical_error_m, t.rms_error_m, t.n_samples, t.z_min_m, t.z_max_m,
+        )  # fmt: skip
+
+    def dequantise(self, code: TileCode, q: np.ndarray, z0_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Quantised (u, v, h) → (rows, cols) source sample coordinates and heights in metres."""
+        lq = self.quantisation[code[0]]
+        r0, c0 = self.pyramid.origin_rc(code)
+        scale = 1.0 / (1 << lq.xy_frac_bits)
+        cols = c0 + q[:, 0].astype(np.float64) * scale
+        rows = r0 + q[:, 1].astype(np.float64) * scale
+        z = (z0_index + q[:, 2].astype(np.int64)).astype(np.float64) * lq.z_step_m
+        return rows, cols, z
+
+    def iter_tiles(self, level: int | None = None) -> Iterator[Tile]:
+        for c in self.tile_codes(level):
+            yield self.tile(*c)
+
+    def verify(self) -> list[TileCode]:
+        """Codes of tiles whose checksum or decoding fails (empty for a sound store)."""
+        bad = []
+        for c in self.tile_codes():
+            try:
+                self.tile(*c)
+            except CorruptStoreError:
+                bad.append(c)
+        return bad
+
+    def size_bytes(self) -> int:
+        return sum(os.path.getsize(p) for p in (self.path, Path(f"{self.path}-wal")) if os.path.exists(p))
+
+
+def open_store(path: str | os.PathLike[str]) -> TileStore:
+    """Open a ``.terra`` store read-only; use as a context manager.
+
+    >>> with open_store("dem.terra") as s:  # doctest: +SKIP
+    ...     t = s.tile(0, 0, 0); t.vertices.shape, t.error_m
+    """
+    return TileStore.open(path, writable=False)
