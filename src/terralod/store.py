@@ -13,7 +13,8 @@ Quantisation (quantized-mesh style, 16 bits per axis, but on a lattice shared by
 boundary vertices of neighbouring tiles dequantise to identical coordinates):
 ``col = col0 + u / 2^f``, ``row = row0 + v / 2^f`` (f per level, see ``TilePyramid.xy_frac_bits``) and
 ``z = (z0_index + q) * z_step_m`` with one ``z_step_m`` per level. Blobs: the three uint16 columns
-zig-zag delta coded, then zlib; triangle indices delta coded, then zlib.
+zig-zag coded as wrapped 16-bit deltas (as quantized-mesh does), then zlib; triangle indices likewise, 16-bit
+when every index fits, else 32-bit.
 
 Writes go through transactions (the builder commits batches of finished tiles), so a store killed mid-build
 opens with every committed tile and ``complete = false``. The store never imports the builder.
@@ -58,42 +59,61 @@ CREATE TABLE IF NOT EXISTS tiles (
 
 
 # -- blob coding ---------------------------------------------------------------------------------------
-def _zigzag_delta_u16(a: np.ndarray) -> np.ndarray:
-    d = np.diff(a.astype(np.int32), prepend=np.int32(0))
+def _zigzag_delta16(a: np.ndarray) -> np.ndarray:
+    """uint16 values → zig-zag of their wrapped 16-bit deltas (small numbers for coherent data)."""
+    d = np.diff(a.astype(np.int64), prepend=np.int64(0)).astype(np.uint16).view(np.int16).astype(np.int32)
+    return ((d << 1) ^ (d >> 15)).astype(np.uint16)
+
+
+def _undo_zigzag_delta16(z: np.ndarray) -> np.ndarray:
+    z = z.astype(np.int64)
+    d = (z >> 1) ^ -(z & 1)
+    return (np.cumsum(d) & 0xFFFF).astype(np.uint16)
+
+
+def _zigzag_delta32(a: np.ndarray) -> np.ndarray:
+    d = np.diff(a.astype(np.int64), prepend=np.int64(0)).astype(np.uint32).view(np.int32).astype(np.int64)
     return ((d << 1) ^ (d >> 31)).astype(np.uint32)
 
 
-def _undo_zigzag_delta(z: np.ndarray) -> np.ndarray:
+def _undo_zigzag_delta32(z: np.ndarray) -> np.ndarray:
     z = z.astype(np.int64)
     d = (z >> 1) ^ -(z & 1)
-    return np.cumsum(d)
+    return (np.cumsum(d) & 0xFFFFFFFF).astype(np.uint32)
 
 
 def encode_vertices(q: np.ndarray) -> bytes:
-    """(N, 3) uint16 quantised (u, v, h) → zlib of zig-zag deltas per column (uint32, little-endian)."""
-    cols = [_zigzag_delta_u16(q[:, k]) for k in range(3)]
-    return zlib.compress(np.concatenate(cols).astype("<u4").tobytes(), 6)
+    """(N, 3) uint16 quantised (u, v, h) → zlib of the zig-zag wrapped deltas of each column (uint16 LE)."""
+    cols = [_zigzag_delta16(q[:, k]) for k in range(3)]
+    return zlib.compress(np.concatenate(cols).astype("<u2").tobytes(), 6)
 
 
 def decode_vertices(blob: bytes, n: int) -> np.ndarray:
-    raw = np.frombuffer(zlib.decompress(blob), dtype="<u4")
+    raw = np.frombuffer(zlib.decompress(blob), dtype="<u2")
     if raw.size != 3 * n:
         raise ValueError(f"Expected {3 * n} vertex codes, got {raw.size}")
-    return np.stack([_undo_zigzag_delta(raw[k * n : (k + 1) * n]) for k in range(3)], axis=1).astype(np.uint16)
+    return np.stack([_undo_zigzag_delta16(raw[k * n : (k + 1) * n]) for k in range(3)], axis=1)
 
 
 def encode_triangles(t: np.ndarray) -> bytes:
+    """(K, 3) indices → one width byte (2 or 4) + zlib of zig-zag wrapped deltas of the flat index list."""
     flat = t.astype(np.int64).ravel()
-    d = np.diff(flat, prepend=np.int64(0))
-    zz = ((d << 1) ^ (d >> 63)).astype(np.uint64)
-    return zlib.compress(zz.astype("<u4").tobytes(), 6)
+    if flat.size == 0 or flat.max() < 65536:
+        return b"\x02" + zlib.compress(_zigzag_delta16(flat).astype("<u2").tobytes(), 6)
+    return b"\x04" + zlib.compress(_zigzag_delta32(flat).astype("<u4").tobytes(), 6)
 
 
 def decode_triangles(blob: bytes, k: int) -> np.ndarray:
-    raw = np.frombuffer(zlib.decompress(blob), dtype="<u4")
-    if raw.size != 3 * k:
-        raise ValueError(f"Expected {3 * k} indices, got {raw.size}")
-    return _undo_zigzag_delta(raw).astype(np.uint32).reshape(k, 3)
+    width = blob[:1]
+    if width == b"\x02":
+        flat = _undo_zigzag_delta16(np.frombuffer(zlib.decompress(blob[1:]), dtype="<u2"))
+    elif width == b"\x04":
+        flat = _undo_zigzag_delta32(np.frombuffer(zlib.decompress(blob[1:]), dtype="<u4"))
+    else:
+        raise ValueError(f"Expected index width 2 or 4, got {width!r}")
+    if flat.size != 3 * k:
+        raise ValueError(f"Expected {3 * k} indices, got {flat.size}")
+    return flat.astype(np.uint32).reshape(k, 3)
 
 
 def row_checksum(values: tuple[Any, ...], vblob: bytes, tblob: bytes) -> int:
