@@ -8,7 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-SHARED_DATA = Path(os.environ.get("TERRALOD_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
+SHARED_DATA = Path(
+    os.environ.get("TERRALOD_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data")
+)
 
 
 @pytest.fixture(scope="session")
@@ -19,7 +21,9 @@ def shared_data() -> Path:
     return SHARED_DATA.resolve()
 
 
-def fractal_terrain(rows: int, cols: int, seed: int, relief_m: float = 500.0, beta: float = 2.2) -> np.ndarray:
+def fractal_terrain(
+    rows: int, cols: int, seed: int, relief_m: float = 500.0, beta: float = 2.2
+) -> np.ndarray:
     """A spectral-synthesis fBm terrain (power ~ f^-beta), float32 metres; deterministic per seed."""
     rng = np.random.default_rng(seed)
     n = max(rows, cols)

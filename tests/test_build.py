@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fractal_terrain
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import fractal_terrain
 from terralod import Heightfield, build_store, measure_error, open_store
 from terralod.tiles import parent
 
@@ -87,7 +87,9 @@ def check_store_invariants(path: Path, hf: Heightfield) -> None:
     holes=st.booleans(),
 )
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-def test_store_invariants_random_terrain(tmp_path: Path, rows: int, cols: int, m: int, seed: int, holes: bool) -> None:
+def test_store_invariants_random_terrain(
+    tmp_path: Path, rows: int, cols: int, m: int, seed: int, holes: bool
+) -> None:
     hf = _hf(rows, cols, seed, spacing=(25.0, 35.0), holes=holes)
     out = tmp_path / f"t{rows}_{cols}_{m}_{seed}_{holes}.terra"
     build_store(hf, out, tile_size=m, workers=2)
@@ -108,7 +110,7 @@ def test_tilted_plane_zero_error(tmp_path: Path) -> None:
     hf = Heightfield.from_array((3.0 * r - 2.0 * c + 1000).astype(np.float32), 5.0)
     build_store(hf, tmp_path / "p.terra", tile_size=9)
     with open_store(tmp_path / "p.terra") as s:
-        for code, (e, v) in s.tile_errors().items():
+        for code, (_e, v) in s.tile_errors().items():
             q = s.quantisation[code[0]]
             assert v <= q.z_bound_m * 2 + 1e-9, (code, v)
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
-from conftest import fractal_terrain
 from rasterio.transform import from_origin
 
+from conftest import fractal_terrain
 from terralod import build_store, open_store, read_heightfield
 
 
@@ -26,7 +26,9 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300) -> subpro
     )
 
 
-def write_tif(path: Path, z: np.ndarray, nodata: float | None = None, crs: str = "EPSG:32610", res: float = 30.0) -> Path:
+def write_tif(
+    path: Path, z: np.ndarray, nodata: float | None = None, crs: str = "EPSG:32610", res: float = 30.0
+) -> Path:
     with rasterio.open(
         path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1, dtype=z.dtype,
         crs=crs, transform=from_origin(500000, 5200000, res, res), nodata=nodata,
@@ -68,7 +70,9 @@ def test_bad_inputs(tmp_path: Path) -> None:
     assert_one_line_error(run_cli("info", str(tmp_path / "huge.tif")), "huge.tif", "400000x400000")
     good = write_tif(tmp_path / "good.tif", fractal_terrain(40, 40, 1))
     assert_one_line_error(run_cli("build", str(good), "-o", "/dev/null/x.terra"), "x.terra")
-    assert_one_line_error(run_cli("build", str(good), "-o", str(tmp_path / "nodir" / "x.terra")), "does not exist")
+    assert_one_line_error(
+        run_cli("build", str(good), "-o", str(tmp_path / "nodir" / "x.terra")), "does not exist"
+    )
     png = tmp_path / "h.png"
     from PIL import Image
 

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fractal_terrain
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from conftest import fractal_terrain
 from terralod import CorruptStoreError, Heightfield, StoreError, build_store, open_store
 from terralod.store import decode_triangles, decode_vertices, encode_triangles, encode_vertices
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -48,7 +47,9 @@ def _parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
 
 
 def _read_options(f):
-    f = click.option("--spacing", "spacing", help="Ground spacing DX[,DY] in metres (un-georeferenced inputs).")(f)
+    f = click.option(
+        "--spacing", "spacing", help="Ground spacing DX[,DY] in metres (un-georeferenced inputs)."
+    )(f)
     f = click.option("--vertical-scale", type=float, help="Metres per stored unit (PNG/NPY heightmaps).")(f)
     f = click.option("--vertical-offset", type=float, help="Metres added after scaling.")(f)
     f = click.option(
@@ -171,7 +172,9 @@ def info(path: str, as_json: bool, **read: Any) -> None:
 
 
 # -- build ---------------------------------------------------------------------------------------------
-def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None, resume: bool, overwrite: bool):
+def run_build(
+    hf, out: str, *, tile_size: int, method: str, workers: int | None, resume: bool, overwrite: bool
+):
     from terralod.build.builder import build_store
 
     with Progress(
@@ -184,7 +187,14 @@ def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None,
             prog.update(task, completed=done, total=total)
 
         return build_store(
-            hf, out, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite, progress=cb
+            hf,
+            out,
+            tile_size=tile_size,
+            method=method,
+            workers=workers,
+            resume=resume,
+            overwrite=overwrite,
+            progress=cb,
         )
 
 
@@ -197,20 +207,28 @@ def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None,
 @click.option("--resume", is_flag=True, help="Finish an interrupted build of the same input.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output store.")
 @_read_options
-def build(input_path: str, output: str, tile_size: int, method: str, workers, resume, overwrite, **read: Any) -> None:
+def build(
+    input_path: str, output: str, tile_size: int, method: str, workers, resume, overwrite, **read: Any
+) -> None:
     """Build the level-of-detail tile store of a DEM."""
     from terralod.build.builder import METHODS, store_summary
     from terralod.store import open_store
     from terralod.tiles import is_valid_tile_size
 
     if not is_valid_tile_size(tile_size) or tile_size > 257:
-        raise click.BadParameter(f"expected 2^n + 1 between 3 and 257, got {tile_size}", param_hint="--tile-size")
+        raise click.BadParameter(
+            f"expected 2^n + 1 between 3 and 257, got {tile_size}", param_hint="--tile-size"
+        )
     if method not in METHODS:
-        raise click.BadParameter(f"expected one of {', '.join(sorted(METHODS))}, got {method!r}", param_hint="--method")
+        raise click.BadParameter(
+            f"expected one of {', '.join(sorted(METHODS))}, got {method!r}", param_hint="--method"
+        )
     if workers is not None and workers < 1:
         raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
     hf = _load(input_path, **read)
-    rep = run_build(hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite)
+    rep = run_build(
+        hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite
+    )
     console.print(
         f"built {rep.tiles_built} tiles ({rep.tiles_skipped} already done) in {rep.seconds:.2f} s, "
         f"{rep.samples_per_second / 1e6:.2f} M source samples/s"
@@ -235,7 +253,9 @@ def demo(output: str, tile_size: int) -> None:
         f"[bold]{d['source']}[/bold]: {d['size'][0]}x{d['size'][1]} samples at {d['spacing_m'][0]:.1f} m, "
         f"{d['elevation_range_m'][0]:.0f}..{d['elevation_range_m'][1]:.0f} m, CRS {_crs_name(d['crs'])}"
     )
-    rep = run_build(hf, output, tile_size=tile_size, method="chunked", workers=None, resume=False, overwrite=True)
+    rep = run_build(
+        hf, output, tile_size=tile_size, method="chunked", workers=None, resume=False, overwrite=True
+    )
     console.print(f"built {rep.tiles_built} tiles in {rep.seconds:.2f} s")
     with open_store(output) as s:
         print_store_summary(store_summary(s))

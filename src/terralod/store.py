@@ -221,7 +221,9 @@ class TileStore:
         self._conn = conn
         self.writable = writable
         self.meta = self._read_meta()
-        self.pyramid = TilePyramid(int(self.meta["width"]), int(self.meta["height"]), int(self.meta["tile_size"]))
+        self.pyramid = TilePyramid(
+            int(self.meta["width"]), int(self.meta["height"]), int(self.meta["tile_size"])
+        )
         t = self.meta["transform"]
         self.transform = Affine(*t[:6])
         self.quantisation = {
@@ -246,7 +248,7 @@ class TileStore:
         try:
             uri = f"file:{p.resolve()}" + ("" if writable else "?mode=ro")
             conn = sqlite3.connect(uri, uri=True, check_same_thread=False)
-            conn.execute("PRAGMA query_only = %d" % (0 if writable else 1))
+            conn.execute(f"PRAGMA query_only = {0 if writable else 1}")
             ok = conn.execute("PRAGMA quick_check").fetchone()[0]
         except sqlite3.DatabaseError as exc:
             raise CorruptStoreError(f"corrupted store ({exc})", str(p)) from exc
@@ -296,7 +298,8 @@ class TileStore:
             raise CorruptStoreError("not a terralod store (no format marker)", str(self.path))
         if meta.get("version") != FORMAT_VERSION:
             raise CorruptStoreError(
-                f"store format version {meta.get('version')}, this terralod reads {FORMAT_VERSION}", str(self.path)
+                f"store format version {meta.get('version')}, this terralod reads {FORMAT_VERSION}",
+                str(self.path),
             )
         return meta
 
@@ -321,7 +324,9 @@ class TileStore:
 
     @property
     def complete(self) -> bool:
-        return bool(json.loads(self._conn.execute("SELECT value FROM meta WHERE key='complete'").fetchone()[0]))
+        return bool(
+            json.loads(self._conn.execute("SELECT value FROM meta WHERE key='complete'").fetchone()[0])
+        )
 
     @property
     def crs(self) -> str | None:
@@ -334,7 +339,8 @@ class TileStore:
     def set_meta(self, key: str, value: Any) -> None:
         with self._conn:
             self._conn.execute(
-                "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (key, json.dumps(value, sort_keys=True))
+                "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                (key, json.dumps(value, sort_keys=True)),
             )
         self.meta[key] = value
 
@@ -346,7 +352,10 @@ class TileStore:
         if level is not None:
             q += " WHERE level = ?"
             args = (level,)
-        return sorted(((int(k), int(x), int(y)) for k, x, y in self._conn.execute(q, args)), key=lambda c: (c[0], c[2], c[1]))
+        return sorted(
+            ((int(k), int(x), int(y)) for k, x, y in self._conn.execute(q, args)),
+            key=lambda c: (c[0], c[2], c[1]),
+        )
 
     def __contains__(self, code: object) -> bool:
         if not (isinstance(code, tuple) and len(code) == 3):
@@ -373,7 +382,10 @@ class TileStore:
         """Insert finished tiles in one transaction."""
         if not self.writable:
             raise StoreError("store opened read-only", str(self.path))
-        rows = [(*t.scalars()[:8], t.n_samples, *t.scalars()[9:], t.vertices, t.triangles, t.checksum) for t in tiles]
+        rows = [
+            (*t.scalars()[:8], t.n_samples, *t.scalars()[9:], t.vertices, t.triangles, t.checksum)
+            for t in tiles
+        ]
         try:
             with self._conn:
                 self._conn.executemany(
@@ -400,7 +412,9 @@ class TileStore:
             q = decode_vertices(t.vertices, t.n_vertices)
             tris = decode_triangles(t.triangles, t.n_triangles)
         except (zlib.error, ValueError) as exc:
-            raise CorruptStoreError(f"tile {(level, x, y)} cannot be decoded ({exc})", str(self.path)) from exc
+            raise CorruptStoreError(
+                f"tile {(level, x, y)} cannot be decoded ({exc})", str(self.path)
+            ) from exc
         rows, cols, z = self.dequantise(t.code, q, t.z0_index)
         x0, y0 = self.transform.c + 0.5 * self.transform.a, self.transform.f + 0.5 * self.transform.e
         verts = np.empty((t.n_vertices, 3), np.float64)
@@ -412,7 +426,9 @@ class TileStore:
             t.measured_error_m, t.measured_vertical_error_m, t.rms_error_m, t.n_samples, t.z_min_m, t.z_max_m,
         )  # fmt: skip
 
-    def dequantise(self, code: TileCode, q: np.ndarray, z0_index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def dequantise(
+        self, code: TileCode, q: np.ndarray, z0_index: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Quantised (u, v, h) → (rows, cols) source sample coordinates and heights in metres."""
         lq = self.quantisation[code[0]]
         r0, c0 = self.pyramid.origin_rc(code)

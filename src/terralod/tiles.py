@@ -122,7 +122,9 @@ class TilePyramid:
         """Same-level neighbour in one of the 8 directions of EDGE_OFFSETS / CORNER_OFFSETS, or None."""
         off = EDGE_OFFSETS.get(direction) or CORNER_OFFSETS.get(direction)
         if off is None:
-            raise ValueError(f"Expected one of {list(EDGE_OFFSETS) + list(CORNER_OFFSETS)}, got {direction!r}")
+            raise ValueError(
+                f"Expected one of {list(EDGE_OFFSETS) + list(CORNER_OFFSETS)}, got {direction!r}"
+            )
         n = (code[0], code[1] + off[0], code[2] + off[1])
         return n if self.exists(n) else None
 

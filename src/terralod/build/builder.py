@@ -1,0 +1,336 @@
+"""Drive a build: plan the pyramid, mesh every tile on worker threads, quantise, measure, write the store.
+
+Order: finest level first, so each tile's stored error can be made monotone at once
+(``error_m = max(measured, children's error_m)``) and an interrupted build never needs a second pass.
+Tiles are meshed on a thread pool (the numba kernels release the GIL) and committed to SQLite in
+batches, each batch one transaction; ``resume=True`` skips the committed tiles and produces a store whose
+tiles are byte-identical to an uninterrupted build (everything is deterministic).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from terralod.build import chunked
+from terralod.error import measure_error_window
+from terralod.errors import BuildMismatchError, StoreError
+from terralod.heightfield import Heightfield
+from terralod.kernels import jit
+from terralod.store import (
+    FORMAT_VERSION,
+    EncodedTile,
+    LevelQuantisation,
+    TileStore,
+    encode_triangles,
+    encode_vertices,
+)
+from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size
+
+log = logging.getLogger(__name__)
+
+#: Tile meshers by method name: (z, valid, pyramid, code) -> (rows, cols, heights_m, triangles).
+MeshFn = Callable[
+    [np.ndarray, np.ndarray, TilePyramid, TileCode], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+]
+METHODS: dict[str, MeshFn] = {"chunked": chunked.mesh_tile}
+
+#: Tiles committed per SQLite transaction (bounded by time as well, see ``_COMMIT_SECONDS``).
+_BATCH_TILES = 64
+_COMMIT_SECONDS = 0.5
+
+
+def register_method(name: str, fn: MeshFn) -> None:
+    """Make a tile mesher available to :func:`build_store` under ``name``."""
+    METHODS[name] = fn
+
+
+@dataclass
+class BuildReport:
+    """What a build did: tiles written now, tiles found already done (resume), seconds, samples/s."""
+
+    path: Path
+    tiles_total: int
+    tiles_built: int
+    tiles_skipped: int
+    seconds: float
+    source_samples: int
+    per_level: dict[int, dict[str, float]] = field(default_factory=dict)
+
+    @property
+    def samples_per_second(self) -> float:
+        return self.source_samples / self.seconds if self.seconds > 0 else math.inf
+
+
+@jit
+def _level_max_range(z, s, m):
+    """Largest (max - min) vertex height of any tile of a level (vertices at stride s, edge-replicated)."""
+    h, w = z.shape
+    cells = m - 1
+    span = cells * s
+    nty = -(-(h - 1) // span)
+    ntx = -(-(w - 1) // span)
+    best = 0.0
+    for ty in range(nty):
+        for tx in range(ntx):
+            lo = np.inf
+            hi = -np.inf
+            for i in range(m):
+                r = min(ty * span + i * s, h - 1)
+                for j in range(m):
+                    c = min(tx * span + j * s, w - 1)
+                    v = z[r, c]
+                    if v < lo:
+                        lo = v
+                    if v > hi:
+                        hi = v
+            if hi - lo > best:
+                best = hi - lo
+    return best
+
+
+def plan_quantisation(hf: Heightfield, pyramid: TilePyramid) -> dict[int, LevelQuantisation]:
+    """Per-level 16-bit lattices: horizontal fractional bits and a vertical step that fits every tile.
+
+    The vertical step is the largest vertex-height range of any tile of the level over 65534 steps, so
+    ``z0_index + q`` never overflows 16 bits and every tile of a level shares one lattice.
+    """
+    out = {}
+    for k in pyramid.levels:
+        rng = _level_max_range(hf.elevation_m, pyramid.stride(k), pyramid.tile_size)
+        step = max(float(rng) / 65534.0, 1e-6)
+        out[k] = LevelQuantisation(pyramid.xy_frac_bits(k), step)
+    return out
+
+
+def _store_meta(
+    hf: Heightfield, pyramid: TilePyramid, method: str, quant: dict[int, LevelQuantisation]
+) -> dict:
+    return {
+        "source": hf.source,
+        "source_digest": hf.digest(),
+        "crs": hf.crs,
+        "transform": list(tuple(hf.transform)[:6]),
+        "spacing_m": list(hf.spacing_m),
+        "width": hf.width,
+        "height": hf.height,
+        "tile_size": pyramid.tile_size,
+        "max_level": pyramid.max_level,
+        "method": method,
+        "build_options": {"method": method, "tile_size": pyramid.tile_size},
+        "fill_method": hf.fill_method,
+        "notes": list(hf.notes),
+        "nodata_fraction": hf.nodata_fraction,
+        "quantisation": {
+            str(k): {"xy_frac_bits": q.xy_frac_bits, "z_step_m": q.z_step_m} for k, q in quant.items()
+        },
+        "builder_version": FORMAT_VERSION,
+    }
+
+
+def _quantise(
+    rows: np.ndarray, cols: np.ndarray, hz: np.ndarray, r0: int, c0: int, q: LevelQuantisation
+) -> tuple[np.ndarray, int]:
+    scale = float(1 << q.xy_frac_bits)
+    u = np.rint((cols - c0) * scale)
+    v = np.rint((rows - r0) * scale)
+    zi = np.rint(hz / q.z_step_m).astype(np.int64)
+    z0 = int(zi.min())
+    qz = zi - z0
+    if u.min() < 0 or v.min() < 0 or max(u.max(), v.max(), qz.max()) > 65535:
+        raise AssertionError("quantisation overflow")  # the plan makes this impossible
+    return np.stack([u, v, qz], axis=1).astype(np.uint16), z0
+
+
+def build_tile(
+    hf: Heightfield,
+    pyramid: TilePyramid,
+    code: TileCode,
+    quant: LevelQuantisation,
+    mesh_fn: MeshFn,
+    child_errors: list[tuple[float, float]],
+) -> EncodedTile:
+    """Mesh, quantise, dequantise and measure one tile; monotone errors from its children."""
+    r0, c0 = pyramid.origin_rc(code)
+    rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code)
+    qv, z0 = _quantise(rows, cols, hz, r0, c0, quant)
+    # Measure on the geometry exactly as stored.
+    scale = 1.0 / (1 << quant.xy_frac_bits)
+    dx, dy = hf.spacing_m
+    span = pyramid.span(code[0])
+    r1 = min(r0 + span, hf.height - 1)
+    c1 = min(c0 + span, hf.width - 1)
+    local = np.empty((qv.shape[0], 3), np.float64)
+    local[:, 0] = qv[:, 0] * scale * dx
+    local[:, 1] = qv[:, 1] * scale * dy
+    local[:, 2] = (z0 + qv[:, 2].astype(np.int64)) * quant.z_step_m
+    rep = measure_error_window(
+        local, tris, hf.elevation_m[r0 : r1 + 1, c0 : c1 + 1], hf.valid[r0 : r1 + 1, c0 : c1 + 1], dx, dy
+    )
+    err = rep.hausdorff_m
+    verr = max([rep.max_vertical_m] + [v for _, v in child_errors])
+    return EncodedTile(
+        code=code,
+        error_m=float(err),
+        vertical_error_m=float(verr),
+        measured_error_m=float(rep.hausdorff_m),
+        measured_vertical_error_m=float(rep.max_vertical_m),
+        rms_error_m=float(rep.rms_vertical_m),
+        n_samples=int(rep.n_samples),
+        z_min_m=float(local[:, 2].min()),
+        z_max_m=float(local[:, 2].max()),
+        n_vertices=int(qv.shape[0]),
+        n_triangles=int(tris.shape[0]),
+        z0_index=z0,
+        vertices=encode_vertices(qv),
+        triangles=encode_triangles(tris),
+    )
+
+
+def build_store(
+    hf: Heightfield,
+    path: str | os.PathLike[str],
+    *,
+    tile_size: int = 65,
+    method: str = "chunked",
+    workers: int | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    stop_after: int | None = None,
+) -> BuildReport:
+    """Build the LOD tile store of ``hf`` at ``path``.
+
+    Parameters
+    ----------
+    hf : the source heightfield (metres).
+    path : output ``.terra`` file.
+    tile_size : M, vertices per tile side, 2^n + 1.
+    method : tile mesher, a key of :data:`METHODS` ("chunked"; "cohesion" once registered).
+    workers : threads meshing tiles (default: all cores).
+    resume : continue an interrupted build of the same source and options at ``path``.
+    overwrite : replace an existing file at ``path``.
+    progress : called as ``progress(done, total)`` after each committed batch.
+    stop_after : build at most this many new tiles, then return (tests of interrupted builds).
+    """
+    if not is_valid_tile_size(tile_size):
+        raise ValueError(f"Expected a tile size 2^n + 1 (e.g. 33, 65, 129), got {tile_size}")
+    if method not in METHODS:
+        raise ValueError(f"Expected a method in {sorted(METHODS)}, got {method!r}")
+    p = Path(path)
+    t_start = time.perf_counter()
+    pyramid = TilePyramid(hf.width, hf.height, tile_size)
+    quant = plan_quantisation(hf, pyramid)
+    meta = _store_meta(hf, pyramid, method, quant)
+
+    if p.exists() and resume:
+        store = TileStore.open(p, writable=True)
+        for key in ("source_digest", "build_options", "quantisation", "width", "height", "tile_size"):
+            if store.meta.get(key) != meta[key]:
+                store.close()
+                raise BuildMismatchError(
+                    f"cannot resume: the store's {key} differs from this build (other source or options); "
+                    "use --overwrite to rebuild",
+                    str(p),
+                )
+    else:
+        if p.exists():
+            if not overwrite:
+                raise StoreError(
+                    "already exists; use --resume to finish it or --overwrite to replace it", str(p)
+                )
+            for suffix in ("", "-wal", "-shm"):
+                Path(f"{p}{suffix}").unlink(missing_ok=True)
+        store = TileStore.create(p, meta)
+
+    codes = pyramid.all_codes(finest_first=True)
+    try:
+        errors = store.tile_errors()
+        done = set(errors)
+        total = len(codes)
+        todo = [c for c in codes if c not in done]
+        n_skipped = total - len(todo)
+        built = 0
+        n_workers = max(1, workers or os.cpu_count() or 1)
+        mesh_fn = METHODS[method]
+        if progress:
+            progress(n_skipped, total)
+        with ThreadPoolExecutor(max_workers=n_workers) as pool:
+            for level in reversed(pyramid.levels):
+                level_codes = [c for c in todo if c[0] == level]
+                if stop_after is not None:
+                    level_codes = level_codes[: max(0, stop_after - built)]
+                if not level_codes:
+                    continue
+
+                def one(code: TileCode, _lvl: int = level) -> EncodedTile:
+                    kids = [errors[c] for c in pyramid.children(code)]
+                    return build_tile(hf, pyramid, code, quant[_lvl], mesh_fn, kids)
+
+                batch: list[EncodedTile] = []
+                last = time.perf_counter()
+                for enc in pool.map(one, level_codes):
+                    batch.append(enc)
+                    errors[enc.code] = (enc.error_m, enc.vertical_error_m)
+                    now = time.perf_counter()
+                    if len(batch) >= _BATCH_TILES or now - last > _COMMIT_SECONDS:
+                        store.write_tiles(batch)
+                        built += len(batch)
+                        batch = []
+                        last = now
+                        if progress:
+                            progress(n_skipped + built, total)
+                if batch:
+                    store.write_tiles(batch)
+                    built += len(batch)
+                    if progress:
+                        progress(n_skipped + built, total)
+                if stop_after is not None and built >= stop_after:
+                    break
+        if n_skipped + built == total:
+            store.set_meta("complete", True)
+    finally:
+        store.close()
+    seconds = time.perf_counter() - t_start
+    log.info("built %d tiles (%d already present) in %.2f s", built, n_skipped, seconds)
+    return BuildReport(p, total, built, n_skipped, seconds, hf.width * hf.height)
+
+
+def store_summary(store: TileStore) -> dict[str, Any]:
+    """Per-level table of a store: tiles, vertices, triangles, max/mean error, bytes."""
+    per: dict[int, dict[str, Any]] = {}
+    for r in store.tile_summaries():
+        d = per.setdefault(
+            r["level"],
+            {"tiles": 0, "vertices": 0, "triangles": 0, "max_error_m": 0.0, "max_vertical_error_m": 0.0,
+             "sum_rms_sq": 0.0, "samples": 0, "bytes": 0},
+        )  # fmt: skip
+        d["tiles"] += 1
+        d["vertices"] += r["n_vertices"]
+        d["triangles"] += r["n_triangles"]
+        d["max_error_m"] = max(d["max_error_m"], r["error_m"])
+        d["max_vertical_error_m"] = max(d["max_vertical_error_m"], r["vertical_error_m"])
+        d["sum_rms_sq"] += r["rms_error_m"] ** 2 * r["n_samples"]
+        d["samples"] += r["n_samples"]
+        d["bytes"] += r["bytes"]
+    for d in per.values():
+        d["rms_error_m"] = math.sqrt(d.pop("sum_rms_sq") / d["samples"]) if d["samples"] else 0.0
+    return {
+        "path": str(store.path),
+        "complete": store.complete,
+        "levels": len(store.levels),
+        "tile_size": store.tile_size,
+        "tiles": sum(d["tiles"] for d in per.values()),
+        "tiles_planned": len(store.pyramid.all_codes()),
+        "size_bytes": store.size_bytes(),
+        "per_level": dict(sorted(per.items())),
+    }
