@@ -92,7 +92,7 @@ def test_store_invariants_random_terrain(
 ) -> None:
     hf = _hf(rows, cols, seed, spacing=(25.0, 35.0), holes=holes)
     out = tmp_path / f"t{rows}_{cols}_{m}_{seed}_{holes}.terra"
-    build_store(hf, out, tile_size=m, workers=2)
+    build_store(hf, out, tile_size=m, workers=2, overwrite=True)
     check_store_invariants(out, hf)
 
 

@@ -13,7 +13,8 @@ from test_build import check_store_invariants
 
 def test_bundled_sample_store(tmp_path: Path) -> None:
     hf = sample_heightfield()
-    assert hf.crs is not None and hf.nodata_fraction == 0.0
+    # reprojection turns the geographic grid slightly, so its corners fall outside the source footprint
+    assert hf.crs is not None and "UTM zone 16N" in hf.crs and 0.0 < hf.nodata_fraction < 0.1
     dx, dy = hf.spacing_m
     assert 60 < dx < 95 and 60 < dy < 95
     out = tmp_path / "sample.terra"

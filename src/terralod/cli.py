@@ -19,7 +19,7 @@ from rich.table import Table
 
 from terralod.errors import TerralodError
 
-console = Console(stderr=False)
+console = Console(stderr=False, width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True)
 _VERBOSE = {"on": False}
 
@@ -119,7 +119,8 @@ def _crs_name(crs: str | None) -> str:
 
 
 def print_store_summary(summary: dict[str, Any]) -> None:
-    t = Table(title=f"{summary['path']}  ({'complete' if summary['complete'] else 'INCOMPLETE'})")
+    console.print(f"{summary['path']}: {'complete' if summary['complete'] else 'INCOMPLETE (finish with --resume)'}")
+    t = Table()
     for col in ("level", "tiles", "vertices", "triangles", "max error m", "max vert. m", "RMS m", "KiB"):
         t.add_column(col, justify="right")
     for k, d in summary["per_level"].items():

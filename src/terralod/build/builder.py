@@ -176,7 +176,7 @@ def build_tile(
     rep = measure_error_window(
         local, tris, hf.elevation_m[r0 : r1 + 1, c0 : c1 + 1], hf.valid[r0 : r1 + 1, c0 : c1 + 1], dx, dy
     )
-    err = rep.hausdorff_m
+    err = max([rep.hausdorff_m] + [e for e, _ in child_errors])
     verr = max([rep.max_vertical_m] + [v for _, v in child_errors])
     return EncodedTile(
         code=code,
