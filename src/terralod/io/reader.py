@@ -52,7 +52,16 @@ def read_sidecar(path: Path) -> dict[str, Any]:
     except (OSError, ValueError) as exc:
         raise InputError(f"sidecar {side.name} is not valid JSON ({exc})", str(path)) from None
     out: dict[str, Any] = {}
-    for key in ("spacing_m", "vertical_scale", "vertical_offset", "encoding", "tile", "nodata", "crs", "transform"):
+    for key in (
+        "spacing_m",
+        "vertical_scale",
+        "vertical_offset",
+        "encoding",
+        "tile",
+        "nodata",
+        "crs",
+        "transform",
+    ):
         if raw.get(key) is not None:
             out[key] = raw[key]
     vert = raw.get("vertical") if isinstance(raw.get("vertical"), dict) else {}
@@ -72,7 +81,11 @@ def read_sidecar(path: Path) -> dict[str, Any]:
         out["crs"] = hor["crs"]
     if isinstance(out.get("encoding"), str):
         e = out["encoding"].lower().replace("_", "-")
-        out["encoding"] = {"terrarium": "terrarium", "terrain-rgb": "terrain-rgb", "mapbox": "terrain-rgb"}.get(e, e)
+        out["encoding"] = {
+            "terrarium": "terrarium",
+            "terrain-rgb": "terrain-rgb",
+            "mapbox": "terrain-rgb",
+        }.get(e, e)
     if isinstance(out.get("tile"), dict):
         t = out["tile"]
         out["tile"] = (int(t["z"]), int(t["x"]), int(t["y"]))
@@ -86,7 +99,9 @@ def _spacing_pair(spacing: Any, path: Path) -> tuple[float, float]:
         else:
             dx, dy = (float(v) for v in spacing)
     except (TypeError, ValueError):
-        raise InputError(f"spacing must be a number or (dx, dy) in metres, got {spacing!r}", str(path)) from None
+        raise InputError(
+            f"spacing must be a number or (dx, dy) in metres, got {spacing!r}", str(path)
+        ) from None
     if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
         raise InputError(f"spacing must be positive metres, got {spacing!r}", str(path))
     return dx, dy
@@ -146,7 +161,9 @@ def sample_heightfield() -> Heightfield:
     # pixel-corner transform: the file's extent holds W-1 steps between sample centres
     t = Affine(dx_deg, 0.0, west - 0.5 * dx_deg, 0.0, -dy_deg, north + 0.5 * dy_deg)
     assert abs((east - west) / dx_deg - (z.shape[1] - 1)) < 1.0
-    return _georeferenced(z, np.ones(z.shape, bool), t, "EPSG:4326", "matplotlib sample_data/jacksboro_fault_dem.npz")
+    return _georeferenced(
+        z, np.ones(z.shape, bool), t, "EPSG:4326", "matplotlib sample_data/jacksboro_fault_dem.npz"
+    )
 
 
 # -- rasters (GDAL) ------------------------------------------------------------------------------------
@@ -207,7 +224,9 @@ def _georeferenced(values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, s
         notes.append(note)
     else:
         unit = (crs.linear_units or "metre").lower()
-        factor = crs.linear_units_factor[1] if unit not in ("metre", "meter", "m", "metres", "meters") else 1.0
+        factor = (
+            crs.linear_units_factor[1] if unit not in ("metre", "meter", "m", "metres", "meters") else 1.0
+        )
         if factor != 1.0:
             t = Affine(t.a * factor, 0.0, t.c * factor, 0.0, t.e * factor, t.f * factor)
             notes.append(f"horizontal coordinates converted from {unit} to metres (x {factor})")
@@ -233,7 +252,9 @@ def _to_utm(values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, src: str
     dx_m = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
     dy_m = math.hypot(xs[2] - xs[0], ys[2] - ys[0])
     res = min(dx_m, dy_m)
-    bx0, by0, bx1, by1 = transform_bounds(crs, dst_crs, t.c, t.f + h * t.e, t.c + w * t.a, t.f, densify_pts=51)
+    bx0, by0, bx1, by1 = transform_bounds(
+        crs, dst_crs, t.c, t.f + h * t.e, t.c + w * t.a, t.f, densify_pts=51
+    )
     width = max(2, int(math.ceil((bx1 - bx0) / res)))
     height = max(2, int(math.ceil((by1 - by0) / res)))
     check_dimensions(height, width, src)
@@ -254,7 +275,9 @@ def _to_utm(values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, src: str
 def _local(values: np.ndarray, valid: np.ndarray, dx: float, dy: float, src: str) -> Heightfield:
     z, ok, how = prepare_elevation(values, valid, src)
     t = Affine(dx, 0.0, 0.0, 0.0, -dy, 0.0)
-    return Heightfield(z, ok, t, crs=None, source=src, fill_method=how, notes=("no georeferencing: local metric frame",))
+    return Heightfield(
+        z, ok, t, crs=None, source=src, fill_method=how, notes=("no georeferencing: local metric frame",)
+    )
 
 
 # -- images and arrays ---------------------------------------------------------------------------------
@@ -328,10 +351,14 @@ def _read_array(p: Path, opts: dict[str, Any], side: dict[str, Any]) -> Heightfi
         values = np.asarray(data)
     if values.ndim != 2 or not np.issubdtype(values.dtype, np.number):
         raise InputError(f"expected a 2-D numeric array, got {values.dtype} {values.shape}", src)
-    values = values.astype(np.float64) * float(opts.get("vertical_scale") or 1.0) + float(opts.get("vertical_offset") or 0.0)
+    values = values.astype(np.float64) * float(opts.get("vertical_scale") or 1.0) + float(
+        opts.get("vertical_offset") or 0.0
+    )
     valid = np.isfinite(values)
     if side.get("nodata") is not None:
-        valid &= np.asarray(data if not isinstance(data, np.lib.npyio.NpzFile) else values) != float(side["nodata"])
+        valid &= np.asarray(data if not isinstance(data, np.lib.npyio.NpzFile) else values) != float(
+            side["nodata"]
+        )
     if side.get("transform") is not None and side.get("crs"):
         g = [float(v) for v in side["transform"]]
         return _georeferenced(values, valid, Affine.from_gdal(*g), side["crs"], src)
