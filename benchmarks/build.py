@@ -6,7 +6,7 @@ on the same data:
 1. builds the whole ``.terra`` pyramid (M = 65, all cores) in a fresh subprocess and records wall time,
    source samples per second (width x height / build seconds, error measurement included), peak RSS
    and store size;
-2. for three error targets (the max vertical error of the store's levels L-1, L-2 and L-3), counts the
+2. for three error targets (TARGETS_M: 5, 20 and 80 m of vertical error), counts the
    triangles the Chunked-LOD store needs to meet the target everywhere (the coarsest tile cut whose
    vertical error is within it), and meshes the same grid with pymartini and pydelatin at the same max
    error, recording their time, triangles and their *measured* max vertical / Hausdorff error
@@ -32,6 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
 from terralod import Heightfield, build_store, measure_error, open_store  # noqa: E402
 from terralod.tiles import parent  # noqa: E402
+
+#: Max vertical error targets, metres, at which triangle counts are compared.
+TARGETS_M = (5.0, 20.0, 80.0)
 
 
 def _terrain(name: str) -> Heightfield | None:
@@ -103,7 +106,11 @@ def run_peers(hf: Heightfield, targets: list[float]) -> list[dict]:
         t = time.perf_counter()
         d = Delatin(z.astype(np.float64), max_error=target)
         secs = time.perf_counter() - t
-        cols, rows = d.vertices[:, 0].astype(np.float64), d.vertices[:, 1].astype(np.float64)
+        # pydelatin's y axis points north: row = (H - 1) - y
+        cols, rows = (
+            d.vertices[:, 0].astype(np.float64),
+            (z.shape[0] - 1) - d.vertices[:, 1].astype(np.float64),
+        )
         verts = np.c_[x0 + cols * dx, y0 - rows * dy, z[rows.astype(int), cols.astype(int)]]
         rep = measure_error(verts, d.triangles.astype(np.int64), hf)
         rows_out.append({"method": "pydelatin", "target_m": target, "seconds": secs, "triangles": len(d.triangles),
@@ -145,8 +152,7 @@ def main() -> None:
                 errs = s.tile_errors()
                 for (k, _, _), (_e, v) in errs.items():
                     per_level[k] = max(per_level.get(k, 0.0), v)
-                L = s.pyramid.max_level
-                targets = [per_level[k] for k in (L - 1, L - 2, L - 3) if k >= 0]
+                targets = list(TARGETS_M)
                 cut = {t: chunked_triangles_at(s, t) for t in targets}
             build = {
                 "samples": samples, "seconds": res["seconds"], "samples_per_s": samples / res["seconds"],
@@ -163,7 +169,8 @@ def main() -> None:
                     if p["target_m"] == target:
                         peer_rows.append([name, target, p["method"], p["triangles"], p["max_vertical_m"],
                                           p["hausdorff_m"], p["seconds"]])  # fmt: skip
-            results["terrains"][name] = {"build": build, "chunked_cut": {str(k): v for k, v in cut.items()},
+            results["terrains"][name] = {"build": build, "level_max_vertical_m": per_level,
+                                         "chunked_cut": {str(k): v for k, v in cut.items()},
                                          "peers": peers, "peer_seconds": time.perf_counter() - t}  # fmt: skip
     md = "## Build throughput (Chunked LOD, M = 65, error measurement included)\n\n"
     md += md_table(
