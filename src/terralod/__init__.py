@@ -6,6 +6,7 @@ Public API (metres everywhere, x east, y north, z up):
 - :func:`measure_error` → :class:`ErrorReport` (max/RMS vertical error, one-sided Hausdorff distance)
 - :func:`build_store` → a ``.terra`` :class:`TileStore`, opened again with :func:`open_store`
 - :class:`TilePyramid`, tile codes ``(level, x, y)``
+- :class:`Camera`, :class:`Engine`: view-dependent selection and crack-free stitching of a store
 """
 
 from terralod.build.builder import BuildReport, build_store
@@ -20,6 +21,7 @@ from terralod.errors import (
 )
 from terralod.heightfield import Heightfield
 from terralod.io.reader import read_heightfield, sample_heightfield
+from terralod.runtime import Camera, Engine
 from terralod.store import Tile, TileStore, open_store
 from terralod.tiles import TilePyramid
 
@@ -28,7 +30,9 @@ __version__ = "0.1.0"
 __all__ = [
     "BuildMismatchError",
     "BuildReport",
+    "Camera",
     "CorruptStoreError",
+    "Engine",
     "ErrorReport",
     "Heightfield",
     "InputError",

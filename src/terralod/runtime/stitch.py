@@ -1,0 +1,700 @@
+"""Crack-free stitching of selected tiles for any LoD difference, edges and corners, incrementally.
+
+Implements ``../shared/papers/002_037d1654b87e3b6a.txt`` §3.3 (elevation adjustment without LoD-difference
+constraints) on the adjacency of :mod:`terralod.runtime.adjacency`, with the normals of §3.4
+(:mod:`terralod.runtime.normals`).
+
+The rule, for every boundary vertex of every visible leaf: its height is the surface of the *coarsest*
+visible leaf whose square contains that position — interpolated linearly along that leaf's boundary edge
+polyline, using its actual stored boundary vertices (fractional, relocated ones included). Tiles are
+processed coarsest first, so the polyline a finer tile reads is already final. Per side: when the leaf
+across is coarser (by any n >= 1; its edge spans 2^n of ours), every vertex of our side moves onto its
+polyline; per corner: the coarsest of the (up to three) other leaves around the corner point decides.
+Same-level neighbours share identical boundary vertices, so they agree without any work.
+
+After adjustment the fine side's vertices lie *on* the coarse side's straight segments (T-junctions that
+are geometrically closed). When boundary vertices were relocated (cohesion maps) a coarse vertex may fall
+strictly inside a fine segment; the fine boundary triangle is then fan-split at it, so the fine edge follows
+every bend of the coarse edge and the seam stays closed (the paper's grids never need this).
+
+Incremental work (the paper's CrackTileVector): only tiles with an active Dirty flag are looked at; each
+keeps its stitched result with a *neighbourhood signature* (the coarser leaves its sides were fitted to and
+the final heights its corners took); a tile whose signature did not change is not touched; a tile whose
+corner heights changed re-queues its finer neighbours (who read its polyline). The "full traversal"
+baseline of table 3 recomputes every visible tile every frame.
+
+Deviations (and why): the paper takes the finer tile as reference for same-level neighbours and copies its
+heights to the neighbour; our same-level tiles are identical by construction (the builder shares boundary
+vertices), so nothing is copied. The paper interpolates on the coarse grid cells; we interpolate on the
+coarse tile's actual boundary polyline, which also covers relocated and partial (data-edge) tiles.
+Culled leaves are treated as absent: a visible tile is never bent to fit a tile nobody sees.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from terralod.kernels.stitch import (
+    normal_sums,
+    normalize_all,
+    polyline_at,
+    split_boundary_triangles,
+    stitch_edge,
+)
+from terralod.kernels.stitch import segment_triangles as _segment_triangles
+from terralod.runtime.adjacency import CULLED, OPPOSITE, VISIBLE, Adjacency, QuadIndex
+from terralod.runtime.normals import boundary_normals, edge_tables, geometry_normals
+from terralod.tiles import TileCode, TilePyramid
+
+__all__ = [
+    "CrackReport",
+    "StitchedTile",
+    "Stitcher",
+    "TileCache",
+    "TilePrep",
+    "TileSource",
+    "find_cracks",
+    "stitch_leaves",
+]
+
+#: Positions (source samples) closer than this are the same point along an edge.
+POS_TOL = 1e-7
+#: Corner c (LU, RU, RD, LD) lies on sides (e1, e2) at their (low, high) ends: (side, end) pairs; end 0 = first.
+_CORNER_SIDES = (((0, 0), (1, 0)), ((1, -1), (2, 0)), ((2, -1), (3, -1)), ((3, 0), (0, -1)))
+
+
+class TileSource(Protocol):
+    """What the runtime needs from a store (a :class:`terralod.store.TileStore` is one)."""
+
+    pyramid: TilePyramid
+    transform: Any
+
+    def tile(self, level: int, x: int, y: int) -> Any: ...
+
+    def tile_summaries(self) -> list[dict[str, Any]]: ...
+
+
+# -- per-tile preparation (cached) ---------------------------------------------------------------------
+@dataclass(eq=False)
+class TilePrep:
+    """A decoded tile with the boundary bookkeeping the stitcher needs (computed once, cached).
+
+    Attributes
+    ----------
+    code : (level, x, y); vertices (N, 3) float64 world metres; triangles (K, 3) uint32 CCW from above
+    r0, c0, r1, c1 : the tile square in source samples (north row, west col, south row, east col)
+    edge_vid[e], edge_t[e] : vertices on side e (L, U, R, D) ascending along it; t = row (L/R) or col (U/D)
+    seg_tri[e], seg_rot[e] : per boundary segment (j, j + 1) the triangle holding it and the corner of that
+        triangle where it starts (-1 where no triangle holds it)
+    corner_vid : vertex at corner LU, RU, RD, LD, or -1 (partial tiles at the data edge)
+    boundary_triangles, boundary_touched : triangles touching the boundary and their vertices
+    base_sums, base_normals : own-triangle normal sums (float64) and normals (float32) as stored
+    """
+
+    code: TileCode
+    vertices: np.ndarray
+    triangles: np.ndarray
+    grid_rc: np.ndarray
+    r0: float
+    c0: float
+    r1: float
+    c1: float
+    edge_vid: list[np.ndarray]
+    edge_t: list[np.ndarray]
+    seg_tri: list[np.ndarray]
+    seg_rot: list[np.ndarray]
+    corner_vid: tuple[int, int, int, int]
+    boundary_triangles: np.ndarray
+    boundary_touched: np.ndarray
+    base_sums: np.ndarray
+    base_normals: np.ndarray
+    base_S: list[np.ndarray] = field(default_factory=list)
+    base_G: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def nbytes(self) -> int:
+        arrays = [self.vertices, self.triangles, self.grid_rc, self.base_sums, self.base_normals]
+        arrays += self.edge_vid + self.edge_t + self.seg_tri + self.base_S + self.base_G
+        return int(sum(a.nbytes for a in arrays))
+
+    def corner_rc(self, c: int) -> tuple[float, float]:
+        """(row, col) of corner c (0..3 = LU, RU, RD, LD)."""
+        return ((self.r0, self.c0), (self.r0, self.c1), (self.r1, self.c1), (self.r1, self.c0))[c]
+
+    def side_of(self, row: float, col: float) -> tuple[int, float]:
+        """(side, t) of a point on this tile's square (a corner reports a side whose polyline has it)."""
+        for e, (line, coord, t) in enumerate(
+            ((self.c0, col, row), (self.r0, row, col), (self.c1, col, row), (self.r1, row, col))
+        ):
+            if abs(coord - line) <= POS_TOL and self.edge_t[e].size:
+                return e, t
+        return -1, math.nan
+
+    @classmethod
+    def from_tile(cls, tile: Any, pyramid: TilePyramid) -> TilePrep:
+        code = tuple(int(a) for a in tile.code)
+        v = np.ascontiguousarray(tile.vertices, dtype=np.float64)
+        tris = np.ascontiguousarray(tile.triangles, dtype=np.uint32)
+        rc = np.asarray(tile.grid_rc, dtype=np.float64)
+        r0, c0 = pyramid.origin_rc(code)  # type: ignore[arg-type]
+        span = pyramid.span(code[0])
+        r1, c1 = r0 + span, c0 + span
+        on = [
+            np.abs(rc[:, 1] - c0) <= POS_TOL,
+            np.abs(rc[:, 0] - r0) <= POS_TOL,
+            np.abs(rc[:, 1] - c1) <= POS_TOL,
+            np.abs(rc[:, 0] - r1) <= POS_TOL,
+        ]
+        edge_vid, edge_t = [], []
+        for e in range(4):
+            idx = np.flatnonzero(on[e])
+            t = rc[idx, 0 if e in (0, 2) else 1]
+            order = np.argsort(t, kind="stable")
+            edge_vid.append(idx[order].astype(np.int64))
+            edge_t.append(np.ascontiguousarray(t[order]))
+        seg = [segment_triangles(tris, ev) for ev in edge_vid]
+
+        def corner(a: int, b: int) -> int:
+            w = np.flatnonzero(on[a] & on[b])
+            return int(w[0]) if w.size else -1
+
+        corners = (corner(0, 1), corner(1, 2), corner(2, 3), corner(3, 0))
+        bmask = on[0] | on[1] | on[2] | on[3]
+        btris = np.flatnonzero(bmask[tris].any(axis=1)).astype(np.int64)
+        touched = np.unique(tris[btris].astype(np.int64))
+        sums = normal_sums(v, tris)
+        prep = cls(
+            code, v, tris, rc, float(r0), float(c0), float(r1), float(c1), edge_vid, edge_t,
+            [s[0] for s in seg], [s[1] for s in seg], corners, btris, touched, sums, normalize_all(sums),
+        )  # fmt: skip
+        for e in range(4):
+            s_tab, g_tab = edge_tables(v, tris, sums, edge_vid[e], prep.seg_tri[e])
+            prep.base_S.append(s_tab)
+            prep.base_G.append(g_tab)
+        for a in (prep.vertices, prep.triangles, prep.base_sums, prep.base_normals):
+            a.flags.writeable = False
+        return prep
+
+
+def segment_triangles(tris: np.ndarray, edge_vid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For consecutive boundary vertices (edge_vid[j], edge_vid[j + 1]): (triangle, start corner) or -1."""
+    n = int(max(int(tris.max()) if tris.size else -1, int(edge_vid.max()) if edge_vid.size else -1)) + 1
+    return _segment_triangles(tris, np.ascontiguousarray(edge_vid, dtype=np.int64), n)
+
+
+class TileCache:
+    """Decoded, prepared tiles, least recently used evicted first (by count and by bytes).
+
+    Parameters
+    ----------
+    source : a :class:`TileSource` (a TileStore)
+    max_tiles : most tiles kept
+    max_bytes : most bytes of arrays kept
+    """
+
+    def __init__(self, source: TileSource, *, max_tiles: int = 1024, max_bytes: int = 512 << 20) -> None:
+        if max_tiles < 1 or max_bytes < 1:
+            raise ValueError(f"Expected a positive cache size, got {max_tiles} tiles / {max_bytes} bytes")
+        self.source = source
+        self.max_tiles = int(max_tiles)
+        self.max_bytes = int(max_bytes)
+        self._items: OrderedDict[TileCode, TilePrep] = OrderedDict()
+        self.nbytes = 0
+        self.hits = 0
+        self.misses = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, code: object) -> bool:
+        return code in self._items
+
+    def get(self, code: TileCode) -> TilePrep:
+        p = self._items.get(code)
+        if p is not None:
+            self.hits += 1
+            self._items.move_to_end(code)
+            return p
+        self.misses += 1
+        p = TilePrep.from_tile(self.source.tile(*code), self.source.pyramid)
+        self._items[code] = p
+        self.nbytes += p.nbytes
+        while len(self._items) > 1 and (len(self._items) > self.max_tiles or self.nbytes > self.max_bytes):
+            _, old = self._items.popitem(last=False)
+            self.nbytes -= old.nbytes
+        return p
+
+
+# -- stitched tiles ------------------------------------------------------------------------------------
+@dataclass(eq=False)
+class StitchedTile:
+    """The stitched state of one visible tile; arrays are never modified after publication."""
+
+    prep: TilePrep
+    signature: tuple
+    vertices: np.ndarray
+    triangles: np.ndarray
+    sums: np.ndarray
+    geometry_normals: np.ndarray
+    final_t: list[np.ndarray]
+    final_vid: list[np.ndarray]
+    final_h: list[np.ndarray]
+    S: list[np.ndarray]
+    G: list[np.ndarray]
+    corner_h: tuple[float | None, ...]
+    boundary_vid: np.ndarray
+    edge_rows: list[np.ndarray]
+    normals: np.ndarray | None = None
+
+    @property
+    def code(self) -> TileCode:
+        return self.prep.code
+
+
+@dataclass
+class StitchStats:
+    """One frame of stitching: CrackTileVector size, tiles re-fitted, tiles whose normals were redone."""
+
+    crack_tiles: int = 0
+    refitted: int = 0
+    normals: int = 0
+    propagated: int = 0
+
+
+class Stitcher:
+    """Keeps the stitched meshes of the visible leaves of an :class:`Adjacency` up to date.
+
+    ``update(crack)`` processes the CrackTileVector returned by ``Adjacency.update`` (or, with
+    ``full=True``, every visible leaf: the conventional full traversal); ``mesh(slot)`` gives the result.
+    """
+
+    def __init__(self, index: QuadIndex, adjacency: Adjacency, cache: TileCache, *, park: int = 128) -> None:
+        self.index = index
+        self.adj = adjacency
+        self.cache = cache
+        t = cache.source.transform
+        self._x0 = float(t.c + 0.5 * t.a)
+        self._y0 = float(t.f + 0.5 * t.e)
+        self._dx = float(t.a)
+        self._dy = float(t.e)
+        self.states: dict[int, StitchedTile] = {}
+        self._parked: OrderedDict[int, StitchedTile] = OrderedDict()
+        self._park = int(park)
+
+    # -- public ----------------------------------------------------------------------------------------
+    def load(self, slots: np.ndarray) -> int:
+        """Decode the tiles of ``slots`` not yet cached (I/O, kept apart from stitching); returns how many."""
+        miss = 0
+        for s in np.asarray(slots, dtype=np.int64).tolist():
+            code = self.index.code(s)
+            if code not in self.cache:
+                self.cache.get(code)
+                miss += 1
+        return miss
+
+    def update(self, crack: np.ndarray, *, full: bool = False) -> StitchStats:
+        """Stitch the tiles of the CrackTileVector ``crack`` (slots, coarsest first) and put them to sleep."""
+        adj = self.adj
+        lvl = self.index.lvl
+        for s in adj.changed.tolist():
+            if adj.state[s] != VISIBLE:
+                st = self.states.pop(s, None)
+                if st is not None:
+                    self._parked[s] = st
+                    while len(self._parked) > self._park:
+                        self._parked.popitem(last=False)
+        work = adj.mark_all() if full else np.asarray(crack, dtype=np.int64)
+        stats = StitchStats(crack_tiles=int(work.size))
+        buckets: list[list[int]] = [[] for _ in range(self.index.max_level + 1)]
+        queued = set(work.tolist())
+        for s in work.tolist():
+            buckets[lvl[s]].append(s)
+        refit: list[int] = []
+        for k in range(len(buckets)):
+            for s in buckets[k]:
+                changed_geom, changed_corners = self._fit(s, force=full)
+                if changed_geom:
+                    refit.append(s)
+                if changed_corners:
+                    for q in adj.neighbours(s).all().tolist():
+                        if adj.state[q] == VISIBLE and lvl[q] > k and q not in queued:
+                            queued.add(q)
+                            buckets[lvl[q]].append(q)
+                            stats.propagated += 1
+        stats.refitted = len(refit)
+        need = set(queued)
+        for s in refit:
+            need.update(q for q in adj.neighbours(s).all().tolist() if adj.state[q] == VISIBLE)
+        for s in sorted(need):
+            self._normals(s)
+        stats.normals = len(need)
+        adj.sleep(np.fromiter(queued, np.int64, len(queued)))
+        return stats
+
+    def mesh(self, slot: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        st = self.states[slot]
+        assert st.normals is not None
+        return st.vertices, st.triangles, st.normals
+
+    # -- geometry --------------------------------------------------------------------------------------
+    def _value_at(self, slot: int, row: float, col: float) -> float:
+        """Final height of visible tile ``slot``'s boundary at (row, col), linear along its edge polyline."""
+        st = self.states[slot]
+        e, t = st.prep.side_of(row, col)
+        return float(polyline_at(st.final_t[e], st.final_h[e], np.array([t]))[0])
+
+    def _fit(self, s: int, force: bool) -> tuple[bool, bool]:
+        """Re-fit tile ``s`` if its neighbourhood signature changed: (geometry changed, corners changed)."""
+        adj = self.adj
+        lvl = self.index.lvl
+        k = int(lvl[s])
+        code = self.index.code(s)
+        prep = self.cache.get(code)
+        nb = adj.neighbours(s)
+        # corners: the coarsest other visible leaf around the corner point decides (paper 002 §3.3, corners)
+        corner_h: list[float | None] = [None, None, None, None]
+        for c in range(4):
+            if prep.corner_vid[c] < 0:
+                continue
+            cand = [nb.corners[c]]
+            for e, end in _CORNER_SIDES[c]:
+                if nb.edges[e].size:
+                    cand.append(int(nb.edges[e][end]))
+            best = -1
+            for q in cand:
+                if q >= 0 and adj.state[q] == VISIBLE and lvl[q] < k and (best < 0 or lvl[q] < lvl[best]):
+                    best = q
+            if best >= 0:
+                corner_h[c] = self._value_at(best, *prep.corner_rc(c))
+        # sides: a single coarser visible leaf across a side dictates the whole side (any n >= 1)
+        fit_to: list[int] = [-1, -1, -1, -1]
+        sig_sides = []
+        for e in range(4):
+            lst = nb.edges[e]
+            if lst.size == 1 and adj.state[lst[0]] == VISIBLE and lvl[lst[0]] < k and prep.edge_vid[e].size:
+                q = int(lst[0])
+                fit_to[e] = q
+                h = self.states[q].final_h[int(OPPOSITE[e])]
+                sig_sides.append((q, float(h[0]), float(h[-1])))
+            else:
+                sig_sides.append(None)
+        signature = (tuple(sig_sides), tuple(corner_h))
+        old = self.states.get(s)
+        if old is None:
+            old = self._parked.pop(s, None)
+        if old is not None and old.prep is not prep:
+            old = None  # evicted and decoded again: rebuild (cheap, and keeps identity checks simple)
+        if old is not None and not force and old.signature == signature:
+            self.states[s] = old
+            return False, False
+        new = self._build(prep, signature, fit_to, corner_h)
+        self.states[s] = new
+        corners_changed = old is None or old.corner_h != new.corner_h
+        geom_changed = (
+            old is None
+            or not (old.vertices is new.vertices or np.array_equal(old.vertices, new.vertices))
+            or old.triangles.shape != new.triangles.shape
+        )
+        if old is not None and not geom_changed:
+            new.normals = old.normals
+        return geom_changed or force, corners_changed
+
+    def _build(
+        self, prep: TilePrep, signature: tuple, fit_to: list[int], corner_h: list[float | None]
+    ) -> StitchedTile:
+        zs = prep.vertices[:, 2]
+        moves: list[tuple[np.ndarray, np.ndarray]] = []
+        inserts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+        for e in range(4):
+            q = fit_to[e]
+            if q < 0:
+                continue
+            cst = self.states[q]
+            oe = int(OPPOSITE[e])
+            h_f, ins_seg, ins_t, ins_h = stitch_edge(
+                prep.edge_t[e], cst.final_t[oe], cst.final_h[oe], POS_TOL
+            )
+            moves.append((prep.edge_vid[e], h_f))
+            if ins_seg.size:
+                inserts.append((e, ins_seg, ins_t, ins_h))
+        for c in range(4):
+            if corner_h[c] is not None:
+                moves.append((np.array([prep.corner_vid[c]]), np.array([corner_h[c]])))
+        changed = any(not np.array_equal(zs[i], h) for i, h in moves)
+        final_corners = tuple(
+            None if prep.corner_vid[c] < 0 else (corner_h[c] if corner_h[c] is not None else float(zs[prep.corner_vid[c]]))
+            for c in range(4)
+        )  # fmt: skip
+        if not changed and not inserts:
+            verts, tris = prep.vertices, prep.triangles
+            fvid, ft = prep.edge_vid, prep.edge_t
+            seg_tri = prep.seg_tri
+        else:
+            verts = prep.vertices.copy()
+            for i, h in moves:
+                verts[i, 2] = h
+            tris = prep.triangles
+            fvid, ft = list(prep.edge_vid), list(prep.edge_t)
+            seg_tri = list(prep.seg_tri)
+            for e, ins_seg, ins_t, ins_h in inserts:
+                verts, tris, fvid[e], ft[e] = self._insert(
+                    prep, e, verts, tris, fvid[e], ft[e], ins_seg, ins_t, ins_h
+                )
+            if inserts:
+                seg_tri = [segment_triangles(tris, fvid[e])[0] for e in range(4)]
+        topo = tris is not prep.triangles
+        sums, gnormals = geometry_normals(prep, verts, tris, topo)
+        if verts is prep.vertices:
+            s_tabs, g_tabs = prep.base_S, prep.base_G
+        else:
+            tabs = [edge_tables(verts, tris, sums, fvid[e], seg_tri[e]) for e in range(4)]
+            s_tabs, g_tabs = [a for a, _ in tabs], [b for _, b in tabs]
+        fh = [verts[fvid[e], 2] for e in range(4)]
+        bvid = np.unique(np.concatenate(fvid))
+        rows = [np.searchsorted(bvid, fvid[e]) for e in range(4)]
+        for a in (verts, tris, sums, gnormals):
+            a.flags.writeable = False
+        return StitchedTile(
+            prep,
+            signature,
+            verts,
+            tris,
+            sums,
+            gnormals,
+            ft,
+            fvid,
+            fh,
+            s_tabs,
+            g_tabs,
+            final_corners,
+            bvid,
+            rows,
+        )
+
+    def _insert(
+        self, prep: TilePrep, e: int, verts: np.ndarray, tris: np.ndarray, vid: np.ndarray, t: np.ndarray,
+        ins_seg: np.ndarray, ins_t: np.ndarray, ins_h: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+        """Add the coarse nodes lying inside fine segments of side e as vertices; fan-split their triangles."""
+        n0 = verts.shape[0]
+        new = np.empty((ins_t.size, 3))
+        if e in (0, 2):
+            col = prep.c0 if e == 0 else prep.c1
+            new[:, 0] = self._x0 + col * self._dx
+            new[:, 1] = self._y0 + ins_t * self._dy
+        else:
+            row = prep.r0 if e == 1 else prep.r1
+            new[:, 0] = self._x0 + ins_t * self._dx
+            new[:, 1] = self._y0 + row * self._dy
+        new[:, 2] = ins_h
+        new_vid = np.arange(n0, n0 + ins_t.size, dtype=np.int64)
+        seg_tri, seg_rot = segment_triangles(tris, vid)
+        tris = split_boundary_triangles(tris, seg_tri, seg_rot, vid[:-1], ins_seg, new_vid)
+        verts = np.concatenate([verts, new])
+        order = np.argsort(np.concatenate([t, ins_t]), kind="stable")
+        return verts, tris, np.concatenate([vid, new_vid])[order], np.concatenate([t, ins_t])[order]
+
+    # -- normals ---------------------------------------------------------------------------------------
+    def _normals(self, s: int) -> None:
+        """Paper 002 §3.4: boundary normals from this tile's and its visible neighbours' triangles."""
+        adj = self.adj
+        st = self.states[s]
+        nb = adj.neighbours(s)
+        contrib = []
+        for e in range(4):
+            oe = int(OPPOSITE[e])
+            for q in nb.edges[e].tolist():
+                if adj.state[q] == VISIBLE:
+                    u = self.states[q]
+                    contrib.append((u.final_t[oe], u.S[oe], u.G[oe], st.final_t[e], st.edge_rows[e]))
+        for c in range(4):
+            d = nb.corners[c]
+            vid = st.prep.corner_vid[c]
+            if d < 0 or vid < 0 or adj.state[d] != VISIBLE:
+                continue
+            if any(nb.edges[e].size and nb.edges[e][end] == d for e, end in _CORNER_SIDES[c]):
+                continue  # the leaf across the corner is also across a side: already counted
+            u = self.states[d]
+            ed, t = u.prep.side_of(*st.prep.corner_rc(c))
+            if ed < 0:
+                continue
+            row = np.searchsorted(st.boundary_vid, np.array([vid]))
+            contrib.append((u.final_t[ed], u.S[ed], u.G[ed], np.array([t]), row))
+        st.normals = boundary_normals(st.geometry_normals, st.sums, st.boundary_vid, contrib, POS_TOL)
+        st.normals.flags.writeable = False
+
+
+def stitch_leaves(
+    source: TileSource, codes: Sequence[TileCode], visible: Sequence[bool] | None = None
+) -> dict[TileCode, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Stitch an explicit leaf set (a partition of the pyramid) once.
+
+    Parameters
+    ----------
+    source : the tile store
+    codes : leaf tile codes; together they must cover every finest tile exactly once
+    visible : per code, whether it is drawn (default all); invisible leaves are absent for stitching
+
+    Returns
+    -------
+    {code: (vertices (N, 3) float64 world metres, triangles (K, 3) uint32, normals (N, 3) float32)} of the
+    visible leaves.
+    """
+    index = QuadIndex(source.pyramid)
+    slots = index.slots(list(codes))
+    vis = np.ones(len(slots), bool) if visible is None else np.asarray(visible, dtype=bool)
+    if vis.shape != slots.shape:
+        raise ValueError(f"Expected one visibility flag per code ({len(slots)}), got {vis.shape}")
+    adj = Adjacency(index)
+    overlap, uncovered = adj.check_partition(slots)
+    if overlap or uncovered or len(np.unique(slots)) != len(slots):
+        raise ValueError(
+            f"Expected leaves that partition the pyramid, got {overlap} overlapping and {uncovered} finest "
+            "tiles not covered"
+        )
+    states = np.where(vis, VISIBLE, CULLED).astype(np.int8)
+    crack = adj.update(slots, states)
+    st = Stitcher(index, adj, TileCache(source, max_tiles=max(1024, len(slots))))
+    st.update(crack)
+    return {index.code(int(s)): st.mesh(int(s)) for s in slots[vis]}
+
+
+# -- verification: a geometric crack detector ----------------------------------------------------------
+@dataclass
+class CrackReport:
+    """Result of :func:`find_cracks`.
+
+    ``boundaries[n]`` / ``cracked[n]``: tile pairs sharing a border segment, by LoD difference n, and how
+    many of them have a gap; ``corners`` / ``cracked_corners``: pairs touching at a point only;
+    ``max_gap_m``: the largest vertical gap found (inf for a hole in a border); ``points``: samples checked.
+    """
+
+    boundaries: dict[int, int] = field(default_factory=dict)
+    cracked: dict[int, int] = field(default_factory=dict)
+    corners: int = 0
+    cracked_corners: int = 0
+    max_gap_m: float = 0.0
+    points: int = 0
+
+    @property
+    def total_cracked(self) -> int:
+        return sum(self.cracked.values()) + self.cracked_corners
+
+
+def _border_segments(
+    v: np.ndarray, tris: np.ndarray, rows: np.ndarray, cols: np.ndarray, side: int, line: float
+):
+    """Segments (t_a, z_a, t_b, z_b), t_a < t_b, of triangle edges lying on one side's line."""
+    coord = cols if side in (0, 2) else rows
+    along = rows if side in (0, 2) else cols
+    on = np.abs(coord - line) <= 1e-6
+    t = tris.astype(np.int64)
+    a = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
+    b = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
+    k = on[a] & on[b]
+    a, b = a[k], b[k]
+    ta, tb = along[a], along[b]
+    sw = ta > tb
+    a2 = np.where(sw, b, a)
+    b2 = np.where(sw, a, b)
+    segs = np.stack([along[a2], v[a2, 2], along[b2], v[b2, 2]], axis=1)
+    segs = np.unique(segs, axis=0)
+    return segs[np.argsort(segs[:, 0], kind="stable")]
+
+
+def _polyline_z(segs: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
+    """Height of a set of border segments at positions t: nan outside their span, inf in a hole."""
+    out = np.full(t.shape, np.nan)
+    if not len(segs):
+        return out
+    lo, hi = segs[:, 0].min(), segs[:, 2].max()
+    inside = (t >= lo - tol) & (t <= hi + tol)
+    j = np.clip(np.searchsorted(segs[:, 0], t + tol, side="right") - 1, 0, len(segs) - 1)
+    ta, za, tb, zb = segs[j, 0], segs[j, 1], segs[j, 2], segs[j, 3]
+    ok = (t >= ta - tol) & (t <= tb + tol)
+    # a point at a segment start can also end the previous segment: both agree on a closed polyline
+    w = np.clip((t - ta) / np.where(tb > ta, tb - ta, 1.0), 0.0, 1.0)
+    z = za + w * (zb - za)
+    out[inside] = np.inf
+    out[inside & ok] = z[inside & ok]
+    return out
+
+
+def find_cracks(
+    meshes: Mapping[TileCode, tuple[np.ndarray, ...]],
+    pyramid: TilePyramid,
+    transform: Any,
+    *,
+    tol_m: float = 1e-4,
+    samples: int = 5,
+) -> CrackReport:
+    """Check that the union of tile meshes is watertight across every tile border.
+
+    For every border segment of every tile (a triangle edge on the tile's square), ``samples`` points along
+    it (ends included) are compared with the surface of each tile on the other side of that line — its
+    border polyline there, which is where its triangles meet the line. A vertical difference above
+    ``tol_m`` metres, or a point inside the other tile's border span that no border segment covers (a
+    hole), is a crack. Points outside every other tile (data edge, culled neighbour) are not checked.
+
+    Parameters
+    ----------
+    meshes : {code: (vertices (N, 3) world metres, triangles (K, 3), ...)}
+    pyramid, transform : the store's plan and affine transform
+    """
+    x0 = transform.c + 0.5 * transform.a
+    y0 = transform.f + 0.5 * transform.e
+    lines: dict[tuple[int, float], list[tuple[TileCode, int, np.ndarray]]] = {}
+    for code, m in meshes.items():
+        v = np.asarray(m[0], dtype=np.float64)
+        t = np.asarray(m[1])
+        rows = (v[:, 1] - y0) / transform.e
+        cols = (v[:, 0] - x0) / transform.a
+        r0, c0 = pyramid.origin_rc(code)
+        span = pyramid.span(code[0])
+        for side, line in enumerate((c0, r0, c0 + span, r0 + span)):
+            segs = _border_segments(v, t, rows, cols, side, float(line))
+            if len(segs):
+                # key: (orientation, line); sign -1 for L/U (tile lies after the line), +1 for R/D
+                lines.setdefault((side % 2, float(line)), []).append((code, -1 if side < 2 else 1, segs))
+    rep = CrackReport()
+    frac = np.linspace(0.0, 1.0, max(2, samples))
+    pairs: dict[tuple[TileCode, TileCode], list[float]] = {}
+    for items in lines.values():
+        spans = [(segs[:, 0].min(), segs[:, 2].max()) for _, _, segs in items]
+        for ia, (ca, sa, segs_a) in enumerate(items):
+            pts_t = (segs_a[:, 0:1] + frac * (segs_a[:, 2:3] - segs_a[:, 0:1])).ravel()
+            pts_z = (segs_a[:, 1:2] + frac * (segs_a[:, 3:4] - segs_a[:, 1:2])).ravel()
+            for ib, (cb, sb, segs_b) in enumerate(items):
+                if sb == sa or cb == ca:
+                    continue
+                if spans[ib][0] > spans[ia][1] + 1e-9 or spans[ia][0] > spans[ib][1] + 1e-9:
+                    continue
+                zb = _polyline_z(segs_b, pts_t, 1e-9)
+                chk = ~np.isnan(zb)
+                if not chk.any():
+                    continue
+                gap = np.abs(pts_z[chk] - zb[chk])
+                rep.points += int(chk.sum())
+                lo = max(segs_a[:, 0].min(), segs_b[:, 0].min())
+                hi = min(segs_a[:, 2].max(), segs_b[:, 2].max())
+                key = (min(ca, cb), max(ca, cb))
+                rec = pairs.setdefault(key, [0.0, 0.0])
+                rec[0] = max(rec[0], hi - lo)
+                rec[1] = max(rec[1], float(gap.max()))
+    for (ca, cb), (overlap, gap) in pairs.items():
+        bad = gap > tol_m
+        rep.max_gap_m = max(rep.max_gap_m, gap)
+        if overlap > 1e-9:
+            n = abs(ca[0] - cb[0])
+            rep.boundaries[n] = rep.boundaries.get(n, 0) + 1
+            rep.cracked[n] = rep.cracked.get(n, 0) + int(bad)
+        else:
+            rep.corners += 1
+            rep.cracked_corners += int(bad)
+    return rep
