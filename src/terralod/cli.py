@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -119,7 +120,9 @@ def _crs_name(crs: str | None) -> str:
 
 
 def print_store_summary(summary: dict[str, Any]) -> None:
-    console.print(f"{summary['path']}: {'complete' if summary['complete'] else 'INCOMPLETE (finish with --resume)'}")
+    console.print(
+        f"{summary['path']}: {'complete' if summary['complete'] else 'INCOMPLETE (finish with --resume)'}"
+    )
     t = Table()
     for col in ("level", "tiles", "vertices", "triangles", "max error m", "max vert. m", "RMS m", "KiB"):
         t.add_column(col, justify="right")
@@ -238,12 +241,209 @@ def build(
         print_store_summary(store_summary(s))
 
 
+# -- rendering -----------------------------------------------------------------------------------------
+def _triple(text: str, name: str) -> tuple[float, float, float]:
+    try:
+        v = tuple(float(a) for a in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected X,Y,Z in metres, got {text!r}", param_hint=name) from None
+    if len(v) != 3:
+        raise click.BadParameter(f"expected X,Y,Z in metres, got {text!r}", param_hint=name)
+    return v  # type: ignore[return-value]
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(a) for a in text.lower().split("x"))
+        assert 16 <= w <= 8192 and 16 <= h <= 8192
+    except (ValueError, AssertionError):
+        raise click.BadParameter(
+            f"expected WIDTHxHEIGHT between 16 and 8192, got {text!r}", param_hint="--size"
+        ) from None
+    return w, h
+
+
+def _open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path:
+    """A store path as is; a DEM is built into a cache store beside it first (rebuilt only when missing)."""
+    p = Path(path)
+    if p.exists() and _is_store(p):
+        return p
+    hf = _load(path, **read)
+    cache = p.with_name(p.name + ".terra")
+    from terralod.errors import StoreError
+    from terralod.store import open_store
+
+    if cache.exists():
+        try:
+            with open_store(cache) as s:
+                if s.complete and s.meta.get("source_digest") == hf.digest():
+                    return cache
+        except StoreError:
+            pass
+    run_build(
+        hf, str(cache), tile_size=tile_size, method="chunked", workers=None, resume=False, overwrite=True
+    )
+    return cache
+
+
+def _settings(background: str | None, mode: str, wireframe: bool):
+    from terralod.render import RenderSettings
+
+    st = RenderSettings(mode=mode, wireframe=wireframe)
+    if background:
+        try:
+            rgb = tuple(float(a) for a in background.split(","))
+            assert len(rgb) == 3
+        except (ValueError, AssertionError):
+            raise click.BadParameter(
+                f"expected R,G,B, got {background!r}", param_hint="--background"
+            ) from None
+        st.background = tuple(c / 255.0 if max(rgb) > 1.0 else c for c in rgb)  # type: ignore[assignment]
+    return st
+
+
+def _stats_table(stats: dict[str, Any], title: str = "frame") -> None:
+    t = Table(title=title)
+    for col in ("tiles", "triangles", "max screen error px", "select ms", "stitch ms", "draw ms"):
+        t.add_column(col, justify="right")
+    t.add_row(
+        str(stats.get("tiles")), f"{int(stats.get('triangles', 0)):,}", f"{stats.get('max_screen_error_px', 0):.2f}",
+        f"{stats.get('select_ms', 0):.2f}", f"{stats.get('stitch_ms', 0):.2f}", f"{stats.get('draw_ms', 0):.2f}",
+    )  # fmt: skip
+    console.print(t)
+
+
+@cli.command()
+@click.argument("path")
+@click.option("-o", "--output", required=True, help="PNG to write.")
+@click.option("--eye", help="Eye X,Y,Z in world metres (default: an overview).")
+@click.option("--target", help="Target X,Y,Z in world metres.")
+@click.option("--size", default="1920x1080", show_default=True, help="WIDTHxHEIGHT pixels.")
+@click.option("--threshold-px", default=2.0, show_default=True, help="Screen-space error threshold, pixels.")
+@click.option("--background", help="Sky colour R,G,B (0..1 or 0..255).")
+@click.option(
+    "--mode", type=click.Choice(["elevation", "lod", "error"]), default="elevation", show_default=True
+)
+@click.option("--wireframe", is_flag=True)
+@_read_options
+def render(path, output, eye, target, size, threshold_px, background, mode, wireframe, **read: Any) -> None:
+    """Render one frame of a store (or a DEM, built first) to a PNG, headless (EGL)."""
+    from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png
+    from terralod.store import open_store
+
+    w, h = _size(size)
+    store_path = _open_or_build(path, read)
+    with open_store(store_path) as s:
+        pose = overview_pose(s)
+        if eye or target:
+            if not (eye and target):
+                raise click.BadParameter("give both --eye and --target", param_hint="--eye")
+            pose = CameraPose(_triple(eye, "--eye"), _triple(target, "--target"))
+        fr = FrameRenderer(
+            s, w, h, threshold_px=threshold_px, settings=_settings(background, mode, wireframe)
+        )
+        img = fr.frame(pose)
+        save_png(img, output)
+        fr.close()
+    _stats_table(fr.last_stats, f"{output}")
+
+
+@cli.command()
+@click.argument("path")
+@click.option("-o", "--output", required=True, help="MP4 to write.")
+@click.option(
+    "--path", "cam_path", default="auto", show_default=True, help="auto, or a JSON camera path file."
+)
+@click.option("--frames", default=120, show_default=True, help="Frames of the auto path.")
+@click.option("--fps", default=24, show_default=True)
+@click.option("--size", default="1280x720", show_default=True, help="WIDTHxHEIGHT pixels.")
+@click.option("--threshold-px", default=2.0, show_default=True)
+@_read_options
+def flythrough(path, output, cam_path, frames, fps, size, threshold_px, **read: Any) -> None:
+    """Render a fly-through video of a store (or a DEM, built first), headless."""
+    from terralod.store import open_store
+
+    w, h = _size(size)
+    store_path = _open_or_build(path, read)
+    with open_store(store_path) as s:
+        summary = render_flythrough(s, output, cam_path=cam_path, frames=frames, fps=fps, size=(w, h),
+                                    threshold_px=threshold_px)  # fmt: skip
+    _flythrough_table(summary)
+
+
+def render_flythrough(store, output: str, *, cam_path: str = "auto", frames: int = 120, fps: int = 24,
+                      size=(1280, 720), threshold_px: float = 2.0, png: str | None = None) -> dict[str, Any]:  # fmt: skip
+    """Render a camera path to MP4; returns per-frame statistics summarised."""
+    import numpy as np
+
+    from terralod.render.offscreen import FrameRenderer, auto_path, load_path, save_png, write_video
+
+    poses = auto_path(store, frames) if cam_path == "auto" else load_path(cam_path)
+    fr = FrameRenderer(store, size[0], size[1], threshold_px=threshold_px)
+    per_frame: list[dict[str, Any]] = []
+
+    def gen():
+        for i, pose in enumerate(poses):
+            img = fr.frame(pose)
+            per_frame.append(fr.last_stats)
+            if png and i == len(poses) // 2:
+                save_png(img, png)
+            yield img
+
+    n = write_video(gen(), output, fps=fps)
+    fr.close()
+    keys = ("tiles", "triangles", "max_screen_error_px", "select_ms", "stitch_ms", "draw_ms")
+    return {"output": output, "frames": n, **{k: float(np.median([f.get(k, 0.0) for f in per_frame])) for k in keys},
+            "max_screen_error_px_max": float(max(f.get("max_screen_error_px", 0.0) for f in per_frame))}  # fmt: skip
+
+
+def _flythrough_table(summary: dict[str, Any]) -> None:
+    t = Table(title=f"{summary['output']}: {summary['frames']} frames (medians)")
+    for col in ("tiles", "triangles", "max screen error px", "select ms", "stitch ms", "draw ms"):
+        t.add_column(col, justify="right")
+    t.add_row(
+        f"{summary['tiles']:.0f}", f"{summary['triangles']:,.0f}", f"{summary['max_screen_error_px']:.2f}",
+        f"{summary['select_ms']:.2f}", f"{summary['stitch_ms']:.2f}", f"{summary['draw_ms']:.2f}",
+    )  # fmt: skip
+    console.print(t)
+
+
+@cli.command()
+@click.argument("path")
+@click.option("--size", default="1280x720", show_default=True, help="Window WIDTHxHEIGHT.")
+@click.option("--threshold-px", default=2.0, show_default=True)
+@click.option("--frames", type=int, default=None, help="Close after this many frames (scripted runs).")
+@click.option("--screenshot", help="PNG written after the last frame (with --frames).")
+@_read_options
+def view(path, size, threshold_px, frames, screenshot, **read: Any) -> None:
+    """Open the real-time viewer on a store (or a DEM, built into a cache store first)."""
+    from terralod.render.viewer import run_viewer
+    from terralod.store import open_store
+
+    w, h = _size(size)
+    store_path = _open_or_build(path, read)
+    if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
+        raise click.UsageError(
+            "no display (DISPLAY is unset); use `terralod render` or `terralod flythrough`"
+        )
+    with open_store(store_path) as s:
+        out = run_viewer(s, width_px=w, height_px=h, threshold_px=threshold_px, max_frames=frames,
+                         screenshot=screenshot)  # fmt: skip
+    if frames:
+        click.echo(
+            json.dumps({"frames": out["frames"], "hud": out["hud"], "stats": out["stats"]}, default=str)
+        )
+
+
 # -- demo ----------------------------------------------------------------------------------------------
 @cli.command()
 @click.option("-o", "--output", default="demo.terra", show_default=True, help="Store to build.")
 @click.option("--tile-size", default=33, show_default=True, help="Vertices per tile side.")
-def demo(output: str, tile_size: int) -> None:
-    """Build the bundled real DEM (matplotlib's Jacksboro fault, Tennessee) and print its store summary."""
+@click.option("--frames", default=96, show_default=True, help="Fly-through frames when there is no display.")
+@click.option("--no-window", is_flag=True, help="Render demo.mp4 + demo.png even when a display is present.")
+def demo(output: str, tile_size: int, frames: int, no_window: bool) -> None:
+    """Build the bundled real DEM (matplotlib's Jacksboro fault, Tennessee), then open the viewer, or with
+    no display render a fly-through to demo.mp4 plus demo.png and print the statistics."""
     from terralod.build.builder import store_summary
     from terralod.io.reader import sample_heightfield
     from terralod.store import open_store
@@ -260,6 +460,15 @@ def demo(output: str, tile_size: int) -> None:
     console.print(f"built {rep.tiles_built} tiles in {rep.seconds:.2f} s")
     with open_store(output) as s:
         print_store_summary(store_summary(s))
+        if (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and not no_window:
+            from terralod.render.viewer import run_viewer
+
+            run_viewer(s)
+            return
+        stem = Path(output).with_suffix("")
+        summary = render_flythrough(s, f"{stem}.mp4", frames=frames, size=(1024, 576), png=f"{stem}.png")
+    _flythrough_table(summary)
+    console.print(f"wrote {stem}.mp4 and {stem}.png")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -271,6 +480,11 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(130)
     except click.ClickException as exc:
         exc.show()
+        sys.exit(2)
+    except RuntimeError as exc:  # no GPU context / no window
+        if _VERBOSE["on"]:
+            raise
+        click.echo(f"terralod: {exc}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:
         err_console.print("terralod: interrupted; finished tiles are saved, finish with --resume")

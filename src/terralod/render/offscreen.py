@@ -1,0 +1,131 @@
+"""Headless frames and fly-through videos of a store: selection by the runtime engine, drawing by
+:class:`TerrainRenderer` on an EGL context (Mesa llvmpipe where there is no GPU)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from terralod.render.renderer import RenderSettings, TerrainRenderer
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """Eye and target in world metres."""
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+
+
+def store_extent(store) -> tuple[np.ndarray, np.ndarray]:
+    """(min xyz, max xyz) of a store's terrain, metres (xy from the plan, z from the root tile)."""
+    t = store.transform
+    w, h = store.pyramid.width, store.pyramid.height
+    x0, y0 = t.c + 0.5 * t.a, t.f + 0.5 * t.e
+    x1, y1 = x0 + (w - 1) * t.a, y0 + (h - 1) * t.e
+    zs = [(r["z_min_m"], r["z_max_m"]) for r in store.tile_summaries() if r["level"] == 0]
+    zlo, zhi = zs[0] if zs else (0.0, 1.0)
+    return np.array([min(x0, x1), min(y0, y1), zlo]), np.array([max(x0, x1), max(y0, y1), zhi])
+
+
+def overview_pose(
+    store, elevation_deg: float = 35.0, azimuth_deg: float = 200.0, distance: float = 1.1
+) -> CameraPose:
+    """A pose seeing the whole terrain from the south-south-west at ``elevation_deg`` above the horizon."""
+    lo, hi = store_extent(store)
+    c = (lo + hi) / 2
+    c[2] = lo[2] + 0.3 * (hi[2] - lo[2])
+    r = distance * float(np.linalg.norm(hi[:2] - lo[:2]))
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    eye = c + r * np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
+    return CameraPose(tuple(eye), tuple(c))
+
+
+def auto_path(store, n_frames: int) -> list[CameraPose]:
+    """A scripted fly-through: a descending half-orbit that ends low over the terrain, looking across it,
+    so far and near tiles of several levels are on screen together."""
+    lo, hi = store_extent(store)
+    c = (lo + hi) / 2
+    span = float(np.linalg.norm(hi[:2] - lo[:2]))
+    relief = float(hi[2] - lo[2])
+    out = []
+    for i in range(n_frames):
+        s = i / max(1, n_frames - 1)
+        az = math.radians(200.0 + 120.0 * s)
+        r = span * (0.9 - 0.55 * s)
+        height = hi[2] + relief * 0.2 + span * (0.45 - 0.35 * s)
+        eye = np.array([c[0] + r * math.sin(az), c[1] + r * math.cos(az), height])
+        tgt = np.array([c[0] - 0.15 * r * math.sin(az), c[1] - 0.15 * r * math.cos(az), lo[2] + 0.3 * relief])
+        out.append(CameraPose(tuple(eye), tuple(tgt)))
+    return out
+
+
+def load_path(path: str | Path) -> list[CameraPose]:
+    """A camera path file: JSON list of {"eye": [x, y, z], "target": [x, y, z]} in world metres."""
+    data = json.loads(Path(path).read_text())
+    return [CameraPose(tuple(map(float, p["eye"])), tuple(map(float, p["target"]))) for p in data]
+
+
+class FrameRenderer:
+    """Engine + renderer for one store at one viewport size."""
+
+    def __init__(
+        self, store, width_px: int, height_px: int, *, threshold_px: float = 2.0, fov_y_deg: float = 45.0,
+        settings: RenderSettings | None = None, ctx=None,
+    ) -> None:  # fmt: skip
+        from terralod.runtime import Engine
+
+        self.store = store
+        self.engine = Engine(store, threshold_px=threshold_px)
+        self.renderer = TerrainRenderer(width_px, height_px, ctx=ctx)
+        self.settings = settings or RenderSettings()
+        self.fov_y_deg = fov_y_deg
+        self.width_px, self.height_px = width_px, height_px
+        self.last_stats: dict = {}
+
+    def camera(self, pose: CameraPose):
+        from terralod.runtime import Camera
+
+        lo, hi = store_extent(self.store)
+        d = float(np.linalg.norm(np.asarray(pose.eye) - np.asarray(pose.target)))
+        return Camera(pose.eye, pose.target, (0.0, 0.0, 1.0), self.fov_y_deg, self.width_px, self.height_px,
+                      near_m=max(0.1, d * 1e-4))  # fmt: skip
+
+    def frame(self, pose: CameraPose) -> np.ndarray:
+        cam = self.camera(pose)
+        sel = self.engine.update(cam)
+        meshes = list(sel.meshes())
+        t = time.perf_counter()
+        img = self.renderer.render(
+            meshes, pose.eye, pose.target, fov_y_deg=self.fov_y_deg, settings=self.settings
+        )
+        stats = dict(sel.stats) if isinstance(sel.stats, dict) else dict(vars(sel.stats))
+        stats["draw_ms"] = (time.perf_counter() - t) * 1e3
+        self.last_stats = stats
+        return img
+
+    def close(self) -> None:
+        self.renderer.release()
+
+
+def save_png(img: np.ndarray, path: str | Path) -> None:
+    from PIL import Image
+
+    Image.fromarray(img).save(path)
+
+
+def write_video(frames, path: str | Path, fps: int = 24) -> int:
+    """Encode (H, W, 3) uint8 frames to MP4 (H.264 through imageio-ffmpeg's bundled ffmpeg)."""
+    import imageio.v2 as imageio
+
+    n = 0
+    with imageio.get_writer(str(path), fps=fps, codec="libx264", quality=7, macro_block_size=8) as w:
+        for f in frames:
+            w.append_data(f)
+            n += 1
+    return n
