@@ -36,6 +36,7 @@ import numpy as np
 from affine import Affine
 
 from terralod.errors import CorruptStoreError, StoreError
+from terralod.kernels.codec import undo_zigzag_delta
 from terralod.tiles import TileCode, TilePyramid
 
 FORMAT_NAME = "terralod-store"
@@ -66,9 +67,7 @@ def _zigzag_delta16(a: np.ndarray) -> np.ndarray:
 
 
 def _undo_zigzag_delta16(z: np.ndarray) -> np.ndarray:
-    z = z.astype(np.int64)
-    d = (z >> 1) ^ -(z & 1)
-    return (np.cumsum(d) & 0xFFFF).astype(np.uint16)
+    return undo_zigzag_delta(z, 0xFFFF).astype(np.uint16)
 
 
 def _zigzag_delta32(a: np.ndarray) -> np.ndarray:
@@ -77,9 +76,7 @@ def _zigzag_delta32(a: np.ndarray) -> np.ndarray:
 
 
 def _undo_zigzag_delta32(z: np.ndarray) -> np.ndarray:
-    z = z.astype(np.int64)
-    d = (z >> 1) ^ -(z & 1)
-    return (np.cumsum(d) & 0xFFFFFFFF).astype(np.uint32)
+    return undo_zigzag_delta(z, 0xFFFFFFFF).astype(np.uint32)
 
 
 def encode_vertices(q: np.ndarray) -> bytes:
