@@ -145,6 +145,7 @@ def test_bad_inputs_name_the_file(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="5x1 samples"):
         read_heightfield(tmp_path / "tiny.npy", spacing_m=1.0)
     rgb = np.zeros((10, 10, 3), np.uint8)
+    rgb[..., 0] = 255  # a coloured image (equal channels would be read as greyscale)
     Image.fromarray(rgb).save(tmp_path / "rgb.png")
     with pytest.raises(InputError, match="--encoding"):
         read_heightfield(tmp_path / "rgb.png", spacing_m=1.0)

@@ -1,23 +1,47 @@
-"""Heightfield readers: GeoTIFF/COG and any GDAL raster (rasterio), 8/16-bit PNG heightmaps, Mapbox
-Terrain-RGB and Terrarium PNG/WebP tiles, ``.npy``/``.npz`` arrays, and the bundled sample DEM.
+"""Read any supported DEM into a :class:`~terralod.heightfield.Heightfield`: the one entry point of io/.
 
-World frame (DESIGN.md): metres, x east, y north, sample (row, col) at its pixel centre, row 0 north.
+Formats, chosen by file suffix:
 
-- Projected CRS in metres: its own coordinates. Projected CRS in feet: x/y scaled to metres (the CRS is
-  then recorded as WKT with a note, since the coordinates are no longer the CRS's own units).
-- Geographic CRS and web-mercator (EPSG:3857, whose metres are not ground metres): reprojected once,
-  bilinearly, to the UTM zone of the raster's centre, with square pixels of the ground spacing at the
-  centre (the smaller of dx, dy); the nodata mask is reprojected with nearest-neighbour. Degrees are
-  never taken for metres.
-- Un-georeferenced heightmaps need a spacing in metres (argument or sidecar); their frame is local
-  (origin at the north-west pixel corner, no CRS).
+- ``.png``, ``.webp``: greyscale heightmaps and RGB-encoded elevation tiles
+  (:mod:`terralod.io.heightmap`, Pillow);
+- ``.npy``, ``.npz``: NumPy grids (:mod:`terralod.io.heightmap`);
+- anything else: a raster GDAL reads, GeoTIFF/COG first (:mod:`terralod.io.raster`, rasterio).
 
-Sidecar JSON (``<stem>.json`` beside a PNG/WebP/NPY/NPZ file; explicit arguments win). Flat keys:
-``spacing_m`` (number or [dx, dy]), ``vertical_scale``, ``vertical_offset``, ``encoding``
-("terrain-rgb" | "terrarium"), ``tile`` ([z, x, y] or {"z", "x", "y"}), ``nodata``, ``crs``,
-``transform`` (GDAL geotransform, 6 numbers). The nested layout of ``../shared/data`` sidecars is read
-too: ``vertical.scale_m_per_unit``, ``vertical.offset_m``, ``horizontal.spacing_m``,
-``horizontal.tile``, ``horizontal.crs``, ``encoding.name``.
+World frame: metres, x east, y north, row 0 north, north-up transform; geographic and web-mercator
+inputs are reprojected once to UTM, foot CRSs converted to metres (details in :mod:`terralod.io.raster`).
+
+Sidecar
+-------
+A file ``<stem>.json`` beside the input supplies defaults; explicit keyword arguments override it. For
+PNG/WebP/NPY/NPZ every key applies; for GDAL rasters the file's own metadata wins, and the sidecar only
+fills what the file lacks (georeferencing when the file has no CRS, nodata when the band has none).
+Two layouts are read, the flat one first:
+
+===================== ================================== ===================================================
+flat key              nested key (``../shared/data``)    meaning
+===================== ================================== ===================================================
+``spacing_m``         ``horizontal.spacing_m``           ground spacing, metres: number or [dx, dy]
+``vertical_scale``    ``vertical.scale_m_per_unit``      metres per stored unit
+``vertical_offset``   ``vertical.offset_m``              metres added after scaling
+``encoding``          ``encoding.name``                  "terrain-rgb" (also "Terrain-RGB", "mapbox") or
+                                                         "terrarium" (any case)
+``tile``              ``horizontal.tile``                XYZ tile: [z, x, y], "z/x/y" or {"z", "x", "y"}
+``nodata``            ``nodata``                         stored value of missing samples (number, "NaN",
+                                                         null)
+``crs``               ``horizontal.crs``                 "EPSG:32610", WKT, PROJ; a text containing
+                                                         "EPSG:<code>" is read as that code
+``transform``         ``horizontal.transform``           GDAL geotransform [x0, dx, 0, y0, 0, -dy], or
+                                                         [west, north] origin used with ``spacing_m``
+``origin_m``          ``horizontal.origin_m``            [west, north] pixel corner of sample (0, 0)
+``bounds``            ``horizontal.bounds``              [west, south, east, north] of the pixel footprint
+===================== ================================== ===================================================
+
+Georeferencing precedence: a tile, then transform / bounds / origin (with ``crs``: georeferenced; without:
+a local metric frame), then ``spacing_m`` alone (local frame, origin at the north-west corner). A spacing
+is ignored (with a note) for a georeferenced input. Without any, PNG/NPY inputs are refused with an error
+that asks for ``--spacing`` or a sidecar. An ``.npz`` may hold its own ``transform`` (geotransform) and
+``crs`` arrays, used when the sidecar gives none. ``nodata`` is a stored value (before scaling), except
+for encoded tiles, where it is in decoded metres.
 """
 
 from __future__ import annotations
@@ -25,7 +49,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import warnings
+import re
 from pathlib import Path
 from typing import Any
 
@@ -34,77 +58,22 @@ from affine import Affine
 
 from terralod.errors import InputError, InputNotFoundError
 from terralod.heightfield import Heightfield
-from terralod.io.fill import check_dimensions, prepare_elevation
+from terralod.io.heightmap import ENCODINGS, read_array, read_image
+from terralod.io.raster import FrameHints, georeferenced_heightfield, read_raster
 
-_EARTH_CIRCUMFERENCE_M = 40075016.686
-_IMAGE_SUFFIXES = {".png", ".webp"}
-_ARRAY_SUFFIXES = {".npy", ".npz"}
+IMAGE_SUFFIXES = frozenset({".png", ".webp"})
+ARRAY_SUFFIXES = frozenset({".npy", ".npz"})
+SAMPLE_SOURCE = "matplotlib sample_data/jacksboro_fault_dem.npz"
 
-
-# -- sidecar -------------------------------------------------------------------------------------------
-def read_sidecar(path: Path) -> dict[str, Any]:
-    """Normalised keys of ``<stem>.json`` beside ``path`` (empty dict when there is none)."""
-    side = path.with_suffix(".json")
-    if not side.exists():
-        return {}
-    try:
-        raw = json.loads(side.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"sidecar {side.name} is not valid JSON ({exc})", str(path)) from None
-    out: dict[str, Any] = {}
-    for key in (
-        "spacing_m",
-        "vertical_scale",
-        "vertical_offset",
-        "encoding",
-        "tile",
-        "nodata",
-        "crs",
-        "transform",
-    ):
-        if raw.get(key) is not None:
-            out[key] = raw[key]
-    vert = raw.get("vertical") if isinstance(raw.get("vertical"), dict) else {}
-    hor = raw.get("horizontal") if isinstance(raw.get("horizontal"), dict) else {}
-    enc = raw.get("encoding")
-    if isinstance(enc, dict):
-        out["encoding"] = enc.get("name")
-    if "scale_m_per_unit" in vert:
-        out.setdefault("vertical_scale", vert["scale_m_per_unit"])
-    if "offset_m" in vert:
-        out.setdefault("vertical_offset", vert["offset_m"])
-    if hor.get("spacing_m") is not None:
-        out.setdefault("spacing_m", hor["spacing_m"])
-    if hor.get("tile") is not None:
-        out.setdefault("tile", hor["tile"])
-    if hor.get("crs") and "crs" not in out:
-        out["crs"] = hor["crs"]
-    if isinstance(out.get("encoding"), str):
-        e = out["encoding"].lower().replace("_", "-")
-        out["encoding"] = {
-            "terrarium": "terrarium",
-            "terrain-rgb": "terrain-rgb",
-            "mapbox": "terrain-rgb",
-        }.get(e, e)
-    if isinstance(out.get("tile"), dict):
-        t = out["tile"]
-        out["tile"] = (int(t["z"]), int(t["x"]), int(t["y"]))
-    return out
-
-
-def _spacing_pair(spacing: Any, path: Path) -> tuple[float, float]:
-    try:
-        if np.isscalar(spacing):
-            dx = dy = float(spacing)
-        else:
-            dx, dy = (float(v) for v in spacing)
-    except (TypeError, ValueError):
-        raise InputError(
-            f"spacing must be a number or (dx, dy) in metres, got {spacing!r}", str(path)
-        ) from None
-    if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
-        raise InputError(f"spacing must be positive metres, got {spacing!r}", str(path))
-    return dx, dy
+_ENCODING_ALIASES = {
+    "terrain-rgb": "terrain-rgb",
+    "terrainrgb": "terrain-rgb",
+    "mapbox": "terrain-rgb",
+    "mapbox-terrain-rgb": "terrain-rgb",
+    "terrarium": "terrarium",
+    "mapzen": "terrarium",
+    "mapzen-terrarium": "terrarium",
+}
 
 
 # -- public --------------------------------------------------------------------------------------------
@@ -122,247 +91,260 @@ def read_heightfield(
 
     Parameters
     ----------
-    path : GeoTIFF/COG (any raster GDAL reads), PNG/WebP heightmap or encoded tile, .npy/.npz
-    vertical_scale, vertical_offset : elevation_m = value * scale + offset (heightmaps and arrays)
-    spacing_m : ground spacing (dx, dy) in metres for un-georeferenced inputs
-    encoding : "terrain-rgb" (Mapbox) or "terrarium" for RGB-encoded tiles
-    tile : (z, x, y) XYZ web-map tile address, which georeferences an encoded tile
-    band : raster band (1-based)
+    path : GeoTIFF/COG (any raster GDAL reads), PNG/WebP heightmap or encoded tile, .npy/.npz.
+    vertical_scale : metres per stored unit. Default: the sidecar's for PNG/WebP/NPY/NPZ, the band's scale
+        tag for GDAL rasters; else 1.
+    vertical_offset : metres added after scaling. Default: the sidecar's, or the band's offset tag; else 0.
+    spacing_m : ground spacing in metres, a number or (dx, dy), for inputs without georeferencing.
+    encoding : "terrain-rgb" (Mapbox) or "terrarium" for RGB-encoded elevation tiles.
+    tile : (z, x, y) XYZ web-map tile address (y down from the north), which georeferences a tile in
+        EPSG:3857; the tile is then reprojected to UTM like any geographic raster.
+    band : 1-based raster band (GDAL rasters).
+
+    Returns
+    -------
+    Heightfield with ``elevation_m`` filled where the source had nodata and ``valid`` marking real samples.
+
+    Raises
+    ------
+    InputNotFoundError : the file does not exist.
+    InputError : the file cannot be decoded, is not georeferenced and no spacing is known, has no valid
+        samples, or is too small or too large; the message names the file.
     """
     p = Path(path)
+    src = str(p)
     if not p.exists():
-        raise InputNotFoundError("file not found", str(p))
+        raise InputNotFoundError("file not found", src)
     if p.is_dir():
-        raise InputError("is a directory, not a DEM file", str(p))
+        raise InputError("is a directory, not a DEM file", src)
+    if isinstance(band, bool) or not isinstance(band, int | np.integer) or band < 1:
+        raise InputError(f"band must be a 1-based integer, got {band!r}", src)
+    side = read_sidecar(p)
+    explicit = {
+        "vertical_scale": _opt_float(vertical_scale, "vertical_scale", src),
+        "vertical_offset": _opt_float(vertical_offset, "vertical_offset", src),
+        "spacing_m": None if spacing_m is None else spacing_pair(spacing_m, src),
+        "encoding": None if encoding is None else normalise_encoding(encoding, src),
+        "tile": None if tile is None else _tile(tile, src),
+    }
+    opts = {**side, **{k: v for k, v in explicit.items() if v is not None}}
+    hints = _hints(opts, src)
     suffix = p.suffix.lower()
-    opts = {"vertical_scale": vertical_scale, "vertical_offset": vertical_offset, "spacing_m": spacing_m,
-            "encoding": encoding, "tile": tile}  # fmt: skip
-    if suffix in _IMAGE_SUFFIXES or suffix in _ARRAY_SUFFIXES:
-        side = read_sidecar(p)
-        for k, v in side.items():
-            if opts.get(k) is None:
-                opts[k] = v
-        if suffix in _ARRAY_SUFFIXES:
-            return _read_array(p, opts, side)
-        return _read_image(p, opts, side)
-    return _read_raster(p, band, opts)
+    if suffix in IMAGE_SUFFIXES or suffix in ARRAY_SUFFIXES:
+        notes = (f"sidecar {p.with_suffix('.json').name} read",) if side else ()
+        common = {
+            "vertical_scale": opts.get("vertical_scale"),
+            "vertical_offset": opts.get("vertical_offset"),
+            "nodata": opts.get("nodata"),
+            "hints": hints,
+            "notes": notes,
+        }
+        if suffix in IMAGE_SUFFIXES:
+            return read_image(p, encoding=opts.get("encoding"), **common)
+        if opts.get("encoding"):
+            raise InputError("an encoding applies to RGB images, not to arrays", src)
+        return read_array(p, **common)
+    return read_raster(
+        p,
+        band=int(band),
+        vertical_scale=explicit["vertical_scale"],
+        vertical_offset=explicit["vertical_offset"],
+        encoding=opts.get("encoding"),
+        nodata=opts.get("nodata"),
+        hints=hints,
+    )
 
 
 def sample_heightfield() -> Heightfield:
-    """matplotlib's bundled real DEM: the Jacksboro fault, Tennessee (344 x 403 samples, 3 arc-seconds,
-    USGS), reprojected to UTM zone 17N (~74 m square pixels)."""
+    """matplotlib's bundled real DEM: the Jacksboro fault, Tennessee (USGS, 344 x 403 samples at 3
+    arc-seconds, 236..1076 m), reprojected from WGS84 lon/lat to UTM zone 16N (its centre, 84.25 W, lies
+    west of 84 W) on ~74 m square pixels.
+
+    ``xmin``/``xmax`` and ``ymin``/``ymax`` in the file are pixel-footprint edges (their span is
+    W * dx), with ``ymin`` and ``ymax`` swapped: the larger is the north edge, which row 0 sits on.
+    """
     from matplotlib import cbook
 
-    d = cbook.get_sample_data("jacksboro_fault_dem.npz")
-    z = np.asarray(d["elevation"], dtype=np.float64)
-    west, east = float(d["xmin"]), float(d["xmax"])
-    north = max(float(d["ymin"]), float(d["ymax"]))
-    dx_deg, dy_deg = float(d["dx"]), float(d["dy"])
-    # pixel-corner transform: the file's extent holds W-1 steps between sample centres
-    t = Affine(dx_deg, 0.0, west - 0.5 * dx_deg, 0.0, -dy_deg, north + 0.5 * dy_deg)
-    assert abs((east - west) / dx_deg - (z.shape[1] - 1)) < 1.0
-    return _georeferenced(
-        z, np.ones(z.shape, bool), t, "EPSG:4326", "matplotlib sample_data/jacksboro_fault_dem.npz"
+    with cbook.get_sample_data("jacksboro_fault_dem.npz") as d:
+        z = np.asarray(d["elevation"], dtype=np.float64)
+        west, east = float(d["xmin"]), float(d["xmax"])
+        south, north = sorted((float(d["ymin"]), float(d["ymax"])))
+        dx_deg, dy_deg = float(d["dx"]), float(d["dy"])
+    h, w = z.shape
+    # edges when the span is W steps, sample centres when it is W - 1 steps (then extend by half a step)
+    half_x = 0.0 if abs((east - west) - w * dx_deg) <= abs((east - west) - (w - 1) * dx_deg) else 0.5
+    half_y = 0.0 if abs((north - south) - h * dy_deg) <= abs((north - south) - (h - 1) * dy_deg) else 0.5
+    t = Affine(dx_deg, 0.0, west - half_x * dx_deg, 0.0, -dy_deg, north + half_y * dy_deg)
+    return georeferenced_heightfield(
+        z,
+        np.ones(z.shape, bool),
+        t,
+        "EPSG:4326",
+        SAMPLE_SOURCE,
+        notes=("USGS 3 arc-second DEM of the Jacksboro fault, Tennessee (matplotlib sample data)",),
     )
 
 
-# -- rasters (GDAL) ------------------------------------------------------------------------------------
-def _read_raster(p: Path, band: int, opts: dict[str, Any]) -> Heightfield:
-    import rasterio
-    from rasterio.errors import RasterioIOError
+# -- sidecar -------------------------------------------------------------------------------------------
+def read_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Normalised defaults from ``<stem>.json`` beside ``path`` (empty dict when there is none).
 
-    src = str(p)
+    Keys of the result (all optional): ``spacing_m`` (dx, dy), ``vertical_scale``, ``vertical_offset``,
+    ``encoding`` (canonical name), ``tile`` (z, x, y), ``nodata`` (float, NaN allowed), ``crs`` (str),
+    ``transform`` (6 numbers), ``origin_m`` (west, north), ``bounds`` (west, south, east, north), and
+    ``_sidecar`` (the sidecar's path, for messages).
+    """
+    side = Path(path).with_suffix(".json")
+    if not side.is_file() or side == Path(path):
+        return {}
+    name = str(side)
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ds = rasterio.open(p)
-    except RasterioIOError as exc:
-        raise InputError(f"not a raster GDAL can read ({str(exc).splitlines()[0][:120]})", src) from None
-    with ds:
-        check_dimensions(ds.height, ds.width, src)
-        if not 1 <= band <= ds.count:
-            raise InputError(f"has {ds.count} band(s), band {band} requested", src)
+        raw = json.loads(side.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"sidecar is not valid JSON ({exc})", name) from None
+    if not isinstance(raw, dict):
+        raise InputError(f"sidecar must hold a JSON object, got {type(raw).__name__}", name)
+    vert = raw.get("vertical") if isinstance(raw.get("vertical"), dict) else {}
+    hor = raw.get("horizontal") if isinstance(raw.get("horizontal"), dict) else {}
+
+    def pick(flat: str, nested: dict[str, Any], key: str) -> Any:
+        return raw[flat] if raw.get(flat) is not None else nested.get(key)
+
+    out: dict[str, Any] = {}
+    if (v := pick("spacing_m", hor, "spacing_m")) is not None:
+        out["spacing_m"] = spacing_pair(v, name)
+    if (v := pick("vertical_scale", vert, "scale_m_per_unit")) is not None:
+        out["vertical_scale"] = _opt_float(v, "vertical_scale", name)
+    if (v := pick("vertical_offset", vert, "offset_m")) is not None:
+        out["vertical_offset"] = _opt_float(v, "vertical_offset", name)
+    enc = raw.get("encoding")
+    if isinstance(enc, dict):
+        enc = enc.get("name")
+    if enc is not None:
+        out["encoding"] = normalise_encoding(enc, name)
+    if (v := pick("tile", hor, "tile")) is not None:
+        out["tile"] = _tile(v, name)
+    if raw.get("nodata") is not None:
         try:
-            z = ds.read(band, masked=True)
-        except (RasterioIOError, MemoryError) as exc:
-            raise InputError(f"cannot read band {band} ({exc})", src) from None
-        valid = ~np.ma.getmaskarray(z)
-        values = np.ma.getdata(z).astype(np.float64)
-        scale = ds.scales[band - 1] if ds.scales else 1.0
-        offset = ds.offsets[band - 1] if ds.offsets else 0.0
-        if opts.get("vertical_scale") is not None:
-            scale = float(opts["vertical_scale"])
-        if opts.get("vertical_offset") is not None:
-            offset = float(opts["vertical_offset"])
-        values = values * scale + offset
-        t = ds.transform
-        crs = ds.crs
-    if t.b != 0 or t.d != 0:
-        raise InputError("has a rotated or sheared geotransform; warp it north-up first (gdalwarp)", src)
-    if t.is_identity or crs is None:
-        if opts.get("spacing_m") is None:
-            raise InputError("has no georeferencing; pass --spacing DX[,DY] in metres", src)
-        dx, dy = _spacing_pair(opts["spacing_m"], p)
-        return _local(values, valid, dx, dy, src)
-    if t.e > 0:  # south-up: flip to row 0 north
-        values, valid = values[::-1], valid[::-1]
-        t = Affine(t.a, 0.0, t.c, 0.0, -t.e, t.f + t.e * values.shape[0])
-    if t.a < 0:
-        values, valid = values[:, ::-1], valid[:, ::-1]
-        t = Affine(-t.a, 0.0, t.c + t.a * values.shape[1], 0.0, t.e, t.f)
-    return _georeferenced(values, valid, t, crs, src)
+            out["nodata"] = float(raw["nodata"])
+        except (TypeError, ValueError):
+            raise InputError(
+                f'sidecar nodata must be a number or "NaN", got {raw["nodata"]!r}', name
+            ) from None
+    if (v := pick("crs", hor, "crs")) is not None:
+        if not isinstance(v, str):
+            raise InputError(f'sidecar crs must be a string such as "EPSG:32610", got {v!r}', name)
+        out["crs"] = v
+    for key in ("transform", "origin_m", "bounds"):
+        if (v := pick(key, hor, key)) is not None:
+            out[key] = _numbers(v, key, name)
+    t = out.get("transform")
+    if t is not None and len(t) == 2:  # an origin given under "transform"
+        out["origin_m"] = out.pop("transform")
+    for key, n in (("transform", 6), ("origin_m", 2), ("bounds", 4)):
+        if key in out and len(out[key]) != n:
+            raise InputError(f"sidecar {key} must hold {n} numbers, got {len(out[key])}", name)
+    out["_sidecar"] = name
+    return out
 
 
-def _georeferenced(values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, src: str) -> Heightfield:
-    """Build a Heightfield in a metric frame from a georeferenced grid (reprojecting when needed)."""
+def normalise_encoding(encoding: str, source: str | None = None) -> str:
+    """Canonical encoding name ("terrain-rgb" or "terrarium") of a user-written one."""
+    key = str(encoding).strip().lower().replace("_", "-").replace(" ", "-")
+    if key not in _ENCODING_ALIASES:
+        raise InputError(f"unknown encoding {encoding!r}; expected one of {', '.join(ENCODINGS)}", source)
+    return _ENCODING_ALIASES[key]
+
+
+def spacing_pair(spacing: Any, source: str | None = None) -> tuple[float, float]:
+    """(dx, dy) metres from a number or a pair; refuses non-positive or non-finite values."""
+    try:
+        if isinstance(spacing, str):
+            spacing = [float(s) for s in spacing.replace(",", " ").split()]
+        if np.ndim(spacing) == 0:
+            dx = dy = float(spacing)
+        else:
+            dx, dy = (float(v) for v in spacing)
+    except (TypeError, ValueError):
+        raise InputError(f"spacing must be a number or (dx, dy) in metres, got {spacing!r}", source) from None
+    if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
+        raise InputError(f"spacing must be positive, finite metres, got {spacing!r}", source)
+    return dx, dy
+
+
+# -- helpers -------------------------------------------------------------------------------------------
+def _hints(opts: dict[str, Any], src: str) -> FrameHints:
+    crs = opts.get("crs")
+    if crs is not None:
+        placed = any(opts.get(k) is not None for k in ("transform", "origin_m", "bounds"))
+        try:
+            crs = _crs_text(crs, opts.get("_sidecar", src))
+        except InputError:
+            if placed:
+                raise
+            crs = None  # unused unless a raster without CRS brings its own transform: then unknown
+    t = opts.get("transform")
+    return FrameHints(
+        spacing_m=opts.get("spacing_m"),
+        crs=crs,
+        transform=None if t is None else Affine.from_gdal(*t),
+        origin_m=None if opts.get("origin_m") is None else tuple(opts["origin_m"]),  # type: ignore[arg-type]
+        bounds=None if opts.get("bounds") is None else tuple(opts["bounds"]),  # type: ignore[arg-type]
+        tile=opts.get("tile"),
+    )
+
+
+def _crs_text(crs: str, where: str) -> str:
+    """A CRS string rasterio understands: as given, or the "EPSG:<code>" it mentions."""
     from rasterio.crs import CRS
 
-    crs = CRS.from_user_input(crs)
-    notes: list[str] = []
-    if crs.is_geographic or crs.to_epsg() == 3857:
-        values, valid, t, crs, note = _to_utm(values, valid, t, crs, src)
-        notes.append(note)
-    else:
-        unit = (crs.linear_units or "metre").lower()
-        factor = (
-            crs.linear_units_factor[1] if unit not in ("metre", "meter", "m", "metres", "meters") else 1.0
-        )
-        if factor != 1.0:
-            t = Affine(t.a * factor, 0.0, t.c * factor, 0.0, t.e * factor, t.f * factor)
-            notes.append(f"horizontal coordinates converted from {unit} to metres (x {factor})")
-    z, ok, how = prepare_elevation(values, valid, src)
-    return Heightfield(z, ok, t, crs=crs.to_wkt(), source=src, fill_method=how, notes=tuple(notes))
-
-
-def _to_utm(values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, src: str):
-    from rasterio.crs import CRS
-    from rasterio.warp import Resampling, reproject, transform_bounds
-
-    h, w = values.shape
-    west, south, east, north = transform_bounds(crs, "EPSG:4326", t.c, t.f + h * t.e, t.c + w * t.a, t.f)
-    lon, lat = (west + east) / 2, (south + north) / 2
-    zone = int(min(max((lon + 180.0) // 6 + 1, 1), 60))
-    epsg = (32600 if lat >= 0 else 32700) + zone
-    dst_crs = CRS.from_epsg(epsg)
-    # ground spacing at the centre, from the source pixel's geodesic size
-    cx, cy = t.c + (w / 2) * t.a, t.f + (h / 2) * t.e
-    from rasterio.warp import transform as warp_pts
-
-    xs, ys = warp_pts(crs, dst_crs, [cx, cx + t.a, cx], [cy, cy, cy + t.e])
-    dx_m = math.hypot(xs[1] - xs[0], ys[1] - ys[0])
-    dy_m = math.hypot(xs[2] - xs[0], ys[2] - ys[0])
-    res = min(dx_m, dy_m)
-    bx0, by0, bx1, by1 = transform_bounds(
-        crs, dst_crs, t.c, t.f + h * t.e, t.c + w * t.a, t.f, densify_pts=51
-    )
-    width = max(2, int(math.ceil((bx1 - bx0) / res)))
-    height = max(2, int(math.ceil((by1 - by0) / res)))
-    check_dimensions(height, width, src)
-    dst_t = Affine(res, 0.0, bx0, 0.0, -res, by1)
-    src_vals = np.where(valid, values, np.nan).astype(np.float64)
-    out = np.full((height, width), np.nan, np.float64)
-    reproject(src_vals, out, src_transform=t, src_crs=crs, dst_transform=dst_t, dst_crs=dst_crs,
-              resampling=Resampling.bilinear, src_nodata=np.nan, dst_nodata=np.nan)  # fmt: skip
-    mask = np.zeros((height, width), np.uint8)
-    reproject(valid.astype(np.uint8), mask, src_transform=t, src_crs=crs, dst_transform=dst_t, dst_crs=dst_crs,
-              resampling=Resampling.nearest, src_nodata=None, dst_nodata=0)  # fmt: skip
-    ok = (mask > 0) & np.isfinite(out)
-    name = f"EPSG:{crs.to_epsg()}" if crs.to_epsg() else crs.to_string()
-    note = f"reprojected from {name} to EPSG:{epsg} (UTM {zone}{'N' if lat >= 0 else 'S'}) at {res:.2f} m, bilinear"
-    return out, ok, dst_t, dst_crs, note
-
-
-def _local(values: np.ndarray, valid: np.ndarray, dx: float, dy: float, src: str) -> Heightfield:
-    z, ok, how = prepare_elevation(values, valid, src)
-    t = Affine(dx, 0.0, 0.0, 0.0, -dy, 0.0)
-    return Heightfield(
-        z, ok, t, crs=None, source=src, fill_method=how, notes=("no georeferencing: local metric frame",)
-    )
-
-
-# -- images and arrays ---------------------------------------------------------------------------------
-def _decode_rgb(rgb: np.ndarray, encoding: str, src: str) -> np.ndarray:
-    r, g, b = (rgb[..., k].astype(np.float64) for k in range(3))
-    if encoding == "terrain-rgb":
-        return -10000.0 + (r * 65536.0 + g * 256.0 + b) * 0.1
-    if encoding == "terrarium":
-        return r * 256.0 + g + b / 256.0 - 32768.0
-    raise InputError(f"unknown encoding {encoding!r}; expected terrain-rgb or terrarium", src)
-
-
-def _read_image(p: Path, opts: dict[str, Any], side: dict[str, Any]) -> Heightfield:
-    from PIL import Image, UnidentifiedImageError
-
-    src = str(p)
     try:
-        with Image.open(p) as im:
-            check_dimensions(im.height, im.width, src)
-            mode = im.mode
-            enc = opts.get("encoding")
-            if enc:
-                values = _decode_rgb(np.asarray(im.convert("RGB")), enc, src)
-            elif mode in ("I;16", "I;16B", "I;16L", "I", "L", "F"):
-                values = np.asarray(im).astype(np.float64)
-            elif mode in ("LA", "P"):
-                values = np.asarray(im.convert("L")).astype(np.float64)
-            else:
-                raise InputError(
-                    f"is a {mode} image; pass --encoding terrain-rgb|terrarium for RGB elevation tiles", src
-                )
-    except UnidentifiedImageError:
-        raise InputError("not a PNG/WebP image Pillow can decode", src) from None
-    except OSError as exc:
-        raise InputError(f"cannot decode image ({exc})", src) from None
-    if not opts.get("encoding"):
-        values = values * float(opts.get("vertical_scale") or 1.0) + float(opts.get("vertical_offset") or 0.0)
-    valid = np.isfinite(values)
-    if side.get("nodata") is not None and not opts.get("encoding"):
-        valid &= values != float(side["nodata"]) * float(opts.get("vertical_scale") or 1.0) + float(
-            opts.get("vertical_offset") or 0.0
-        )
-    tile = opts.get("tile")
-    if tile is not None:
-        z, x, y = (int(v) for v in tile)
-        size = _EARTH_CIRCUMFERENCE_M / 2**z
-        h, w = values.shape
-        left = -_EARTH_CIRCUMFERENCE_M / 2 + x * size
-        top = _EARTH_CIRCUMFERENCE_M / 2 - y * size
-        t = Affine(size / w, 0.0, left, 0.0, -size / h, top)
-        return _georeferenced(values, valid, t, "EPSG:3857", src)
-    if opts.get("spacing_m") is None:
-        raise InputError("has no georeferencing; pass --spacing DX[,DY] in metres (or a .json sidecar)", src)
-    dx, dy = _spacing_pair(opts["spacing_m"], p)
-    return _local(values, valid, dx, dy, src)
+        CRS.from_user_input(crs)
+        return crs
+    except Exception:  # rasterio raises CRSError, ValueError or TypeError on malformed text
+        m = re.search(r"EPSG\s*:\s*(\d+)", crs, re.IGNORECASE)
+        if m:
+            return f"EPSG:{m.group(1)}"
+    raise InputError(f'crs {crs[:80]!r} is not understood (expected e.g. "EPSG:32610" or WKT)', where)
 
 
-def _read_array(p: Path, opts: dict[str, Any], side: dict[str, Any]) -> Heightfield:
-    src = str(p)
+def _tile(tile: Any, source: str) -> tuple[int, int, int]:
     try:
-        data = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"not a NumPy array file ({exc})", src) from None
-    if isinstance(data, np.lib.npyio.NpzFile):
-        with data:
-            key = "elevation" if "elevation" in data.files else (data.files[0] if data.files else None)
-            if key is None:
-                raise InputError("holds no arrays", src)
-            values = np.asarray(data[key])
-    else:
-        values = np.asarray(data)
-    if values.ndim != 2 or not np.issubdtype(values.dtype, np.number):
-        raise InputError(f"expected a 2-D numeric array, got {values.dtype} {values.shape}", src)
-    values = values.astype(np.float64) * float(opts.get("vertical_scale") or 1.0) + float(
-        opts.get("vertical_offset") or 0.0
-    )
-    valid = np.isfinite(values)
-    if side.get("nodata") is not None:
-        valid &= np.asarray(data if not isinstance(data, np.lib.npyio.NpzFile) else values) != float(
-            side["nodata"]
+        if isinstance(tile, dict):
+            vals = [tile["z"], tile["x"], tile["y"]]
+        elif isinstance(tile, str):
+            vals = tile.replace(",", "/").split("/")
+        else:
+            vals = list(tile)
+        if len(vals) != 3:
+            raise ValueError
+        z, x, y = (int(v) for v in vals)
+    except (TypeError, ValueError, KeyError):
+        raise InputError(f"tile must be (z, x, y) integers, got {tile!r}", source) from None
+    if not (0 <= z <= 30 and 0 <= x < 2**z and 0 <= y < 2**z):
+        raise InputError(
+            f"tile z/x/y = {z}/{x}/{y} is not a valid XYZ tile (expected 0 <= x, y < 2**z)", source
         )
-    if side.get("transform") is not None and side.get("crs"):
-        g = [float(v) for v in side["transform"]]
-        return _georeferenced(values, valid, Affine.from_gdal(*g), side["crs"], src)
-    if opts.get("spacing_m") is None:
-        raise InputError("has no georeferencing; pass --spacing DX[,DY] in metres (or a .json sidecar)", src)
-    dx, dy = _spacing_pair(opts["spacing_m"], p)
-    return _local(values, valid, dx, dy, src)
+    return z, x, y
+
+
+def _opt_float(value: Any, name: str, source: str) -> float | None:
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}", source) from None
+    if not math.isfinite(v):
+        raise InputError(f"{name} must be finite, got {value!r}", source)
+    return v
+
+
+def _numbers(value: Any, key: str, source: str) -> list[float]:
+    try:
+        out = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise InputError(f"sidecar {key} must be a list of numbers, got {value!r}", source) from None
+    if not all(math.isfinite(v) for v in out):
+        raise InputError(f"sidecar {key} must hold finite numbers, got {value!r}", source)
+    return out
