@@ -29,9 +29,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
 from terralod import Heightfield, build_store, measure_error, open_store  # noqa: E402
 from terralod.tiles import parent  # noqa: E402
+
+from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
 
 #: Max vertical error targets, metres, at which triangle counts are compared.
 TARGETS_M = (5.0, 20.0, 80.0)

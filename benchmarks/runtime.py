@@ -30,10 +30,11 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
 from terralod import Heightfield, build_store, open_store  # noqa: E402
 from terralod.runtime import Camera, Engine, find_cracks, reference_normals, stitch_leaves  # noqa: E402
 from terralod.runtime.normals import tile_local_normals  # noqa: E402
+
+from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
 
 CACHE = Path(os.environ.get("TERRALOD_BENCH_CACHE", Path(tempfile.gettempdir()) / "terralod-bench"))
 TILE_SIZE = 65

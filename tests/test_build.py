@@ -11,9 +11,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import fractal_terrain
 from terralod import Heightfield, build_store, measure_error, open_store
 from terralod.tiles import parent
+
+from conftest import fractal_terrain
 
 TOL = 1e-6
 

@@ -16,8 +16,9 @@ import pytest
 import rasterio
 from rasterio.transform import from_origin
 
-from conftest import fractal_terrain
 from terralod import build_store, open_store, read_heightfield
+
+from conftest import fractal_terrain
 
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:

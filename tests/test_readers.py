@@ -15,8 +15,9 @@ from hypothesis import strategies as st
 from PIL import Image
 from rasterio.transform import from_origin
 
-from conftest import fractal_terrain
 from terralod import Heightfield, InputError, InputNotFoundError, read_heightfield, sample_heightfield
+
+from conftest import fractal_terrain
 
 
 def _tif(path: Path, z: np.ndarray, crs: str, transform, nodata=None) -> Path:

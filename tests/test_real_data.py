@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from terralod import build_store, open_store, read_heightfield, sample_heightfield
+
 from test_build import check_store_invariants
 
 

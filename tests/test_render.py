@@ -15,9 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fractal_terrain
 
 from terralod import Camera, Engine, Heightfield, build_store, open_store, sample_heightfield
+
+from conftest import fractal_terrain
 
 # Reproducible images: force Mesa's EGL even on a machine with a GPU (DESIGN.md).
 _MESA = "/usr/share/glvnd/egl_vendor.d/50_mesa.json"

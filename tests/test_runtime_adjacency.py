@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from terralod.runtime import Adjacency, QuadIndex
 from terralod.runtime.adjacency import CULLED, VISIBLE
 from terralod.tiles import TilePyramid
+
 from test_runtime_support import brute_neighbours, spike_partition
 
 PYRAMIDS = [TilePyramid(257, 257, 9), TilePyramid(230, 150, 17), TilePyramid(100, 300, 5)]

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from terralod.runtime import Camera, Engine, TileCache
 from terralod.runtime.camera import box_distance, box_visible
 from terralod.tiles import parent
+
 from test_runtime_support import random_camera, terrain_store
 
 

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from terralod.runtime import Camera, Engine, find_cracks, reference_normals, stitch_leaves, tile_local_normals
+
 from test_runtime_support import (
     SlidingStore,
     brute_boundary_normals,

@@ -12,10 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from conftest import fractal_terrain
 from terralod import Heightfield, build_store, open_store
 from terralod.store import TileStore
 from terralod.tiles import TileCode, TilePyramid, parent
+
+from conftest import fractal_terrain
 
 _DIR = Path(tempfile.mkdtemp(prefix="terralod-runtime-tests-"))
 atexit.register(shutil.rmtree, _DIR, True)

@@ -11,9 +11,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from conftest import fractal_terrain
 from terralod import CorruptStoreError, Heightfield, StoreError, build_store, open_store
 from terralod.store import decode_triangles, decode_vertices, encode_triangles, encode_vertices
+
+from conftest import fractal_terrain
 
 
 @given(q=hnp.arrays(np.uint16, st.tuples(st.integers(1, 300), st.just(3))))

@@ -14,6 +14,7 @@ import numpy as np
 from scipy import ndimage
 
 from terralod.errors import InputError
+from terralod.kernels.fill import relax_holes
 
 #: Largest accepted raster side in samples (a 1 m DEM of a 262 km square); beyond it, tile the input.
 MAX_SIDE = 262_145
@@ -85,10 +86,6 @@ def fill_nodata(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Fill ``~valid`` cells of ``z`` (float64, (H, W)); valid cells are returned unchanged."""
     idx = ndimage.distance_transform_edt(~valid, return_distances=False, return_indices=True)
     out = z[idx[0], idx[1]].astype(np.float64)
-    hole = ~valid
     # Relax only inside holes; the valid rim stays fixed, so the membrane meets the data without a step.
-    for _ in range(FILL_SMOOTH_ITERATIONS):
-        p = np.pad(out, 1, mode="edge")
-        avg = 0.25 * (p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:])
-        out[hole] = avg[hole]
-    return out
+    hr, hc = np.nonzero(~valid)
+    return relax_holes(out, hr.astype(np.int64), hc.astype(np.int64), FILL_SMOOTH_ITERATIONS)
