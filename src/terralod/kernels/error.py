@@ -1,0 +1,682 @@
+"""Measured geometric error of a triangle mesh against the heightfield samples it covers (numba kernels).
+
+Frame (window-local, metres): sample (r, c) of the window sits at ``(c * dx, r * dy, z[r, c])``; X grows
+east, Y grows south (the frame is mirrored, distances are not). Vertices come in the same frame.
+
+Definitions. A sample is *covered* when it is valid and lies inside or on the boundary of at least one
+triangle's XY projection.
+
+- vertical error of a covered sample: ``|z - z_surface|``, z_surface interpolated on a covering triangle;
+  where triangles overlap (folded meshes, triangle soups) the smallest over the covering triangles is
+  taken. On a vertex, z_surface is the vertex height exactly (so a mesh through the samples measures 0);
+- Hausdorff distance: max over covered samples of the 3D distance from the sample to the closest point of
+  the mesh (every triangle, exact point-triangle distance, Ericson, *Real-Time Collision Detection*
+  5.1.5). It never exceeds the max vertical error.
+
+Coverage is decided in sample units (u = X / dx, v = Y / dy; a vertex within 1e-7 samples of a lattice
+point is put on it, ``_SNAP``) by one orientation predicate per edge, with the edge taken in a canonical
+direction (lexicographically smaller endpoint first). So the two triangles sharing an edge compute
+bit-identical numbers for it and a sample on a shared edge is never lost between them; and for vertices
+on the sample lattice (every mesh made from the raster) the predicate is exact integer arithmetic, so a
+sample on an outer edge is covered whatever dx, dy and the window origin.
+
+Algorithm (the recipe in :func:`tile_error`):
+
+1. ``_bin_triangles``: a uniform grid of square buckets of ``bs`` samples over the window; each triangle
+   goes to every bucket its box touches (count first, allocate exactly, then fill — the martini habit).
+2. ``_vertical_pass``, bucket by bucket: ``_rasterise_bucket`` writes the vertical error of the bucket's
+   samples into a bucket-sized scratch (per row, the covered run is found by the exact test at its two
+   ends and its interior is a branch-free, vectorised loop); count, sum of squares, max, and per bucket
+   the max and where it is.
+3. ``_hausdorff_pass``: a sample's distance is at most its vertical error v, so it is searched only while
+   v exceeds the running max (RMS is vertical-only, nothing else needs its exact distance). Seed: the
+   worst sample of each of the worst buckets, which lifts the running max close to its final value.
+   Sweep: buckets by decreasing max vertical error, stopping at the first whose max is not above the
+   running max. A search (``_sample_dist2``) descends a pyramid of the buckets' 3D boxes best first and
+   stops as soon as the distance cannot raise the running max, so it stays local however large v is.
+   On terrain tiles pass 2 costs a few percent of pass 1.
+
+Memory: the bucket index (about 2 int64 per triangle), per-triangle boxes in pass 2, one bucket of
+scratch, and for windows up to ``_KEEP_SAMPLES`` samples the vertical errors of pass 1 (8 bytes a
+sample), which pass 2 reads instead of rasterising again.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from terralod.kernels import jit
+
+#: Vertices within this many samples of a lattice point are put on it for the coverage test (their
+#: metric coordinates, used for every distance, are left alone): X / dx rounds, and a vertex made as
+#: ``col * dx`` must come back as exactly ``col``.
+_SNAP = 1e-7
+
+#: Slack, in samples, added to every triangle box before binning (binning too much only costs a test).
+_BIN_SLACK = 1e-6
+
+#: The box lower bound of a point-triangle distance is shrunk by this factor before pruning, so rounding
+#: in the bound can never prune the closest triangle.
+_LB_SHRINK = 1.0 - 1e-9
+
+#: Bucket side, samples: about _BUCKET_SCALE * sqrt(window samples per triangle) (a regular grid at
+#: stride s gets about 3 s, some 20 triangles a bucket), within [_MIN_BUCKET, _MAX_BUCKET]. Larger
+#: buckets cost pass 2 more on full-resolution tiles, smaller ones cost binning more.
+_BUCKET_SCALE = 4.0
+_MIN_BUCKET = 16
+_MAX_BUCKET = 128
+
+#: Windows of at most this many samples keep pass 1's vertical errors (8 bytes a sample, 16 MiB) for
+#: pass 2 instead of rasterising its buckets again.
+_KEEP_SAMPLES = 1 << 21
+
+#: Pass 2 first measures the worst sample of this many of the worst buckets, which lifts the running
+#: maximum close to its final value before the sweep (most samples then need no search).
+_SEED_BUCKETS = 16
+
+
+@jit
+def _canonical_edge(ax, ay, bx, by):
+    """Start point and direction of segment a-b, lexicographically smaller endpoint first."""
+    if ax < bx or (ax == bx and ay <= by):
+        return ax, ay, bx - ax, by - ay
+    return bx, by, ax - bx, ay - by
+
+
+@jit
+def _side(px, py, ex, ey, ox, oy):
+    """+1 / -1: side of point o of the canonical edge (p, e); 0 when o is on its line."""
+    s = ex * (oy - py) - ey * (ox - px)
+    return 1.0 if s > 0.0 else (-1.0 if s < 0.0 else 0.0)
+
+
+@jit
+def _sample_units(verts, dx, dy):
+    """(N, 2) vertex (u, v) = (X / dx, Y / dy) in samples, snapped to the lattice within _SNAP."""
+    n = verts.shape[0]
+    uv = np.empty((n, 2), np.float64)
+    for i in range(n):
+        u = verts[i, 0] / dx
+        v = verts[i, 1] / dy
+        ru = math.floor(u + 0.5)
+        rv = math.floor(v + 0.5)
+        uv[i, 0] = ru if abs(u - ru) <= _SNAP else u
+        uv[i, 1] = rv if abs(v - rv) <= _SNAP else v
+    return uv
+
+
+@jit
+def _bucket_span(lo, hi, nb, ibs):
+    """Bucket indices [b0, b1] covering the closed interval [lo, hi] samples, clamped to [0, nb - 1].
+
+    ibs is 1 / bucket side (inexact for most sides: the slack keeps that rounding from dropping a bucket).
+    """
+    a = min(max((lo - _BIN_SLACK) * ibs, 0.0), nb - 1.0)
+    b = min(max((hi + _BIN_SLACK) * ibs, 0.0), nb - 1.0)
+    return int(a), int(b)
+
+
+@jit
+def _bin_triangles(uv, tris, nbr, nbc, bs):
+    """CSR bucket index: triangles of bucket (i, j) are ``items[start[i*nbc+j]:start[i*nbc+j+1]]``.
+
+    A triangle goes to every bucket its bounding box (in samples) touches.
+    """
+    k = tris.shape[0]
+    nb = nbr * nbc
+    ibs = 1.0 / bs
+    span = np.empty((k, 4), np.int32)
+    count = np.zeros(nb + 1, np.int64)
+    for t in range(k):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ua, ub, uc = uv[a, 0], uv[b, 0], uv[c, 0]
+        va, vb, vc = uv[a, 1], uv[b, 1], uv[c, 1]
+        i0, i1 = _bucket_span(min(va, vb, vc), max(va, vb, vc), nbr, ibs)
+        j0, j1 = _bucket_span(min(ua, ub, uc), max(ua, ub, uc), nbc, ibs)
+        span[t, 0], span[t, 1], span[t, 2], span[t, 3] = i0, i1, j0, j1
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                count[i * nbc + j + 1] += 1
+    for b in range(nb):
+        count[b + 1] += count[b]
+    start = count.copy()
+    items = np.empty(count[nb], np.int64)
+    for t in range(k):
+        for i in range(span[t, 0], span[t, 1] + 1):
+            for j in range(span[t, 2], span[t, 3] + 1):
+                b = i * nbc + j
+                items[count[b]] = t
+                count[b] += 1
+    return start, items
+
+
+@jit
+def _sample_range(lo, hi, first, last):
+    """Integer samples [a, b] (possibly empty, one wider than needed) around [lo, hi], within [first, last]."""
+    a = min(max(math.floor(lo), first - 1.0), last + 1.0)
+    b = min(max(math.ceil(hi), first - 1.0), last + 1.0)
+    return max(int(a), first), min(int(b), last)
+
+
+@jit
+def _row_span(a, px, ey, m, lo, hi):
+    """Narrow the column interval [lo, hi] (samples, float) to where one edge may hold in this row.
+
+    The edge value along the row is ``a - ey * (c - px)`` (times m it must be >= 0), zero near
+    ``c = px + a / ey``; the caller keeps one sample of margin and decides with the exact test.
+    """
+    if ey == 0.0:
+        return (lo, hi) if a * m >= 0.0 else (np.inf, -np.inf)
+    c = px + a / ey
+    if m * ey > 0.0:
+        return lo, min(hi, c)
+    return max(lo, c), hi
+
+
+@jit
+def _end_height(l0, l1, l2, za, zb, zc):
+    """Surface height at a row's first or last covered sample from its edge values l_i (>= 0).
+
+    Exactly the vertex height on a vertex: a vertex is an extreme point of its triangle, so it is always
+    an end of its row's run, and the run's interior can use the plain plane formula.
+    """
+    zi = (l0 * za + l1 * zb + l2 * zc) / (l0 + l1 + l2)
+    zi = za if (l1 == 0.0 and l2 == 0.0) else zi
+    zi = zb if (l0 == 0.0 and l2 == 0.0) else zi
+    return zc if (l0 == 0.0 and l1 == 0.0) else zi
+
+
+@jit
+def _rasterise_bucket(uv, verts, tris, items, s0, s1, z, valid, r0, r1, c0, c1, vbuf):
+    """Vertical error of the samples rows r0..r1, cols c0..c1 (min over covering triangles), into vbuf.
+
+    vbuf[(r - r0) * (c1 - c0 + 1) + (c - c0)] is inf where the sample is not covered (or not valid).
+    Coverage and weights are computed in samples (uv), heights in metres (verts[:, 2]). Triangles whose
+    box spans under 4 columns test every sample of it; larger ones, per row, narrow the columns by where
+    the edges cross the row, find the run of covered columns with the exact test at both ends (each edge
+    value is monotone along a row, so the run is contiguous) and fill the run's interior branch-free.
+    """
+    bw = c1 - c0 + 1
+    for q in range((r1 - r0 + 1) * bw):
+        vbuf[q] = np.inf
+    for it in range(s0, s1):
+        t = items[it]
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ax, ay, za = uv[a, 0], uv[a, 1], verts[a, 2]
+        bx, by, zb = uv[b, 0], uv[b, 1], verts[b, 2]
+        cx, cy, zc = uv[c, 0], uv[c, 1], verts[c, 2]
+        ra, rb = _sample_range(min(ay, by, cy), max(ay, by, cy), r0, r1)
+        ca, cb = _sample_range(min(ax, bx, cx), max(ax, bx, cx), c0, c1)
+        if ra > rb or ca > cb:
+            continue
+        # Edge i is opposite vertex i; m_i is the side of vertex i, so l_i = m_i * value >= 0 inside.
+        px0, py0, ex0, ey0 = _canonical_edge(bx, by, cx, cy)
+        px1, py1, ex1, ey1 = _canonical_edge(cx, cy, ax, ay)
+        px2, py2, ex2, ey2 = _canonical_edge(ax, ay, bx, by)
+        m0 = _side(px0, py0, ex0, ey0, ax, ay)
+        m1 = _side(px1, py1, ex1, ey1, bx, by)
+        m2 = _side(px2, py2, ex2, ey2, cx, cy)
+        if m0 == 0.0 or m1 == 0.0 or m2 == 0.0:
+            continue  # zero XY area: covers no sample
+        # Interior samples: the plane through a, with weights l1, l2 over twice the area.
+        inv = 1.0 / abs(ex2 * (cy - py2) - ey2 * (cx - px2))
+        dzb = zb - za
+        dzc = zc - za
+        if cb - ca < 4:
+            # Small box: every sample of it, branch-free (stores the old value back when not covered).
+            for r in range(ra, rb + 1):
+                sy = float(r)
+                a0 = ex0 * (sy - py0)
+                a1 = ex1 * (sy - py1)
+                a2 = ex2 * (sy - py2)
+                base = (r - r0) * bw - c0
+                for cc in range(ca, cb + 1):
+                    sx = float(cc)
+                    l0 = (a0 - ey0 * (sx - px0)) * m0
+                    l1 = (a1 - ey1 * (sx - px1)) * m1
+                    l2 = (a2 - ey2 * (sx - px2)) * m2
+                    zi = _end_height(l0, l1, l2, za, zb, zc)
+                    v = abs(z[r, cc] - zi)
+                    old = vbuf[base + cc]
+                    take = l0 >= 0.0 and l1 >= 0.0 and l2 >= 0.0 and valid[r, cc] and v < old
+                    vbuf[base + cc] = v if take else old
+            continue
+        for r in range(ra, rb + 1):
+            sy = float(r)
+            a0 = ex0 * (sy - py0)
+            a1 = ex1 * (sy - py1)
+            a2 = ex2 * (sy - py2)
+            # Columns the edges leave open, with one sample of margin for the rounding of the estimate.
+            cl, ch = ca, cb
+            lo, hi = _row_span(a0, px0, ey0, m0, float(ca), float(cb))
+            lo, hi = _row_span(a1, px1, ey1, m1, lo, hi)
+            lo, hi = _row_span(a2, px2, ey2, m2, lo, hi)
+            if lo == lo and hi == hi:  # not NaN; clamped before the int conversion
+                cl = max(ca, int(math.floor(min(lo, cb + 1.0))) - 1)
+                ch = min(cb, int(math.ceil(max(hi, ca - 1.0))) + 1)
+            # First and last covered column of the row, with their edge values.
+            first = -1
+            f0 = f1 = f2 = 0.0
+            for cc in range(cl, ch + 1):
+                sx = float(cc)
+                f0 = (a0 - ey0 * (sx - px0)) * m0
+                f1 = (a1 - ey1 * (sx - px1)) * m1
+                f2 = (a2 - ey2 * (sx - px2)) * m2
+                if f0 >= 0.0 and f1 >= 0.0 and f2 >= 0.0:
+                    first = cc
+                    break
+            if first < 0:
+                continue
+            last = first
+            g0, g1, g2 = f0, f1, f2
+            for cc in range(ch, first, -1):
+                sx = float(cc)
+                g0 = (a0 - ey0 * (sx - px0)) * m0
+                g1 = (a1 - ey1 * (sx - px1)) * m1
+                g2 = (a2 - ey2 * (sx - px2)) * m2
+                if g0 >= 0.0 and g1 >= 0.0 and g2 >= 0.0:
+                    last = cc
+                    break
+            base = (r - r0) * bw - c0
+            if valid[r, first]:
+                v = abs(z[r, first] - _end_height(f0, f1, f2, za, zb, zc))
+                if v < vbuf[base + first]:  # NaN (no sample) never replaces
+                    vbuf[base + first] = v
+            if last != first and valid[r, last]:
+                v = abs(z[r, last] - _end_height(g0, g1, g2, za, zb, zc))
+                if v < vbuf[base + last]:
+                    vbuf[base + last] = v
+            # Run interior, branch-free with unsigned indices (no wraparound checks) so that it vectorises.
+            ru = np.uint64(r)
+            cu = np.uint64(first + 1)
+            qu = np.uint64(base + first + 1)
+            for i in range(np.uint64(max(last - first - 1, 0))):
+                sx = first + 1.0 + np.float64(i)
+                l1 = (a1 - ey1 * (sx - px1)) * m1
+                l2 = (a2 - ey2 * (sx - px2)) * m2
+                v = abs(z[ru, cu + i] - (za + (l1 * dzb + l2 * dzc) * inv))
+                v = v if valid[ru, cu + i] else np.inf
+                old = vbuf[qu + i]
+                vbuf[qu + i] = v if v < old else old  # NaN (no sample) never replaces
+
+
+@jit
+def _segment_dist2(px, py, pz, ax, ay, az, bx, by, bz):
+    """Squared distance from p to segment a-b (a point when a == b)."""
+    ux, uy, uz = bx - ax, by - ay, bz - az
+    wx, wy, wz = px - ax, py - ay, pz - az
+    uu = ux * ux + uy * uy + uz * uz
+    t = 0.0
+    if uu > 0.0:
+        t = min(max((wx * ux + wy * uy + wz * uz) / uu, 0.0), 1.0)
+    dx, dy, dz = wx - t * ux, wy - t * uy, wz - t * uz
+    return dx * dx + dy * dy + dz * dz
+
+
+@jit
+def _point_triangle_dist2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Squared distance from p to triangle abc, Ericson's Voronoi-region walk (RTCD 5.1.5).
+
+    Collinear (zero-area) triangles, where the face region's denominator vanishes, fall back to the
+    distance to their three edges.
+    """
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:  # vertex region a
+        return apx * apx + apy * apy + apz * apz
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0.0 and d4 <= d3:  # vertex region b
+        return bpx * bpx + bpy * bpy + bpz * bpz
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:  # edge region ab
+        v = d1 / (d1 - d3)
+        qx, qy, qz = apx - v * abx, apy - v * aby, apz - v * abz
+        return qx * qx + qy * qy + qz * qz
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0.0 and d5 <= d6:  # vertex region c
+        return cpx * cpx + cpy * cpy + cpz * cpz
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:  # edge region ac
+        w = d2 / (d2 - d6)
+        qx, qy, qz = apx - w * acx, apy - w * acy, apz - w * acz
+        return qx * qx + qy * qy + qz * qz
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:  # edge region bc
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        qx, qy, qz = bpx - w * (cx - bx), bpy - w * (cy - by), bpz - w * (cz - bz)
+        return qx * qx + qy * qy + qz * qz
+    denom = va + vb + vc
+    if not denom > 0.0:  # collinear: the triangle is its edges
+        return min(
+            _segment_dist2(px, py, pz, ax, ay, az, bx, by, bz),
+            _segment_dist2(px, py, pz, bx, by, bz, cx, cy, cz),
+            _segment_dist2(px, py, pz, cx, cy, cz, ax, ay, az),
+        )
+    v = vb / denom  # face region: p projects inside
+    w = vc / denom
+    qx = apx - v * abx - w * acx
+    qy = apy - v * aby - w * acy
+    qz = apz - v * abz - w * acz
+    return qx * qx + qy * qy + qz * qz
+
+
+@jit
+def _triangle_boxes(verts, tris):
+    """(K, 6) bounding boxes, metres: x min, x max, y min, y max, z min, z max."""
+    k = tris.shape[0]
+    box = np.empty((k, 6), np.float64)
+    for t in range(k):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        for j in range(3):
+            box[t, 2 * j] = min(verts[a, j], verts[b, j], verts[c, j])
+            box[t, 2 * j + 1] = max(verts[a, j], verts[b, j], verts[c, j])
+    return box
+
+
+@jit
+def _search_bucket(b, start, items, verts, tris, box, px, py, pz, best2, stop2, stamp, sid):
+    """Lower best2 with the triangles of bucket b not yet seen by search sid; stops early at stop2."""
+    for it in range(start[b], start[b + 1]):
+        t = items[it]
+        if stamp[t] == sid:
+            continue
+        stamp[t] = sid
+        # Box lower bound first: most candidates end here.
+        gx = max(box[t, 0] - px, 0.0, px - box[t, 1])
+        gy = max(box[t, 2] - py, 0.0, py - box[t, 3])
+        gz = max(box[t, 4] - pz, 0.0, pz - box[t, 5])
+        if (gx * gx + gy * gy + gz * gz) * _LB_SHRINK >= best2:
+            continue
+        a, bb, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        d2 = _point_triangle_dist2(
+            px, py, pz,
+            verts[a, 0], verts[a, 1], verts[a, 2],
+            verts[bb, 0], verts[bb, 1], verts[bb, 2],
+            verts[c, 0], verts[c, 1], verts[c, 2],
+        )  # fmt: skip
+        if d2 < best2:
+            best2 = d2
+            if best2 <= stop2:
+                break
+    return best2
+
+
+@jit
+def _bucket_pyramid(box, start, items, nbr, nbc):
+    """Bounding boxes of the buckets' triangles (metres), and of 2 x 2 groups of them up to one root.
+
+    Returns (nodes (M, 6), level_offset, level_rows, level_cols): level 0 is the bucket grid (row-major),
+    level l + 1 merges 2 x 2 cells of level l. An empty cell keeps an inverted (+inf, -inf) box, whose
+    distance is inf, so it is never opened.
+    """
+    nlev = 1
+    r, c = nbr, nbc
+    total = r * c
+    while r > 1 or c > 1:
+        r = (r + 1) // 2
+        c = (c + 1) // 2
+        total += r * c
+        nlev += 1
+    off = np.empty(nlev + 1, np.int64)
+    rows = np.empty(nlev, np.int64)
+    cols = np.empty(nlev, np.int64)
+    nodes = np.empty((total, 6), np.float64)
+    for i in range(total):
+        for j in range(0, 6, 2):
+            nodes[i, j] = np.inf
+            nodes[i, j + 1] = -np.inf
+    r, c = nbr, nbc
+    off[0] = 0
+    for lev in range(nlev):
+        rows[lev] = r
+        cols[lev] = c
+        off[lev + 1] = off[lev] + r * c
+        r = (r + 1) // 2
+        c = (c + 1) // 2
+    for b in range(nbr * nbc):
+        for it in range(start[b], start[b + 1]):
+            t = items[it]
+            for j in range(0, 6, 2):
+                nodes[b, j] = min(nodes[b, j], box[t, j])
+                nodes[b, j + 1] = max(nodes[b, j + 1], box[t, j + 1])
+    for lev in range(1, nlev):
+        for i in range(rows[lev - 1]):
+            for j in range(cols[lev - 1]):
+                src = off[lev - 1] + i * cols[lev - 1] + j
+                dst = off[lev] + (i // 2) * cols[lev] + j // 2
+                for q in range(0, 6, 2):
+                    nodes[dst, q] = min(nodes[dst, q], nodes[src, q])
+                    nodes[dst, q + 1] = max(nodes[dst, q + 1], nodes[src, q + 1])
+    return nodes, off, rows, cols
+
+
+@jit
+def _box_dist2(nodes, i, px, py, pz):
+    """Squared distance from p to box i of nodes (inf for an empty box)."""
+    gx = max(nodes[i, 0] - px, 0.0, px - nodes[i, 1])
+    gy = max(nodes[i, 2] - py, 0.0, py - nodes[i, 3])
+    gz = max(nodes[i, 4] - pz, 0.0, pz - nodes[i, 5])
+    return gx * gx + gy * gy + gz * gz
+
+
+@jit
+def _sample_dist2(px, py, pz, v, pyramid, start, items, verts, tris, box, stop2, stamp, sid, stack):
+    """Squared distance from p to the mesh, or any value <= stop2 once it cannot exceed it.
+
+    v is the sample's vertical error, an upper bound. Best-first descent of the bucket pyramid (see
+    ``_bucket_pyramid``): a cell is opened only while the distance to its box is below the best distance
+    found so far, nearest child first, so the search stays local however large v is. sid is a number no
+    earlier search used (it marks the triangles already tested); stack is scratch of at least
+    3 * levels + 1 entries.
+    """
+    nodes, off, rows, cols = pyramid
+    best2 = v * v
+    stack[0] = off[len(rows) - 1]  # the root
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if _box_dist2(nodes, node, px, py, pz) * _LB_SHRINK >= best2:
+            continue
+        if node < off[1]:  # a bucket
+            best2 = _search_bucket(node, start, items, verts, tris, box, px, py, pz, best2, stop2, stamp, sid)
+            if best2 <= stop2:
+                return best2
+            continue
+        lev = 1
+        while node >= off[lev + 1]:
+            lev += 1
+        # Open children worth opening, pushed farthest first so that the nearest is opened next.
+        i = (node - off[lev]) // cols[lev]
+        j = (node - off[lev]) % cols[lev]
+        first = sp
+        for ci in range(2 * i, min(2 * i + 2, rows[lev - 1])):
+            for cj in range(2 * j, min(2 * j + 2, cols[lev - 1])):
+                child = off[lev - 1] + ci * cols[lev - 1] + cj
+                d = _box_dist2(nodes, child, px, py, pz)
+                if d * _LB_SHRINK >= best2:
+                    continue
+                q = sp
+                while q > first and _box_dist2(nodes, stack[q - 1], px, py, pz) < d:
+                    stack[q] = stack[q - 1]
+                    q -= 1
+                stack[q] = child
+                sp += 1
+    return best2
+
+
+@jit
+def _vertical_pass(uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall):
+    """Pass 1: vertical error of every covered sample, bucket by bucket.
+
+    Returns (max_v, sumsq, n, worst, bmax, barg): worst is the window index r * w + c of a sample
+    attaining max_v; per bucket, bmax is the max vertical error (-1 when the bucket covers nothing) and
+    barg where it is. When vall has h * w entries it receives every sample's vertical error (inf where
+    not covered).
+    """
+    h, w = z.shape
+    keep = vall.shape[0] == h * w
+    vbuf = np.empty(bs * bs, np.float64)
+    bmax = np.full(nbr * nbc, -1.0)
+    barg = np.full(nbr * nbc, -1, np.int64)
+    max_v = -1.0
+    sumsq = 0.0
+    n = 0
+    for bi in range(nbr):
+        r0 = bi * bs
+        r1 = min(r0 + bs, h) - 1
+        for bj in range(nbc):
+            c0 = bj * bs
+            c1 = min(c0 + bs, w) - 1
+            b = bi * nbc + bj
+            if start[b] == start[b + 1]:
+                continue
+            _rasterise_bucket(uv, verts, tris, items, start[b], start[b + 1], z, valid, r0, r1, c0, c1, vbuf)
+            bw = c1 - c0 + 1
+            for q in range((r1 - r0 + 1) * bw):
+                v = vbuf[q]
+                if keep:
+                    vall[(r0 + q // bw) * w + c0 + q % bw] = v
+                if v == np.inf:
+                    continue
+                n += 1
+                sumsq += v * v
+                if v > bmax[b]:
+                    bmax[b] = v
+                    barg[b] = (r0 + q // bw) * w + c0 + q % bw
+    worst = -1
+    for b in range(nbr * nbc):
+        if bmax[b] > max_v:
+            max_v = bmax[b]
+            worst = barg[b]
+    return max_v, sumsq, n, worst, bmax, barg
+
+
+@jit
+def _hausdorff_pass(uv, verts, tris, z, valid, dx, dy, bs, nbr, nbc, start, items, vall, bmax, barg):
+    """Pass 2: max over covered samples of the exact distance to the mesh (squared), and its sample.
+
+    A sample is searched only while its vertical error (an upper bound of its distance) exceeds the
+    running max. Seed: the worst sample of each of the worst buckets, which lifts the running max close
+    to its final value. Sweep: buckets by decreasing max vertical error, stopping at the first whose max
+    does not exceed the running max.
+    """
+    h, w = z.shape
+    keep = vall.shape[0] == h * w
+    box = _triangle_boxes(verts, tris)
+    pyramid = _bucket_pyramid(box, start, items, nbr, nbc)
+    stack = np.empty(3 * len(pyramid[2]) + 4, np.int64)
+    stamp = np.full(tris.shape[0], -1, np.int64)
+    sid = 0
+    order = np.argsort(-bmax, kind="mergesort")
+    hd2 = 0.0
+    worst = barg[order[0]]
+    for ob in range(min(nbr * nbc, _SEED_BUCKETS)):
+        b = order[ob]
+        if bmax[b] <= 0.0 or bmax[b] * bmax[b] <= hd2:
+            break  # (bmax is -1 for buckets that cover nothing)
+        r = barg[b] // w
+        c = barg[b] % w
+        zs = np.float64(z[r, c])
+        d2 = _sample_dist2(
+            c * dx, r * dy, zs, bmax[b], pyramid, start, items, verts, tris, box, hd2, stamp, sid, stack
+        )
+        sid += 1
+        if d2 > hd2:
+            hd2 = d2
+            worst = barg[b]
+    vbuf = np.empty(bs * bs, np.float64)
+    for ob in range(nbr * nbc):
+        b = order[ob]
+        if bmax[b] <= 0.0 or bmax[b] * bmax[b] <= hd2:
+            break  # this bucket and every later one: no sample's bound exceeds the running max
+        r0 = (b // nbc) * bs
+        r1 = min(r0 + bs, h) - 1
+        c0 = (b % nbc) * bs
+        c1 = min(c0 + bs, w) - 1
+        bw = c1 - c0 + 1
+        if keep:
+            for q in range((r1 - r0 + 1) * bw):
+                vbuf[q] = vall[(r0 + q // bw) * w + c0 + q % bw]
+        else:
+            _rasterise_bucket(uv, verts, tris, items, start[b], start[b + 1], z, valid, r0, r1, c0, c1, vbuf)
+        for q in range((r1 - r0 + 1) * bw):
+            v = vbuf[q]
+            if v == np.inf or v * v <= hd2:
+                continue
+            r = r0 + q // bw
+            c = c0 + q % bw
+            zs = np.float64(z[r, c])
+            d2 = _sample_dist2(
+                c * dx, r * dy, zs, v, pyramid, start, items, verts, tris, box, hd2, stamp, sid, stack
+            )
+            sid += 1
+            if d2 > hd2:
+                hd2 = d2
+                worst = r * w + c
+    return hd2, worst
+
+
+@jit
+def tile_error(verts, tris, z, valid, dx, dy, bucket_size=0):
+    """Vertical and Hausdorff error of a mesh against the window's samples it covers.
+
+    Parameters
+    ----------
+    verts : (N, 3) float64
+        Vertices in the window-local frame, metres: X = col * dx (east), Y = row * dy (south), Z up.
+    tris : (K, 3) integer
+        Vertex indices, each in [0, N) (not checked here), either winding.
+    z : (h, w) float32
+        Window elevations, metres, row 0 north. NaN samples count as invalid.
+    valid : (h, w) bool
+        Samples to measure.
+    dx, dy : float
+        Sample spacing east-west and north-south, metres (> 0).
+    bucket_size : int
+        Bucket side in samples; 0 (default) picks it from the triangle density. Only speed depends on
+        it (tests vary it to exercise the bucket edges).
+
+    Returns
+    -------
+    max_v : float
+        Max vertical error over covered samples, metres (0 when none).
+    sumsq_v : float
+        Sum of squared vertical errors, m^2.
+    n : int
+        Number of covered samples.
+    hausdorff : float
+        One-sided Hausdorff distance from covered samples to the mesh, metres (0 when none).
+    worst_v_r, worst_v_c, worst_h_r, worst_h_c : int
+        Window (row, col) of the sample attaining each max (-1 when no sample is covered).
+    """
+    h, w = z.shape
+    k = tris.shape[0]
+    if k == 0 or h == 0 or w == 0:
+        return 0.0, 0.0, 0, 0.0, -1, -1, -1, -1
+    bs = bucket_size
+    if bs <= 0:
+        bs = int(min(max(_BUCKET_SCALE * math.sqrt(h * w / k), _MIN_BUCKET), _MAX_BUCKET))
+    nbr = (h + bs - 1) // bs
+    nbc = (w + bs - 1) // bs
+    uv = _sample_units(verts, dx, dy)
+    start, items = _bin_triangles(uv, tris, nbr, nbc, bs)
+    vall = np.empty(h * w if h * w <= _KEEP_SAMPLES else 0, np.float64)
+    max_v, sumsq, n, wv, bmax, barg = _vertical_pass(
+        uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall
+    )
+    if n == 0:
+        return 0.0, 0.0, 0, 0.0, -1, -1, -1, -1
+    if max_v == 0.0:  # the mesh passes through every covered sample
+        return 0.0, sumsq, n, 0.0, wv // w, wv % w, wv // w, wv % w
+    hd2, wh = _hausdorff_pass(uv, verts, tris, z, valid, dx, dy, bs, nbr, nbc, start, items, vall, bmax, barg)
+    return max_v, sumsq, n, math.sqrt(hd2), wv // w, wv % w, wh // w, wh % w
