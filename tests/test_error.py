@@ -22,7 +22,7 @@ from scipy.spatial import Delaunay
 
 from terralod.error import ErrorReport, measure_error, measure_error_window
 from terralod.heightfield import Heightfield
-from terralod.kernels.error import tile_error
+from terralod.kernels.error import tile_error, tile_error_with
 
 RTOL = 1e-9
 SETTINGS = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -113,16 +113,22 @@ def reference(verts, tris, z, valid, dx, dy, chunk=4096):
     return vert, dist
 
 
-def check_against_reference(verts, tris, z, valid, dx, dy, bucket_sizes=(1, 3, 7)) -> ErrorReport:
-    """Kernel (automatic and forced bucket sizes) == reference; returns the automatic report."""
+def check_against_reference(
+    verts, tris, z, valid, dx, dy, variants=((1, 0), (3, 1 << 30), (7, 0), (0, 0))
+) -> ErrorReport:
+    """Kernel == reference, with automatic settings and each (bucket_size, keep_samples) of variants.
+
+    Only speed may depend on them: small buckets put many bucket edges through the mesh, keep_samples=0
+    takes the bucket-by-bucket path that coarse tiles take. Returns the automatic report.
+    """
     rep = measure_error_window(verts, tris, z, valid, dx, dy)
     vert, dist = reference(verts, tris, z, valid, dx, dy)
     args = (np.asarray(verts, np.float64), np.asarray(tris, np.int64), z, valid, float(dx), float(dy))
-    for bs in bucket_sizes:  # only speed may depend on the bucket size: many bucket edges, same answer
-        out = tile_error(*args, bs)
-        assert out[2] == rep.n_samples, bs
-        assert out[0] == pytest.approx(rep.max_vertical_m, rel=RTOL), bs
-        assert out[3] == pytest.approx(rep.hausdorff_m, rel=RTOL, abs=1e-12), bs
+    for bs, keep in variants:
+        out = tile_error_with(*args, bs, keep)
+        assert out[2] == rep.n_samples, (bs, keep)
+        assert out[0] == pytest.approx(rep.max_vertical_m, rel=RTOL), (bs, keep)
+        assert out[3] == pytest.approx(rep.hausdorff_m, rel=RTOL, abs=1e-12), (bs, keep)
     cov = np.isfinite(vert)
     assert rep.n_samples == int(cov.sum())
     if rep.n_samples == 0:

@@ -176,7 +176,9 @@ def measure_error(
     Vertices are converted to fractional sample indices with :meth:`Heightfield.sample_rc`; the coverage
     test puts a vertex within 1e-7 samples of a sample on it, so a mesh whose vertices sit on samples
     (made with :meth:`Heightfield.world_xy`) covers exactly the samples on its outline, whatever the
-    georeferencing. The source is cropped to the mesh's bounding box plus one sample before measuring.
+    georeferencing. For vertices off the sample lattice, a sample lying exactly on an outer edge is
+    decided by the rounded coordinates (world coordinates of 1e6 m carry about 1e-10 m of rounding).
+    The source is cropped to the mesh's bounding box plus one sample before measuring.
     """
     v, t = _check_mesh(vertices, triangles)
     ok = heightfield.valid
@@ -202,6 +204,7 @@ def measure_error(
     local[:, 0] = (cols - c0) * dx
     local[:, 1] = (rows - r0) * dy
     local[:, 2] = v[:, 2]
-    z = heightfield.elevation_m[r0 : r1 + 1, c0 : c1 + 1]
-    out = tile_error(local, t, z, np.ascontiguousarray(ok[r0 : r1 + 1, c0 : c1 + 1]), dx, dy)
+    # C-contiguous copies: the kernel's C-layout build is faster than a strided view, copy included.
+    z = np.ascontiguousarray(heightfield.elevation_m[r0 : r1 + 1, c0 : c1 + 1])
+    out = tile_error(local, t, z, np.ascontiguousarray(ok[r0 : r1 + 1, c0 : c1 + 1]), float(dx), float(dy))
     return _report(out, r0, c0)

@@ -1,5 +1,9 @@
 """Measured geometric error of a triangle mesh against the heightfield samples it covers (numba kernels).
 
+Source: DESIGN.md's rule "every stored tile error is the maximum distance between the tile's surface and
+every source sample it covers" (no paper of ../shared/papers defines the measurement; they assume it);
+the point-triangle distance is Ericson's, *Real-Time Collision Detection* 5.1.5, unchanged.
+
 Frame (window-local, metres): sample (r, c) of the window sits at ``(c * dx, r * dy, z[r, c])``; X grows
 east, Y grows south (the frame is mirrored, distances are not). Vertices come in the same frame.
 
@@ -20,14 +24,16 @@ bit-identical numbers for it and a sample on a shared edge is never lost between
 on the sample lattice (every mesh made from the raster) the predicate is exact integer arithmetic, so a
 sample on an outer edge is covered whatever dx, dy and the window origin.
 
-Algorithm (the recipe in :func:`tile_error`):
+Algorithm (the recipe in :func:`tile_error_with`):
 
-1. ``_bin_triangles``: a uniform grid of square buckets of ``bs`` samples over the window; each triangle
-   goes to every bucket its box touches (count first, allocate exactly, then fill — the martini habit).
-2. ``_vertical_pass``, bucket by bucket: ``_rasterise_bucket`` writes the vertical error of the bucket's
-   samples into a bucket-sized scratch (per row, the covered run is found by the exact test at its two
-   ends and its interior is a branch-free, vectorised loop); count, sum of squares, max, and per bucket
-   the max and where it is.
+1. Buckets: a uniform grid of square buckets of ``bs`` samples over the window.
+2. ``_vertical_pass``: the vertical error of every covered sample, by ``_rasterise_bucket`` (per row the
+   covered run is found by the exact test at its two ends, and its interior is a branch-free loop that
+   vectorises). Windows up to ``_KEEP_SAMPLES`` samples (every tile at stride <= 16) are rasterised
+   triangle by triangle straight into a per-sample array; larger ones bucket by bucket through a bucket
+   of scratch, each bucket with the triangles whose box touches it (``_bin_triangles``: count first,
+   allocate exactly, then fill — the martini habit). Out: count, sum of squares, max, and per bucket the
+   max and where it is.
 3. ``_hausdorff_pass``: a sample's distance is at most its vertical error v, so it is searched only while
    v exceeds the running max (RMS is vertical-only, nothing else needs its exact distance). Seed: the
    worst sample of each of the worst buckets, which lifts the running max close to its final value.
@@ -36,9 +42,8 @@ Algorithm (the recipe in :func:`tile_error`):
    stops as soon as the distance cannot raise the running max, so it stays local however large v is.
    On terrain tiles pass 2 costs a few percent of pass 1.
 
-Memory: the bucket index (about 2 int64 per triangle), per-triangle boxes in pass 2, one bucket of
-scratch, and for windows up to ``_KEEP_SAMPLES`` samples the vertical errors of pass 1 (8 bytes a
-sample), which pass 2 reads instead of rasterising again.
+Memory: the per-sample array (8 bytes a sample, at most 16 MiB) or one bucket of scratch; the bucket
+index (1 to 4 int64 a triangle) and, in pass 2, per-triangle boxes (6 float64 a triangle).
 """
 
 from __future__ import annotations
@@ -62,14 +67,16 @@ _BIN_SLACK = 1e-6
 _LB_SHRINK = 1.0 - 1e-9
 
 #: Bucket side, samples: about _BUCKET_SCALE * sqrt(window samples per triangle) (a regular grid at
-#: stride s gets about 3 s, some 20 triangles a bucket), within [_MIN_BUCKET, _MAX_BUCKET]. Larger
-#: buckets cost pass 2 more on full-resolution tiles, smaller ones cost binning more.
+#: stride s gets about 3 s, some 20 triangles a bucket), within [_MIN_BUCKET, _MAX_BUCKET] (lower
+#: bound _MIN_BUCKET_KEEP when pass 1 does not go through buckets).
 _BUCKET_SCALE = 4.0
 _MIN_BUCKET = 16
+_MIN_BUCKET_KEEP = 4
 _MAX_BUCKET = 128
 
-#: Windows of at most this many samples keep pass 1's vertical errors (8 bytes a sample, 16 MiB) for
-#: pass 2 instead of rasterising its buckets again.
+#: Windows of at most this many samples are rasterised triangle by triangle straight into one array of
+#: vertical errors (8 bytes a sample, 16 MiB at most), which pass 2 reads; larger windows (coarse
+#: tiles) go bucket by bucket through a bucket of scratch and pass 2 rasterises its buckets again.
 _KEEP_SAMPLES = 1 << 21
 
 #: Pass 2 first measures the worst sample of this many of the worst buckets, which lifts the running
@@ -149,6 +156,32 @@ def _bin_triangles(uv, tris, nbr, nbc, bs):
                 b = i * nbc + j
                 items[count[b]] = t
                 count[b] += 1
+    return start, items
+
+
+@jit
+def _bin_centroids(uv, tris, nbr, nbc, bs):
+    """CSR bucket index with each triangle in the one bucket holding its centroid (clamped to the grid).
+
+    Enough for the distance search, whose bucket boxes are the union of their triangles' boxes.
+    """
+    k = tris.shape[0]
+    nb = nbr * nbc
+    key = np.empty(k, np.int64)
+    count = np.zeros(nb + 1, np.int64)
+    for t in range(k):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        i = (uv[a, 1] + uv[b, 1] + uv[c, 1]) / (3.0 * bs)
+        j = (uv[a, 0] + uv[b, 0] + uv[c, 0]) / (3.0 * bs)
+        key[t] = int(min(max(i, 0.0), nbr - 1.0)) * nbc + int(min(max(j, 0.0), nbc - 1.0))
+        count[key[t] + 1] += 1
+    for b in range(nb):
+        count[b + 1] += count[b]
+    start = count.copy()
+    items = np.empty(k, np.int64)
+    for t in range(k):
+        items[count[key[t]]] = t
+        count[key[t]] += 1
     return start, items
 
 
@@ -515,20 +548,43 @@ def _sample_dist2(px, py, pz, v, pyramid, start, items, verts, tris, box, stop2,
 
 
 @jit
+def _bucket_stats(vbuf, r0, r1, c0, c1, w):
+    """Count, sum of squares, max and where (window index r * w + c) of the finite entries of one bucket."""
+    bw = c1 - c0 + 1
+    n = 0
+    sumsq = 0.0
+    vmax = -1.0
+    arg = -1
+    for q in range((r1 - r0 + 1) * bw):
+        v = vbuf[q]
+        if v == np.inf:
+            continue
+        n += 1
+        sumsq += v * v
+        if v > vmax:
+            vmax = v
+            arg = (r0 + q // bw) * w + c0 + q % bw
+    return n, sumsq, vmax, arg
+
+
+@jit
 def _vertical_pass(uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall):
-    """Pass 1: vertical error of every covered sample, bucket by bucket.
+    """Pass 1: vertical error of every covered sample.
 
     Returns (max_v, sumsq, n, worst, bmax, barg): worst is the window index r * w + c of a sample
     attaining max_v; per bucket, bmax is the max vertical error (-1 when the bucket covers nothing) and
-    barg where it is. When vall has h * w entries it receives every sample's vertical error (inf where
-    not covered).
+    barg where it is. With vall of h * w entries, every triangle is rasterised once straight into it
+    (inf where not covered) and start/items are not used; else bucket by bucket through a bucket of
+    scratch, with start/items the buckets' triangles.
     """
     h, w = z.shape
     keep = vall.shape[0] == h * w
-    vbuf = np.empty(bs * bs, np.float64)
+    if keep:
+        k = tris.shape[0]
+        _rasterise_bucket(uv, verts, tris, np.arange(k), 0, k, z, valid, 0, h - 1, 0, w - 1, vall)
+    vbuf = np.empty(0 if keep else bs * bs, np.float64)
     bmax = np.full(nbr * nbc, -1.0)
     barg = np.full(nbr * nbc, -1, np.int64)
-    max_v = -1.0
     sumsq = 0.0
     n = 0
     for bi in range(nbr):
@@ -538,21 +594,25 @@ def _vertical_pass(uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall):
             c0 = bj * bs
             c1 = min(c0 + bs, w) - 1
             b = bi * nbc + bj
+            if keep:
+                for r in range(r0, r1 + 1):  # bucket stats straight from vall
+                    for c in range(c0, c1 + 1):
+                        v = vall[r * w + c]
+                        if v == np.inf:
+                            continue
+                        n += 1
+                        sumsq += v * v
+                        if v > bmax[b]:
+                            bmax[b] = v
+                            barg[b] = r * w + c
+                continue
             if start[b] == start[b + 1]:
                 continue
             _rasterise_bucket(uv, verts, tris, items, start[b], start[b + 1], z, valid, r0, r1, c0, c1, vbuf)
-            bw = c1 - c0 + 1
-            for q in range((r1 - r0 + 1) * bw):
-                v = vbuf[q]
-                if keep:
-                    vall[(r0 + q // bw) * w + c0 + q % bw] = v
-                if v == np.inf:
-                    continue
-                n += 1
-                sumsq += v * v
-                if v > bmax[b]:
-                    bmax[b] = v
-                    barg[b] = (r0 + q // bw) * w + c0 + q % bw
+            nb_, sq, bmax[b], barg[b] = _bucket_stats(vbuf, r0, r1, c0, c1, w)
+            n += nb_
+            sumsq += sq
+    max_v = -1.0
     worst = -1
     for b in range(nbr * nbc):
         if bmax[b] > max_v:
@@ -627,13 +687,14 @@ def _hausdorff_pass(uv, verts, tris, z, valid, dx, dy, bs, nbr, nbc, start, item
 
 
 @jit
-def tile_error(verts, tris, z, valid, dx, dy, bucket_size=0):
+def tile_error(verts, tris, z, valid, dx, dy):
     """Vertical and Hausdorff error of a mesh against the window's samples it covers.
 
     Parameters
     ----------
     verts : (N, 3) float64
         Vertices in the window-local frame, metres: X = col * dx (east), Y = row * dy (south), Z up.
+        Finite (not checked here).
     tris : (K, 3) integer
         Vertex indices, each in [0, N) (not checked here), either winding.
     z : (h, w) float32
@@ -642,9 +703,6 @@ def tile_error(verts, tris, z, valid, dx, dy, bucket_size=0):
         Samples to measure.
     dx, dy : float
         Sample spacing east-west and north-south, metres (> 0).
-    bucket_size : int
-        Bucket side in samples; 0 (default) picks it from the triangle density. Only speed depends on
-        it (tests vary it to exercise the bucket edges).
 
     Returns
     -------
@@ -659,18 +717,36 @@ def tile_error(verts, tris, z, valid, dx, dy, bucket_size=0):
     worst_v_r, worst_v_c, worst_h_r, worst_h_c : int
         Window (row, col) of the sample attaining each max (-1 when no sample is covered).
     """
+    return tile_error_with(verts, tris, z, valid, dx, dy, 0, _KEEP_SAMPLES)
+
+
+@jit
+def tile_error_with(verts, tris, z, valid, dx, dy, bucket_size, keep_samples):
+    """:func:`tile_error` with its two speed settings given (all arguments positional).
+
+    bucket_size is the bucket side in samples (0: from the triangle density); windows of at most
+    keep_samples samples are rasterised once into a per-sample array (8 bytes a sample) that pass 2
+    reads, larger ones bucket by bucket, twice. Only speed and memory depend on them; tests vary them to
+    exercise every path.
+    """
     h, w = z.shape
     k = tris.shape[0]
     if k == 0 or h == 0 or w == 0:
         return 0.0, 0.0, 0, 0.0, -1, -1, -1, -1
+    keep = h * w <= keep_samples
     bs = bucket_size
     if bs <= 0:
-        bs = int(min(max(_BUCKET_SCALE * math.sqrt(h * w / k), _MIN_BUCKET), _MAX_BUCKET))
+        lo = _MIN_BUCKET_KEEP if keep else _MIN_BUCKET
+        bs = int(min(max(_BUCKET_SCALE * math.sqrt(h * w / k), lo), _MAX_BUCKET))
     nbr = (h + bs - 1) // bs
     nbc = (w + bs - 1) // bs
     uv = _sample_units(verts, dx, dy)
-    start, items = _bin_triangles(uv, tris, nbr, nbc, bs)
-    vall = np.empty(h * w if h * w <= _KEEP_SAMPLES else 0, np.float64)
+    if keep:  # pass 1 rasterises into vall; pass 2 needs each triangle in one bucket only
+        vall = np.empty(h * w, np.float64)
+        start = items = np.empty(0, np.int64)
+    else:
+        vall = np.empty(0, np.float64)
+        start, items = _bin_triangles(uv, tris, nbr, nbc, bs)
     max_v, sumsq, n, wv, bmax, barg = _vertical_pass(
         uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall
     )
@@ -678,5 +754,7 @@ def tile_error(verts, tris, z, valid, dx, dy, bucket_size=0):
         return 0.0, 0.0, 0, 0.0, -1, -1, -1, -1
     if max_v == 0.0:  # the mesh passes through every covered sample
         return 0.0, sumsq, n, 0.0, wv // w, wv % w, wv // w, wv % w
+    if keep:
+        start, items = _bin_centroids(uv, tris, nbr, nbc, bs)
     hd2, wh = _hausdorff_pass(uv, verts, tris, z, valid, dx, dy, bs, nbr, nbc, start, items, vall, bmax, barg)
     return max_v, sumsq, n, math.sqrt(hd2), wv // w, wv % w, wh // w, wh % w
