@@ -1,0 +1,35 @@
+"""`terralod amplify`: a GeoTIFF at the finer spacing whose samples at the DEM's positions are the DEM's."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from rasterio.transform import from_origin
+
+from conftest import fractal_terrain
+
+
+def test_amplify_cli_keeps_samples_and_georeferencing(tmp_path: Path) -> None:
+    z = fractal_terrain(33, 41, 4, relief_m=300.0)
+    src = tmp_path / "dem.tif"
+    with rasterio.open(src, "w", driver="GTiff", width=41, height=33, count=1, dtype="float32", crs="EPSG:32633",
+                       transform=from_origin(400000.0, 5000000.0, 20.0, 20.0)) as ds:  # fmt: skip
+        ds.write(z, 1)
+    out = tmp_path / "fine.tif"
+    p = subprocess.run([sys.executable, "-m", "terralod", "amplify", str(src), "-o", str(out), "--factor", "4"],
+                       capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    with rasterio.open(out) as ds:
+        fine = ds.read(1)
+        assert ds.res == (5.0, 5.0) and ds.crs.to_epsg() == 32633
+        # DEM sample (r, c) is fine sample (4r, 4c) at the same world position
+        x, y = ds.xy(8, 12)
+        assert (x, y) == (400000.0 + 10.0 + 3 * 20.0, 5000000.0 - 10.0 - 2 * 20.0)
+    assert fine.shape == (32 * 4 + 1, 40 * 4 + 1)
+    assert np.array_equal(fine[::4, ::4], z)
+    # the detail between the samples is not a plain interpolation
+    assert np.abs(fine[2::4, 2::4] - 0.25 * (z[:-1, :-1] + z[1:, 1:] + z[:-1, 1:] + z[1:, :-1])).max() > 0.01
