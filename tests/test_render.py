@@ -199,3 +199,30 @@ def test_viewer_window_under_xvfb(tmp_path: Path) -> None:
 
     img = np.asarray(Image.open(shot).convert("RGB"))
     assert img.shape == (270, 480, 3) and img.std() > 10 and img.mean() > 30
+
+
+def test_renderer_updates_changed_vertices_in_place() -> None:
+    """A re-stitched tile (same topology, new border heights) is written into its buffer, not re-uploaded,
+    and only the changed vertex runs are written; the frame equals a fresh upload of the new geometry."""
+    from terralod.render import RenderSettings
+
+    r = _renderer(160, 120)
+    r2 = _renderer(160, 120)
+    n = 9
+    yy, xx = np.mgrid[0:n, 0:n] * 10.0
+    v = np.stack([xx.ravel(), -yy.ravel(), np.sin(xx.ravel() / 17.0) * 5], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    tris = np.concatenate([np.stack([a, c, d], 1), np.stack([a, d, b], 1)]).astype(np.uint32)
+    eye, tgt = (40.0, -140.0, 90.0), (40.0, -40.0, 0.0)
+    st = RenderSettings(fog=False)
+    r.render([((3, 0, 0), v, tris, None)], eye, tgt, settings=st)
+    v2 = v.copy()
+    v2[idx[:, -1].ravel(), 2] += 3.0  # move the east border, as stitching does
+    img = r.render([((3, 0, 0), v2, tris, None)], eye, tgt, settings=st)
+    assert r.uploads == 1 and r.updates == 1
+    assert 0 < r.bytes_written < v.shape[0] * 24  # only part of the buffer was written
+    ref = r2.render([((3, 0, 0), v2, tris, None)], eye, tgt, settings=st)
+    assert np.array_equal(img, ref)
+    r.release()
+    r2.release()

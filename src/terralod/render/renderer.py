@@ -112,6 +112,7 @@ class _GpuTile:
     nbytes: int
     digest: int
     level: int
+    data: np.ndarray  # CPU copy of the interleaved vertex data, to find what changed
 
 
 class TerrainRenderer:
@@ -144,6 +145,8 @@ class TerrainRenderer:
         self.gpu_bytes = 0
         self.uploads = 0
         self.updates = 0
+        self.bytes_uploaded = 0
+        self.bytes_written = 0
         self.fbo = None
         if ctx is None:
             self._make_fbo()
@@ -167,7 +170,8 @@ class TerrainRenderer:
         geometry of the same size (stitched boundaries) is written into the existing buffer."""
         if normals is None:
             normals = vertex_normals(vertices, triangles)
-        origin = vertices.min(axis=0)
+        # the tile origin: the vertex-grid corner, stable when stitching moves boundary heights
+        origin = np.floor(vertices.min(axis=0) / 64.0) * 64.0
         data = np.empty((len(vertices), 6), np.float32)
         data[:, :3] = vertices - origin
         data[:, 3:] = normals
@@ -178,9 +182,18 @@ class TerrainRenderer:
             self._tiles.move_to_end(code)
             if g.digest == digest:
                 return
-            if g.vbo.size == len(raw) and g.n_indices == triangles.size:
-                g.vbo.write(raw)
-                g.origin = origin
+            if g.vbo.size == len(raw) and g.n_indices == triangles.size and np.array_equal(g.origin, origin):
+                # stitched borders: write only the runs of vertices that changed (small buffer writes)
+                changed = np.flatnonzero((g.data != data).any(axis=1))
+                if changed.size:
+                    breaks = np.flatnonzero(np.diff(changed) > 1)
+                    starts = np.r_[changed[0], changed[breaks + 1]]
+                    ends = np.r_[changed[breaks], changed[-1]] + 1
+                    stride = data.shape[1] * 4
+                    for a, b in zip(starts, ends, strict=True):
+                        g.vbo.write(data[a:b].tobytes(), offset=int(a) * stride)
+                        self.bytes_written += int(b - a) * stride
+                g.data = data
                 g.digest = digest
                 self.updates += 1
                 return
@@ -189,8 +202,11 @@ class TerrainRenderer:
         ibo = self.ctx.buffer(np.ascontiguousarray(triangles, dtype=np.uint32).tobytes())
         vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 3f", "in_position", "in_normal")], index_buffer=ibo)
         nbytes = len(raw) + triangles.size * 4
-        self._tiles[code] = _GpuTile(vbo, ibo, vao, origin, triangles.size, nbytes, digest, int(code[0]))
+        self._tiles[code] = _GpuTile(
+            vbo, ibo, vao, origin, triangles.size, nbytes, digest, int(code[0]), data
+        )
         self.gpu_bytes += nbytes
+        self.bytes_uploaded += nbytes
         self.uploads += 1
         self._evict()
 
