@@ -308,6 +308,23 @@ def _open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path
     return cache
 
 
+def _with_fractal(store, path: str, read: dict[str, Any], levels: int):
+    """The store itself, or with ``levels`` fractal levels below its finest (paper 001), generated on demand
+    from the store's source DEM (the DEM given on the command line, else the one recorded in the store)."""
+    if not levels:
+        return store
+    from terralod.errors import InputError
+    from terralod.fractal import FractalDetail
+    from terralod.io.reader import SAMPLE_SOURCE, sample_heightfield
+    from terralod.runtime.fractal_source import FractalSource
+
+    src = path if not _is_store(Path(path)) else store.meta.get("source", "")
+    hf = sample_heightfield() if src == SAMPLE_SOURCE else _load(src, **read)
+    if hf.digest() != store.meta.get("source_digest"):
+        raise InputError("is not the DEM this store was built from; --fractal needs the store's source", src)
+    return FractalSource(store, FractalDetail(hf), levels)
+
+
 def _settings(background: str | None, mode: str, wireframe: bool):
     from terralod.render import RenderSettings
 
@@ -347,8 +364,13 @@ def _stats_table(stats: dict[str, Any], title: str = "frame") -> None:
     "--mode", type=click.Choice(["elevation", "lod", "error"]), default="elevation", show_default=True
 )
 @click.option("--wireframe", is_flag=True)
+@click.option(
+    "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
+)
 @_read_options
-def render(path, output, eye, target, size, threshold_px, background, mode, wireframe, **read: Any) -> None:
+def render(
+    path, output, eye, target, size, threshold_px, background, mode, wireframe, fractal_levels, **read: Any
+) -> None:
     """Render one frame of a store (or a DEM, built first) to a PNG, headless (EGL)."""
     from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png
     from terralod.store import open_store
@@ -361,8 +383,9 @@ def render(path, output, eye, target, size, threshold_px, background, mode, wire
             if not (eye and target):
                 raise click.BadParameter("give both --eye and --target", param_hint="--eye")
             pose = CameraPose(_triple(eye, "--eye"), _triple(target, "--target"))
+        src = _with_fractal(s, path, read, fractal_levels)
         fr = FrameRenderer(
-            s, w, h, threshold_px=threshold_px, settings=_settings(background, mode, wireframe)
+            src, w, h, threshold_px=threshold_px, settings=_settings(background, mode, wireframe)
         )
         img = fr.frame(pose)
         save_png(img, output)
@@ -380,15 +403,19 @@ def render(path, output, eye, target, size, threshold_px, background, mode, wire
 @click.option("--fps", default=24, show_default=True)
 @click.option("--size", default="1280x720", show_default=True, help="WIDTHxHEIGHT pixels.")
 @click.option("--threshold-px", default=2.0, show_default=True)
+@click.option(
+    "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
+)
 @_read_options
-def flythrough(path, output, cam_path, frames, fps, size, threshold_px, **read: Any) -> None:
+def flythrough(path, output, cam_path, frames, fps, size, threshold_px, fractal_levels, **read: Any) -> None:
     """Render a fly-through video of a store (or a DEM, built first), headless."""
     from terralod.store import open_store
 
     w, h = _size(size)
     store_path = _open_or_build(path, read)
     with open_store(store_path) as s:
-        summary = render_flythrough(s, output, cam_path=cam_path, frames=frames, fps=fps, size=(w, h),
+        src = _with_fractal(s, path, read, fractal_levels)
+        summary = render_flythrough(src, output, cam_path=cam_path, frames=frames, fps=fps, size=(w, h),
                                     threshold_px=threshold_px)  # fmt: skip
     _flythrough_table(summary)
 
@@ -436,8 +463,11 @@ def _flythrough_table(summary: dict[str, Any]) -> None:
 @click.option("--threshold-px", default=2.0, show_default=True)
 @click.option("--frames", type=int, default=None, help="Close after this many frames (scripted runs).")
 @click.option("--screenshot", help="PNG written after the last frame (with --frames).")
+@click.option(
+    "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
+)
 @_read_options
-def view(path, size, threshold_px, frames, screenshot, **read: Any) -> None:
+def view(path, size, threshold_px, frames, screenshot, fractal_levels, **read: Any) -> None:
     """Open the real-time viewer on a store (or a DEM, built into a cache store first)."""
     from terralod.render.viewer import run_viewer
     from terralod.store import open_store
@@ -449,7 +479,7 @@ def view(path, size, threshold_px, frames, screenshot, **read: Any) -> None:
             "no display (DISPLAY is unset); use `terralod render` or `terralod flythrough`"
         )
     with open_store(store_path) as s:
-        out = run_viewer(s, width_px=w, height_px=h, threshold_px=threshold_px, max_frames=frames,
+        out = run_viewer(_with_fractal(s, path, read, fractal_levels), width_px=w, height_px=h, threshold_px=threshold_px, max_frames=frames,
                          screenshot=screenshot)  # fmt: skip
     if frames:
         click.echo(
