@@ -145,9 +145,11 @@ def test_triangle_budget(store) -> None:
             eng = Engine(store, threshold_px=1.0, triangle_budget=b)
             sel = eng.update(cam)
             root_tris = eng.table.triangles[0]
-            assert sel.stats.triangles <= max(b, root_tris)
+            # the budget counts stored triangles; stitching may add a few splitting T-junctions
+            stored = int(eng.table.triangles[eng.index.slots(sel.tiles)].sum())
+            assert stored <= max(b, root_tris) and stored <= sel.stats.triangles
             assert eng.adjacency.check_partition(eng.index.slots(sel.tiles + sel.culled)) == (0, 0)
-            tris.append(sel.stats.triangles)
+            tris.append(stored)
             # largest error first: every tile that was split projects at least the error of any drawn tile
             # still waiting to be split (errors are monotone, so the split sequence is non-increasing)
             vis = eng.index.slots(sel.tiles)

@@ -12,8 +12,11 @@ across is coarser (by any n >= 1; its edge spans 2^n of ours), every vertex of o
 polyline; per corner: the coarsest of the (up to three) other leaves around the corner point decides.
 Same-level neighbours share identical boundary vertices, so they agree without any work.
 
-After adjustment the fine side's vertices lie *on* the coarse side's straight segments (T-junctions that
-are geometrically closed). When boundary vertices were relocated (cohesion maps) a coarse vertex may fall
+After adjustment the fine side's vertices lie *on* the coarse side's straight segments: T-junctions that
+are geometrically closed but leave single-pixel holes when rasterised (the rendered magenta test saw them).
+So the coarse tile takes the finer visible neighbours' boundary positions as vertices of its own (heights
+from its own polyline, so its surface does not change; its boundary triangles are fan-split at them): both
+sides then share bit-identical vertices and no T-junction remains. When boundary vertices were relocated (cohesion maps) a coarse vertex may fall
 strictly inside a fine segment; the fine boundary triangle is then fan-split at it, so the fine edge follows
 every bend of the coarse edge and the seam stays closed (the paper's grids never need this).
 
@@ -384,7 +387,17 @@ class Stitcher:
                 sig_sides.append((q, float(h[0]), float(h[-1])))
             else:
                 sig_sides.append(None)
-        signature = (tuple(sig_sides), tuple(corner_h))
+        # T-junctions: the boundary vertices of finer visible leaves across a side become vertices of this
+        # tile too (they lie on its edge after stitching), so the rasteriser sees shared vertices only
+        fine_t: list[np.ndarray | None] = [None, None, None, None]
+        sig_fine = []
+        for e in range(4):
+            qs = [int(q) for q in nb.edges[e].tolist() if adj.state[q] == VISIBLE and lvl[q] > k]
+            if qs and prep.edge_vid[e].size:
+                oe = int(OPPOSITE[e])
+                fine_t[e] = np.concatenate([self.cache.get(self.index.code(q)).edge_t[oe] for q in qs])
+            sig_fine.append(tuple(qs))
+        signature = (tuple(sig_sides), tuple(corner_h), tuple(sig_fine))
         old = self.states.get(s)
         if old is None:
             old = self._parked.pop(s, None)
@@ -393,7 +406,7 @@ class Stitcher:
         if old is not None and not force and old.signature == signature:
             self.states[s] = old
             return False, False
-        new = self._build(prep, signature, fit_to, corner_h)
+        new = self._build(prep, signature, fit_to, corner_h, fine_t)
         self.states[s] = new
         corners_changed = old is None or old.corner_h != new.corner_h
         geom_changed = (
@@ -406,8 +419,9 @@ class Stitcher:
         return geom_changed or force, corners_changed
 
     def _build(
-        self, prep: TilePrep, signature: tuple, fit_to: list[int], corner_h: list[float | None]
-    ) -> StitchedTile:
+        self, prep: TilePrep, signature: tuple, fit_to: list[int], corner_h: list[float | None],
+        fine_t: list[np.ndarray | None] | None = None,
+    ) -> StitchedTile:  # fmt: skip
         zs = prep.vertices[:, 2]
         moves: list[tuple[np.ndarray, np.ndarray]] = []
         inserts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -431,7 +445,8 @@ class Stitcher:
             None if prep.corner_vid[c] < 0 else (corner_h[c] if corner_h[c] is not None else float(zs[prep.corner_vid[c]]))
             for c in range(4)
         )  # fmt: skip
-        if not changed and not inserts:
+        fine_t = fine_t or [None, None, None, None]
+        if not changed and not inserts and all(f is None for f in fine_t):
             verts, tris = prep.vertices, prep.triangles
             fvid, ft = prep.edge_vid, prep.edge_t
             seg_tri = prep.seg_tri
@@ -446,7 +461,25 @@ class Stitcher:
                 verts, tris, fvid[e], ft[e] = self._insert(
                     prep, e, verts, tris, fvid[e], ft[e], ins_seg, ins_t, ins_h
                 )
-            if inserts:
+            tj = 0
+            for e in range(4):
+                if fine_t[e] is None or ft[e].size < 2:
+                    continue
+                t = ft[e]
+                cand = np.unique(fine_t[e])
+                cand = cand[(cand > t[0] + POS_TOL) & (cand < t[-1] - POS_TOL)]
+                j = np.searchsorted(t, cand, side="right") - 1
+                near = (np.abs(cand - t[j]) <= POS_TOL) | (
+                    np.abs(t[np.minimum(j + 1, t.size - 1)] - cand) <= POS_TOL
+                )
+                cand, j = cand[~near], j[~near]
+                if cand.size:
+                    h = polyline_at(t, verts[fvid[e], 2], cand)  # on the edge: geometry unchanged
+                    verts, tris, fvid[e], ft[e] = self._insert(
+                        prep, e, verts, tris, fvid[e], ft[e], j, cand, h
+                    )
+                    tj += cand.size
+            if inserts or tj:
                 seg_tri = [segment_triangles(tris, fvid[e])[0] for e in range(4)]
         topo = tris is not prep.triangles
         sums, gnormals = geometry_normals(prep, verts, tris, topo)
