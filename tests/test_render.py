@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from terralod import Camera, Engine, Heightfield, build_store, open_store, sample_heightfield
 
@@ -226,3 +228,66 @@ def test_renderer_updates_changed_vertices_in_place() -> None:
     assert np.array_equal(img, ref)
     r.release()
     r2.release()
+
+
+def test_indirect_and_plain_draws_give_identical_frames(rough_store: Path) -> None:
+    """One multi-draw-indirect call per frame (shared arenas) draws the same pixels as a draw per tile,
+    along a camera path whose selections change, in every colour mode, under a memory budget small
+    enough that tiles are evicted and re-uploaded."""
+    from terralod.render import RenderSettings, TerrainRenderer
+
+    plain = TerrainRenderer(256, 192, draw_mode="plain")
+    ind = TerrainRenderer(256, 192, draw_mode="indirect", memory_budget_bytes=120_000)
+    with open_store(rough_store) as store:
+        eng = Engine(store, threshold_px=1.0)
+        t = store.transform
+        x0, y0 = t.c, t.f
+        w, h = store.pyramid.span(0) * t.a, store.pyramid.span(0) * -t.e
+        evicted_before = None
+        for k, mode in enumerate(["elevation", "lod", "error", "elevation", "lod", "elevation"]):
+            f = k / 5.0
+            eye = np.array([x0 + w * (0.2 + 0.6 * f), y0 - h * 1.1, 2600.0 - 1500.0 * f])
+            tgt = np.array([x0 + w * 0.5, y0 - h * (0.3 + 0.3 * f), 0.0])
+            sel = eng.update(Camera(eye, tgt, (0, 0, 1), 50.0, 256, 192))
+            meshes = list(sel.meshes())
+            colours = {c: (0.1 * (i % 10), 0.5, 0.9) for i, (c, *_) in enumerate(meshes)}
+            st = RenderSettings(mode=mode, fog=k % 2 == 0, wireframe=k == 4)
+            a = plain.render(meshes, eye, tgt, fov_y_deg=50.0, settings=st, tile_colours=colours)
+            b = ind.render(meshes, eye, tgt, fov_y_deg=50.0, settings=st, tile_colours=colours)
+            assert a.std() > 5, "frame is flat"
+            assert np.array_equal(a, b), f"frame {k} ({mode}): {(a != b).any(axis=2).sum()} pixels differ"
+            assert ind.gpu_bytes <= max(120_000, sum(v.shape[0] * 24 + t.size * 4 for _, v, t, _ in meshes))
+            evicted_before = evicted_before or ind.uploads > len(meshes)
+    assert ind.draw_calls == 6 and plain.draw_calls > 6
+    assert evicted_before, "the budget never forced an eviction"
+    plain.release()
+    ind.release()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.booleans(), st.integers(1, 40)), min_size=1, max_size=80))
+def test_arena_allocations_never_overlap(ops) -> None:
+    """The first-fit arena behind the shared buffers: live blocks never overlap, stay inside the
+    capacity, and freeing everything coalesces back to one free block."""
+    from terralod.render.renderer import _Arena
+
+    arena = _Arena(200)
+    live: list[tuple[int, int]] = []
+    for alloc, n in ops:
+        if alloc or not live:
+            start = arena.alloc(n)
+            if start is None:
+                arena.grow(arena.capacity + n)
+                start = arena.alloc(n)
+            assert start is not None
+            live.append((start, n))
+        else:
+            arena.release(*live.pop(len(live) // 2))
+        spans = sorted(live)
+        for (s0, n0), (s1, _) in zip(spans, spans[1:], strict=False):
+            assert s0 + n0 <= s1
+        assert all(0 <= s and s + n <= arena.capacity for s, n in spans)
+        assert arena.used == sum(n for _, n in live)
+    for blk in live:
+        arena.release(*blk)
+    assert arena.free == [[0, arena.capacity]] and arena.used == 0

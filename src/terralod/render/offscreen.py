@@ -76,13 +76,13 @@ class FrameRenderer:
 
     def __init__(
         self, store, width_px: int, height_px: int, *, threshold_px: float = 2.0, fov_y_deg: float = 45.0,
-        settings: RenderSettings | None = None, ctx=None,
+        settings: RenderSettings | None = None, ctx=None, draw_mode: str = "auto",
     ) -> None:  # fmt: skip
         from terralod.runtime import Engine
 
         self.store = store
         self.engine = Engine(store, threshold_px=threshold_px)
-        self.renderer = TerrainRenderer(width_px, height_px, ctx=ctx)
+        self.renderer = TerrainRenderer(width_px, height_px, ctx=ctx, draw_mode=draw_mode)
         self.settings = settings or RenderSettings()
         self.fov_y_deg = fov_y_deg
         self.width_px, self.height_px = width_px, height_px

@@ -11,6 +11,7 @@ OpenGL 4.5 core there). A window viewer passes its own context.
 
 from __future__ import annotations
 
+import bisect
 import math
 import zlib
 from collections import OrderedDict
@@ -102,54 +103,146 @@ class RenderSettings:
     height_range_m: tuple[float, float] | None = None
 
 
+class _Arena:
+    """First-fit allocator over ``capacity`` units of one GPU buffer; freed blocks are coalesced."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = int(capacity)
+        self.free: list[list[int]] = [[0, self.capacity]] if capacity > 0 else []
+        self.used = 0
+
+    def alloc(self, n: int) -> int | None:
+        for i, blk in enumerate(self.free):
+            if blk[1] >= n:
+                start = blk[0]
+                if blk[1] == n:
+                    del self.free[i]
+                else:
+                    blk[0] += n
+                    blk[1] -= n
+                self.used += n
+                return start
+        return None
+
+    def release(self, start: int, n: int) -> None:
+        if n <= 0:
+            return
+        self.used -= n
+        i = bisect.bisect_left(self.free, [start, 0])
+        self.free.insert(i, [start, n])
+        if i + 1 < len(self.free) and self.free[i][0] + self.free[i][1] == self.free[i + 1][0]:
+            self.free[i][1] += self.free.pop(i + 1)[1]
+        if i > 0 and self.free[i - 1][0] + self.free[i - 1][1] == self.free[i][0]:
+            self.free[i - 1][1] += self.free.pop(i)[1]
+
+    def grow(self, capacity: int) -> None:
+        extra = int(capacity) - self.capacity
+        if extra <= 0:
+            return
+        if self.free and self.free[-1][0] + self.free[-1][1] == self.capacity:
+            self.free[-1][1] += extra
+        else:
+            self.free.append([self.capacity, extra])
+        self.capacity = int(capacity)
+
+
 @dataclass
 class _GpuTile:
-    vbo: object
-    ibo: object
-    vao: object
     origin: np.ndarray
     n_indices: int
+    n_vertices: int
     nbytes: int
     digest: int
+    tri_digest: int
     level: int
     data: np.ndarray  # CPU copy of the interleaved vertex data, to find what changed
+    # plain draws: a buffer pair per tile
+    vbo: object = None
+    ibo: object = None
+    vao: object = None
+    # indirect draws: ranges in the shared arenas (vertices, indices)
+    first_vertex: int = -1
+    first_index: int = -1
+
+
+_VERTEX_BYTES = 24  # 3 float32 position + 3 float32 normal
+_INSTANCE_BYTES = 28  # 3 float32 tile offset + float32 origin z + 3 float32 colour
+_COMMAND_BYTES = 20  # DrawElementsIndirectCommand: count, instanceCount, firstIndex, baseVertex, baseInstance
 
 
 class TerrainRenderer:
     """Draws tile meshes into an offscreen framebuffer (or a window's default framebuffer).
 
+    Two draw paths, the same pixels:
+
+    - ``"indirect"`` (OpenGL >= 4.3): every tile lives in one shared vertex buffer and one shared index
+      buffer (first-fit arenas, grown on demand), and a frame is one ``glMultiDrawElementsIndirect`` call;
+      per-tile data (origin relative to the eye, colour) is an instanced attribute picked by each
+      command's ``baseInstance``. Indices stay tile-local (``baseVertex``).
+    - ``"plain"``: a buffer pair per tile, one draw call per tile (OpenGL 3.3).
+
+    ``draw_mode="auto"`` picks indirect where the context offers 4.3.
+
     Parameters
     ----------
     width_px, height_px : viewport size
     ctx : a moderngl context; a standalone EGL one is created when None
-    memory_budget_bytes : GPU bytes of tile buffers kept; least recently drawn tiles are released beyond it
+    memory_budget_bytes : GPU bytes of tile geometry kept; least recently drawn tiles are released beyond it
+    draw_mode : "auto", "indirect" or "plain"
     """
 
     def __init__(
-        self, width_px: int, height_px: int, *, ctx=None, memory_budget_bytes: int = 512 * 2**20
-    ) -> None:
+        self, width_px: int, height_px: int, *, ctx=None, memory_budget_bytes: int = 512 * 2**20,
+        draw_mode: str = "auto",
+    ) -> None:  # fmt: skip
         import moderngl
 
         self.ctx = ctx if ctx is not None else create_offscreen_context()
+        if draw_mode not in ("auto", "indirect", "plain"):
+            raise ValueError(f"Expected draw_mode auto, indirect or plain, got {draw_mode!r}")
+        if draw_mode == "auto":
+            draw_mode = "indirect" if self.ctx.version_code >= 430 else "plain"
+        elif draw_mode == "indirect" and self.ctx.version_code < 430:
+            raise RuntimeError(f"Indirect draws need OpenGL 4.3, this context has {self.ctx.version_code}")
+        self.draw_mode = draw_mode
         self.width_px, self.height_px = int(width_px), int(height_px)
         self.memory_budget_bytes = memory_budget_bytes
+        vert = (_SHADERS / "terrain.vert").read_text()
+        if draw_mode == "indirect":
+            vert = vert.replace("#version 330 core\n", "#version 330 core\n#define INDIRECT 1\n", 1)
         self.prog = self.ctx.program(
-            vertex_shader=(_SHADERS / "terrain.vert").read_text(),
-            fragment_shader=(_SHADERS / "terrain.frag").read_text(),
+            vertex_shader=vert, fragment_shader=(_SHADERS / "terrain.frag").read_text()
         )
         ramp = self._ramp_texture()
         self.ramp = self.ctx.texture((256, 1), 3, ramp.tobytes())
         self.ramp.filter = (moderngl.LINEAR, moderngl.LINEAR)
         self.ramp.repeat_x = False
         self._tiles: OrderedDict[tuple, _GpuTile] = OrderedDict()
+        self._frame: set = set()
         self.gpu_bytes = 0
         self.uploads = 0
         self.updates = 0
         self.bytes_uploaded = 0
         self.bytes_written = 0
+        self.draw_calls = 0
         self.fbo = None
+        if draw_mode == "indirect":
+            self._varena = _Arena(0)
+            self._iarena = _Arena(0)
+            self._vbuf = self._ibuf = None
+            self._draw_capacity = 0
+            self._inst = self._cmd = self._vao = None
+            self._grow_geometry(1 << 16, 1 << 18)
+            self._grow_draws(256)
         if ctx is None:
             self._make_fbo()
+
+    @property
+    def gpu_bytes_reserved(self) -> int:
+        """GPU bytes held by tile geometry buffers (arena capacity for indirect draws)."""
+        if self.draw_mode == "indirect":
+            return self._varena.capacity * _VERTEX_BYTES + self._iarena.capacity * 4
+        return self.gpu_bytes
 
     def _make_fbo(self) -> None:
         self.fbo = self.ctx.simple_framebuffer((self.width_px, self.height_px), components=4)
@@ -162,12 +255,77 @@ class TerrainRenderer:
         rgb = np.stack([np.interp(t, stops, cols[:, k]) for k in range(3)], axis=1)
         return (rgb * 255).astype(np.uint8)
 
+    # -- shared arenas (indirect draws) ---------------------------------------------------------------
+    def _make_vao(self) -> None:
+        if self._vao is not None:
+            self._vao.release()
+        self._vao = self.ctx.vertex_array(
+            self.prog,
+            [
+                (self._vbuf, "3f 3f", "in_position", "in_normal"),
+                (self._inst, "4f 3f/i", "in_tile", "in_colour"),
+            ],
+            index_buffer=self._ibuf,
+            index_element_size=4,
+        )
+
+    def _grow_geometry(self, vertices: int, indices: int) -> None:
+        """Grow the shared buffers to hold at least ``vertices`` / ``indices`` (contents kept)."""
+        for name, arena, unit, need in (("_vbuf", self._varena, _VERTEX_BYTES, vertices),
+                                        ("_ibuf", self._iarena, 4, indices)):  # fmt: skip
+            if need <= arena.capacity:
+                continue
+            cap = max(int(need), arena.capacity * 2)
+            buf = self.ctx.buffer(reserve=cap * unit)
+            old = getattr(self, name)
+            if old is not None:
+                if arena.capacity:
+                    self.ctx.copy_buffer(buf, old, size=arena.capacity * unit)
+                old.release()
+            setattr(self, name, buf)
+            arena.grow(cap)
+        if self._inst is not None:
+            self._make_vao()
+
+    def _grow_draws(self, n: int) -> None:
+        if n <= self._draw_capacity:
+            return
+        cap = max(n, self._draw_capacity * 2)
+        for name, unit in (("_inst", _INSTANCE_BYTES), ("_cmd", _COMMAND_BYTES)):
+            old = getattr(self, name)
+            if old is not None:
+                old.release()
+            setattr(self, name, self.ctx.buffer(reserve=cap * unit))
+        self._draw_capacity = cap
+        self._make_vao()
+
+    def _place(self, n_vertices: int, n_indices: int, keep: set) -> tuple[int, int]:
+        """Ranges for a tile in the arenas: evict least recently drawn tiles first, then grow."""
+        while True:
+            fv = self._varena.alloc(n_vertices)
+            fi = self._iarena.alloc(n_indices) if fv is not None else None
+            if fv is not None and fi is not None:
+                return fv, fi
+            if fv is not None:
+                self._varena.release(fv, n_vertices)
+            victim = next((c for c in self._tiles if c not in keep), None)
+            if victim is not None and self.gpu_bytes > 0:
+                self._release(victim)
+                continue
+            self._grow_geometry(self._varena.capacity + n_vertices, self._iarena.capacity + n_indices)
+
     # -- tile buffers ----------------------------------------------------------------------------------
     def upload(
         self, code: tuple, vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None
     ) -> None:
         """Make tile ``code`` drawable with this geometry. Unchanged tiles cost one checksum; changed
         geometry of the same size (stitched boundaries) is written into the existing buffer."""
+        with self.ctx:
+            self._upload(code, vertices, triangles, normals)
+
+    def _upload(
+        self, code: tuple, vertices: np.ndarray, triangles: np.ndarray, normals: np.ndarray | None
+    ) -> None:
         if normals is None:
             normals = vertex_normals(vertices, triangles)
         # the tile origin: the vertex-grid corner, stable when stitching moves boundary heights
@@ -177,44 +335,68 @@ class TerrainRenderer:
         data[:, 3:] = normals
         raw = data.tobytes()
         digest = zlib.crc32(raw)
+        idx = np.ascontiguousarray(triangles, dtype=np.uint32)
+        tri_digest = zlib.crc32(idx.tobytes())
         g = self._tiles.get(code)
+        keep = self._frame | {code}
         if g is not None:
             self._tiles.move_to_end(code)
-            if g.digest == digest:
+            if g.digest == digest and g.tri_digest == tri_digest:
                 return
-            if g.vbo.size == len(raw) and g.n_indices == triangles.size and np.array_equal(g.origin, origin):
+            if g.n_vertices == len(data) and g.n_indices == idx.size and np.array_equal(g.origin, origin):
                 # stitched borders: write only the runs of vertices that changed (small buffer writes)
+                vbo = g.vbo if self.draw_mode == "plain" else self._vbuf
+                base = 0 if self.draw_mode == "plain" else g.first_vertex * _VERTEX_BYTES
                 changed = np.flatnonzero((g.data != data).any(axis=1))
                 if changed.size:
                     breaks = np.flatnonzero(np.diff(changed) > 1)
                     starts = np.r_[changed[0], changed[breaks + 1]]
                     ends = np.r_[changed[breaks], changed[-1]] + 1
-                    stride = data.shape[1] * 4
                     for a, b in zip(starts, ends, strict=True):
-                        g.vbo.write(data[a:b].tobytes(), offset=int(a) * stride)
-                        self.bytes_written += int(b - a) * stride
+                        vbo.write(data[a:b].tobytes(), offset=base + int(a) * _VERTEX_BYTES)
+                        self.bytes_written += int(b - a) * _VERTEX_BYTES
+                if g.tri_digest != tri_digest:
+                    if self.draw_mode == "plain":
+                        g.ibo.write(idx.tobytes())
+                    else:
+                        self._ibuf.write(idx.tobytes(), offset=g.first_index * 4)
+                    self.bytes_written += idx.nbytes
                 g.data = data
                 g.digest = digest
+                g.tri_digest = tri_digest
                 self.updates += 1
                 return
             self._release(code)
-        vbo = self.ctx.buffer(raw)
-        ibo = self.ctx.buffer(np.ascontiguousarray(triangles, dtype=np.uint32).tobytes())
-        vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 3f", "in_position", "in_normal")], index_buffer=ibo)
-        nbytes = len(raw) + triangles.size * 4
-        self._tiles[code] = _GpuTile(
-            vbo, ibo, vao, origin, triangles.size, nbytes, digest, int(code[0]), data
-        )
+        nbytes = len(raw) + idx.nbytes
+        g = _GpuTile(origin, idx.size, len(data), nbytes, digest, tri_digest, int(code[0]), data)
+        if self.draw_mode == "plain":
+            g.vbo = self.ctx.buffer(raw)
+            g.ibo = self.ctx.buffer(idx.tobytes())
+            g.vao = self.ctx.vertex_array(
+                self.prog,
+                [(g.vbo, "3f 3f", "in_position", "in_normal")],
+                index_buffer=g.ibo,
+                index_element_size=4,
+            )
+        else:
+            g.first_vertex, g.first_index = self._place(len(data), idx.size, keep)
+            self._vbuf.write(raw, offset=g.first_vertex * _VERTEX_BYTES)
+            self._ibuf.write(idx.tobytes(), offset=g.first_index * 4)
+        self._tiles[code] = g
         self.gpu_bytes += nbytes
         self.bytes_uploaded += nbytes
         self.uploads += 1
-        self._evict()
+        self._evict(keep)
 
     def _release(self, code: tuple) -> None:
         g = self._tiles.pop(code)
-        g.vao.release()
-        g.vbo.release()
-        g.ibo.release()
+        if self.draw_mode == "plain":
+            g.vao.release()
+            g.vbo.release()
+            g.ibo.release()
+        else:
+            self._varena.release(g.first_vertex, g.n_vertices)
+            self._iarena.release(g.first_index, g.n_indices)
         self.gpu_bytes -= g.nbytes
 
     def _evict(self, keep: set | None = None) -> None:
@@ -238,20 +420,27 @@ class TerrainRenderer:
         read: bool = True,
     ) -> np.ndarray | None:
         """Draw ``meshes`` ((code, vertices, triangles, normals) tuples, world metres) and return the
-        frame as (H, W, 3) uint8 (row 0 at the top) when ``read``."""
+        frame as (H, W, 3) uint8 (row 0 at the top) when ``read``. Makes this renderer's context current
+        for the call, so several renderers can share a thread."""
+        with self.ctx:
+            return self._render(meshes, eye, target, up, fov_y_deg, settings, tile_colours, read)
+
+    def _render(self, meshes, eye, target, up, fov_y_deg, settings, tile_colours, read) -> np.ndarray | None:
         import moderngl
 
         st = settings or RenderSettings()
         eye = np.asarray(eye, np.float64)
         target = np.asarray(target, np.float64)
-        codes = []
+        meshes = list(meshes)
+        codes = [m[0] for m in meshes]
+        self._frame = set(codes)
         zlo, zhi = math.inf, -math.inf
         for m in meshes:
             code, v, t, n = m[0], m[1], m[2], (m[3] if len(m) > 3 else None)
-            self.upload(code, v, t, n)
-            codes.append(code)
+            self._upload(code, v, t, n)
             zlo, zhi = min(zlo, float(v[:, 2].min())), max(zhi, float(v[:, 2].max()))
-        self._evict(keep=set(codes))
+        self._evict(keep=self._frame)
+        self._frame = set()
         if self.fbo is not None:
             self.fbo.use()
         ctx = self.ctx
@@ -282,19 +471,37 @@ class TerrainRenderer:
         self.prog["u_mode"].value = {"elevation": 0, "lod": 1, "error": 2}[st.mode]
         self.ramp.use(0)
         self.prog["u_ramp"].value = 0
-        for c in codes:
+        n = len(codes)
+        inst = np.empty((n, 7), np.float32)
+        for i, c in enumerate(codes):
             g = self._tiles[c]
-            off = g.origin - eye
-            self.prog["u_tile_offset"].value = tuple(off.astype(np.float32))
-            self.prog["u_origin_z"].value = float(g.origin[2])
+            inst[i, :3] = g.origin - eye
+            inst[i, 3] = g.origin[2]
             if st.mode == "lod":
-                colour = LEVEL_COLOURS[g.level % len(LEVEL_COLOURS)]
+                inst[i, 4:] = LEVEL_COLOURS[g.level % len(LEVEL_COLOURS)]
             elif st.mode == "error" and tile_colours is not None:
-                colour = tile_colours.get(c, (1.0, 0.0, 1.0))
+                inst[i, 4:] = tile_colours.get(c, (1.0, 0.0, 1.0))
             else:
-                colour = (1.0, 1.0, 1.0)
-            self.prog["u_tile_colour"].value = tuple(float(x) for x in colour)
-            g.vao.render(moderngl.TRIANGLES)
+                inst[i, 4:] = 1.0
+        if self.draw_mode == "indirect":
+            if n:
+                self._grow_draws(n)
+                cmd = np.empty((n, 5), np.uint32)
+                for i, c in enumerate(codes):
+                    g = self._tiles[c]
+                    cmd[i] = (g.n_indices, 1, g.first_index, g.first_vertex, i)
+                self._inst.write(inst.tobytes())
+                self._cmd.write(cmd.tobytes())
+                self._vao.render_indirect(self._cmd, moderngl.TRIANGLES, count=n)
+                self.draw_calls += 1
+        else:
+            for i, c in enumerate(codes):
+                g = self._tiles[c]
+                self.prog["u_tile_offset"].value = tuple(map(float, inst[i, :3]))
+                self.prog["u_origin_z"].value = float(inst[i, 3])
+                self.prog["u_tile_colour"].value = tuple(map(float, inst[i, 4:]))
+                g.vao.render(moderngl.TRIANGLES)
+                self.draw_calls += 1
         ctx.wireframe = False
         if not read:
             return None
@@ -308,7 +515,15 @@ class TerrainRenderer:
         return len(self._tiles)
 
     def release(self) -> None:
+        with self.ctx:
+            self._release_all()
+
+    def _release_all(self) -> None:
         for code in list(self._tiles):
             self._release(code)
+        if self.draw_mode == "indirect":
+            for b in (self._vao, self._vbuf, self._ibuf, self._inst, self._cmd):
+                if b is not None:
+                    b.release()
         if self.fbo is not None:
             self.fbo.release()
