@@ -186,7 +186,8 @@ def test_viewer_window_under_xvfb(tmp_path: Path) -> None:
     env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
     p = subprocess.run(
         ["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, "-m", "terralod", "view",
-         str(tmp_path / "v.terra"), "--size", "480x270", "--frames", "4", "--screenshot", str(shot)],
+         str(tmp_path / "v.terra"), "--size", "480x270", "--frames", "4", "--screenshot", str(shot),
+         "--cull", "backface", "--cull", "region"],
         capture_output=True, text=True, timeout=300, env=env,
     )  # fmt: skip
     assert p.returncode == 0, p.stderr[-2000:]

@@ -281,3 +281,80 @@ def test_missing_children_fall_back_to_parent(store) -> None:
         full = Engine(store, threshold_px=0.5).update(cam)
         if any(c[0] == top and c[1] < nx // 2 for c in full.tiles):
             assert any(c[0] == top - 1 and c[1] < nx // 4 for c in sel.tiles)
+
+
+def _facing(v: np.ndarray, t: np.ndarray, eye) -> np.ndarray:
+    """Reference: G = n . (eye - A) per triangle (paper 001 §3.2), numpy."""
+    t = t.astype(np.int64)
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return np.einsum("ij,ij->i", np.cross(b - a, c - b), np.asarray(eye) - a)
+
+
+@pytest.fixture(scope="module")
+def ridge_store(tmp_path_factory):
+    """A tent-shaped ridge (two planar slopes, 1.2 km high) with a little fBm: far-slope tiles face away
+    from a low eye on the near side."""
+    from terralod import Heightfield, build_store, open_store
+
+    from conftest import fractal_terrain
+
+    n = 129
+    x = np.arange(n) / (n - 1)
+    z = 1200.0 * np.maximum(0.0, 1.0 - np.abs(x - 0.5) / 0.5)[None, :] * np.ones((n, 1))
+    z = z + fractal_terrain(n, n, 3, relief_m=4.0, beta=3.0)
+    hf = Heightfield.from_array(z.astype(np.float32), 30.0, origin_m=(500000.0, 4100000.0))
+    p = tmp_path_factory.mktemp("ridge") / "ridge.terra"
+    build_store(hf, p, tile_size=9)
+    with open_store(p) as s:
+        yield s
+
+
+def test_backface_culling_drops_exactly_the_backfacing_tiles(ridge_store) -> None:
+    """cull_backfacing removes a drawn tile iff every stitched triangle faces away from the eye (numpy
+    reference), keeps the partition, and does remove tiles behind the ridge."""
+    t = ridge_store.transform
+    w = ridge_store.pyramid.width * t.a
+    rng = np.random.default_rng(5)
+    removed_total = 0
+    for _ in range(12):
+        side = rng.choice([-1.0, 1.0])
+        eye = (t.c + w * (0.5 + side * rng.uniform(0.45, 0.9)), t.f - w * rng.uniform(0.2, 0.8),
+               rng.uniform(300.0, 900.0))  # fmt: skip
+        tgt = (t.c + w * 0.5, t.f - w * rng.uniform(0.3, 0.7), rng.uniform(200.0, 1000.0))
+        cam = Camera(eye, tgt, fov_y_deg=70.0, width_px=640, height_px=480)
+        full = Engine(ridge_store, threshold_px=1.0).update(cam)
+        cull = Engine(ridge_store, threshold_px=1.0, cull_backfacing=True).update(cam)
+        meshes = full.mesh_dict()
+        front = {c: bool((_facing(v, tr, eye) >= 0).any()) for c, (v, tr, _) in meshes.items()}
+        assert sorted(cull.tiles) == sorted(c for c in full.tiles if front[c])
+        assert sorted(cull.tiles + cull.culled) == sorted(full.tiles + full.culled)
+        assert cull.stats.backface_culled == sum(not f for f in front.values())
+        assert cull.stats.triangles == sum(len(meshes[c][1]) for c in cull.tiles)
+        removed_total += cull.stats.backface_culled
+    assert removed_total > 0, "no camera saw a back-facing tile behind the ridge"
+
+
+def test_region_culling_drops_only_tiles_whose_mean_plane_footprint_is_unseen(store) -> None:
+    """The §3.1 visible region is exact on the terrain's mean plane: no tile it drops has a point of its
+    footprint, lifted to that plane, inside the view frustum; drawn tiles are a subset of the plain
+    selection's, the partition is unchanged, and over many cameras some tiles are dropped."""
+    pyr, t = store.pyramid, store.transform
+    dropped_total = 0
+    for seed in range(30):
+        cam = random_camera(np.random.default_rng(seed), store)
+        eng = Engine(store, threshold_px=2.0, cull_region=True)
+        sel = eng.update(cam)
+        ref = Engine(store, threshold_px=2.0).update(cam)
+        dropped = set(ref.tiles) - set(sel.tiles)
+        assert set(sel.tiles) <= set(ref.tiles) and len(dropped) == sel.stats.region_culled
+        assert sorted(sel.tiles + sel.culled) == sorted(ref.tiles + ref.culled)
+        dropped_total += len(dropped)
+        for code in dropped:
+            r0, c0 = pyr.origin_rc(code)
+            span = pyr.span(code[0])
+            rr, cc = np.meshgrid(np.linspace(r0, min(r0 + span, pyr.height - 1), 9),
+                                 np.linspace(c0, min(c0 + span, pyr.width - 1), 9))  # fmt: skip
+            x, y = t.c + (cc.ravel() + 0.5) * t.a, t.f + (rr.ravel() + 0.5) * t.e
+            pts = np.stack([x, y, np.full(x.size, eng._mean_z_m)], 1)
+            assert not cam.contains(pts).any(), f"tile {code} dropped but its footprint is in view"
+    assert dropped_total > 0

@@ -367,9 +367,13 @@ def _stats_table(stats: dict[str, Any], title: str = "frame") -> None:
 @click.option(
     "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
 )
+@click.option(
+    "--cull", multiple=True, type=click.Choice(["backface", "region"]),
+    help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
+)  # fmt: skip
 @_read_options
 def render(
-    path, output, eye, target, size, threshold_px, background, mode, wireframe, fractal_levels, **read: Any
+    path, output, eye, target, size, threshold_px, background, mode, wireframe, fractal_levels, cull, **read: Any
 ) -> None:
     """Render one frame of a store (or a DEM, built first) to a PNG, headless (EGL)."""
     from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png
@@ -385,7 +389,7 @@ def render(
             pose = CameraPose(_triple(eye, "--eye"), _triple(target, "--target"))
         src = _with_fractal(s, path, read, fractal_levels)
         fr = FrameRenderer(
-            src, w, h, threshold_px=threshold_px, settings=_settings(background, mode, wireframe)
+            src, w, h, threshold_px=threshold_px, settings=_settings(background, mode, wireframe), cull=cull
         )
         img = fr.frame(pose)
         save_png(img, output)
@@ -406,8 +410,14 @@ def render(
 @click.option(
     "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
 )
+@click.option(
+    "--cull", multiple=True, type=click.Choice(["backface", "region"]),
+    help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
+)  # fmt: skip
 @_read_options
-def flythrough(path, output, cam_path, frames, fps, size, threshold_px, fractal_levels, **read: Any) -> None:
+def flythrough(
+    path, output, cam_path, frames, fps, size, threshold_px, fractal_levels, cull, **read: Any
+) -> None:
     """Render a fly-through video of a store (or a DEM, built first), headless."""
     from terralod.store import open_store
 
@@ -416,19 +426,20 @@ def flythrough(path, output, cam_path, frames, fps, size, threshold_px, fractal_
     with open_store(store_path) as s:
         src = _with_fractal(s, path, read, fractal_levels)
         summary = render_flythrough(src, output, cam_path=cam_path, frames=frames, fps=fps, size=(w, h),
-                                    threshold_px=threshold_px)  # fmt: skip
+                                    threshold_px=threshold_px, cull=cull)  # fmt: skip
     _flythrough_table(summary)
 
 
 def render_flythrough(store, output: str, *, cam_path: str = "auto", frames: int = 120, fps: int = 24,
-                      size=(1280, 720), threshold_px: float = 2.0, png: str | None = None) -> dict[str, Any]:  # fmt: skip
+                      size=(1280, 720), threshold_px: float = 2.0, png: str | None = None,
+                      cull: tuple[str, ...] = ()) -> dict[str, Any]:  # fmt: skip
     """Render a camera path to MP4; returns per-frame statistics summarised."""
     import numpy as np
 
     from terralod.render.offscreen import FrameRenderer, auto_path, load_path, save_png, write_video
 
     poses = auto_path(store, frames) if cam_path == "auto" else load_path(cam_path)
-    fr = FrameRenderer(store, size[0], size[1], threshold_px=threshold_px)
+    fr = FrameRenderer(store, size[0], size[1], threshold_px=threshold_px, cull=cull)
     per_frame: list[dict[str, Any]] = []
 
     def gen():
@@ -466,8 +477,12 @@ def _flythrough_table(summary: dict[str, Any]) -> None:
 @click.option(
     "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
 )
+@click.option(
+    "--cull", multiple=True, type=click.Choice(["backface", "region"]),
+    help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
+)  # fmt: skip
 @_read_options
-def view(path, size, threshold_px, frames, screenshot, fractal_levels, **read: Any) -> None:
+def view(path, size, threshold_px, frames, screenshot, fractal_levels, cull, **read: Any) -> None:
     """Open the real-time viewer on a store (or a DEM, built into a cache store first)."""
     from terralod.render.viewer import run_viewer
     from terralod.store import open_store
@@ -480,7 +495,7 @@ def view(path, size, threshold_px, frames, screenshot, fractal_levels, **read: A
         )
     with open_store(store_path) as s:
         out = run_viewer(_with_fractal(s, path, read, fractal_levels), width_px=w, height_px=h, threshold_px=threshold_px, max_frames=frames,
-                         screenshot=screenshot)  # fmt: skip
+                         screenshot=screenshot, cull=cull)  # fmt: skip
     if frames:
         click.echo(
             json.dumps({"frames": out["frames"], "hud": out["hud"], "stats": out["stats"]}, default=str)

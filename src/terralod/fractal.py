@@ -655,14 +655,12 @@ def patch_backfacing(vertices: np.ndarray, triangles: np.ndarray, eye: Sequence[
     A triangle ABC with outer normal n = (B - A) x (C - B) faces away when G = n . (eye - A) < 0; G >= 0
     (edge-on or degenerate included) keeps the patch. A patch without triangles is back-facing.
     """
-    v = np.asarray(vertices, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    if t.shape[0] == 0:
-        return True
-    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
-    n = np.cross(b - a, c - b)
-    g = np.einsum("ij,ij->i", n, np.asarray(eye, dtype=np.float64) - a)
-    return bool(np.all(g < 0.0))
+    from terralod.kernels.cull import any_front_facing
+
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    t = np.ascontiguousarray(np.asarray(triangles).reshape(-1, 3), dtype=np.int64)
+    e = np.asarray(eye, dtype=np.float64)
+    return not any_front_facing(v, t, float(e[0]), float(e[1]), float(e[2]))
 
 
 def patches_backfacing(

@@ -71,17 +71,25 @@ def load_path(path: str | Path) -> list[CameraPose]:
     return [CameraPose(tuple(map(float, p["eye"])), tuple(map(float, p["target"]))) for p in data]
 
 
+def cull_options(cull: tuple[str, ...] | list[str]) -> dict[str, bool]:
+    """Engine options from culling names: "backface" (paper 001 §3.2), "region" (§3.1)."""
+    bad = set(cull) - {"backface", "region"}
+    if bad:
+        raise ValueError(f"Expected culling among backface, region; got {sorted(bad)}")
+    return {"cull_backfacing": "backface" in cull, "cull_region": "region" in cull}
+
+
 class FrameRenderer:
     """Engine + renderer for one store at one viewport size."""
 
     def __init__(
         self, store, width_px: int, height_px: int, *, threshold_px: float = 2.0, fov_y_deg: float = 45.0,
-        settings: RenderSettings | None = None, ctx=None, draw_mode: str = "auto",
+        settings: RenderSettings | None = None, ctx=None, draw_mode: str = "auto", cull: tuple[str, ...] = (),
     ) -> None:  # fmt: skip
         from terralod.runtime import Engine
 
         self.store = store
-        self.engine = Engine(store, threshold_px=threshold_px)
+        self.engine = Engine(store, threshold_px=threshold_px, **cull_options(cull))
         self.renderer = TerrainRenderer(width_px, height_px, ctx=ctx, draw_mode=draw_mode)
         self.settings = settings or RenderSettings()
         self.fov_y_deg = fov_y_deg

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from terralod.render.offscreen import CameraPose, overview_pose, store_extent
+from terralod.render.offscreen import CameraPose, cull_options, overview_pose, store_extent
 from terralod.render.renderer import _SHADERS, RenderSettings, TerrainRenderer
 
 
@@ -79,7 +79,7 @@ class Viewer:
     """The window. ``run(max_frames=None)`` loops until closed (or for ``max_frames`` frames)."""
 
     def __init__(self, store, *, width_px: int = 1280, height_px: int = 720, threshold_px: float = 2.0,
-                 fov_y_deg: float = 45.0, title: str = "terralod") -> None:  # fmt: skip
+                 fov_y_deg: float = 45.0, title: str = "terralod", cull: tuple[str, ...] = ()) -> None:  # fmt: skip
         import glfw
         import moderngl
 
@@ -103,7 +103,7 @@ class Viewer:
         self.width_px, self.height_px = width_px, height_px
         self.fov_y_deg = fov_y_deg
         self.threshold_px = threshold_px
-        self.engine = Engine(store, threshold_px=threshold_px, background=True)
+        self.engine = Engine(store, threshold_px=threshold_px, background=True, **cull_options(cull))
         self.renderer = TerrainRenderer(width_px, height_px, ctx=self.ctx)
         self.settings = RenderSettings()
         self.hud = _Hud(self.ctx)
@@ -272,7 +272,7 @@ class Viewer:
 
 
 def run_viewer(store, **kw) -> dict:
-    v = Viewer(store, **{k: kw[k] for k in ("width_px", "height_px", "threshold_px") if k in kw})
+    v = Viewer(store, **{k: kw[k] for k in ("width_px", "height_px", "threshold_px", "cull") if k in kw})
     try:
         return v.run(kw.get("max_frames"), kw.get("screenshot"))
     finally:

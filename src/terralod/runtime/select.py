@@ -449,6 +449,8 @@ class FrameStats:
     refitted: int = 0
     normals: int = 0
     fallback: int = 0
+    backface_culled: int = 0
+    region_culled: int = 0
     levels: dict[int, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
@@ -512,6 +514,15 @@ class Engine:
     stitch_mode : "incremental" (CrackTileVector, paper 002) or "full" (re-stitch every tile each frame,
         the conventional baseline of paper 002 table 3)
     cache_tiles, cache_bytes : bounds of the decoded-tile LRU cache (a prepared 65² tile takes ~0.45 MB)
+    cull_backfacing : paper 001 §3.2: do not draw a leaf whose every (stitched) triangle faces away from
+        the eye. Exact per triangle, stopping at the first front-facing one.
+    cull_region : paper 001 §3.1: do not draw a leaf whose footprint misses the visible region, the view
+        frustum cut by the terrain's mean horizontal plane (the store's mean elevation). Approximate by
+        design: a peak rising above that plane from outside the region is dropped although the 3-D
+        frustum test (always on) would keep it; it exists to compare with the paper.
+
+    Culling only removes leaves from drawing: the partition, adjacency and stitching are unchanged, so
+    the drawn surface stays watertight wherever two drawn tiles meet.
     """
 
     def __init__(
@@ -525,6 +536,8 @@ class Engine:
         stitch_mode: str = "incremental",
         cache_tiles: int = 1024,
         cache_bytes: int = 256 << 20,
+        cull_backfacing: bool = False,
+        cull_region: bool = False,
     ) -> None:
         if not (isinstance(threshold_px, (int, float)) and threshold_px > 0 and math.isfinite(threshold_px)):
             raise ValueError(f"Expected threshold_px > 0, got {threshold_px!r}")
@@ -537,6 +550,8 @@ class Engine:
         self.triangle_budget = None if triangle_budget is None else int(triangle_budget)
         self.incremental = bool(incremental)
         self.stitch_mode = stitch_mode
+        self.cull_backfacing = bool(cull_backfacing)
+        self.cull_region = bool(cull_region)
         self.index = QuadIndex(store.pyramid)
         self.table = TileTable(store, self.index)
         if not self.table.avail[0]:
@@ -649,10 +664,23 @@ class Engine:
 
         errs = np.where(fb[vis_mask], tb.measured_error_m[vis], tb.error_m[vis])
         rho = _screen_errors(vis, tb.boxes, errs, eye, k_px)
+        meshes = self._meshes
+        culled_codes = self.index.codes(leaves[states == CULLED])
+        n_back = n_region = 0
+        if self.cull_backfacing or self.cull_region:
+            drawn = self._cull(camera, vis)
+            n_region = int((drawn == 1).sum())
+            n_back = int((drawn == 2).sum())
+            keep = drawn == 0
+            culled_codes += [c for c, k in zip(codes, keep.tolist(), strict=True) if not k]
+            codes = [c for c, k in zip(codes, keep.tolist(), strict=True) if k]
+            meshes = [m for m, k in zip(meshes, keep.tolist(), strict=True) if k]
+            vis, rho = vis[keep], rho[keep]
+            t2 = time.perf_counter()
         lv = self.index.lvl[vis]
         stats = FrameStats(
             tiles=len(codes),
-            triangles=int(sum(len(m[2]) for m in self._meshes)),
+            triangles=int(sum(len(m[2]) for m in meshes)),
             max_screen_error_px=float(rho.max()) if rho.size else 0.0,
             select_ms=(t1 - t0) * 1e3,
             stitch_ms=(t2 - t1 - tl) * 1e3,
@@ -663,15 +691,43 @@ class Engine:
             refitted=sst.refitted,
             normals=sst.normals,
             fallback=int(fb.sum()),
+            backface_culled=n_back,
+            region_culled=n_region,
             levels={int(k): int(c) for k, c in zip(*np.unique(lv, return_counts=True), strict=True)},
         )
         sel = Selection(
-            camera, codes, rho, set(self.index.codes(leaves[fb])), self.index.codes(leaves[states == CULLED]),
-            self._meshes, stats,
+            camera, codes, rho, set(self.index.codes(leaves[fb])), culled_codes, meshes, stats,
         )  # fmt: skip
         self._last, self._last_key = sel, camera.key
         log.debug("frame: %s", stats)
         return sel
+
+    def _cull(self, camera: Camera, vis: np.ndarray) -> np.ndarray:
+        """Per visible leaf: 0 drawn, 1 outside the visible region (§3.1), 2 back-facing (§3.2)."""
+        from terralod.fractal import boxes_in_region, visible_region
+        from terralod.kernels.cull import any_front_facing
+
+        out = np.zeros(vis.size, np.int8)
+        if self.cull_region and vis.size:
+            boxes = self.table.boxes
+            if not hasattr(self, "_mean_z_m"):
+                lv0 = self.index.lvl == 0
+                self._mean_z_m = float(0.5 * (boxes[lv0, 2].min() + boxes[lv0, 5].max()))
+            far = camera.far_m
+            if far is None:  # reach past every tile
+                d = np.linalg.norm(0.5 * (boxes[vis, :3] + boxes[vis, 3:]) - camera.eye_array, axis=1)
+                far = float(d.max() + np.linalg.norm(boxes[0, 3:] - boxes[0, :3])) + 1.0
+            poly = visible_region(
+                camera.eye, camera.target, far_m=far, up=camera.up, fov_y_deg=camera.fov_y_deg,
+                aspect=camera.aspect, near_m=camera.near_m, plane_z_m=self._mean_z_m,
+            )  # fmt: skip
+            out[~boxes_in_region(boxes[vis], poly)] = 1
+        if self.cull_backfacing:
+            ex, ey, ez = camera.eye
+            for i, (_, v, t, _) in enumerate(self._meshes):
+                if out[i] == 0 and not any_front_facing(v, t, ex, ey, ez):
+                    out[i] = 2
+        return out
 
     # -- background ------------------------------------------------------------------------------------
     def request(self, camera: Camera) -> None:
