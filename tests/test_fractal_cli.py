@@ -33,3 +33,38 @@ def test_amplify_cli_keeps_samples_and_georeferencing(tmp_path: Path) -> None:
     assert np.array_equal(fine[::4, ::4], z)
     # the detail between the samples is not a plain interpolation
     assert np.abs(fine[2::4, 2::4] - 0.25 * (z[:-1, :-1] + z[1:, 1:] + z[:-1, 1:] + z[1:, :-1])).max() > 0.01
+
+
+def test_build_fractal_levels_are_used_by_render(tmp_path: Path) -> None:
+    """`build --fractal 2` records the levels in the store; `render` of that store then refines into
+    fractal levels below the DEM without being told (and `--fractal 0` turns them off)."""
+    z = fractal_terrain(65, 65, 9, relief_m=400.0)
+    src = tmp_path / "dem.tif"
+    with rasterio.open(src, "w", driver="GTiff", width=65, height=65, count=1, dtype="float32", crs="EPSG:32633",
+                       transform=from_origin(400000.0, 5000000.0, 30.0, 30.0)) as ds:  # fmt: skip
+        ds.write(z, 1)
+    store = tmp_path / "dem.terra"
+    p = subprocess.run([sys.executable, "-m", "terralod", "build", str(src), "-o", str(store), "--tile-size", "17",
+                        "--fractal", "2"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    from terralod import open_store
+
+    with open_store(store) as s:
+        assert s.meta["fractal_levels"] == 2
+        finest = s.pyramid.max_level
+    # a low close-up over the middle of the terrain
+    eye, tgt = f"400975,4999025,{float(z.max()) + 60.0:f}", f"401100,4998900,{float(z.mean()):f}"
+    for extra in ([], ["--fractal", "0"]):
+        out = tmp_path / f"f{len(extra)}.png"
+        p = subprocess.run([sys.executable, "-m", "terralod", "-v", "render", str(store), "-o", str(out), "--eye", eye,
+                            "--target", tgt, "--size", "320x240", "--threshold-px", "1"] + extra,
+                           capture_output=True, text=True, timeout=300)  # fmt: skip
+        assert p.returncode == 0, p.stderr
+        assert out.exists()
+    from terralod.cli import _with_fractal
+
+    read = dict.fromkeys(("spacing", "vertical_scale", "vertical_offset", "encoding", "tile_zxy"))
+    with open_store(store) as s:
+        assert _with_fractal(s, str(store), read, None).pyramid.max_level == finest + 2
+        assert _with_fractal(s, str(store), read, 0) is s
+        assert _with_fractal(s, str(store), read, 1).pyramid.max_level == finest + 1

@@ -210,10 +210,16 @@ def run_build(
 @click.option("--workers", type=int, default=None, help="Threads (default: all cores).")
 @click.option("--resume", is_flag=True, help="Finish an interrupted build of the same input.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output store.")
+@click.option(
+    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=0, show_default=True,
+    help="Fractal levels below the DEM that view/render/flythrough add by default (paper 001; generated "
+    "on demand from the source DEM, never stored).",
+)  # fmt: skip
 @_read_options
 def build(
-    input_path: str, output: str, tile_size: int, method: str, workers, resume, overwrite, **read: Any
-) -> None:
+    input_path: str, output: str, tile_size: int, method: str, workers, resume, overwrite, fractal_levels,
+    **read: Any,
+) -> None:  # fmt: skip
     """Build the level-of-detail tile store of a DEM."""
     from terralod.build.builder import METHODS, store_summary
     from terralod.store import open_store
@@ -237,6 +243,12 @@ def build(
         f"built {rep.tiles_built} tiles ({rep.tiles_skipped} already done) in {rep.seconds:.2f} s, "
         f"{rep.samples_per_second / 1e6:.2f} M source samples/s"
     )
+    if fractal_levels:
+        from terralod.store import TileStore
+
+        with TileStore.open(output, writable=True) as s:
+            s.set_meta("fractal_levels", int(fractal_levels))
+        console.print(f"fractal: {fractal_levels} levels below the DEM when viewed (from {input_path})")
     with open_store(output) as s:
         print_store_summary(store_summary(s))
 
@@ -311,6 +323,8 @@ def _open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path
 def _with_fractal(store, path: str, read: dict[str, Any], levels: int):
     """The store itself, or with ``levels`` fractal levels below its finest (paper 001), generated on demand
     from the store's source DEM (the DEM given on the command line, else the one recorded in the store)."""
+    if levels is None:  # not given: what the store was built with (``terralod build --fractal N``)
+        levels = int(store.meta.get("fractal_levels", 0))
     if not levels:
         return store
     from terralod.errors import InputError
@@ -365,8 +379,9 @@ def _stats_table(stats: dict[str, Any], title: str = "frame") -> None:
 )
 @click.option("--wireframe", is_flag=True)
 @click.option(
-    "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
-)
+    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
+    help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
+)  # fmt: skip
 @click.option(
     "--cull", multiple=True, type=click.Choice(["backface", "region"]),
     help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
@@ -408,8 +423,9 @@ def render(
 @click.option("--size", default="1280x720", show_default=True, help="WIDTHxHEIGHT pixels.")
 @click.option("--threshold-px", default=2.0, show_default=True)
 @click.option(
-    "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
-)
+    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
+    help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
+)  # fmt: skip
 @click.option(
     "--cull", multiple=True, type=click.Choice(["backface", "region"]),
     help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
@@ -475,8 +491,9 @@ def _flythrough_table(summary: dict[str, Any]) -> None:
 @click.option("--frames", type=int, default=None, help="Close after this many frames (scripted runs).")
 @click.option("--screenshot", help="PNG written after the last frame (with --frames).")
 @click.option(
-    "--fractal", "fractal_levels", default=0, show_default=True, help="Fractal levels below the DEM (0-6)."
-)
+    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
+    help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
+)  # fmt: skip
 @click.option(
     "--cull", multiple=True, type=click.Choice(["backface", "region"]),
     help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
