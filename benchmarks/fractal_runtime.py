@@ -1,6 +1,7 @@
 """Fractal levels at run time (paper 001 §3.1): along a close-up fly-through over Puget Sound 1k (or the
 bundled sample when ../shared/data is absent), per frame: tiles and triangles drawn at 2 px with and
-without fractal levels, the time spent selecting + generating + stitching, and the deepest level reached.
+without fractal levels, the time spent selecting + generating + stitching, and the deepest level reached;
+then the same path with paper 001's culling options (§3.2 back-face patches, §3.1 visible region) on.
 
 Writes ``benchmarks/results/fractal_runtime.{json,md}``. Run: ``python benchmarks/fractal_runtime.py``.
 """
@@ -49,9 +50,11 @@ def main() -> None:
         build_store(hf, out, tile_size=65)
         with open_store(out) as store:
             detail = FractalDetail(hf)
-            for extra in (0, 1, 2, 3):
+            for extra, cull in ((0, ""), (1, ""), (2, ""), (3, ""), (0, "backface+region"), (1, "backface+region"),
+                                (2, "backface+region")):  # fmt: skip
                 src = store if extra == 0 else FractalSource(store, detail, extra)
-                engine = Engine(src, threshold_px=2.0)
+                engine = Engine(src, threshold_px=2.0, cull_backfacing="backface" in cull,
+                                cull_region="region" in cull)  # fmt: skip
                 per = []
                 for eye, tgt in close_path(hf, frames):
                     cam = Camera(eye, tgt, (0, 0, 1.0), 60.0, *size, near_m=1.0)
@@ -60,21 +63,26 @@ def main() -> None:
                     meshes = list(sel.meshes())
                     ms = (time.perf_counter() - t) * 1e3
                     per.append((ms, sel.stats.triangles, sel.stats.tiles, max(c[0] for c in sel.tiles),
-                                sel.stats.max_screen_error_px))  # fmt: skip
+                                sel.stats.max_screen_error_px, sel.stats.backface_culled,
+                                sel.stats.region_culled))  # fmt: skip
                     del meshes
                 a = np.array(per, float)
                 r = {"frame_ms_median": float(np.median(a[:, 0])), "frame_ms_max": float(a[:, 0].max()),
                      "triangles_median": float(np.median(a[:, 1])), "tiles_median": float(np.median(a[:, 2])),
-                     "deepest_level": int(a[:, 3].max()), "max_screen_error_px_median": float(np.median(a[:, 4]))}  # fmt: skip
-                results["runs"][str(extra)] = r
-                rows.append([extra, r["deepest_level"], int(r["triangles_median"]), int(r["tiles_median"]),
+                     "deepest_level": int(a[:, 3].max()), "max_screen_error_px_median": float(np.median(a[:, 4])),
+                     "backface_culled_median": float(np.median(a[:, 5])),
+                     "region_culled_median": float(np.median(a[:, 6]))}  # fmt: skip
+                results["runs"][f"{extra}{'/' + cull if cull else ''}"] = r
+                rows.append([extra, cull or "-", r["deepest_level"], int(r["triangles_median"]),
+                             int(r["tiles_median"]), int(r["backface_culled_median"]), int(r["region_culled_median"]),
                              r["max_screen_error_px_median"], r["frame_ms_median"], r["frame_ms_max"]])  # fmt: skip
     md = (f"## Fractal levels along a close-up fly-through ({name}, {frames} frames, {size[0]}x{size[1]}, 2 px)\n\n"
           "Frame ms = select + on-demand fractal tile generation + stitching + normals (no drawing). "
           "A max screen error of inf means the eye is inside the box of a deepest-level tile (d = 0), "
           "which cannot be refined further.\n\n")  # fmt: skip
-    md += md_table(["fractal levels", "deepest level", "triangles (median)", "tiles (median)",
-                    "max screen err px (median)", "frame ms (median)", "frame ms (max)"], rows)  # fmt: skip
+    md += md_table(["fractal levels", "culling", "deepest level", "triangles (median)", "tiles (median)",
+                    "back-facing culled", "outside region culled", "max screen err px (median)",
+                    "frame ms (median)", "frame ms (max)"], rows)  # fmt: skip
     write_results("fractal_runtime", results, md)
 
 
