@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from terralod.build import chunked
+from terralod.build import chunked, cohesion
 from terralod.error import measure_error_window
 from terralod.errors import BuildMismatchError, StoreError
 from terralod.heightfield import Heightfield
@@ -42,7 +42,8 @@ log = logging.getLogger(__name__)
 MeshFn = Callable[
     [np.ndarray, np.ndarray, TilePyramid, TileCode], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 ]
-METHODS: dict[str, MeshFn] = {"chunked": chunked.mesh_tile}
+#: A mesher with a true ``needs_spacing`` attribute is also given ``spacing_m=(dx, dy)`` (metres).
+METHODS: dict[str, MeshFn] = {"chunked": chunked.mesh_tile, "cohesion": cohesion.mesh_tile}
 
 #: Tiles committed per SQLite transaction (bounded by time as well, see ``_COMMIT_SECONDS``).
 _BATCH_TILES = 64
@@ -98,15 +99,45 @@ def _level_max_range(z, s, m):
     return best
 
 
-def plan_quantisation(hf: Heightfield, pyramid: TilePyramid) -> dict[int, LevelQuantisation]:
+@jit
+def _level_max_sample_range(z, s, m):
+    """Largest (max - min) over all source samples of any tile window of a level (relocated vertices may
+    sit on any sample, or between samples with bilinear heights, so all samples bound their heights)."""
+    h, w = z.shape
+    span = (m - 1) * s
+    nty = -(-(h - 1) // span)
+    ntx = -(-(w - 1) // span)
+    best = 0.0
+    for ty in range(nty):
+        for tx in range(ntx):
+            lo = np.inf
+            hi = -np.inf
+            for r in range(ty * span, min(ty * span + span, h - 1) + 1):
+                for c in range(tx * span, min(tx * span + span, w - 1) + 1):
+                    v = z[r, c]
+                    if v < lo:
+                        lo = v
+                    if v > hi:
+                        hi = v
+            if hi - lo > best:
+                best = hi - lo
+    return best
+
+
+def plan_quantisation(
+    hf: Heightfield, pyramid: TilePyramid, *, grid_vertices: bool = True
+) -> dict[int, LevelQuantisation]:
     """Per-level 16-bit lattices: horizontal fractional bits and a vertical step that fits every tile.
 
     The vertical step is the largest vertex-height range of any tile of the level over 65534 steps, so
-    ``z0_index + q`` never overflows 16 bits and every tile of a level shares one lattice.
+    ``z0_index + q`` never overflows 16 bits and every tile of a level shares one lattice. With
+    ``grid_vertices`` (meshers whose vertices are the level's grid, e.g. Chunked LOD) the range is taken
+    over the grid vertices; otherwise over every source sample of the tile window.
     """
     out = {}
+    fn = _level_max_range if grid_vertices else _level_max_sample_range
     for k in pyramid.levels:
-        rng = _level_max_range(hf.elevation_m, pyramid.stride(k), pyramid.tile_size)
+        rng = fn(hf.elevation_m, pyramid.stride(k), pyramid.tile_size)
         step = max(float(rng) / 65534.0, 1e-6)
         out[k] = LevelQuantisation(pyramid.xy_frac_bits(k), step)
     return out
@@ -161,7 +192,10 @@ def build_tile(
 ) -> EncodedTile:
     """Mesh, quantise, dequantise and measure one tile; monotone errors from its children."""
     r0, c0 = pyramid.origin_rc(code)
-    rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code)
+    if getattr(mesh_fn, "needs_spacing", False):
+        rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code, spacing_m=hf.spacing_m)
+    else:
+        rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code)
     qv, z0 = _quantise(rows, cols, hz, r0, c0, quant)
     # Measure on the geometry exactly as stored.
     scale = 1.0 / (1 << quant.xy_frac_bits)
@@ -215,7 +249,7 @@ def build_store(
     hf : the source heightfield (metres).
     path : output ``.terra`` file.
     tile_size : M, vertices per tile side, 2^n + 1.
-    method : tile mesher, a key of :data:`METHODS` ("chunked"; "cohesion" once registered).
+    method : tile mesher, a key of :data:`METHODS` ("chunked", "cohesion").
     workers : threads meshing tiles (default: all cores).
     resume : continue an interrupted build of the same source and options at ``path``.
     overwrite : replace an existing file at ``path``.
@@ -229,7 +263,7 @@ def build_store(
     p = Path(path)
     t_start = time.perf_counter()
     pyramid = TilePyramid(hf.width, hf.height, tile_size)
-    quant = plan_quantisation(hf, pyramid)
+    quant = plan_quantisation(hf, pyramid, grid_vertices=(method == "chunked"))
     meta = _store_meta(hf, pyramid, method, quant)
 
     if p.exists() and resume:

@@ -1,0 +1,694 @@
+"""Numba kernels of the vertex cohesion map (``../shared/papers/000_0f8c6950ace8a2d1.txt`` §3.1).
+
+Pure functions on arrays, no I/O, no exceptions; validation and the paper's reading live in
+:mod:`terralod.build.cohesion`.
+
+Frame: tile-local source samples, ``u`` = column offset (east), ``v`` = row offset (south) from the tile's
+north-west vertex; the window ``zw`` holds the source over the tile square (edge-replicated past the data,
+``vw`` False there). Grid vertex (i, j) starts at (v, u) = (i * s, j * s). A quad (i, j) has the corners
+a = (i, j) north-west, b = (i, j + 1) north-east, c = (i + 1, j) south-west, d = (i + 1, j + 1) south-east;
+diagonal 0 joins a-d (triangles a-c-d, a-d-b), diagonal 1 joins b-c (a-c-b, b-c-d), both counter-clockwise
+seen from above (x east, y north) while the quad stays convex, which every accepted move keeps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from terralod.kernels import jit
+
+#: Errors up to this many metres count as exact: no attraction, nothing to refine (rounding noise of a
+#: plane through float samples must not pull vertices).
+ERR_EPS_M = 1e-6
+
+#: Attraction weights: the vertical error of the current mesh squared (default), or a static feature map.
+WEIGHT_ERROR = 0
+WEIGHT_FEATURE = 1
+
+
+@jit
+def height_at(zw, v, u, snap):
+    """Source height at (v, u): the sample itself when ``snap`` (integer positions), else bilinear.
+
+    On a sample row (or column) the value is the linear interpolation along it, computed exactly as
+    :func:`_line_height` does, so side vertices get bit-identical heights in both tiles sharing the side.
+    """
+    h, w = zw.shape
+    if snap:
+        return zw[int(v), int(u)]
+    r0 = int(np.floor(v))
+    c0 = int(np.floor(u))
+    fr = v - r0
+    fc = u - c0
+    if fr == 0.0 and fc == 0.0:
+        return zw[r0, c0]
+    if fr == 0.0:
+        return zw[r0, c0] + fc * (zw[r0, c0 + 1] - zw[r0, c0])
+    if fc == 0.0:
+        return zw[r0, c0] + fr * (zw[r0 + 1, c0] - zw[r0, c0])
+    r1 = min(r0 + 1, h - 1)
+    c1 = min(c0 + 1, w - 1)
+    top = zw[r0, c0] + fc * (zw[r0, c1] - zw[r0, c0])
+    bot = zw[r1, c0] + fc * (zw[r1, c1] - zw[r1, c0])
+    return top + fr * (bot - top)
+
+
+@jit
+def _plane(v0, u0, z0, v1, u1, z1, v2, u2, z2, out, k):
+    """z = out[k, 0] + out[k, 1] * u + out[k, 2] * v through three points (zeros if degenerate)."""
+    den = (u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0)
+    if den == 0.0:
+        out[k, 0] = z0
+        out[k, 1] = 0.0
+        out[k, 2] = 0.0
+        return
+    gu = ((z1 - z0) * (v2 - v0) - (z2 - z0) * (v1 - v0)) / den
+    gv = ((u1 - u0) * (z2 - z0) - (u2 - u0) * (z1 - z0)) / den
+    out[k, 0] = z0 - gu * u0 - gv * v0
+    out[k, 1] = gu
+    out[k, 2] = gv
+
+
+@jit
+def _side(va, ua, vb, ub, r, c):
+    """Orientation of sample (r, c) against the directed line a -> b in the (u, v) frame."""
+    return (ub - ua) * (r - va) - (vb - va) * (c - ua)
+
+
+@jit
+def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1):
+    """Errors and attraction moments of quad (i, j) for both diagonals in one pass over its samples.
+
+    ``acc0`` (diagonal a-d) and ``acc1`` (diagonal b-c) get [max |err|, sum |err|, W, W*v, W*u, row of max,
+    col of max] with W = err^2 (mode WEIGHT_ERROR) or feat (WEIGHT_FEATURE); samples on the closed quad.
+    """
+    for k in range(7):
+        acc0[k] = 0.0
+        acc1[k] = 0.0
+    h, w = zw.shape
+    va, ua, za = pv[i, j], pu[i, j], hz[i, j]
+    vb, ub, zb = pv[i, j + 1], pu[i, j + 1], hz[i, j + 1]
+    vc, uc, zc = pv[i + 1, j], pu[i + 1, j], hz[i + 1, j]
+    vd, ud, zd = pv[i + 1, j + 1], pu[i + 1, j + 1], hz[i + 1, j + 1]
+    pl = np.empty((4, 3), np.float64)
+    _plane(va, ua, za, vc, uc, zc, vd, ud, zd, pl, 0)  # diag 0, south-west half (a, c, d)
+    _plane(va, ua, za, vd, ud, zd, vb, ub, zb, pl, 1)  # diag 0, north-east half (a, d, b)
+    _plane(va, ua, za, vc, uc, zc, vb, ub, zb, pl, 2)  # diag 1, north-west half (a, c, b)
+    _plane(vb, ub, zb, vc, uc, zc, vd, ud, zd, pl, 3)  # diag 1, south-east half (b, c, d)
+    eps = 1e-9
+    rlo = max(int(np.ceil(min(min(va, vb), min(vc, vd)) - eps)), 0)
+    rhi = min(int(np.floor(max(max(va, vb), max(vc, vd)) + eps)), h - 1)
+    clo = max(int(np.ceil(min(min(ua, ub), min(uc, ud)) - eps)), 0)
+    chi = min(int(np.floor(max(max(ua, ub), max(uc, ud)) + eps)), w - 1)
+    # quad a -> c -> d -> b: in the (u, v) frame (v south) interior points give _side <= 0 for each edge
+    sc = 1e-9 * (1.0 + (ud - ua) * (ud - ua) + (vd - va) * (vd - va))
+    for r in range(rlo, rhi + 1):
+        for c in range(clo, chi + 1):
+            if not vw[r, c]:
+                continue
+            if (_side(va, ua, vc, uc, r, c) > sc or _side(vc, uc, vd, ud, r, c) > sc
+                    or _side(vd, ud, vb, ub, r, c) > sc or _side(vb, ub, va, ua, r, c) > sc):  # fmt: skip
+                continue
+            zs = zw[r, c]
+            k0 = 0 if _side(va, ua, vd, ud, r, c) >= 0.0 else 1
+            k1 = 2 if _side(vb, ub, vc, uc, r, c) >= 0.0 else 3
+            e0 = abs(zs - (pl[k0, 0] + pl[k0, 1] * c + pl[k0, 2] * r))
+            e1 = abs(zs - (pl[k1, 0] + pl[k1, 1] * c + pl[k1, 2] * r))
+            if e0 > acc0[0]:
+                acc0[0] = e0
+                acc0[5] = r
+                acc0[6] = c
+            if e1 > acc1[0]:
+                acc1[0] = e1
+                acc1[5] = r
+                acc1[6] = c
+            acc0[1] += e0
+            acc1[1] += e1
+            if mode == WEIGHT_ERROR:
+                w0 = e0 * e0 if e0 > ERR_EPS_M else 0.0
+                w1 = e1 * e1 if e1 > ERR_EPS_M else 0.0
+            else:
+                w0 = feat[r, c]
+                w1 = w0
+            acc0[2] += w0
+            acc0[3] += w0 * r
+            acc0[4] += w0 * c
+            acc1[2] += w1
+            acc1[3] += w1 * r
+            acc1[4] += w1 * c
+
+
+@jit
+def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments):
+    """Per kept quad: the diagonal of smaller max |vertical error| (ties: smaller sum, then diagonal 0), its
+    max error ``qmax`` and its attraction moments ``moments[i, j] = (W, W*v, W*u)``. Returns the tile max."""
+    cells = keep.shape[0]
+    a0 = np.zeros(7, np.float64)
+    a1 = np.zeros(7, np.float64)
+    worst = 0.0
+    for i in range(cells):
+        for j in range(cells):
+            if not keep[i, j]:
+                continue
+            _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, a0, a1)
+            use1 = a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1])
+            best = a1 if use1 else a0
+            diag[i, j] = 1 if use1 else 0
+            qmax[i, j] = best[0]
+            moments[i, j, 0] = best[2]
+            moments[i, j, 1] = best[3]
+            moments[i, j, 2] = best[4]
+            if best[0] > worst:
+                worst = best[0]
+    return worst
+
+
+@jit
+def _turn(pv, pu, i0, j0, i1, j1, i2, j2):
+    """Cross product of (p1 - p0) x (p2 - p1) in the frame x = u east, y = -v north (> 0: left turn)."""
+    x0, y0 = pu[i0, j0], -pv[i0, j0]
+    x1, y1 = pu[i1, j1], -pv[i1, j1]
+    x2, y2 = pu[i2, j2], -pv[i2, j2]
+    return (x1 - x0) * (y2 - y1) - (y1 - y0) * (x2 - x1)
+
+
+@jit
+def quad_convex(pv, pu, i, j, min_turn):
+    """True when quad (i, j) (a -> c -> d -> b, counter-clockwise) turns left by more than ``min_turn`` at
+    every corner: strictly convex, so both diagonals give positive-area counter-clockwise triangles."""
+    if _turn(pv, pu, i, j, i + 1, j, i + 1, j + 1) <= min_turn:
+        return False
+    if _turn(pv, pu, i + 1, j, i + 1, j + 1, i, j + 1) <= min_turn:
+        return False
+    if _turn(pv, pu, i + 1, j + 1, i, j + 1, i, j) <= min_turn:
+        return False
+    return _turn(pv, pu, i, j + 1, i, j, i + 1, j) > min_turn
+
+
+@jit
+def _around_ok(pv, pu, i, j, cells, min_turn):
+    for di in (-1, 0):
+        for dj in (-1, 0):
+            qi = i + di
+            qj = j + dj
+            if 0 <= qi < cells and 0 <= qj < cells and not quad_convex(pv, pu, qi, qj, min_turn):
+                return False
+    return True
+
+
+@jit
+def stiffness(a, tau_low, tau_up):
+    """Adaptive modulus K of the area ratio a (paper 000 eq. 6-8; eq. 8 read as (a - 1) / (tau_up - 1) so
+    that K is continuous and 0 at a = 1, like eq. 7)."""
+    if a < tau_low or a > tau_up:
+        return 1.0
+    if a < 1.0:
+        return (1.0 - a) / (1.0 - tau_low)
+    if tau_up <= 1.0:
+        return 0.0
+    return (a - 1.0) / (tau_up - 1.0)
+
+
+@jit
+def diamond_centroid(pv, pu, i, j):
+    """Shoelace centroid (v, u) and area (samples^2) of the quad of the 4 edge neighbours of (i, j),
+    in the order north, west, south, east (counter-clockwise seen from above)."""
+    xs = np.empty(4, np.float64)
+    ys = np.empty(4, np.float64)
+    xs[0], ys[0] = pu[i - 1, j], -pv[i - 1, j]
+    xs[1], ys[1] = pu[i, j - 1], -pv[i, j - 1]
+    xs[2], ys[2] = pu[i + 1, j], -pv[i + 1, j]
+    xs[3], ys[3] = pu[i, j + 1], -pv[i, j + 1]
+    a2 = 0.0
+    cx = 0.0
+    cy = 0.0
+    for k in range(4):
+        k1 = (k + 1) % 4
+        cr = xs[k] * ys[k1] - xs[k1] * ys[k]
+        a2 += cr
+        cx += (xs[k] + xs[k1]) * cr
+        cy += (ys[k] + ys[k1]) * cr
+    if a2 <= 0.0:
+        return pv[i, j], pu[i, j], 0.0
+    return -cy / (3.0 * a2), cx / (3.0 * a2), 0.5 * a2
+
+
+@jit
+def relax_edge(line_z, line_ok, feat, mode, s, m, limit, snap, n_iter, alpha, tau_low, tau_up):
+    """1-D cohesion relocation of the m vertices of one tile side (positions 0..(m-1)*s along it).
+
+    Only the samples of the side's own line are read, so the two tiles sharing a side compute bit-identical
+    positions. Vertex j (1..m-2) moves when (j + 1) * s <= ``limit`` (the last data sample of the line);
+    the ends stay. Each step: attraction toward the weighted centroid of the samples between its
+    neighbours (W = err^2 of the current polyline or ``feat``), elastic pull toward the neighbours' midpoint
+    with K from the length ratio (eq. 6-8); order kept with a gap of 1 sample (``snap``) or s / 8.
+    Returns (m,) float64 positions.
+    """
+    t = np.empty(m, np.float64)
+    for j in range(m):
+        t[j] = j * s
+    if s < 2:
+        return t
+    gap = 1.0 if snap else s / 8.0
+    n = line_z.shape[0]
+    hz = np.empty(m, np.float64)
+    for _ in range(n_iter):
+        for j in range(m):
+            hz[j] = _line_height(line_z, t[j], snap)
+        for j in range(1, m - 1):
+            if (j + 1) * s > limit:
+                break
+            lo = t[j - 1]
+            hi = t[j + 1]
+            wsum = 0.0
+            wpos = 0.0
+            k0 = max(int(np.ceil(lo)), 0)
+            k1 = min(int(np.floor(hi)), n - 1)
+            for k in range(k0, k1 + 1):
+                if not line_ok[k]:
+                    continue
+                if k <= t[j]:
+                    a, b, za, zb = lo, t[j], hz[j - 1], hz[j]
+                else:
+                    a, b, za, zb = t[j], hi, hz[j], hz[j + 1]
+                f = (k - a) / (b - a) if b > a else 0.0
+                e = abs(line_z[k] - (za + f * (zb - za)))
+                wt = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[k]
+                wsum += wt
+                wpos += wt * k
+            att = (wpos / wsum - t[j]) if wsum > 0.0 else 0.0
+            ratio = (2.0 * s) / (hi - lo)
+            kk = stiffness(ratio, tau_low, tau_up)
+            mv = kk * (0.5 * (lo + hi) - t[j]) + alpha * att
+            mv = min(max(mv, -0.5 * s), 0.5 * s)
+            x = t[j] + mv
+            if snap:
+                x = np.floor(x + 0.5)
+            lo_ok, hi_ok = _side_bounds(t, j, m, s, gap)
+            x = min(max(x, lo_ok), hi_ok)
+            if snap:
+                x = np.floor(x + 0.5)
+            if lo_ok <= x <= hi_ok:
+                t[j] = x
+                hz[j] = _line_height(line_z, x, snap)
+    return t
+
+
+@jit
+def _side_bounds(t, j, m, s, gap):
+    """Allowed range of side vertex j: ``gap`` from its neighbours, and for the vertices next to a corner
+    less than 2 s from that corner. The corner quad (corner, two side vertices at a, b <= 2 s - gap from
+    it, interior vertex at its grid position (s, s)) is then strictly convex whatever both sides do:
+    its only possibly reflex turn needs (a - s)(b - s) >= s^2."""
+    lo = t[j - 1] + gap
+    hi = t[j + 1] - gap
+    if j == 1:
+        hi = min(hi, 2.0 * s - gap)
+    if j == m - 2:
+        lo = max(lo, (m - 3) * s + gap)
+    return lo, hi
+
+
+@jit
+def _line_height(line_z, x, snap):
+    """Height of the side's line at position x: the sample when ``snap``, else linear (see height_at)."""
+    k = int(np.floor(x))
+    if snap or x == k:
+        return line_z[k]
+    return line_z[k] + (x - k) * (line_z[k + 1] - line_z[k])
+
+
+@jit
+def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, alpha, tau_low, tau_up,
+                   vmax, umax):  # fmt: skip
+    """2-D cohesion relocation of the movable interior vertices, in place (paper 000 eq. 9).
+
+    Per iteration: heights at the current positions, per-quad diagonals and attraction moments
+    (:func:`choose_diagonals`), then a Gauss-Seidel sweep in raster order: V = K (T - P) + alpha * A with
+    T the shoelace centroid of the 4 edge neighbours, K from the area ratio (eq. 6-8) and A the pull toward
+    the weighted centroid of the 4 quads around P; |V| <= s / 2 per axis; positions stay in
+    [0, vmax] x [0, umax], are rounded to samples when ``snap``, and a move that would make any of the 4
+    quads around P non-convex is halved twice, then dropped (no fold-over, ever).
+    """
+    m = pv.shape[0]
+    cells = m - 1
+    hz = np.empty((m, m), np.float64)
+    diag = np.zeros((cells, cells), np.int8)
+    qmax = np.zeros((cells, cells), np.float64)
+    mom = np.zeros((cells, cells, 3), np.float64)
+    min_turn = 1e-6 * s * s
+    for _ in range(n_iter):
+        for i in range(m):
+            for j in range(m):
+                hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
+        choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, mom)
+        moved = 0
+        for i in range(1, m - 1):
+            for j in range(1, m - 1):
+                if not movable[i, j]:
+                    continue
+                p_v = pv[i, j]
+                p_u = pu[i, j]
+                wsum = 0.0
+                wv = 0.0
+                wu = 0.0
+                for di in (-1, 0):
+                    for dj in (-1, 0):
+                        wsum += mom[i + di, j + dj, 0]
+                        wv += mom[i + di, j + dj, 1]
+                        wu += mom[i + di, j + dj, 2]
+                av = (wv / wsum - p_v) if wsum > 0.0 else 0.0
+                au = (wu / wsum - p_u) if wsum > 0.0 else 0.0
+                tv, tu, area = diamond_centroid(pv, pu, i, j)
+                kk = 1.0 if area <= 0.0 else stiffness(2.0 * s * s / area, tau_low, tau_up)
+                mv = kk * (tv - p_v) + alpha * av
+                mu = kk * (tu - p_u) + alpha * au
+                half = 0.5 * s
+                mv = min(max(mv, -half), half)
+                mu = min(max(mu, -half), half)
+                for _try in range(3):
+                    nv = min(max(p_v + mv, 0.0), vmax)
+                    nu = min(max(p_u + mu, 0.0), umax)
+                    if snap:
+                        nv = np.floor(nv + 0.5)
+                        nu = np.floor(nu + 0.5)
+                    if nv == p_v and nu == p_u:
+                        break
+                    pv[i, j] = nv
+                    pu[i, j] = nu
+                    if _around_ok(pv, pu, i, j, cells, min_turn):
+                        moved += 1
+                        break
+                    pv[i, j] = p_v
+                    pu[i, j] = p_u
+                    mv *= 0.5
+                    mu *= 0.5
+        if moved == 0:
+            break
+
+
+@jit
+def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap):
+    """Final mesh of relocated positions: (rows (N,), cols (N,), heights (N,), triangles (K, 3) int32, max
+    |vertical error| over the window's samples). Diagonals by smaller max error; vertex order raster; vertices
+    of no kept quad dropped; rows/cols are global source coordinates (r0 + v, c0 + u)."""
+    m = pv.shape[0]
+    cells = m - 1
+    hz = np.empty((m, m), np.float64)
+    for i in range(m):
+        for j in range(m):
+            hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
+    diag = np.zeros((cells, cells), np.int8)
+    qmax = np.zeros((cells, cells), np.float64)
+    mom = np.zeros((cells, cells, 3), np.float64)
+    worst = choose_diagonals(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, keep, diag, qmax, mom)
+    used = np.zeros((m, m), np.bool_)
+    nq = 0
+    for i in range(cells):
+        for j in range(cells):
+            if keep[i, j]:
+                used[i, j] = True
+                used[i, j + 1] = True
+                used[i + 1, j] = True
+                used[i + 1, j + 1] = True
+                nq += 1
+    index = np.full((m, m), -1, np.int64)
+    n = 0
+    for i in range(m):
+        for j in range(m):
+            if used[i, j]:
+                index[i, j] = n
+                n += 1
+    rows = np.empty(n, np.float64)
+    cols = np.empty(n, np.float64)
+    heights = np.empty(n, np.float64)
+    for i in range(m):
+        for j in range(m):
+            k = index[i, j]
+            if k >= 0:
+                rows[k] = r0 + pv[i, j]
+                cols[k] = c0 + pu[i, j]
+                heights[k] = hz[i, j]
+    tris = np.empty((2 * nq, 3), np.int32)
+    t = 0
+    for i in range(cells):
+        for j in range(cells):
+            if not keep[i, j]:
+                continue
+            a = index[i, j]
+            b = index[i, j + 1]
+            c = index[i + 1, j]
+            d = index[i + 1, j + 1]
+            if diag[i, j] == 1:
+                tris[t, 0], tris[t, 1], tris[t, 2] = a, c, b
+                tris[t + 1, 0], tris[t + 1, 1], tris[t + 1, 2] = b, c, d
+            else:
+                tris[t, 0], tris[t, 1], tris[t, 2] = a, c, d
+                tris[t + 1, 0], tris[t + 1, 1], tris[t + 1, 2] = a, d, b
+            t += 2
+    return rows, cols, heights, tris, worst
+
+
+@jit
+def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1):
+    """(max |err|, worst row, worst col, diagonal) of quad (i, j) with its better diagonal."""
+    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1)
+    if a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1]):
+        return a1[0], a1[5], a1[6], 1
+    return a0[0], a0[5], a0[6], 0
+
+
+@jit
+def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
+    """Error-driven relocation (our improvement of the attraction term), in place.
+
+    Repeatedly take the kept quad of largest max |vertical error| that is not marked stuck and try to move
+    one of its movable corners onto that quad's worst sample, or half-way there; a candidate is valid when
+    the 4 quads around the vertex stay strictly convex. The candidate of the smallest max error over those 4
+    quads is taken when that is below the worst quad's error (so the tile's max error never grows), and the
+    4 quads are re-measured and un-stuck; otherwise the quad is marked stuck. Stops after ``budget`` tries
+    or when every quad is stuck or exact. Returns the number of moves made.
+    """
+    m = pv.shape[0]
+    cells = m - 1
+    feat = np.zeros((1, 1), np.float64)
+    hz = np.empty((m, m), np.float64)
+    for i in range(m):
+        for j in range(m):
+            hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
+    qmax = np.full((cells, cells), -1.0)
+    wr = np.zeros((cells, cells), np.float64)
+    wc = np.zeros((cells, cells), np.float64)
+    stuck = np.zeros((cells, cells), np.bool_)
+    a0 = np.zeros(7, np.float64)
+    a1 = np.zeros(7, np.float64)
+    for i in range(cells):
+        for j in range(cells):
+            if keep[i, j]:
+                e, r, c, _ = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1)
+                qmax[i, j] = e
+                wr[i, j] = r
+                wc[i, j] = c
+    # per row of quads: the largest error of a quad not stuck and where it is (a 2-level max search)
+    rowbest = np.zeros(cells, np.float64)
+    rowarg = np.zeros(cells, np.int64)
+    for i in range(cells):
+        _row_max(qmax, stuck, i, rowbest, rowarg)
+    min_turn = 1e-6 * s * s
+    moves = 0
+    for _ in range(budget):
+        bi = -1
+        best = 0.0
+        for i in range(cells):
+            if rowbest[i] > max(best, ERR_EPS_M):
+                best = rowbest[i]
+                bi = i
+        if bi < 0:
+            break
+        bj = rowarg[bi]
+        tv = wr[bi, bj]
+        tu = wc[bi, bj]
+        cand_err = best
+        cand_i = -1
+        cand_j = -1
+        cand_v = 0.0
+        cand_u = 0.0
+        for di in (0, 1):
+            for dj in (0, 1):
+                vi = bi + di
+                vj = bj + dj
+                if not movable[vi, vj]:
+                    continue
+                p_v = pv[vi, vj]
+                p_u = pu[vi, vj]
+                p_h = hz[vi, vj]
+                for frac in (1.0, 0.5):
+                    nv = p_v + frac * (tv - p_v)
+                    nu = p_u + frac * (tu - p_u)
+                    if snap:
+                        nv = np.floor(nv + 0.5)
+                        nu = np.floor(nu + 0.5)
+                    if nv == p_v and nu == p_u:
+                        continue
+                    pv[vi, vj] = nv
+                    pu[vi, vj] = nu
+                    if _around_ok(pv, pu, vi, vj, cells, min_turn):
+                        hz[vi, vj] = height_at(zw, nv, nu, snap)
+                        loc = 0.0
+                        for ei in (-1, 0):
+                            for ej in (-1, 0):
+                                qi = vi + ei
+                                qj = vj + ej
+                                if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
+                                    e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1)
+                                    if e > loc:
+                                        loc = e
+                        if loc < cand_err:
+                            cand_err = loc
+                            cand_i = vi
+                            cand_j = vj
+                            cand_v = nv
+                            cand_u = nu
+                    pv[vi, vj] = p_v
+                    pu[vi, vj] = p_u
+                    hz[vi, vj] = p_h
+        if cand_i < 0:
+            stuck[bi, bj] = True
+            _row_max(qmax, stuck, bi, rowbest, rowarg)
+            continue
+        pv[cand_i, cand_j] = cand_v
+        pu[cand_i, cand_j] = cand_u
+        hz[cand_i, cand_j] = height_at(zw, cand_v, cand_u, snap)
+        moves += 1
+        for ei in (-1, 0):
+            for ej in (-1, 0):
+                qi = cand_i + ei
+                qj = cand_j + ej
+                if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
+                    e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1)
+                    qmax[qi, qj] = e
+                    wr[qi, qj] = r
+                    wc[qi, qj] = c
+                    stuck[qi, qj] = False
+        for qi in (cand_i - 1, cand_i):
+            if 0 <= qi < cells:
+                _row_max(qmax, stuck, qi, rowbest, rowarg)
+    return moves
+
+
+@jit
+def _row_max(qmax, stuck, i, rowbest, rowarg):
+    """Largest error of a quad of row i that is not stuck (0 if none) and its column."""
+    best = 0.0
+    arg = 0
+    for j in range(qmax.shape[1]):
+        if not stuck[i, j] and qmax[i, j] > best:
+            best = qmax[i, j]
+            arg = j
+    rowbest[i] = best
+    rowarg[i] = arg
+
+
+@jit
+def _seg_max(line_z, line_ok, t, hz, j0, j1):
+    """Max |error| of the line samples between vertices j0 and j1 (> j0) of the polyline (t, hz)."""
+    n = line_z.shape[0]
+    worst = 0.0
+    for j in range(j0, j1):
+        a = t[j]
+        b = t[j + 1]
+        k0 = max(int(np.ceil(a)), 0)
+        k1 = min(int(np.floor(b)), n - 1)
+        for k in range(k0, k1 + 1):
+            if not line_ok[k]:
+                continue
+            f = (k - a) / (b - a)
+            e = abs(line_z[k] - (hz[j] + f * (hz[j + 1] - hz[j])))
+            if e > worst:
+                worst = e
+    return worst
+
+
+@jit
+def refine_edge_max_error(line_z, line_ok, t, s, limit, snap, budget):
+    """1-D :func:`refine_max_error` on one tile side (positions ``t`` in place; reads only the line).
+
+    The segment of largest error that is not stuck moves one of its movable ends onto its worst sample (or
+    half-way), keeping an order gap of 1 sample (``snap``) or s / 8, when that lowers the max error of the
+    two segments around the end. Returns the number of moves."""
+    m = t.shape[0]
+    n = line_z.shape[0]
+    gap = 1.0 if snap else s / 8.0
+    hz = np.empty(m, np.float64)
+    for j in range(m):
+        hz[j] = _line_height(line_z, t[j], snap)
+    seg = np.zeros(m - 1, np.float64)
+    pos = np.zeros(m - 1, np.float64)
+    stuck = np.zeros(m - 1, np.bool_)
+    for j in range(m - 1):
+        seg[j], pos[j] = _seg_worst(line_z, line_ok, t, hz, j)
+    moves = 0
+    for _ in range(budget):
+        bj = -1
+        best = 0.0
+        for j in range(m - 1):
+            if not stuck[j] and seg[j] > max(best, ERR_EPS_M):
+                best = seg[j]
+                bj = j
+        if bj < 0:
+            break
+        cand_err = best
+        cand_j = -1
+        cand_t = 0.0
+        for vj in (bj, bj + 1):
+            if vj < 1 or vj > m - 2 or (vj + 1) * s > limit:
+                continue
+            old = t[vj]
+            old_h = hz[vj]
+            for frac in (1.0, 0.5):
+                x = old + frac * (pos[bj] - old)
+                if snap:
+                    x = np.floor(x + 0.5)
+                lo_ok, hi_ok = _side_bounds(t, vj, m, s, gap)
+                if x == old or x < lo_ok or x > hi_ok or x > n - 1:
+                    continue
+                t[vj] = x
+                hz[vj] = _line_height(line_z, x, snap)
+                loc = _seg_max(line_z, line_ok, t, hz, vj - 1, vj + 1)
+                if loc < cand_err:
+                    cand_err = loc
+                    cand_j = vj
+                    cand_t = x
+                t[vj] = old
+                hz[vj] = old_h
+        if cand_j < 0:
+            stuck[bj] = True
+            continue
+        t[cand_j] = cand_t
+        hz[cand_j] = _line_height(line_z, cand_t, snap)
+        moves += 1
+        for j in (cand_j - 1, cand_j):
+            seg[j], pos[j] = _seg_worst(line_z, line_ok, t, hz, j)
+            stuck[j] = False
+    return moves
+
+
+@jit
+def _seg_worst(line_z, line_ok, t, hz, j):
+    """(max |error|, position of the worst sample) of segment j of the polyline (t, hz)."""
+    n = line_z.shape[0]
+    a = t[j]
+    b = t[j + 1]
+    worst = 0.0
+    at = a
+    k0 = max(int(np.ceil(a)), 0)
+    k1 = min(int(np.floor(b)), n - 1)
+    for k in range(k0, k1 + 1):
+        if not line_ok[k]:
+            continue
+        f = (k - a) / (b - a)
+        e = abs(line_z[k] - (hz[j] + f * (hz[j + 1] - hz[j])))
+        if e > worst:
+            worst = e
+            at = k
+    return worst, at
