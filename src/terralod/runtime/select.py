@@ -513,7 +513,8 @@ class Engine:
     incremental : start each frame from the last leaf list (paper 000's quadtree parser); False = from root
     stitch_mode : "incremental" (CrackTileVector, paper 002) or "full" (re-stitch every tile each frame,
         the conventional baseline of paper 002 table 3)
-    cache_tiles, cache_bytes : bounds of the decoded-tile LRU cache (a prepared 65² tile takes ~0.45 MB)
+    cache_tiles, cache_bytes : bounds of the decoded-tile LRU cache (a prepared 65² tile takes ~0.45 MB); the
+        tiles of the current view (drawn leaves, plus 25 % for neighbours) are kept even beyond them
     cull_backfacing : paper 001 §3.2: do not draw a leaf whose every (stitched) triangle faces away from
         the eye. Exact per triangle, stopping at the first front-facing one.
     cull_region : paper 001 §3.1: do not draw a leaf whose footprint misses the visible region, the view
@@ -647,6 +648,8 @@ class Engine:
         t1 = time.perf_counter()
 
         crack = self.adjacency.update(leaves, states)
+        # keep the working set decoded: drawn leaves plus a margin for the neighbours stitching reads
+        self.cache.floor_tiles = int(1.25 * int((states == VISIBLE).sum())) + 16
         tl = time.perf_counter()
         loaded = self.stitcher.load(leaves[states == VISIBLE] if self.stitch_mode == "full" else crack)
         tl = time.perf_counter() - tl

@@ -211,6 +211,9 @@ class TileCache:
         self.nbytes = 0
         self.hits = 0
         self.misses = 0
+        #: tiles always kept whatever the byte bound (the engine sets it to its working set, the drawn
+        #: tiles and their neighbours, so a view needing more than the bounds never thrashes the cache)
+        self.floor_tiles = 0
 
     def __len__(self) -> int:
         return len(self._items)
@@ -228,7 +231,9 @@ class TileCache:
         p = TilePrep.from_tile(self.source.tile(*code), self.source.pyramid)
         self._items[code] = p
         self.nbytes += p.nbytes
-        while len(self._items) > 1 and (len(self._items) > self.max_tiles or self.nbytes > self.max_bytes):
+        while len(self._items) > max(1, self.floor_tiles) and (
+            len(self._items) > self.max_tiles or self.nbytes > self.max_bytes
+        ):
             _, old = self._items.popitem(last=False)
             self.nbytes -= old.nbytes
         return p
