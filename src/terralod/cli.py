@@ -297,6 +297,18 @@ def _size(text: str) -> tuple[int, int]:
     return w, h
 
 
+def _view_options(fn):
+    """--fractal and --cull, shared by render, flythrough and view."""
+    fn = click.option(
+        "--cull", multiple=True, type=click.Choice(["backface", "region"]),
+        help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
+    )(fn)  # fmt: skip
+    return click.option(
+        "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
+        help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
+    )(fn)  # fmt: skip
+
+
 def _open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path:
     """A store path as is; a DEM is built into a cache store beside it first (rebuilt only when missing)."""
     p = Path(path)
@@ -378,14 +390,7 @@ def _stats_table(stats: dict[str, Any], title: str = "frame") -> None:
     "--mode", type=click.Choice(["elevation", "lod", "error"]), default="elevation", show_default=True
 )
 @click.option("--wireframe", is_flag=True)
-@click.option(
-    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
-    help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
-)  # fmt: skip
-@click.option(
-    "--cull", multiple=True, type=click.Choice(["backface", "region"]),
-    help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
-)  # fmt: skip
+@_view_options
 @_read_options
 def render(
     path, output, eye, target, size, threshold_px, background, mode, wireframe, fractal_levels, cull, **read: Any
@@ -422,14 +427,7 @@ def render(
 @click.option("--fps", default=24, show_default=True)
 @click.option("--size", default="1280x720", show_default=True, help="WIDTHxHEIGHT pixels.")
 @click.option("--threshold-px", default=2.0, show_default=True)
-@click.option(
-    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
-    help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
-)  # fmt: skip
-@click.option(
-    "--cull", multiple=True, type=click.Choice(["backface", "region"]),
-    help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
-)  # fmt: skip
+@_view_options
 @_read_options
 def flythrough(
     path, output, cam_path, frames, fps, size, threshold_px, fractal_levels, cull, **read: Any
@@ -490,14 +488,7 @@ def _flythrough_table(summary: dict[str, Any]) -> None:
 @click.option("--threshold-px", default=2.0, show_default=True)
 @click.option("--frames", type=int, default=None, help="Close after this many frames (scripted runs).")
 @click.option("--screenshot", help="PNG written after the last frame (with --frames).")
-@click.option(
-    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
-    help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
-)  # fmt: skip
-@click.option(
-    "--cull", multiple=True, type=click.Choice(["backface", "region"]),
-    help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
-)  # fmt: skip
+@_view_options
 @_read_options
 def view(path, size, threshold_px, frames, screenshot, fractal_levels, cull, **read: Any) -> None:
     """Open the real-time viewer on a store (or a DEM, built into a cache store first)."""
