@@ -13,12 +13,17 @@ from rasterio.transform import from_origin
 from conftest import fractal_terrain
 
 
+def _write_utm_tif(path: Path, z: np.ndarray, spacing_m: float) -> Path:
+    """A float32 GeoTIFF in UTM 33N whose north-west corner is at (400000, 5000000)."""
+    with rasterio.open(path, "w", driver="GTiff", width=z.shape[1], height=z.shape[0], count=1, dtype="float32",
+                       crs="EPSG:32633", transform=from_origin(400000.0, 5000000.0, spacing_m, spacing_m)) as ds:  # fmt: skip
+        ds.write(z, 1)
+    return path
+
+
 def test_amplify_cli_keeps_samples_and_georeferencing(tmp_path: Path) -> None:
     z = fractal_terrain(33, 41, 4, relief_m=300.0)
-    src = tmp_path / "dem.tif"
-    with rasterio.open(src, "w", driver="GTiff", width=41, height=33, count=1, dtype="float32", crs="EPSG:32633",
-                       transform=from_origin(400000.0, 5000000.0, 20.0, 20.0)) as ds:  # fmt: skip
-        ds.write(z, 1)
+    src = _write_utm_tif(tmp_path / "dem.tif", z, 20.0)
     out = tmp_path / "fine.tif"
     p = subprocess.run([sys.executable, "-m", "terralod", "amplify", str(src), "-o", str(out), "--factor", "4"],
                        capture_output=True, text=True, timeout=300)  # fmt: skip
@@ -39,10 +44,7 @@ def test_build_fractal_levels_are_used_by_render(tmp_path: Path) -> None:
     """`build --fractal 2` records the levels in the store; `render` of that store then refines into
     fractal levels below the DEM without being told (and `--fractal 0` turns them off)."""
     z = fractal_terrain(65, 65, 9, relief_m=400.0)
-    src = tmp_path / "dem.tif"
-    with rasterio.open(src, "w", driver="GTiff", width=65, height=65, count=1, dtype="float32", crs="EPSG:32633",
-                       transform=from_origin(400000.0, 5000000.0, 30.0, 30.0)) as ds:  # fmt: skip
-        ds.write(z, 1)
+    src = _write_utm_tif(tmp_path / "dem.tif", z, 30.0)
     store = tmp_path / "dem.terra"
     p = subprocess.run([sys.executable, "-m", "terralod", "build", str(src), "-o", str(store), "--tile-size", "17",
                         "--fractal", "2"], capture_output=True, text=True, timeout=300)  # fmt: skip
