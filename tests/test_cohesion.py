@@ -247,3 +247,36 @@ def test_real_puget_sound_tile(shared_data: Path) -> None:
         loc = np.stack([(cols - c0) * dx, (rows - r0) * dy, zz], axis=1)
         errs.append(measure_error_window(loc, tris, hf.elevation_m[win], hf.valid[win], dx, dy).hausdorff_m)
     assert errs[1] < 0.8 * errs[0], errs
+
+
+def test_cohesion_store_stitches_watertight(tmp_path: Path) -> None:
+    """Non-uniform (relocated) borders of a cohesion store: forced leaf sets with LoD differences up to
+    L - 1 and corner spikes are watertight after stitching; unstitched they crack (the detector sees it)."""
+    from terralod.runtime import find_cracks, stitch_leaves
+
+    from test_runtime_support import corner_spike, spike_partition
+
+    hf = _hf(257, 193, 11, relief=900.0)
+    p = tmp_path / "c.terra"
+    build_store(hf, p, tile_size=9, method="cohesion", workers=2)
+    rng = np.random.default_rng(2)
+    with open_store(p) as store:
+        pyr = store.pyramid
+        top = pyr.max_level
+        partitions = [spike_partition(pyr, rng, spikes=3) for _ in range(4)]
+        partitions += [corner_spike(pyr, (top, 5, 9)), corner_spike(pyr, (top, 8, 8))]
+        cracked_raw = 0
+        for leaves in partitions:
+            meshes = stitch_leaves(store, leaves)
+            rep = find_cracks(meshes, pyr, store.transform, tol_m=1e-4)
+            assert rep.total_cracked == 0 and rep.max_gap_m <= 1e-4, rep
+            raw = {c: (store.tile(*c).vertices, store.tile(*c).triangles) for c in meshes}
+            cracked_raw += find_cracks(raw, pyr, store.transform, tol_m=1e-4).total_cracked
+        assert cracked_raw > 0
+        # relocated borders really are non-uniform somewhere
+        moved = 0
+        for c in pyr.tile_codes(top - 2):
+            rc = store.tile(*c).grid_rc
+            s = pyr.stride(c[0])
+            moved += int(((rc[:, 0] % s) != 0).sum() + ((rc[:, 1] % s) != 0).sum())
+        assert moved > 0

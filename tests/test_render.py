@@ -40,12 +40,13 @@ def _renderer(w: int, h: int):
         pytest.fail(f"EGL/OpenGL context could not be created ({exc}); .ci/run installs Mesa's EGL")
 
 
-@pytest.fixture(scope="module")
-def rough_store(tmp_path_factory) -> Path:
+@pytest.fixture(scope="module", params=["chunked", "cohesion"])
+def rough_store(tmp_path_factory, request) -> Path:
+    """A rough terrain built by each tile mesher (cohesion tiles have relocated, non-uniform borders)."""
     z = fractal_terrain(513, 513, 21, relief_m=900.0, beta=2.6)
     hf = Heightfield.from_array(z, 20.0, origin_m=(400000.0, 5300000.0))
-    out = tmp_path_factory.mktemp("r") / "rough.terra"
-    build_store(hf, out, tile_size=17)
+    out = tmp_path_factory.mktemp("r") / f"rough_{request.param}.terra"
+    build_store(hf, out, tile_size=17, method=request.param)
     return out
 
 
