@@ -206,7 +206,9 @@ def run_build(
 @click.argument("input_path", metavar="INPUT")
 @click.option("-o", "--output", required=True, help="Output .terra store.")
 @click.option("--tile-size", default=65, show_default=True, help="Vertices per tile side (2^n + 1).")
-@click.option("--method", default="chunked", show_default=True, help="Tile mesher: chunked.")
+@click.option(
+    "--method", default="chunked", show_default=True, help="Tile mesher: chunked or cohesion (paper 000)."
+)
 @click.option("--workers", type=int, default=None, help="Threads (default: all cores).")
 @click.option("--resume", is_flag=True, help="Finish an interrupted build of the same input.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output store.")
@@ -544,6 +546,26 @@ def demo(output: str, tile_size: int, frames: int, no_window: bool) -> None:
         summary = render_flythrough(s, f"{stem}.mp4", frames=frames, size=(1024, 576), png=f"{stem}.png")
     _flythrough_table(summary)
     console.print(f"wrote {stem}.mp4 and {stem}.png")
+
+
+@cli.group()
+def bench() -> None:
+    """Reproducible experiments of benchmarks/ (results in benchmarks/results/)."""
+
+
+@bench.command("cohesion")
+@click.option("--quick", is_flag=True, help="Puget Sound and the bundled sample only.")
+@click.option("--frames", default=48, show_default=True, help="Frames of the camera path.")
+def bench_cohesion(quick: bool, frames: int) -> None:
+    """Vertex cohesion map vs Chunked LOD (benchmarks/cohesion_vs_chunked.py)."""
+    import runpy
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "cohesion_vs_chunked.py"
+    if not script.exists():
+        raise click.ClickException(f"{script}: benchmark script not found (run from a source checkout)")
+    runpy.run_path(str(script), run_name="terralod_bench")["main"](
+        ["--frames", str(frames)] + (["--quick"] if quick else [])
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
