@@ -8,7 +8,8 @@ north-west vertex; the window ``zw`` holds the source over the tile square (edge
 ``vw`` False there). Grid vertex (i, j) starts at (v, u) = (i * s, j * s). A quad (i, j) has the corners
 a = (i, j) north-west, b = (i, j + 1) north-east, c = (i + 1, j) south-west, d = (i + 1, j + 1) south-east;
 diagonal 0 joins a-d (triangles a-c-d, a-d-b), diagonal 1 joins b-c (a-c-b, b-c-d), both counter-clockwise
-seen from above (x east, y north) while the quad stays convex, which every accepted move keeps.
+seen from above (x east, y north) while the quad is convex; every accepted move keeps at least one valid
+diagonal per quad (:func:`diagonal_ok`) and only valid diagonals are ever used.
 """
 
 from __future__ import annotations
@@ -20,6 +21,9 @@ from terralod.kernels import jit
 #: Errors up to this many metres count as exact: no attraction, nothing to refine (rounding noise of a
 #: plane through float samples must not pull vertices).
 ERR_EPS_M = 1e-6
+
+#: Fractions of the way to a quad's worst sample tried by the error-driven refinement.
+FRACS = (1.0, 0.5)
 
 #: Attraction weights: the vertical error of the current mesh squared (default), or a static feature map.
 WEIGHT_ERROR = 0
@@ -76,81 +80,123 @@ def _side(va, ua, vb, ub, r, c):
 
 
 @jit
-def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1):
+def _tri_area2(pv, pu, i0, j0, i1, j1, i2, j2):
+    """Twice the signed area of a triangle seen from above (x = u east, y = -v north): > 0 counter-clockwise."""
+    x0, y0 = pu[i0, j0], -pv[i0, j0]
+    return (pu[i1, j1] - x0) * (-pv[i2, j2] - y0) - (-pv[i1, j1] - y0) * (pu[i2, j2] - x0)
+
+
+@jit
+def diagonal_ok(pv, pu, i, j, diag, min_area2):
+    """True when both triangles of quad (i, j) along ``diag`` are counter-clockwise with twice their area
+    above ``min_area2`` (diagonal 0: a-c-d, a-d-b; diagonal 1: a-c-b, b-c-d)."""
+    if diag == 0:
+        return (_tri_area2(pv, pu, i, j, i + 1, j, i + 1, j + 1) > min_area2
+                and _tri_area2(pv, pu, i, j, i + 1, j + 1, i, j + 1) > min_area2)  # fmt: skip
+    return (_tri_area2(pv, pu, i, j, i + 1, j, i, j + 1) > min_area2
+            and _tri_area2(pv, pu, i, j + 1, i + 1, j, i + 1, j + 1) > min_area2)  # fmt: skip
+
+
+@jit
+def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl):
     """Errors and attraction moments of quad (i, j) for both diagonals in one pass over its samples.
 
     ``acc0`` (diagonal a-d) and ``acc1`` (diagonal b-c) get [max |err|, sum |err|, W, W*v, W*u, row of max,
-    col of max] with W = err^2 (mode WEIGHT_ERROR) or feat (WEIGHT_FEATURE); samples on the closed quad.
+    col of max, valid] with W = err^2 (mode WEIGHT_ERROR) or feat (WEIGHT_FEATURE), over the samples of the
+    diagonal's two (closed) triangles; a diagonal whose triangles are not both counter-clockwise (the quad is
+    not convex) is marked invalid (acc[7] = 0) and gets max = inf. ``pl`` is (4, 3) scratch for the planes.
     """
-    for k in range(7):
+    for k in range(8):
         acc0[k] = 0.0
         acc1[k] = 0.0
+    ok0 = diagonal_ok(pv, pu, i, j, 0, min_area2)
+    ok1 = diagonal_ok(pv, pu, i, j, 1, min_area2)
+    acc0[7] = 1.0 if ok0 else 0.0
+    acc1[7] = 1.0 if ok1 else 0.0
     h, w = zw.shape
     va, ua, za = pv[i, j], pu[i, j], hz[i, j]
     vb, ub, zb = pv[i, j + 1], pu[i, j + 1], hz[i, j + 1]
     vc, uc, zc = pv[i + 1, j], pu[i + 1, j], hz[i + 1, j]
     vd, ud, zd = pv[i + 1, j + 1], pu[i + 1, j + 1], hz[i + 1, j + 1]
-    pl = np.empty((4, 3), np.float64)
-    _plane(va, ua, za, vc, uc, zc, vd, ud, zd, pl, 0)  # diag 0, south-west half (a, c, d)
-    _plane(va, ua, za, vd, ud, zd, vb, ub, zb, pl, 1)  # diag 0, north-east half (a, d, b)
-    _plane(va, ua, za, vc, uc, zc, vb, ub, zb, pl, 2)  # diag 1, north-west half (a, c, b)
-    _plane(vb, ub, zb, vc, uc, zc, vd, ud, zd, pl, 3)  # diag 1, south-east half (b, c, d)
+    _plane(va, ua, za, vc, uc, zc, vd, ud, zd, pl, 0)  # diag 0: a, c, d
+    _plane(va, ua, za, vd, ud, zd, vb, ub, zb, pl, 1)  # diag 0: a, d, b
+    _plane(va, ua, za, vc, uc, zc, vb, ub, zb, pl, 2)  # diag 1: a, c, b
+    _plane(vb, ub, zb, vc, uc, zc, vd, ud, zd, pl, 3)  # diag 1: b, c, d
     eps = 1e-9
     rlo = max(int(np.ceil(min(min(va, vb), min(vc, vd)) - eps)), 0)
     rhi = min(int(np.floor(max(max(va, vb), max(vc, vd)) + eps)), h - 1)
     clo = max(int(np.ceil(min(min(ua, ub), min(uc, ud)) - eps)), 0)
     chi = min(int(np.floor(max(max(ua, ub), max(uc, ud)) + eps)), w - 1)
-    # quad a -> c -> d -> b: in the (u, v) frame (v south) interior points give _side <= 0 for each edge
+    # in the (u, v) frame (v south) a point inside a counter-clockwise triangle has every _side <= 0
     sc = 1e-9 * (1.0 + (ud - ua) * (ud - ua) + (vd - va) * (vd - va))
     for r in range(rlo, rhi + 1):
         for c in range(clo, chi + 1):
             if not vw[r, c]:
                 continue
-            if (_side(va, ua, vc, uc, r, c) > sc or _side(vc, uc, vd, ud, r, c) > sc
-                    or _side(vd, ud, vb, ub, r, c) > sc or _side(vb, ub, va, ua, r, c) > sc):  # fmt: skip
+            s_ac = _side(va, ua, vc, uc, r, c)
+            s_cd = _side(vc, uc, vd, ud, r, c)
+            s_db = _side(vd, ud, vb, ub, r, c)
+            s_ba = _side(vb, ub, va, ua, r, c)
+            s_ad = _side(va, ua, vd, ud, r, c)
+            s_bc = _side(vb, ub, vc, uc, r, c)
+            k0 = -1
+            if ok0:
+                if s_ac <= sc and s_cd <= sc and s_ad >= -sc:
+                    k0 = 0
+                elif s_ad <= sc and s_db <= sc and s_ba <= sc:
+                    k0 = 1
+            k1 = -1
+            if ok1:
+                if s_ac <= sc and s_bc >= -sc and s_ba <= sc:
+                    k1 = 2
+                elif s_bc <= sc and s_cd <= sc and s_db <= sc:
+                    k1 = 3
+            if k0 < 0 and k1 < 0:
                 continue
             zs = zw[r, c]
-            k0 = 0 if _side(va, ua, vd, ud, r, c) >= 0.0 else 1
-            k1 = 2 if _side(vb, ub, vc, uc, r, c) >= 0.0 else 3
-            e0 = abs(zs - (pl[k0, 0] + pl[k0, 1] * c + pl[k0, 2] * r))
-            e1 = abs(zs - (pl[k1, 0] + pl[k1, 1] * c + pl[k1, 2] * r))
-            if e0 > acc0[0]:
-                acc0[0] = e0
-                acc0[5] = r
-                acc0[6] = c
-            if e1 > acc1[0]:
-                acc1[0] = e1
-                acc1[5] = r
-                acc1[6] = c
-            acc0[1] += e0
-            acc1[1] += e1
-            if mode == WEIGHT_ERROR:
-                w0 = e0 * e0 if e0 > ERR_EPS_M else 0.0
-                w1 = e1 * e1 if e1 > ERR_EPS_M else 0.0
-            else:
-                w0 = feat[r, c]
-                w1 = w0
-            acc0[2] += w0
-            acc0[3] += w0 * r
-            acc0[4] += w0 * c
-            acc1[2] += w1
-            acc1[3] += w1 * r
-            acc1[4] += w1 * c
+            if k0 >= 0:
+                e0 = abs(zs - (pl[k0, 0] + pl[k0, 1] * c + pl[k0, 2] * r))
+                if e0 > acc0[0]:
+                    acc0[0] = e0
+                    acc0[5] = r
+                    acc0[6] = c
+                acc0[1] += e0
+                w0 = (e0 * e0 if e0 > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+                acc0[2] += w0
+                acc0[3] += w0 * r
+                acc0[4] += w0 * c
+            if k1 >= 0:
+                e1 = abs(zs - (pl[k1, 0] + pl[k1, 1] * c + pl[k1, 2] * r))
+                if e1 > acc1[0]:
+                    acc1[0] = e1
+                    acc1[5] = r
+                    acc1[6] = c
+                acc1[1] += e1
+                w1 = (e1 * e1 if e1 > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+                acc1[2] += w1
+                acc1[3] += w1 * r
+                acc1[4] += w1 * c
+    if not ok0:
+        acc0[0] = np.inf
+    if not ok1:
+        acc1[0] = np.inf
 
 
 @jit
 def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments):
-    """Per kept quad: the diagonal of smaller max |vertical error| (ties: smaller sum, then diagonal 0), its
-    max error ``qmax`` and its attraction moments ``moments[i, j] = (W, W*v, W*u)``. Returns the tile max."""
+    """Per kept quad: the valid diagonal (both triangles counter-clockwise) of smaller max |vertical error|
+    (ties: smaller sum, then diagonal 0), its max error ``qmax`` and its attraction moments ``moments[i, j] = (W, W*v, W*u)``. Returns the tile max."""
     cells = keep.shape[0]
-    a0 = np.zeros(7, np.float64)
-    a1 = np.zeros(7, np.float64)
+    a0 = np.zeros(8, np.float64)
+    a1 = np.zeros(8, np.float64)
     worst = 0.0
+    min_area2 = _min_area2(pv)
+    pl = np.empty((4, 3), np.float64)
     for i in range(cells):
         for j in range(cells):
             if not keep[i, j]:
                 continue
-            _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, a0, a1)
+            _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, a0, a1, min_area2, pl)
             use1 = a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1])
             best = a1 if use1 else a0
             diag[i, j] = 1 if use1 else 0
@@ -164,35 +210,26 @@ def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments):
 
 
 @jit
-def _turn(pv, pu, i0, j0, i1, j1, i2, j2):
-    """Cross product of (p1 - p0) x (p2 - p1) in the frame x = u east, y = -v north (> 0: left turn)."""
-    x0, y0 = pu[i0, j0], -pv[i0, j0]
-    x1, y1 = pu[i1, j1], -pv[i1, j1]
-    x2, y2 = pu[i2, j2], -pv[i2, j2]
-    return (x1 - x0) * (y2 - y1) - (y1 - y0) * (x2 - x1)
-
-
-@jit
-def quad_convex(pv, pu, i, j, min_turn):
-    """True when quad (i, j) (a -> c -> d -> b, counter-clockwise) turns left by more than ``min_turn`` at
-    every corner: strictly convex, so both diagonals give positive-area counter-clockwise triangles."""
-    if _turn(pv, pu, i, j, i + 1, j, i + 1, j + 1) <= min_turn:
-        return False
-    if _turn(pv, pu, i + 1, j, i + 1, j + 1, i, j + 1) <= min_turn:
-        return False
-    if _turn(pv, pu, i + 1, j + 1, i, j + 1, i, j) <= min_turn:
-        return False
-    return _turn(pv, pu, i, j + 1, i, j, i + 1, j) > min_turn
+def _min_area2(pv):
+    """Smallest accepted doubled triangle area, samples^2 (a scale-aware epsilon; lattice triangles have >= 1)."""
+    return 1e-6 * (pv[pv.shape[0] - 1, 0] - pv[0, 0] + 1.0) ** 2 / (pv.shape[0] * pv.shape[0])
 
 
 @jit
 def _around_ok(pv, pu, i, j, cells, min_turn):
+    """Every quad around vertex (i, j) keeps a valid diagonal (both triangles counter-clockwise, area above
+    the epsilon). Then the final mesh, which only uses valid diagonals, has no fold-over: a triangulated
+    disc whose triangles are all positively oriented and whose boundary stays in order is embedded."""
+    min_area2 = _min_area2(pv)
     for di in (-1, 0):
         for dj in (-1, 0):
             qi = i + di
             qj = j + dj
-            if 0 <= qi < cells and 0 <= qj < cells and not quad_convex(pv, pu, qi, qj, min_turn):
-                return False
+            if 0 <= qi < cells and 0 <= qj < cells:
+                if not (
+                    diagonal_ok(pv, pu, qi, qj, 0, min_area2) or diagonal_ok(pv, pu, qi, qj, 1, min_area2)
+                ):
+                    return False
     return True
 
 
@@ -450,9 +487,9 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap):
 
 
 @jit
-def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1):
+def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2):
     """(max |err|, worst row, worst col, diagonal) of quad (i, j) with its better diagonal."""
-    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1)
+    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl)
     if a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1]):
         return a1[0], a1[5], a1[6], 1
     return a0[0], a0[5], a0[6], 0
@@ -480,12 +517,14 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
     wr = np.zeros((cells, cells), np.float64)
     wc = np.zeros((cells, cells), np.float64)
     stuck = np.zeros((cells, cells), np.bool_)
-    a0 = np.zeros(7, np.float64)
-    a1 = np.zeros(7, np.float64)
+    a0 = np.zeros(8, np.float64)
+    a1 = np.zeros(8, np.float64)
+    pl = np.empty((4, 3), np.float64)
+    min_area2 = _min_area2(pv)
     for i in range(cells):
         for j in range(cells):
             if keep[i, j]:
-                e, r, c, _ = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1)
+                e, r, c, _ = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2)
                 qmax[i, j] = e
                 wr[i, j] = r
                 wc[i, j] = c
@@ -522,7 +561,7 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
                 p_v = pv[vi, vj]
                 p_u = pu[vi, vj]
                 p_h = hz[vi, vj]
-                for frac in (1.0, 0.5):
+                for frac in FRACS:
                     nv = p_v + frac * (tv - p_v)
                     nu = p_u + frac * (tu - p_u)
                     if snap:
@@ -535,14 +574,19 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
                     if _around_ok(pv, pu, vi, vj, cells, min_turn):
                         hz[vi, vj] = height_at(zw, nv, nu, snap)
                         loc = 0.0
-                        for ei in (-1, 0):
-                            for ej in (-1, 0):
-                                qi = vi + ei
-                                qj = vj + ej
-                                if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-                                    e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1)
-                                    if e > loc:
-                                        loc = e
+                        # the worst quad first: most candidates fail there, and the rest is skipped
+                        for k in range(4):
+                            qi, qj = bi, bj
+                            if k > 0:
+                                qi, qj = _kth_other_quad(vi, vj, bi, bj, k)
+                            if loc >= cand_err:
+                                break
+                            if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
+                                e, _r, _c, _d = _best_quad(
+                                    zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2
+                                )
+                                if e > loc:
+                                    loc = e
                         if loc < cand_err:
                             cand_err = loc
                             cand_i = vi
@@ -565,7 +609,7 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
                 qi = cand_i + ei
                 qj = cand_j + ej
                 if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-                    e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1)
+                    e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2)
                     qmax[qi, qj] = e
                     wr[qi, qj] = r
                     wc[qi, qj] = c
@@ -574,6 +618,22 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
             if 0 <= qi < cells:
                 _row_max(qmax, stuck, qi, rowbest, rowarg)
     return moves
+
+
+@jit
+def _kth_other_quad(vi, vj, bi, bj, k):
+    """The k-th (1..3) of the 4 quads around vertex (vi, vj) other than quad (bi, bj)."""
+    n = 0
+    for ei in (-1, 0):
+        for ej in (-1, 0):
+            qi = vi + ei
+            qj = vj + ej
+            if qi == bi and qj == bj:
+                continue
+            n += 1
+            if n == k:
+                return qi, qj
+    return -1, -1
 
 
 @jit
