@@ -79,10 +79,15 @@ def _undo_zigzag_delta32(z: np.ndarray) -> np.ndarray:
     return undo_zigzag_delta(z, 0xFFFFFFFF).astype(np.uint32)
 
 
+#: zlib level of tile blobs: 3 compresses a 65² tile 2.5x faster than 6 for ~3 % more bytes (measured on
+#: Puget Sound tiles); any level decodes the same way.
+ZLIB_LEVEL = 3
+
+
 def encode_vertices(q: np.ndarray) -> bytes:
     """(N, 3) uint16 quantised (u, v, h) → zlib of the zig-zag wrapped deltas of each column (uint16 LE)."""
     cols = [_zigzag_delta16(q[:, k]) for k in range(3)]
-    return zlib.compress(np.concatenate(cols).astype("<u2").tobytes(), 6)
+    return zlib.compress(np.concatenate(cols).astype("<u2").tobytes(), ZLIB_LEVEL)
 
 
 def decode_vertices(blob: bytes, n: int) -> np.ndarray:
@@ -96,8 +101,8 @@ def encode_triangles(t: np.ndarray) -> bytes:
     """(K, 3) indices → one width byte (2 or 4) + zlib of zig-zag wrapped deltas of the flat index list."""
     flat = t.astype(np.int64).ravel()
     if flat.size == 0 or flat.max() < 65536:
-        return b"\x02" + zlib.compress(_zigzag_delta16(flat).astype("<u2").tobytes(), 6)
-    return b"\x04" + zlib.compress(_zigzag_delta32(flat).astype("<u4").tobytes(), 6)
+        return b"\x02" + zlib.compress(_zigzag_delta16(flat).astype("<u2").tobytes(), ZLIB_LEVEL)
+    return b"\x04" + zlib.compress(_zigzag_delta32(flat).astype("<u4").tobytes(), ZLIB_LEVEL)
 
 
 def decode_triangles(blob: bytes, k: int) -> np.ndarray:
