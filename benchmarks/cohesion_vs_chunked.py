@@ -40,7 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scipy import ndimage  # noqa: E402
 
 from terralod import Camera, Engine, Heightfield, build_store, measure_error, open_store  # noqa: E402
-from terralod.build.builder import METHODS  # noqa: E402
+from terralod.build import cohesion  # noqa: E402
+from terralod.build.builder import METHODS, register_method  # noqa: E402
 from terralod.io.reader import read_heightfield, sample_heightfield  # noqa: E402
 
 from _common import RESULTS, SHARED, md_table, puget_sound_1k, write_results  # noqa: E402
@@ -48,7 +49,9 @@ from _common import RESULTS, SHARED, md_table, puget_sound_1k, write_results  # 
 CACHE = Path(os.environ.get("TERRALOD_BENCH_CACHE", Path(tempfile.gettempdir()) / "terralod-bench"))
 TILE_SIZE = 65
 THRESHOLD_PX = 2.0
-METHOD_NAMES = ("chunked", "cohesion")
+#: "cohesion_paper" is paper 000 as written: LoG attraction + Hooke balance, no error-driven refinement.
+METHOD_NAMES = ("chunked", "cohesion", "cohesion_paper")
+register_method("cohesion_paper", cohesion.make_mesher(attraction="log", refine=False))
 N_KEY = 16
 
 
@@ -80,7 +83,11 @@ def cached_store(name: str, hf: Heightfield, method: str) -> tuple[Path, float |
     if p.exists():
         try:
             with open_store(p) as s:
-                if s.complete and s.meta.get("source_digest") == hf.digest() and s.meta.get("method") == method:
+                if (
+                    s.complete
+                    and s.meta.get("source_digest") == hf.digest()
+                    and s.meta.get("method") == method
+                ):
                     return p, None
         except Exception:  # noqa: BLE001 - a stale or broken cache entry is rebuilt
             pass
@@ -140,7 +147,9 @@ def top_camera(store: Any) -> Camera:
     return Camera((cx, cy, top + dist), (cx, cy, top), (0.0, 1.0, 0.0), fov, 1920, 1080, near_m=1.0)
 
 
-def point_errors(hf: Heightfield, store: Any, pts: np.ndarray, tiles: list[tuple[int, int, int]]) -> np.ndarray:
+def point_errors(
+    hf: Heightfield, store: Any, pts: np.ndarray, tiles: list[tuple[int, int, int]]
+) -> np.ndarray:
     """3-D distance (metres) from each key sample to the surface of the tile of ``tiles`` covering it."""
     pyr = store.pyramid
     out = np.full(len(pts), np.nan)
@@ -185,6 +194,21 @@ def path(store: Any, frames: int) -> list[Camera]:
         cams.append(Camera((ex, ey, ez), (ex + 1000 * d[0], ey + 1000 * d[1], ez + 1000 * d[2]), fov_y_deg=60.0,
                            width_px=1920, height_px=1080))  # fmt: skip
     return cams
+
+
+def tiles_worse(name: str) -> dict[str, int]:
+    """Per cohesion variant: tiles whose own measured error exceeds the Chunked-LOD tile's (1e-6 m slack)."""
+    out = {}
+    with open_store(CACHE / f"{name}_chunked_m{TILE_SIZE}.terra") as b:
+        ref = {(r["level"], r["x"], r["y"]): r["measured_error_m"] for r in b.tile_summaries()}
+    for method in METHOD_NAMES[1:]:
+        with open_store(CACHE / f"{name}_{method}_m{TILE_SIZE}.terra") as a:
+            out[method] = sum(
+                1
+                for r in a.tile_summaries()
+                if r["measured_error_m"] > ref[(r["level"], r["x"], r["y"])] + 1e-6
+            )
+    return out
 
 
 def mesher_ms(hf: Heightfield, method: str, per_level_tiles: int = 8) -> dict[int, float]:
@@ -258,6 +282,7 @@ def run(quick: bool = False, frames: int = 48) -> dict[str, Any]:
                     worst.append(s.stats.max_screen_error_px)
                 m["path"] = {"frames": frames, "triangles": tri, "max_screen_error_px": worst}
             rec["methods"][method] = m
+        rec["tiles_worse_than_chunked"] = tiles_worse(name)
         results[name] = rec
     return results
 
@@ -270,17 +295,23 @@ def _summary_tables(results: dict[str, Any]) -> str:
     rows = []
     for name, rec in results.items():
         ch, co = rec["methods"]["chunked"]["per_level"], rec["methods"]["cohesion"]["per_level"]
+        pa = rec["methods"]["cohesion_paper"]["per_level"]
         for k in ch:
-            a, b = ch[k], co[k]
+            a, b, c = ch[k], co[k], pa[k]
             if a["max_m"] == 0 and b["max_m"] == 0:
                 continue
             rows.append([name, k, a["vertices"], b["vertices"], a["max_m"], b["max_m"],
                          b["max_m"] / a["max_m"] if a["max_m"] else float("nan"), a["rms_m"], b["rms_m"],
                          b["rms_m"] / a["rms_m"] if a["rms_m"] else float("nan"),
-                         b["mean_tile_max_m"] / a["mean_tile_max_m"] if a["mean_tile_max_m"] else float("nan")])  # fmt: skip
+                         b["mean_tile_max_m"] / a["mean_tile_max_m"] if a["mean_tile_max_m"] else float("nan"),
+                         c["max_m"] / a["max_m"] if a["max_m"] else float("nan"),
+                         c["rms_m"] / a["rms_m"] if a["rms_m"] else float("nan")])  # fmt: skip
     md.append("## (a) Error per level at equal vertex count\n")
+    md.append("The last two columns: paper 000 as written (LoG attraction + Hooke balance, no error-driven "
+              "refinement) / chunked.\n\n")  # fmt: skip
     md.append(md_table(["terrain", "level", "vertices chunked", "vertices cohesion", "max m chunked", "max m cohesion",
-                        "max ratio", "RMS m chunked", "RMS m cohesion", "RMS ratio", "mean tile-max ratio"], rows))  # fmt: skip
+                        "max ratio", "RMS m chunked", "RMS m cohesion", "RMS ratio", "mean tile-max ratio",
+                        "paper max ratio", "paper RMS ratio"], rows))  # fmt: skip
     # (b)
     rows = []
     for name, rec in results.items():
@@ -303,15 +334,23 @@ def _summary_tables(results: dict[str, Any]) -> str:
     rows = []
     for name, rec in results.items():
         ch, co = rec["methods"]["chunked"], rec["methods"]["cohesion"]
+        pa = rec["methods"]["cohesion_paper"]
         t_ch, t_co = np.asarray(ch["path"]["triangles"], float), np.asarray(co["path"]["triangles"], float)
+        t_pa = np.asarray(pa["path"]["triangles"], float)
         rows.append([name, int(t_ch.mean()), int(t_co.mean()), float(t_co.sum() / t_ch.sum()),
-                     float(np.median(t_co / t_ch)), float(max(ch["path"]["max_screen_error_px"])),
+                     float(np.median(t_co / t_ch)), float(t_pa.sum() / t_ch.sum()),
+                     float(max(ch["path"]["max_screen_error_px"])),
                      float(max(co["path"]["max_screen_error_px"])), ch.get("build_ms_per_tile", float("nan")),
-                     co.get("build_ms_per_tile", float("nan"))])  # fmt: skip
+                     co.get("build_ms_per_tile", float("nan")), pa.get("build_ms_per_tile", float("nan")),
+                     rec["tiles_worse_than_chunked"]["cohesion"], co["tiles"]])  # fmt: skip
     md.append(f"\n## (c) Triangles drawn along the camera path at {THRESHOLD_PX:g} px, and build cost\n")
+    md.append(
+        "Build: whole store (mesh + measure + encode) on one thread, ms per tile averaged over every level.\n\n"
+    )
     md.append(md_table(["terrain", "mean triangles chunked", "mean triangles cohesion", "ratio (total)",
-                        "median frame ratio", "worst px chunked", "worst px cohesion", "build ms/tile chunked",
-                        "build ms/tile cohesion"], rows))  # fmt: skip
+                        "median frame ratio", "paper ratio (total)", "worst px chunked", "worst px cohesion",
+                        "build ms/tile chunked", "build ms/tile cohesion", "build ms/tile paper",
+                        "cohesion tiles worse than chunked", "tiles"], rows))  # fmt: skip
     rows = []
     for name, rec in results.items():
         for method in METHOD_NAMES:
@@ -342,7 +381,9 @@ def _plot(results: dict[str, Any], path: Path) -> None:
     ax[0].axhline(0.8, color="k", ls="--", lw=0.8)
     ax[0].set(xlabel="level", ylabel="max error cohesion / chunked", title="(a) equal vertex count")
     ax[1].axhline(0.5, color="k", ls="--", lw=0.8)
-    ax[1].set(xlabel="frame", ylabel="triangles cohesion / chunked", title=f"(c) camera path at {THRESHOLD_PX:g} px")
+    ax[1].set(
+        xlabel="frame", ylabel="triangles cohesion / chunked", title=f"(c) camera path at {THRESHOLD_PX:g} px"
+    )
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(fontsize=8)

@@ -5,6 +5,7 @@ gives the regular grid, builds are deterministic, and relocation never measures 
 from __future__ import annotations
 
 import hashlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -218,6 +219,15 @@ def test_golden_sample(tmp_path: Path) -> None:
                 for t in s.tile_summaries()
             }
     check_store_invariants(tmp_path / "cohesion.terra", hf)
+    # byte-level golden: any change of the algorithm shows here (regenerate with TERRALOD_REGEN_GOLDEN=1)
+    golden = Path(__file__).resolve().parent / "golden" / "cohesion_sample_m33.sha256"
+    digest = _tile_digest(tmp_path / "cohesion.terra")
+    if os.environ.get("TERRALOD_REGEN_GOLDEN") or not golden.exists():
+        if not os.environ.get("TERRALOD_REGEN_GOLDEN") and os.environ.get("CI"):
+            pytest.fail(f"golden digest {golden.name} missing; regenerate with TERRALOD_REGEN_GOLDEN=1")
+        golden.write_text(digest + "\n")
+    else:
+        assert golden.read_text().strip() == digest
     levels = sorted({c[0] for c in out["chunked"]})
     for k in levels[:-1]:
         ch = max(e for c, (e, _) in out["chunked"].items() if c[0] == k)
