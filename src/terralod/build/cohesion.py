@@ -101,6 +101,8 @@ class CohesionOptions:
     fallback : keep the unrelocated mesh where relocation measures worse (per tile)
     refine : after the force relaxation, error-driven moves of vertices onto their quads' worst samples
     refine_budget : tries of that refinement per vertex (budget = refine_budget * M^2)
+    metric : error the relocation minimises per sample: "vertical" |dz|, or "normal", the distance to the
+        triangle's plane |dz| / sqrt(1 + |grad|^2) (closer to the measured Hausdorff on steep slopes)
     """
 
     attraction: str = "error"
@@ -111,10 +113,13 @@ class CohesionOptions:
     fallback: bool = True
     refine: bool = True
     refine_budget: int = 2
+    metric: str = "normal"
 
     def __post_init__(self) -> None:
         if self.attraction not in ("error", "log"):
             raise ValueError(f"Expected attraction 'error' or 'log', got {self.attraction!r}")
+        if self.metric not in ("vertical", "normal"):
+            raise ValueError(f"Expected metric 'vertical' or 'normal', got {self.metric!r}")
         if self.iterations < 0:
             raise ValueError(f"Expected iterations >= 0, got {self.iterations}")
 
@@ -248,14 +253,15 @@ def mesh_tile_with(
         mode = WEIGHT_ERROR
     vmax = float(min(span, h - 1 - r0))
     umax = float(min(span, w - 1 - c0))
+    sxy = np.array([1.0 / spacing_m[0], 1.0 / spacing_m[1]]) if opt.metric == "normal" else np.zeros(2)
     relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, opt.snap, opt.iterations, opt.alpha,
-                   1.0 / s, float(s), vmax, umax)  # fmt: skip
+                   1.0 / s, float(s), sxy, vmax, umax)  # fmt: skip
     if opt.refine:
-        refine_max_error(zw, vw, pv, pu, movable, keep, s, opt.snap, opt.refine_budget * m * m)
-    rows, cols, hz, tris, _ = assemble(zw, vw, feat, pv, pu, keep, r0, c0, opt.snap)
-    if not opt.fallback or (np.array_equal(pv, base_v) and np.array_equal(pu, base_u)):
+        refine_max_error(zw, vw, pv, pu, movable, keep, s, opt.snap, opt.refine_budget * m * m, sxy)
+    rows, cols, hz, tris, _ = assemble(zw, vw, feat, pv, pu, keep, r0, c0, opt.snap, sxy)
+    if not opt.fallback:
         return rows, cols, hz, tris
-    alt = assemble(zw, vw, feat, base_v, base_u, keep, r0, c0, opt.snap)[:4]
+    alt = assemble(zw, vw, feat, base_v, base_u, keep, r0, c0, opt.snap, sxy)[:4]
     if not opt.slide_boundary:
         alt = chunked.mesh_tile(z, valid, pyramid, code)
     cur = (rows, cols, hz, tris)

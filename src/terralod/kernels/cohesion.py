@@ -98,7 +98,7 @@ def diagonal_ok(pv, pu, i, j, diag, min_area2):
 
 
 @jit
-def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl):
+def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl, sxy):
     """Errors and attraction moments of quad (i, j) for both diagonals in one pass over its samples.
 
     ``acc0`` (diagonal a-d) and ``acc1`` (diagonal b-c) get [max |err|, sum |err|, W, W*v, W*u, row of max,
@@ -122,6 +122,12 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl)
     _plane(va, ua, za, vd, ud, zd, vb, ub, zb, pl, 1)  # diag 0: a, d, b
     _plane(va, ua, za, vc, uc, zc, vb, ub, zb, pl, 2)  # diag 1: a, c, b
     _plane(vb, ub, zb, vc, uc, zc, vd, ud, zd, pl, 3)  # diag 1: b, c, d
+    # error metric: vertical (sxy = 0) or distance to the triangle's plane, |dz| / sqrt(1 + |grad z|^2)
+    # with the gradient in metres per metre (sxy = 1 / dx, 1 / dy)
+    n0 = 1.0 / np.sqrt(1.0 + (pl[0, 1] * sxy[0]) ** 2 + (pl[0, 2] * sxy[1]) ** 2)
+    n1 = 1.0 / np.sqrt(1.0 + (pl[1, 1] * sxy[0]) ** 2 + (pl[1, 2] * sxy[1]) ** 2)
+    n2 = 1.0 / np.sqrt(1.0 + (pl[2, 1] * sxy[0]) ** 2 + (pl[2, 2] * sxy[1]) ** 2)
+    n3 = 1.0 / np.sqrt(1.0 + (pl[3, 1] * sxy[0]) ** 2 + (pl[3, 2] * sxy[1]) ** 2)
     eps = 1e-9
     rlo = max(int(np.ceil(min(min(va, vb), min(vc, vd)) - eps)), 0)
     rhi = min(int(np.floor(max(max(va, vb), max(vc, vd)) + eps)), h - 1)
@@ -155,7 +161,7 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl)
                 continue
             zs = zw[r, c]
             if k0 >= 0:
-                e0 = abs(zs - (pl[k0, 0] + pl[k0, 1] * c + pl[k0, 2] * r))
+                e0 = abs(zs - (pl[k0, 0] + pl[k0, 1] * c + pl[k0, 2] * r)) * (n0 if k0 == 0 else n1)
                 if e0 > acc0[0]:
                     acc0[0] = e0
                     acc0[5] = r
@@ -166,7 +172,7 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl)
                 acc0[3] += w0 * r
                 acc0[4] += w0 * c
             if k1 >= 0:
-                e1 = abs(zs - (pl[k1, 0] + pl[k1, 1] * c + pl[k1, 2] * r))
+                e1 = abs(zs - (pl[k1, 0] + pl[k1, 1] * c + pl[k1, 2] * r)) * (n2 if k1 == 2 else n3)
                 if e1 > acc1[0]:
                     acc1[0] = e1
                     acc1[5] = r
@@ -183,7 +189,7 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl)
 
 
 @jit
-def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments):
+def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments, sxy):
     """Per kept quad: the valid diagonal (both triangles counter-clockwise) of smaller max |vertical error|
     (ties: smaller sum, then diagonal 0), its max error ``qmax`` and its attraction moments ``moments[i, j] = (W, W*v, W*u)``. Returns the tile max."""
     cells = keep.shape[0]
@@ -196,7 +202,7 @@ def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments):
         for j in range(cells):
             if not keep[i, j]:
                 continue
-            _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, a0, a1, min_area2, pl)
+            _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy)
             use1 = a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1])
             best = a1 if use1 else a0
             diag[i, j] = 1 if use1 else 0
@@ -356,7 +362,7 @@ def _line_height(line_z, x, snap):
 
 
 @jit
-def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, alpha, tau_low, tau_up,
+def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, alpha, tau_low, tau_up, sxy,
                    vmax, umax):  # fmt: skip
     """2-D cohesion relocation of the movable interior vertices, in place (paper 000 eq. 9).
 
@@ -378,7 +384,7 @@ def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, a
         for i in range(m):
             for j in range(m):
                 hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
-        choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, mom)
+        choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, mom, sxy)
         moved = 0
         for i in range(1, m - 1):
             for j in range(1, m - 1):
@@ -425,7 +431,7 @@ def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, a
 
 
 @jit
-def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap):
+def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap, sxy):
     """Final mesh of relocated positions: (rows (N,), cols (N,), heights (N,), triangles (K, 3) int32, max
     |vertical error| over the window's samples). Diagonals by smaller max error; vertex order raster; vertices
     of no kept quad dropped; rows/cols are global source coordinates (r0 + v, c0 + u)."""
@@ -438,7 +444,7 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap):
     diag = np.zeros((cells, cells), np.int8)
     qmax = np.zeros((cells, cells), np.float64)
     mom = np.zeros((cells, cells, 3), np.float64)
-    worst = choose_diagonals(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, keep, diag, qmax, mom)
+    worst = choose_diagonals(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, keep, diag, qmax, mom, sxy)
     used = np.zeros((m, m), np.bool_)
     nq = 0
     for i in range(cells):
@@ -487,16 +493,16 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap):
 
 
 @jit
-def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2):
+def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy):
     """(max |err|, worst row, worst col, diagonal) of quad (i, j) with its better diagonal."""
-    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl)
+    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy)
     if a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1]):
         return a1[0], a1[5], a1[6], 1
     return a0[0], a0[5], a0[6], 0
 
 
 @jit
-def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
+def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
     """Error-driven relocation (our improvement of the attraction term), in place.
 
     Repeatedly take the kept quad of largest max |vertical error| that is not marked stuck and try to move
@@ -524,7 +530,7 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
     for i in range(cells):
         for j in range(cells):
             if keep[i, j]:
-                e, r, c, _ = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2)
+                e, r, c, _ = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy)
                 qmax[i, j] = e
                 wr[i, j] = r
                 wc[i, j] = c
@@ -583,7 +589,7 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
                                 break
                             if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
                                 e, _r, _c, _d = _best_quad(
-                                    zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2
+                                    zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy
                                 )
                                 if e > loc:
                                     loc = e
@@ -609,7 +615,7 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget):
                 qi = cand_i + ei
                 qj = cand_j + ej
                 if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-                    e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2)
+                    e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
                     qmax[qi, qj] = e
                     wr[qi, qj] = r
                     wc[qi, qj] = c
