@@ -51,7 +51,7 @@ TILE_SIZE = 65
 THRESHOLD_PX = 2.0
 #: "cohesion_paper" is paper 000 as written: LoG attraction + Hooke balance, no error-driven refinement.
 METHOD_NAMES = ("chunked", "cohesion", "cohesion_paper")
-register_method("cohesion_paper", cohesion.make_mesher(attraction="log", refine=False))
+register_method("cohesion_paper", cohesion.make_mesher(attraction="log", refine=False, metric="vertical"))
 N_KEY = 16
 
 

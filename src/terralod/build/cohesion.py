@@ -101,8 +101,10 @@ class CohesionOptions:
     fallback : keep the unrelocated mesh where relocation measures worse (per tile)
     refine : after the force relaxation, error-driven moves of vertices onto their quads' worst samples
     refine_budget : tries of that refinement per vertex (budget = refine_budget * M^2)
-    metric : error the relocation minimises per sample: "vertical" |dz|, or "normal", the distance to the
-        triangle's plane |dz| / sqrt(1 + |grad|^2) (closer to the measured Hausdorff on steep slopes)
+    metric : error the relocation minimises per sample: "vertical" |dz|, "normal", the distance to the
+        triangle's plane |dz| / sqrt(1 + |grad|^2) (closer to the measured Hausdorff on steep slopes, but
+        blind to the triangle's end at sharp rims), or "both": relocate with each, keep the tile of smaller
+        measured Hausdorff error (twice the cost)
     """
 
     attraction: str = "error"
@@ -113,13 +115,13 @@ class CohesionOptions:
     fallback: bool = True
     refine: bool = True
     refine_budget: int = 2
-    metric: str = "normal"
+    metric: str = "both"
 
     def __post_init__(self) -> None:
         if self.attraction not in ("error", "log"):
             raise ValueError(f"Expected attraction 'error' or 'log', got {self.attraction!r}")
-        if self.metric not in ("vertical", "normal"):
-            raise ValueError(f"Expected metric 'vertical' or 'normal', got {self.metric!r}")
+        if self.metric not in ("vertical", "normal", "both"):
+            raise ValueError(f"Expected metric 'vertical', 'normal' or 'both', got {self.metric!r}")
         if self.iterations < 0:
             raise ValueError(f"Expected iterations >= 0, got {self.iterations}")
 
@@ -253,23 +255,25 @@ def mesh_tile_with(
         mode = WEIGHT_ERROR
     vmax = float(min(span, h - 1 - r0))
     umax = float(min(span, w - 1 - c0))
-    sxy = np.array([1.0 / spacing_m[0], 1.0 / spacing_m[1]]) if opt.metric == "normal" else np.zeros(2)
-    relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, opt.snap, opt.iterations, opt.alpha,
-                   1.0 / s, float(s), sxy, vmax, umax)  # fmt: skip
-    if opt.refine:
-        refine_max_error(zw, vw, pv, pu, movable, keep, s, opt.snap, opt.refine_budget * m * m, sxy)
-    rows, cols, hz, tris, _ = assemble(zw, vw, feat, pv, pu, keep, r0, c0, opt.snap, sxy)
-    if not opt.fallback:
-        return rows, cols, hz, tris
-    alt = assemble(zw, vw, feat, base_v, base_u, keep, r0, c0, opt.snap, sxy)[:4]
+    normal = np.array([1.0 / spacing_m[0], 1.0 / spacing_m[1]])
+    metrics = {"vertical": [np.zeros(2)], "normal": [normal], "both": [np.zeros(2), normal]}[opt.metric]
+    # candidates: the unrelocated grid (same side vertices; without sliding exactly the Chunked-LOD tile),
+    # then one relocation per metric; the fallback keeps the first of smallest measured Hausdorff error
     if not opt.slide_boundary:
-        alt = chunked.mesh_tile(z, valid, pyramid, code)
-    cur = (rows, cols, hz, tris)
-    if _hausdorff(alt, z, valid, r0, c0, span, spacing_m) <= _hausdorff(
-        cur, z, valid, r0, c0, span, spacing_m
-    ):
-        return alt
-    return cur
+        cands = [chunked.mesh_tile(z, valid, pyramid, code)]
+    else:
+        cands = [assemble(zw, vw, feat, base_v, base_u, keep, r0, c0, opt.snap, np.zeros(2))[:4]]
+    for sxy in metrics:
+        pv, pu = base_v.copy(), base_u.copy()
+        relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, opt.snap, opt.iterations, opt.alpha,
+                       1.0 / s, float(s), sxy, vmax, umax)  # fmt: skip
+        if opt.refine:
+            refine_max_error(zw, vw, pv, pu, movable, keep, s, opt.snap, opt.refine_budget * m * m, sxy)
+        cands.append(assemble(zw, vw, feat, pv, pu, keep, r0, c0, opt.snap, sxy)[:4])
+    if not opt.fallback:
+        return cands[-1]
+    errs = [_hausdorff(c, z, valid, r0, c0, span, spacing_m) for c in cands]
+    return cands[int(np.argmin(errs))]
 
 
 def _hausdorff(mesh, z, valid, r0: int, c0: int, span: int, spacing_m: tuple[float, float]) -> float:
