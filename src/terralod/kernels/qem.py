@@ -1,0 +1,618 @@
+"""QEM half-edge collapse and detail-increment replay (numba kernels).
+
+Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §2.1 (Garland–Heckbert quadric error metric, vertex
+placed at an edge endpoint: the one with the smaller quadric error), §2.2.1 (one record per collapse:
+deleted triangles with their vertex indices, replaced triangles with original and new vertex indices)
+and §2.3.1 (reconstruction by applying records forwards or backwards). Pure functions on arrays: no
+I/O, no exceptions; validation and frames live in :mod:`terralod.tin.qem` and
+:mod:`terralod.tin.increments`.
+
+Vocabulary
+----------
+- *slot*: a triangle's index in the full-resolution triangle array. A slot keeps its index for life: a
+  collapse deletes two slots and rewrites the vertex triple of the others around the removed vertex.
+- *star(v)*: the live slots that use vertex v, kept as one list per vertex in an *arena* (one int32
+  array; list v is ``arena[start[v] : start[v] + length[v]]``, capacity ``cap[v]``; a list that outgrows
+  its capacity moves to the arena's end with twice the room, and the arena doubles when full).
+- *half-edge collapse u → v*: vertex u disappears, every triangle of star(u) that also uses v is deleted
+  (exactly two: u is interior), the others get v in place of u. The endpoint v does not move, so no new
+  vertex ever appears (paper 003 §2.1).
+
+Vertex kinds (what a vertex may do)::
+
+    FREE    interior vertex of one sub-block          may be removed (u), may be a target (v)
+    LOCKED  on the mesh boundary or a sub-block seam  never removed,     may be a target (v)
+
+A collapse u → v is accepted when (table, not branches):
+
+    u FREE and alive | v a ring neighbour of u | link(u) ∩ link(v) = the two opposite vertices
+    (link condition: the result stays a 2-manifold) | every rewritten triangle keeps a counter-clockwise
+    xy orientation with area > ``shape_eps`` · (sum of its squared xy edge lengths) (no fold, no sliver
+    whose orientation rounding could flip; for a TIN this is the "normal z keeps its sign" test)
+
+Quadrics: each triangle adds its plane, weighted by its area, to its three vertices (``Q`` holds the 10
+distinct entries of the symmetric 4×4 matrix, ``W`` the summed area). Cost of u → v = vᵀ(Q_u + Q_v)v
+(m⁴: area × squared distance) orders the heap; the same quadric divided by its area, (vᵀ(Q_u + Q_v)v) /
+(W_u + W_v), is an area-weighted mean squared distance (m²) used for the paper's MMQE, so that
+sqrt(MMQE) is a length in metres as §2.3.2 needs. After u → v, Q_v += Q_u (Garland–Heckbert).
+
+MMQE (§2.1): per sub-block, the mean over its alive FREE vertices of their minimum (normalised) quadric
+error over all ring neighbours; kept as a running sum updated on every re-evaluation.
+
+Memory: quadrics 88 bytes a vertex, arena ~ 3 int32 a triangle (x 1.5 slack), heap 16 bytes an entry,
+records ~ 2 deleted + ~4 replaced slots a collapse.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from terralod.kernels import jit
+
+FREE = np.uint8(0)  #: interior vertex of one sub-block: may be collapsed away
+LOCKED = np.uint8(1)  #: mesh boundary or sub-block seam: never removed, may be a collapse target
+
+
+# -- vertex → triangle lists (arena) -------------------------------------------------------------------
+@jit
+def _build_stars(tris, alive, n_vertices):
+    """Arena lists star(v) of the live triangles; capacity = degree + 4 (slack for early merges)."""
+    deg = np.zeros(n_vertices, np.int64)
+    for t in range(tris.shape[0]):
+        if alive[t]:
+            for k in range(3):
+                deg[tris[t, k]] += 1
+    start = np.empty(n_vertices, np.int64)
+    cap = np.empty(n_vertices, np.int64)
+    top = 0
+    for v in range(n_vertices):
+        start[v] = top
+        cap[v] = deg[v] + 4
+        top += cap[v]
+    arena = np.empty(top + top // 2 + 16, np.int32)
+    length = np.zeros(n_vertices, np.int64)
+    for t in range(tris.shape[0]):
+        if alive[t]:
+            for k in range(3):
+                v = tris[t, k]
+                arena[start[v] + length[v]] = t
+                length[v] += 1
+    return arena, start, length, cap, top
+
+
+@jit
+def _star_remove(arena, start, length, v, t):
+    """Drop slot t from star(v) (swap with the last entry)."""
+    s = start[v]
+    n = length[v]
+    for i in range(n):
+        if arena[s + i] == t:
+            arena[s + i] = arena[s + n - 1]
+            length[v] = n - 1
+            return
+
+
+@jit
+def _next_after(tris, t, u):
+    """The vertex after u in triangle t (counter-clockwise order)."""
+    if tris[t, 0] == u:
+        return tris[t, 1]
+    if tris[t, 1] == u:
+        return tris[t, 2]
+    return tris[t, 0]
+
+
+# -- quadrics -------------------------------------------------------------------------------------------
+@jit
+def plane_quadrics(P, tris, alive):
+    """Area-weighted plane quadrics per vertex.
+
+    Returns ``(Q, W)``: Q (N, 10) float64, the entries (aa, ab, ac, ad, bb, bc, bd, cc, cd, dd) of
+    Σ area · p pᵀ over the triangles of each vertex, p = (a, b, c, d) the unit plane; W (N,) the summed
+    areas (m²). Degenerate (zero-area) triangles add nothing.
+    """
+    n = P.shape[0]
+    Q = np.zeros((n, 10), np.float64)
+    W = np.zeros(n, np.float64)
+    for t in range(tris.shape[0]):
+        if not alive[t]:
+            continue
+        i = tris[t, 0]
+        j = tris[t, 1]
+        k = tris[t, 2]
+        e1x = P[j, 0] - P[i, 0]
+        e1y = P[j, 1] - P[i, 1]
+        e1z = P[j, 2] - P[i, 2]
+        e2x = P[k, 0] - P[i, 0]
+        e2y = P[k, 1] - P[i, 1]
+        e2z = P[k, 2] - P[i, 2]
+        nx = e1y * e2z - e1z * e2y
+        ny = e1z * e2x - e1x * e2z
+        nz = e1x * e2y - e1y * e2x
+        ln = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if ln == 0.0:
+            continue
+        area = 0.5 * ln
+        a = nx / ln
+        b = ny / ln
+        c = nz / ln
+        d = -(a * P[i, 0] + b * P[i, 1] + c * P[i, 2])
+        q0 = area * a * a
+        q1 = area * a * b
+        q2 = area * a * c
+        q3 = area * a * d
+        q4 = area * b * b
+        q5 = area * b * c
+        q6 = area * b * d
+        q7 = area * c * c
+        q8 = area * c * d
+        q9 = area * d * d
+        for v in (i, j, k):
+            Q[v, 0] += q0
+            Q[v, 1] += q1
+            Q[v, 2] += q2
+            Q[v, 3] += q3
+            Q[v, 4] += q4
+            Q[v, 5] += q5
+            Q[v, 6] += q6
+            Q[v, 7] += q7
+            Q[v, 8] += q8
+            Q[v, 9] += q9
+            W[v] += area
+    return Q, W
+
+
+@jit
+def _quadric_at(Q, i, x, y, z):
+    """pᵀ Q_i p for p = (x, y, z, 1)."""
+    return (
+        Q[i, 0] * x * x
+        + 2.0 * Q[i, 1] * x * y
+        + 2.0 * Q[i, 2] * x * z
+        + 2.0 * Q[i, 3] * x
+        + Q[i, 4] * y * y
+        + 2.0 * Q[i, 5] * y * z
+        + 2.0 * Q[i, 6] * y
+        + Q[i, 7] * z * z
+        + 2.0 * Q[i, 8] * z
+        + Q[i, 9]
+    )
+
+
+@jit
+def _collapse_cost(Q, P, u, v):
+    """vᵀ (Q_u + Q_v) v, clamped at 0 (rounding), m⁴."""
+    x = P[v, 0]
+    y = P[v, 1]
+    z = P[v, 2]
+    c = _quadric_at(Q, u, x, y, z) + _quadric_at(Q, v, x, y, z)
+    return c if c > 0.0 else 0.0
+
+
+# -- min-heap of (cost, vertex, version) with lazy deletion -------------------------------------------
+# Entries are a float64 key and one int64 packing (vertex << 32 | version): two arrays to move, ties
+# broken by vertex then version (deterministic).
+@jit
+def _heap_push(hk, he, size, key, entry):
+    i = size
+    while i > 0:
+        p = (i - 1) >> 1
+        if key < hk[p] or (key == hk[p] and entry < he[p]):
+            hk[i] = hk[p]
+            he[i] = he[p]
+            i = p
+        else:
+            break
+    hk[i] = key
+    he[i] = entry
+    return size + 1
+
+
+@jit
+def _heap_pop(hk, he, size):
+    """Remove the root (read it before calling); returns the new size."""
+    size -= 1
+    key = hk[size]
+    entry = he[size]
+    i = 0
+    while True:
+        l = 2 * i + 1
+        if l >= size:
+            break
+        m = l
+        r = l + 1
+        if r < size and (hk[r] < hk[l] or (hk[r] == hk[l] and he[r] < he[l])):
+            m = r
+        if hk[m] < key or (hk[m] == key and he[m] < entry):
+            hk[i] = hk[m]
+            he[i] = he[m]
+            i = m
+        else:
+            break
+    hk[i] = key
+    he[i] = entry
+    return size
+
+
+# -- collapse test and evaluation ------------------------------------------------------------------------
+@jit
+def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
+    """Link condition and orientation test of the half-edge collapse u → v (u FREE, interior)."""
+    # Link condition: the rings of u and v share exactly the two opposite vertices.
+    stampbox[0] += 1
+    stamp = stampbox[0]
+    sv = start[v]
+    for i in range(length[v]):
+        t = arena[sv + i]
+        for k in range(3):
+            mark[tris[t, k]] = stamp
+    su = start[u]
+    common = 0
+    for i in range(length[u]):
+        a = _next_after(tris, arena[su + i], u)
+        if a != v and mark[a] == stamp:
+            common += 1
+    if common != 2:
+        return False
+    # Orientation: every rewritten triangle (v, a, b) stays counter-clockwise and not a sliver.
+    vx = P[v, 0]
+    vy = P[v, 1]
+    for i in range(length[u]):
+        t = arena[su + i]
+        a = _next_after(tris, t, u)
+        b = _next_after(tris, t, a)
+        if a == v or b == v:
+            continue
+        ax = P[a, 0] - vx
+        ay = P[a, 1] - vy
+        bx = P[b, 0] - vx
+        by = P[b, 1] - vy
+        area2 = ax * by - ay * bx
+        size2 = ax * ax + ay * ay + bx * bx + by * by + (bx - ax) * (bx - ax) + (by - ay) * (by - ay)
+        if not area2 > shape_eps * size2:
+            return False
+    return True
+
+
+@jit
+def _evaluate(u, prev_v, prev_c, P, tris, Q, W, arena, start, length, mark, stampbox, shape_eps, wbuf, cbuf):
+    """Best valid collapse target of u and u's minimum normalised quadric error.
+
+    Returns ``(v, cost, emin)``: the ring neighbour v with the smallest cost among the valid collapses
+    (-1 and inf when none is valid) and emin, the smallest normalised error over every ring neighbour,
+    valid or not (the MMQE term of u, m²). When the cheapest neighbour is still ``prev_v`` at cost
+    ``prev_c`` it is returned untested (its test is repeated when it leaves the heap anyway).
+    """
+    su = start[u]
+    n = length[u]
+    emin = np.inf
+    c0 = np.inf
+    w0 = -1
+    for i in range(n):
+        w = _next_after(tris, arena[su + i], u)
+        c = _collapse_cost(Q, P, u, w)
+        wbuf[i] = w
+        cbuf[i] = c
+        e = c / (W[u] + W[w])
+        if e < emin:
+            emin = e
+        if c < c0 or (c == c0 and w < w0):
+            c0 = c
+            w0 = w
+    if w0 == prev_v and c0 == prev_c:
+        return prev_v, prev_c, emin
+    # Candidates in increasing (cost, vertex) order until one passes the test (usually the first).
+    bc = c0
+    bw = w0
+    for _ in range(n):
+        if _can_collapse(u, bw, P, tris, arena, start, length, mark, stampbox, shape_eps):
+            return bw, bc, emin
+        last_c = bc
+        last_w = bw
+        bc = np.inf
+        bw = -1
+        for i in range(n):
+            c = cbuf[i]
+            w = wbuf[i]
+            if (c > last_c or (c == last_c and w > last_w)) and (bw < 0 or c < bc or (c == bc and w < bw)):
+                bc = c
+                bw = w
+        if bw < 0:
+            break
+    return -1, np.inf, emin
+
+
+# -- the simplifier --------------------------------------------------------------------------------------
+@jit
+def _grow_rows(a, n):
+    out = np.empty((max(2 * a.shape[0], n),) + a.shape[1:], a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+@jit
+def _grow(a, n):
+    out = np.empty(max(2 * a.shape[0], n), a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+@jit
+def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps):
+    """Half-edge QEM collapses until every sub-block is down to its target triangle count.
+
+    Parameters
+    ----------
+    P : (N, 3) float64
+        Vertex positions, metres, in a local frame (centred: quadrics lose precision far from 0).
+    tris : (M, 3) int32
+        Triangles, counter-clockwise in xy; modified in place to the base (most simplified) state.
+    alive : (M,) bool
+        Live slots; modified in place.
+    kind : (N,) uint8
+        FREE or LOCKED.
+    tri_block, vert_block : (M,) int32, (N,) int32
+        Sub-block of each triangle and of each FREE vertex (all its triangles are in that block).
+    target : (B,) int64
+        Stop collapsing in block b once it has at most ``target[b]`` live triangles.
+    shape_eps : float
+        Orientation tolerance of rewritten triangles (see the module docstring), dimensionless.
+
+    Returns
+    -------
+    n, cu, cv, cblock, cmmqe, ccost, mmqe0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new
+        n collapses in the order performed; collapse i removed ``cu[i]`` onto ``cv[i]`` in block
+        ``cblock[i]``, after which that block's MMQE was ``cmmqe[i]`` (m²) and its cost was ``ccost[i]``
+        (m⁴); ``mmqe0`` (B,) is each block's MMQE before any collapse. Collapse i deleted slots
+        ``del_slot[2i : 2i+2]`` (triples ``del_tri``) and rewrote slots
+        ``rep_slot[rep_ptr[i] : rep_ptr[i+1]]`` from ``rep_old`` to ``rep_new``.
+    """
+    n_v = P.shape[0]
+    n_b = target.shape[0]
+    arena, start, length, cap, top = _build_stars(tris, alive, n_v)
+    Q, W = plane_quadrics(P, tris, alive)
+    mark = np.zeros(n_v, np.int64)  # stamps of the link test
+    seen = np.zeros(n_v, np.int64)  # collapse number + 1 of the last ring visit
+    stampbox = np.zeros(1, np.int64)
+    wbuf = np.empty(n_v, np.int64)
+    cbuf = np.empty(n_v, np.float64)
+
+    count = np.zeros(n_b, np.int64)  # live triangles per block
+    for t in range(tris.shape[0]):
+        if alive[t]:
+            count[tri_block[t]] += 1
+    removed = np.zeros(n_v, np.bool_)
+    version = np.zeros(n_v, np.int64)
+    best = np.full(n_v, -1, np.int64)  # best valid target (-1: none)
+    bestc = np.full(n_v, np.inf)  # its cost, m⁴
+    emin = np.zeros(n_v, np.float64)
+    esum = np.zeros(n_b, np.float64)  # Σ emin over the block's live FREE vertices
+    ecnt = np.zeros(n_b, np.int64)
+
+    # Heap of every FREE vertex's best collapse.
+    hk = np.empty(2 * n_v + 16, np.float64)
+    he = np.empty(2 * n_v + 16, np.int64)
+    hsize = 0
+    for u in range(n_v):
+        if kind[u] != FREE or length[u] == 0:
+            continue
+        v, c, e = _evaluate(u, -1, np.inf, P, tris, Q, W, arena, start, length, mark, stampbox, shape_eps,
+                            wbuf, cbuf)
+        b = vert_block[u]
+        emin[u] = e
+        esum[b] += e
+        ecnt[b] += 1
+        best[u] = v
+        bestc[u] = c
+        if v >= 0:
+            hsize = _heap_push(hk, he, hsize, c, (u << 32) | version[u])
+    mmqe0 = np.zeros(n_b, np.float64)
+    for b in range(n_b):
+        mmqe0[b] = esum[b] / ecnt[b] if ecnt[b] > 0 else 0.0
+
+    # Records, sized for the usual case and grown on demand.
+    cu = np.empty(n_v, np.int32)
+    cv = np.empty(n_v, np.int32)
+    cblock = np.empty(n_v, np.int32)
+    cmmqe = np.empty(n_v, np.float64)
+    ccost = np.empty(n_v, np.float64)
+    del_slot = np.empty(2 * n_v, np.int32)
+    del_tri = np.empty((2 * n_v, 3), np.int32)
+    rep_ptr = np.zeros(n_v + 1, np.int64)
+    rcap = 6 * n_v + 16
+    rep_slot = np.empty(rcap, np.int32)
+    rep_old = np.empty((rcap, 3), np.int32)
+    rep_new = np.empty((rcap, 3), np.int32)
+    nc = 0
+    nr = 0
+
+    while hsize > 0:
+        cost = hk[0]
+        u = he[0] >> 32
+        stamp = he[0] & 0xFFFFFFFF
+        hsize = _heap_pop(hk, he, hsize)
+        if removed[u] or stamp != version[u]:
+            continue  # stale entry
+        b = vert_block[u]
+        if count[b] <= target[b]:
+            continue  # this block is done
+        v = best[u]
+        if not _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
+            # The neighbourhood changed since u was evaluated: evaluate again, requeue.
+            v2, c2, e2 = _evaluate(u, -1, np.inf, P, tris, Q, W, arena, start, length, mark, stampbox,
+                                   shape_eps, wbuf, cbuf)
+            esum[b] += e2 - emin[u]
+            emin[u] = e2
+            best[u] = v2
+            bestc[u] = c2
+            version[u] += 1
+            if v2 >= 0:
+                if hsize >= hk.shape[0]:
+                    hk = _grow(hk, hsize + 1)
+                    he = _grow(he, hsize + 1)
+                hsize = _heap_push(hk, he, hsize, c2, (u << 32) | version[u])
+            continue
+
+        # -- perform the collapse u → v --------------------------------------------------------------
+        need = nr + length[u]
+        if need > rep_slot.shape[0]:
+            rep_slot = _grow(rep_slot, need)
+            rep_old = _grow_rows(rep_old, need)
+            rep_new = _grow_rows(rep_new, need)
+        nd = 2 * nc
+        su = start[u]
+        for i in range(length[u]):
+            t = arena[su + i]
+            a0 = tris[t, 0]
+            a1 = tris[t, 1]
+            a2 = tris[t, 2]
+            if a0 == v or a1 == v or a2 == v:
+                # deleted: drop from the stars of its two other vertices
+                del_slot[nd] = t
+                del_tri[nd, 0] = a0
+                del_tri[nd, 1] = a1
+                del_tri[nd, 2] = a2
+                nd += 1
+                alive[t] = False
+                for k in range(3):
+                    w = tris[t, k]
+                    if w != u:
+                        _star_remove(arena, start, length, w, t)
+            else:
+                rep_slot[nr] = t
+                rep_old[nr, 0] = a0
+                rep_old[nr, 1] = a1
+                rep_old[nr, 2] = a2
+                for k in range(3):
+                    if tris[t, k] == u:
+                        tris[t, k] = v
+                rep_new[nr, 0] = tris[t, 0]
+                rep_new[nr, 1] = tris[t, 1]
+                rep_new[nr, 2] = tris[t, 2]
+                nr += 1
+                # append t to star(v), moving the list to the arena's end when full
+                if length[v] == cap[v]:
+                    ncap = 2 * cap[v] + 4
+                    if top + ncap > arena.shape[0]:
+                        arena = _grow(arena, top + ncap)
+                    arena[top : top + length[v]] = arena[start[v] : start[v] + length[v]]
+                    start[v] = top
+                    cap[v] = ncap
+                    top += ncap
+                arena[start[v] + length[v]] = t
+                length[v] += 1
+        length[u] = 0
+        removed[u] = True
+        for k in range(10):
+            Q[v, k] += Q[u, k]
+        W[v] += W[u]
+        count[b] -= 2
+        esum[b] -= emin[u]
+        ecnt[b] -= 1
+        emin[u] = 0.0
+        rep_ptr[nc + 1] = nr
+
+        # Re-evaluate v and its ring (their costs to v changed with Q_v, their rings with the collapse).
+        sv = start[v]
+        nv = length[v]
+        for i in range(nv + 1):
+            if i < nv:
+                t = arena[sv + i]
+                w = _next_after(tris, t, v)
+                w2 = _next_after(tris, t, w)
+            else:
+                w = v
+                w2 = v
+            for x in (w, w2):
+                if kind[x] != FREE or removed[x] or seen[x] == nc + 1:
+                    continue
+                seen[x] = nc + 1
+                vx, cx, ex = _evaluate(x, best[x], bestc[x], P, tris, Q, W, arena, start, length, mark,
+                                       stampbox, shape_eps, wbuf, cbuf)
+                bx = vert_block[x]
+                esum[bx] += ex - emin[x]
+                emin[x] = ex
+                if vx == best[x] and cx == bestc[x]:
+                    continue  # same best collapse: its heap entry stands
+                best[x] = vx
+                bestc[x] = cx
+                version[x] += 1
+                if vx >= 0:
+                    if hsize >= hk.shape[0]:
+                        hk = _grow(hk, hsize + 1)
+                        he = _grow(he, hsize + 1)
+                    hsize = _heap_push(hk, he, hsize, cx, (x << 32) | version[x])
+        cu[nc] = u
+        cv[nc] = v
+        cblock[nc] = b
+        ccost[nc] = cost
+        cmmqe[nc] = max(esum[b], 0.0) / ecnt[b] if ecnt[b] > 0 else 0.0
+        nc += 1
+
+    return (
+        nc,
+        cu[:nc].copy(),
+        cv[:nc].copy(),
+        cblock[:nc].copy(),
+        cmmqe[:nc].copy(),
+        ccost[:nc].copy(),
+        mmqe0,
+        del_slot[: 2 * nc].copy(),
+        del_tri[: 2 * nc].copy(),
+        rep_ptr[: nc + 1].copy(),
+        rep_slot[:nr].copy(),
+        rep_old[:nr].copy(),
+        rep_new[:nr].copy(),
+    )
+
+
+# -- detail-increment replay (paper 003 §2.3.1) ----------------------------------------------------------
+@jit
+def refine_records(tris, alive, r0, r1, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old):
+    """Vertex splits: apply records r0, r0+1, …, r1-1 (refinement order) to the state (tris, alive).
+
+    Deleted slots come back with their stored triple, replaced slots get their original triple.
+    """
+    for r in range(r0, r1):
+        for i in range(del_ptr[r], del_ptr[r + 1]):
+            s = del_slot[i]
+            tris[s, 0] = del_tri[i, 0]
+            tris[s, 1] = del_tri[i, 1]
+            tris[s, 2] = del_tri[i, 2]
+            alive[s] = True
+        for i in range(rep_ptr[r], rep_ptr[r + 1]):
+            s = rep_slot[i]
+            tris[s, 0] = rep_old[i, 0]
+            tris[s, 1] = rep_old[i, 1]
+            tris[s, 2] = rep_old[i, 2]
+
+
+@jit
+def coarsen_records(tris, alive, r0, r1, del_ptr, del_slot, rep_ptr, rep_slot, rep_new):
+    """Edge collapses: revert records r1-1, r1-2, …, r0 (the inverse of :func:`refine_records`)."""
+    for r in range(r1 - 1, r0 - 1, -1):
+        for i in range(del_ptr[r], del_ptr[r + 1]):
+            alive[del_slot[i]] = False
+        for i in range(rep_ptr[r], rep_ptr[r + 1]):
+            s = rep_slot[i]
+            tris[s, 0] = rep_new[i, 0]
+            tris[s, 1] = rep_new[i, 1]
+            tris[s, 2] = rep_new[i, 2]
+
+
+@jit
+def derive_new_triples(tris, alive, r0, r1, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new):
+    """Fill ``rep_new`` of records r0..r1-1 by replaying them forward from the coarse state in (tris, alive).
+
+    Each replaced slot's new triple is its state just before the record refines it; the state ends at the
+    fine end of the range. Used on loading, where only original triples are stored.
+    """
+    for r in range(r0, r1):
+        for i in range(rep_ptr[r], rep_ptr[r + 1]):
+            s = rep_slot[i]
+            rep_new[i, 0] = tris[s, 0]
+            rep_new[i, 1] = tris[s, 1]
+            rep_new[i, 2] = tris[s, 2]
+        refine_records(tris, alive, r, r + 1, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old)

@@ -1,0 +1,851 @@
+"""Detail increments ΔT: records, merging with compression, reconstruction, file formats; the model.
+
+Paper: ``../shared/papers/003_2a2cfcda929de24c.txt``
+
+- eq. 1–2: f(S_i) = f(S_0) + ΔT_0 + … + ΔT_{i-1}; moving between scales adds or subtracts increments;
+- §2.2.1, table 1: one record per collapse with ``levelIndex``, ``mmqeValue``, the deleted triangles'
+  indices and vertex triples, the replaced triangles' indices with original and new vertex triples
+  (:class:`DeltaT`);
+- §2.2.2: merging k consecutive records, where a triangle changed several times keeps only its first
+  original and its last state, or only its first original as "deleted" when it ends deleted
+  (:meth:`Increments.merged`); and the external text scheme (:func:`write_text`);
+- §2.3.1: reconstruction by applying records forwards (vertex split) or backwards (edge collapse);
+- §4: storage of base + increments against a static pyramid (``benchmarks/tin.py``).
+
+Deviations, and why:
+
+- **Stable triangle slots.** A triangle's index is its row in the full-resolution triangle array for
+  ever; a deleted triangle leaves its slot empty instead of shifting later triangles down. The paper's
+  index recalculation (§2.2.1, steps 1–4) is then unnecessary, and applying a record is O(its size).
+- **Per-sub-block sequences.** Every collapse touches one sub-block, so each sub-block has its own scale
+  S_0 … S_{n_b} and its own records, and the current scale is a vector, one entry per sub-block; an
+  integer scale is a position in the global order in which the simplifier performed the collapses.
+- **Binary format** (the paper's text scheme stays as an export): a header (magic, version, payload
+  length, sha256 of the payload) and numpy arrays. The file stores each record's new triples only
+  implicitly: they are the state just before the record refines it, so loading replays the records
+  from the base once and recovers them exactly. Integers are stored in the narrowest type that holds
+  them and (by default) byte-shuffled and deflated.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import struct
+import zlib
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from terralod.errors import CorruptStoreError, InputError, InputNotFoundError
+from terralod.kernels.qem import coarsen_records, derive_new_triples, refine_records
+from terralod.tin.svo import monotone_mmqe, select_scales
+
+__all__ = [
+    "DeltaT",
+    "DetailIncrementModel",
+    "Increments",
+    "read_text",
+    "write_text",
+]
+
+MAGIC = b"TLODDIM\x00"
+FORMAT_VERSION = 1
+_HEADER = struct.Struct("<8sHHIQ32s8x")  # magic, version, flags, reserved, payload length, sha256
+_FLAG_DEFLATE = 1
+
+
+# -- records ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DeltaT:
+    """One detail increment ΔT_s of one sub-block: what takes scale S_s to S_{s+1} (paper 003 table 1).
+
+    Refining (vertex split) brings the deleted triangles back and gives the replaced ones their original
+    triples; coarsening (edge collapse) does the opposite.
+
+    Attributes
+    ----------
+    level_index : int
+        s (``levelIndex``).
+    mmqe_value : float
+        Monotone MMQE of scale S_s, m² (``mmqeValue``).
+    deleted_tri : (d,) int32
+        Slots of the triangles S_{s+1} has and S_s has not (``deletedTriInfo``).
+    deleted_tri_vex : (d, 3) int32
+        Their vertex triples in S_{s+1} (``deletedTriVexInfo``).
+    replaced_tri : (r,) int32
+        Slots present in both with different triples (``replacedTriInfo``).
+    replaced_tri_vex_ori : (r, 3) int32
+        Their triples in S_{s+1}, the finer scale (``replacedTriVexOriInfo``).
+    replaced_tri_vex_new : (r, 3) int32
+        Their triples in S_s, after the collapse (``replacedTriVexNewInfo``).
+    block : int
+        Sub-block.
+    """
+
+    level_index: int
+    mmqe_value: float
+    deleted_tri: np.ndarray
+    deleted_tri_vex: np.ndarray
+    replaced_tri: np.ndarray
+    replaced_tri_vex_ori: np.ndarray
+    replaced_tri_vex_new: np.ndarray
+    block: int = 0
+
+
+def _csr_take(ptr: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows ``order`` of a CSR layout: (new ptr, item indices into the old item arrays)."""
+    lens = (ptr[1:] - ptr[:-1])[order]
+    new_ptr = np.zeros(order.size + 1, np.int64)
+    np.cumsum(lens, out=new_ptr[1:])
+    starts = np.repeat(ptr[:-1][order] - new_ptr[:-1], lens)
+    return new_ptr, np.arange(new_ptr[-1], dtype=np.int64) + starts
+
+
+class Increments:
+    """The records of every sub-block, as flat arrays (records in block-major refinement order).
+
+    Block b owns records ``block_ptr[b] … block_ptr[b+1]-1``; record ``block_ptr[b] + s`` is ΔT_s of
+    block b. Record r deletes ``del_slot[del_ptr[r]:del_ptr[r+1]]`` (triples ``del_tri``) and replaces
+    ``rep_slot[rep_ptr[r]:rep_ptr[r+1]]`` (``rep_old`` in the finer scale, ``rep_new`` in the coarser).
+    ``mmqe_m2[mmqe_ptr[b] + s]`` is the monotone MMQE of block b's scale S_s (s = 0 … n_b).
+    ``rank[r]`` orders the records globally (refinement order; consistent with each block's order).
+    ``step`` is the number of collapses merged into one record (1 for raw records).
+    """
+
+    def __init__(
+        self,
+        block_ptr: np.ndarray,
+        del_ptr: np.ndarray,
+        del_slot: np.ndarray,
+        del_tri: np.ndarray,
+        rep_ptr: np.ndarray,
+        rep_slot: np.ndarray,
+        rep_old: np.ndarray,
+        rep_new: np.ndarray,
+        mmqe_m2: np.ndarray,
+        rank: np.ndarray,
+        step: int = 1,
+    ) -> None:
+        self.block_ptr = np.ascontiguousarray(block_ptr, np.int64)
+        self.del_ptr = np.ascontiguousarray(del_ptr, np.int64)
+        self.del_slot = np.ascontiguousarray(del_slot, np.int32)
+        self.del_tri = np.ascontiguousarray(del_tri, np.int32).reshape(-1, 3)
+        self.rep_ptr = np.ascontiguousarray(rep_ptr, np.int64)
+        self.rep_slot = np.ascontiguousarray(rep_slot, np.int32)
+        self.rep_old = np.ascontiguousarray(rep_old, np.int32).reshape(-1, 3)
+        self.rep_new = np.ascontiguousarray(rep_new, np.int32).reshape(-1, 3)
+        self.mmqe_m2 = np.ascontiguousarray(mmqe_m2, np.float64)
+        self.rank = np.ascontiguousarray(rank, np.int64)
+        self.step = int(step)
+        nb = self.block_ptr.size - 1
+        self.mmqe_ptr = self.block_ptr + np.arange(nb + 1)
+        self.record_block = np.repeat(np.arange(nb, dtype=np.int32), np.diff(self.block_ptr))
+        self.order = np.argsort(self.rank, kind="stable")
+
+    # -- sizes ------------------------------------------------------------------------------------------
+    @property
+    def n_blocks(self) -> int:
+        return int(self.block_ptr.size - 1)
+
+    @property
+    def n_records(self) -> int:
+        return int(self.block_ptr[-1])
+
+    def block_n_records(self) -> np.ndarray:
+        """(B,) int64: records of each block, n_b (its scales are S_0 … S_{n_b})."""
+        return np.diff(self.block_ptr)
+
+    def mmqe_of(self, block: int) -> np.ndarray:
+        """Monotone MMQE of block ``block``'s scales S_0 … S_{n_b}, m²."""
+        return self.mmqe_m2[self.mmqe_ptr[block] : self.mmqe_ptr[block + 1]]
+
+    def record(self, block: int, s: int) -> DeltaT:
+        """ΔT_s of block ``block`` as the paper's record (copies)."""
+        n = int(self.block_ptr[block + 1] - self.block_ptr[block])
+        if not 0 <= s < n:
+            raise IndexError(f"Expected a level index in [0, {n}) for block {block}, got {s}")
+        r = int(self.block_ptr[block]) + s
+        d0, d1 = self.del_ptr[r], self.del_ptr[r + 1]
+        r0, r1 = self.rep_ptr[r], self.rep_ptr[r + 1]
+        return DeltaT(
+            s,
+            float(self.mmqe_m2[self.mmqe_ptr[block] + s]),
+            self.del_slot[d0:d1].copy(),
+            self.del_tri[d0:d1].copy(),
+            self.rep_slot[r0:r1].copy(),
+            self.rep_old[r0:r1].copy(),
+            self.rep_new[r0:r1].copy(),
+            block,
+        )
+
+    def records(self, block: int) -> Iterator[DeltaT]:
+        """ΔT_0, ΔT_1, … of block ``block``."""
+        for s in range(int(self.block_ptr[block + 1] - self.block_ptr[block])):
+            yield self.record(block, s)
+
+    # -- construction ----------------------------------------------------------------------------------
+    @classmethod
+    def from_log(cls, log: Any, n_blocks: int) -> Increments:
+        """Records from a :class:`terralod.tin.qem.CollapseLog` (collapse order → refinement order)."""
+        c = log.n_collapses
+        block = log.block.astype(np.int64)
+        # Block-major, and within a block the last collapse first (ΔT_0 undoes the last collapse).
+        perm = np.lexsort((-np.arange(c), block))
+        block_ptr = np.zeros(n_blocks + 1, np.int64)
+        np.cumsum(np.bincount(block, minlength=n_blocks), out=block_ptr[1:])
+        del_slot = log.del_slot.reshape(c, 2)[perm].ravel()
+        del_tri = log.del_tri.reshape(c, 2, 3)[perm].reshape(-1, 3)
+        del_ptr = np.arange(0, 2 * c + 1, 2, dtype=np.int64)
+        rep_ptr, items = _csr_take(log.rep_ptr.astype(np.int64), perm)
+        mmqe = np.empty(c + n_blocks, np.float64)
+        for b in range(n_blocks):
+            lo, hi = block_ptr[b], block_ptr[b + 1]
+            raw = np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]])
+            mmqe[lo + b : hi + b + 1] = monotone_mmqe(raw)
+        rank = (c - 1 - perm).astype(np.int64)
+        return cls(
+            block_ptr,
+            del_ptr,
+            del_slot,
+            del_tri,
+            rep_ptr,
+            log.rep_slot[items],
+            log.rep_old[items],
+            log.rep_new[items],
+            mmqe,
+            rank,
+            1,
+        )
+
+    def merged(self, k: int) -> Increments:
+        """Merge every k consecutive records of each block into one, compressed (paper 003 §2.2.2).
+
+        Block b's scales become S_0, S_k, S_2k, …, S_{n_b} (the last record may hold fewer than k).
+        Within a merged record a triangle appears once: changed once, it stays as it is (principle 1);
+        changed several times and finally replaced, it keeps its first original and its last new triple
+        (principle 2); finally deleted, it keeps only its first original, as a deleted triangle
+        (principle 3). Vectorised over all records at once.
+        """
+        if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
+            raise InputError(f"Expected a merge factor k >= 1, got {k!r}")
+        if k == 1:
+            return self
+        nb = self.n_blocks
+        n_b = self.block_n_records()
+        g_b = -(-n_b // k)  # groups (merged records) per block
+        gptr = np.zeros(nb + 1, np.int64)
+        np.cumsum(g_b, out=gptr[1:])
+        rec_local = np.arange(self.n_records) - self.block_ptr[self.record_block]
+        rec_group = gptr[self.record_block] + rec_local // k
+
+        # Every change as an event (group, slot, record, original triple, new triple; new = -1: deleted).
+        nd = self.del_slot.size
+        ev_rec = np.concatenate(
+            [np.repeat(np.arange(self.n_records), np.diff(self.del_ptr)),
+             np.repeat(np.arange(self.n_records), np.diff(self.rep_ptr))]
+        )
+        ev_slot = np.concatenate([self.del_slot, self.rep_slot])
+        ev_old = np.concatenate([self.del_tri, self.rep_old])
+        ev_new = np.concatenate([np.full((nd, 3), -1, np.int32), self.rep_new])
+        ev_group = rec_group[ev_rec]
+        # Within a group the collapse order is decreasing record index: sort so each (group, slot) run
+        # starts with its first collapse (its original triple) and ends with its last (its final state).
+        o = np.lexsort((-ev_rec, ev_slot, ev_group))
+        g, s = ev_group[o], ev_slot[o]
+        start = np.ones(o.size, bool)
+        start[1:] = (g[1:] != g[:-1]) | (s[1:] != s[:-1])
+        first = o[start]
+        last = o[np.append(np.flatnonzero(start)[1:] - 1, o.size - 1)] if o.size else o
+        grp = ev_group[first]
+        slot = ev_slot[first]
+        old = ev_old[first]
+        new = ev_new[last]
+        dead = new[:, 0] < 0
+        n_groups = int(gptr[-1])
+        del_ptr = np.zeros(n_groups + 1, np.int64)
+        np.cumsum(np.bincount(grp[dead], minlength=n_groups), out=del_ptr[1:])
+        rep_ptr = np.zeros(n_groups + 1, np.int64)
+        np.cumsum(np.bincount(grp[~dead], minlength=n_groups), out=rep_ptr[1:])
+
+        # Scales S_0, S_k, …, S_{n_b}: the monotone MMQE sampled there (still monotone).
+        mm = np.empty(n_groups + nb, np.float64)
+        for b in range(nb):
+            scales = np.minimum(np.arange(g_b[b] + 1) * k, n_b[b])
+            mm[gptr[b] + b : gptr[b + 1] + b + 1] = self.mmqe_of(b)[scales]
+        # A merged record ranks where its first member does (keeps each block's order).
+        rank = np.zeros(n_groups, np.int64)
+        if self.n_records:
+            rank = np.full(n_groups, np.iinfo(np.int64).max, np.int64)
+            np.minimum.at(rank, rec_group, self.rank)
+        return Increments(
+            gptr, del_ptr, slot[dead], old[dead], rep_ptr, slot[~dead], old[~dead], new[~dead], mm, rank,
+            self.step * k,
+        )
+
+
+# -- text export (paper 003 §2.2.2, "external storage scheme") -------------------------------------------
+def write_text(inc: Increments, path: str | os.PathLike[str]) -> None:
+    """Write the increments in the paper's text scheme.
+
+    Line 1: the number of collapses merged per record (element 1, stored once). Then, per sub-block, a
+    comment line ``# block <b> records <n_b>`` and one row per record ΔT_0, ΔT_1, … with, separated by
+    spaces: (2) the number of changed triangles d + r; (3) the d deleted slots; (4) the r replaced
+    slots; (5) 3·d vertex indices of the deleted triangles; (6) 3·r original and (7) 3·r new vertex
+    indices of the replaced triangles. d follows from the row length (4 (d + r) + 3 r numbers).
+    """
+    with open(path, "w", encoding="ascii") as f:
+        f.write(f"{inc.step}\n")
+        for b in range(inc.n_blocks):
+            f.write(f"# block {b} records {int(inc.block_ptr[b + 1] - inc.block_ptr[b])}\n")
+            for r in range(int(inc.block_ptr[b]), int(inc.block_ptr[b + 1])):
+                d0, d1 = inc.del_ptr[r], inc.del_ptr[r + 1]
+                r0, r1 = inc.rep_ptr[r], inc.rep_ptr[r + 1]
+                parts = [
+                    np.array([d1 - d0 + r1 - r0]),
+                    inc.del_slot[d0:d1],
+                    inc.rep_slot[r0:r1],
+                    inc.del_tri[d0:d1].ravel(),
+                    inc.rep_old[r0:r1].ravel(),
+                    inc.rep_new[r0:r1].ravel(),
+                ]
+                f.write(" ".join(map(str, np.concatenate(parts).tolist())) + "\n")
+
+
+def read_text(path: str | os.PathLike[str]) -> tuple[int, list[list[DeltaT]]]:
+    """Parse :func:`write_text` output: (step, records per block; MMQE is not part of the scheme: NaN)."""
+    blocks: list[list[DeltaT]] = []
+    with open(path, encoding="ascii") as f:
+        step = int(f.readline())
+        for line in f:
+            if line.startswith("#"):
+                blocks.append([])
+                continue
+            a = np.array(line.split(), np.int64)
+            n = int(a[0])
+            r = (a.size - 1 - 4 * n) // 3
+            d = n - r
+            if d < 0 or r < 0 or a.size != 1 + 4 * n + 3 * r:
+                raise InputError(f"malformed record row of {a.size} numbers", str(path))
+            p = 1
+            ds = a[p : p + d]
+            p += d
+            rs = a[p : p + r]
+            p += r
+            dv = a[p : p + 3 * d].reshape(-1, 3)
+            p += 3 * d
+            ro = a[p : p + 3 * r].reshape(-1, 3)
+            p += 3 * r
+            rn = a[p : p + 3 * r].reshape(-1, 3)
+            blk = blocks[-1]
+            blk.append(DeltaT(len(blk), math.nan, ds, dv, rs, ro, rn, len(blocks) - 1))
+    return step, blocks
+
+
+# -- binary container ------------------------------------------------------------------------------------
+def _narrow(a: np.ndarray) -> np.ndarray:
+    """Integers in the narrowest little-endian type holding them."""
+    if a.dtype.kind not in "iu" or a.size == 0:
+        return a.astype(a.dtype.newbyteorder("<"))
+    lo, hi = int(a.min()), int(a.max())
+    for t in (np.uint8, np.uint16, np.uint32, np.uint64) if lo >= 0 else (np.int8, np.int16, np.int32, np.int64):
+        info = np.iinfo(t)
+        if info.min <= lo and hi <= info.max:
+            return a.astype(np.dtype(t).newbyteorder("<"))
+    return a
+
+
+def _encode_arrays(arrays: dict[str, np.ndarray], deflate: bool) -> bytes:
+    out = io.BytesIO()
+    out.write(struct.pack("<I", len(arrays)))
+    for name, arr in arrays.items():
+        a = np.ascontiguousarray(arr)
+        stored = _narrow(a)
+        raw = stored.tobytes()
+        if deflate:
+            if stored.dtype.itemsize > 1 and stored.size:
+                raw = np.frombuffer(raw, np.uint8).reshape(-1, stored.dtype.itemsize).T.tobytes()
+            raw = zlib.compress(raw, 6)
+        nm = name.encode()
+        out.write(struct.pack("<H", len(nm)) + nm)
+        for dt in (a.dtype.newbyteorder("<").str, stored.dtype.str):
+            out.write(struct.pack("<B", len(dt)) + dt.encode())
+        out.write(struct.pack("<B", a.ndim) + struct.pack(f"<{a.ndim}Q", *a.shape))
+        out.write(struct.pack("<Q", len(raw)) + raw)
+    return out.getvalue()
+
+
+def _decode_arrays(buf: bytes, deflate: bool, src: str) -> dict[str, np.ndarray]:
+    view = memoryview(buf)
+    pos = 0
+
+    def take(n: int) -> memoryview:
+        nonlocal pos
+        if pos + n > len(view):
+            raise CorruptStoreError("truncated array section", src)
+        out = view[pos : pos + n]
+        pos += n
+        return out
+
+    (count,) = struct.unpack("<I", take(4))
+    arrays = {}
+    for _ in range(count):
+        (ln,) = struct.unpack("<H", take(2))
+        name = bytes(take(ln)).decode()
+        dts = []
+        for _ in range(2):
+            (ld,) = struct.unpack("<B", take(1))
+            dts.append(np.dtype(bytes(take(ld)).decode()))
+        (ndim,) = struct.unpack("<B", take(1))
+        shape = struct.unpack(f"<{ndim}Q", take(8 * ndim))
+        (nbytes,) = struct.unpack("<Q", take(8))
+        raw = bytes(take(nbytes))
+        stored = dts[1]
+        if deflate:
+            raw = zlib.decompress(raw)
+            n = int(np.prod(shape))
+            if stored.itemsize > 1 and n:
+                raw = np.frombuffer(raw, np.uint8).reshape(stored.itemsize, -1).T.tobytes()
+        a = np.frombuffer(raw, stored).reshape(shape).astype(dts[0].newbyteorder("="))
+        arrays[name] = a
+    return arrays
+
+
+def write_container(path: str | os.PathLike[str], meta: dict[str, Any], arrays: dict[str, np.ndarray],
+                    *, deflate: bool = True) -> int:
+    """Write ``meta`` (JSON) and named arrays with the checksummed header; returns the file size, bytes.
+
+    Written to ``path + '.tmp'`` then renamed, so an interrupted write never leaves a half file.
+    """
+    body = json.dumps(meta, sort_keys=True).encode()
+    payload = struct.pack("<I", len(body)) + body + _encode_arrays(arrays, deflate)
+    head = _HEADER.pack(MAGIC, FORMAT_VERSION, _FLAG_DEFLATE if deflate else 0, 0, len(payload),
+                        hashlib.sha256(payload).digest())
+    p = Path(path)
+    tmp = p.with_name(p.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(head)
+        f.write(payload)
+    os.replace(tmp, p)
+    return len(head) + len(payload)
+
+
+def read_container(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Read :func:`write_container` output; CorruptStoreError on a foreign, damaged or newer file."""
+    p = Path(path)
+    src = str(p)
+    if not p.exists():
+        raise InputNotFoundError("file not found", src)
+    data = p.read_bytes()
+    if len(data) < _HEADER.size or data[:8] != MAGIC:
+        raise CorruptStoreError("not a terralod detail-increment file (bad magic)", src)
+    magic, version, flags, _, length, digest = _HEADER.unpack_from(data)
+    if version > FORMAT_VERSION:
+        raise CorruptStoreError(f"format version {version} is newer than this terralod's ({FORMAT_VERSION})", src)
+    payload = data[_HEADER.size :]
+    if len(payload) != length:
+        raise CorruptStoreError(f"truncated or padded: payload of {len(payload)} bytes, header says {length}", src)
+    if hashlib.sha256(payload).digest() != digest:
+        raise CorruptStoreError("checksum mismatch: the file is corrupted", src)
+    (lm,) = struct.unpack_from("<I", payload)
+    meta = json.loads(payload[4 : 4 + lm].decode())
+    arrays = _decode_arrays(payload[4 + lm :], bool(flags & _FLAG_DEFLATE), src)
+    return meta, arrays
+
+
+# -- the model -------------------------------------------------------------------------------------------
+def _auto_sub_blocks(n_points: int) -> int:
+    """k * k sub-blocks for a cloud of ``n_points``: about 32 k points (64 k triangles) a block, k >= 2."""
+    k = max(2, math.ceil(math.sqrt(n_points / 32768)))
+    return k * k
+
+
+class DetailIncrementModel:
+    """A continuous-scale TIN: the base mesh, the detail increments and the current scale of each sub-block.
+
+    Build with :meth:`from_points`, :meth:`from_las` or :meth:`from_heightfield`; read with :meth:`load`.
+    Coordinates are world metres (x east, y north, z up). Scales follow the paper: per sub-block, S_0 is
+    the base (``base_fraction`` of its triangles) and S_{n_b} the full-resolution TIN. The model keeps one
+    current state and moves it by applying increments (eq. 2), so nearby scale changes are cheap.
+
+    Attributes
+    ----------
+    vertices_m : (V, 3) float64
+        Every vertex of the full-resolution TIN, world metres (read-only).
+    increments : Increments
+        The records.
+    k : int
+        Sub-blocks per side (``n_blocks = k * k``).
+    block_centres_m : (B, 3) float64
+        Centre of each sub-block (the SVO segment's position), metres.
+    block_bounds_m : (B, 4) float64
+        (west, south, east, north) of each sub-block's cell, metres.
+    source, crs, notes
+        Provenance: input name, CRS WKT (or None), conversions applied.
+    """
+
+    def __init__(
+        self,
+        vertices_m: np.ndarray,
+        base_tris: np.ndarray,
+        base_alive: np.ndarray,
+        increments: Increments,
+        k: int,
+        block_centres_m: np.ndarray,
+        block_bounds_m: np.ndarray,
+        *,
+        source: str = "<points>",
+        crs: str | None = None,
+        notes: Sequence[str] = (),
+    ) -> None:
+        self.vertices_m = np.ascontiguousarray(vertices_m, np.float64)
+        self.vertices_m.setflags(write=False)
+        self._base_tris = np.ascontiguousarray(base_tris, np.int32)
+        self._base_alive = np.ascontiguousarray(base_alive, np.bool_)
+        self.increments = increments
+        self.k = int(k)
+        self.block_centres_m = np.ascontiguousarray(block_centres_m, np.float64)
+        self.block_bounds_m = np.ascontiguousarray(block_bounds_m, np.float64)
+        self.source = source
+        self.crs = crs
+        self.notes = tuple(notes)
+        self._tris = self._base_tris.copy()
+        self._alive = self._base_alive.copy()
+        self._scales = np.zeros(increments.n_blocks, np.int64)
+        self._full_tris: np.ndarray | None = None  # the input TIN when built here (for checks)
+
+    # -- builders ----------------------------------------------------------------------------------------
+    @classmethod
+    def from_points(
+        cls,
+        xyz_m: np.ndarray,
+        *,
+        sub_blocks: int | str = 4,
+        base_fraction: float = 0.2,
+        dedup_tol_m: float = 0.01,
+        source: str = "<points>",
+        crs: str | None = None,
+        notes: Sequence[str] = (),
+    ) -> DetailIncrementModel:
+        """Delaunay TIN of points, split into sub-blocks, simplified to its base, with its increments.
+
+        Parameters
+        ----------
+        xyz_m : (N, 3) float
+            Points, world metres (x east, y north, z up).
+        sub_blocks : int or "auto"
+            Number of sub-blocks, a square number (4 = the paper's 2 × 2); "auto" takes about 32 k points
+            a block (at least 4).
+        base_fraction : float in (0, 1]
+            Fraction of each sub-block's triangles in the base mesh S_0 (the paper's 20 %).
+        dedup_tol_m : float
+            Points sharing a ``dedup_tol_m`` xy cell are one (the lowest is kept); see
+            :func:`terralod.tin.pointcloud.thin_duplicates`.
+        source, crs, notes
+            Provenance, kept with the model.
+
+        Raises
+        ------
+        InputError
+            Bad shape, NaN/inf coordinates, fewer than 3 distinct points, collinear points, bad options.
+        """
+        from terralod.tin.delaunay import blocks_per_side, delaunay_tin
+        from terralod.tin.pointcloud import check_points, thin_duplicates
+
+        pts = check_points(xyz_m, source if source != "<points>" else None)
+        keep = thin_duplicates(pts, dedup_tol_m)
+        extra = []
+        if keep.size < pts.shape[0]:
+            extra.append(f"thinned {pts.shape[0] - keep.size} duplicate point(s) within {dedup_tol_m} m")
+        src = None if source == "<points>" else source
+        k = blocks_per_side(_auto_sub_blocks(keep.size) if sub_blocks == "auto" else sub_blocks)  # type: ignore[arg-type]
+        vertices, tris, _ = delaunay_tin(pts[keep], source=src)
+        return cls._build(vertices, tris, k, base_fraction, source, crs, (*notes, *extra))
+
+    @classmethod
+    def from_las(
+        cls,
+        path: str | os.PathLike[str],
+        *,
+        sub_blocks: int | str = 4,
+        base_fraction: float = 0.2,
+        dedup_tol_m: float = 0.01,
+        ground_only: bool | None = None,
+        units: str | float | None = None,
+    ) -> DetailIncrementModel:
+        """:meth:`from_points` of a LAS/LAZ file's points (ground only when classified, metres).
+
+        See :func:`terralod.tin.pointcloud.read_las` for ``ground_only`` and ``units``.
+        """
+        from terralod.tin.pointcloud import read_las
+
+        pc = read_las(path, ground_only=ground_only, units=units)
+        return cls.from_points(
+            pc.xyz_m, sub_blocks=sub_blocks, base_fraction=base_fraction, dedup_tol_m=dedup_tol_m,
+            source=pc.source, crs=pc.crs, notes=pc.notes,
+        )
+
+    @classmethod
+    def from_heightfield(
+        cls, hf: Any, *, sub_blocks: int | str = 4, base_fraction: float = 0.2
+    ) -> DetailIncrementModel:
+        """The grid TIN of a :class:`terralod.Heightfield`'s valid samples (world metres), as a model."""
+        from terralod.tin.delaunay import blocks_per_side, grid_tin
+
+        h, w = hf.shape
+        xs, _ = hf.world_xy(np.zeros(w), np.arange(w))
+        _, ys = hf.world_xy(np.arange(h), np.zeros(h))
+        vertices, tris, _ = grid_tin(hf.elevation_m, hf.valid, xs, ys)
+        k = blocks_per_side(_auto_sub_blocks(vertices.shape[0]) if sub_blocks == "auto" else sub_blocks)  # type: ignore[arg-type]
+        return cls._build(vertices, tris, k, base_fraction, hf.source, hf.crs, tuple(getattr(hf, "notes", ())))
+
+    @classmethod
+    def _build(cls, vertices, tris, k, base_fraction, source, crs, notes) -> DetailIncrementModel:
+        from terralod.tin.delaunay import split_sub_blocks
+        from terralod.tin.qem import simplify
+
+        sb = split_sub_blocks(vertices, tris, k)
+        log = simplify(vertices, tris, sb.kind, sb.tri_block, sb.vert_block, base_fraction=base_fraction,
+                       n_blocks=sb.n_blocks)
+        inc = Increments.from_log(log, sb.n_blocks)
+        model = cls(vertices, log.base_tris, log.base_alive, inc, k, sb.centre_m, sb.bounds_m,
+                    source=str(source), crs=crs, notes=notes)
+        model._full_tris = np.ascontiguousarray(tris, np.int32)  # the input TIN, kept for checks
+        return model
+
+    # -- sizes and scales -------------------------------------------------------------------------------
+    @property
+    def n_blocks(self) -> int:
+        return self.increments.n_blocks
+
+    @property
+    def n_slots(self) -> int:
+        """Triangles of the full-resolution TIN (every slot)."""
+        return int(self._base_tris.shape[0])
+
+    @property
+    def n_scales(self) -> int:
+        """Global scales 0 … n_scales - 1: scale j applies the first j records in global order."""
+        return self.increments.n_records + 1
+
+    @property
+    def block_n_scales(self) -> np.ndarray:
+        """(B,) int64: scales of each sub-block (n_b + 1)."""
+        return self.increments.block_n_records() + 1
+
+    @property
+    def block_scales(self) -> np.ndarray:
+        """(B,) int64: the current scale of each sub-block (a copy)."""
+        return self._scales.copy()
+
+    def block_scales_of(self, scale: int) -> np.ndarray:
+        """(B,) per-block scales of global scale ``scale``."""
+        if isinstance(scale, bool) or not isinstance(scale, int | np.integer) or not 0 <= scale < self.n_scales:
+            raise ValueError(f"Expected a scale in [0, {self.n_scales}), got {scale!r}")
+        inc = self.increments
+        return np.bincount(inc.record_block[inc.order[: int(scale)]], minlength=self.n_blocks).astype(np.int64)
+
+    def set_block_scales(self, scales: Sequence[int] | np.ndarray) -> None:
+        """Move each sub-block to its scale by applying (or reverting) its increments (eq. 2)."""
+        s = np.asarray(scales, np.int64)
+        nmax = self.increments.block_n_records()
+        if s.shape != (self.n_blocks,):
+            raise ValueError(f"Expected {self.n_blocks} per-block scales, got shape {s.shape}")
+        if (s < 0).any() or (s > nmax).any():
+            raise ValueError(f"Expected per-block scales in [0, n_b], n_b = {nmax.tolist()}, got {s.tolist()}")
+        inc = self.increments
+        for b in np.flatnonzero(s != self._scales):
+            cur, tgt, base = int(self._scales[b]), int(s[b]), int(inc.block_ptr[b])
+            if tgt > cur:
+                refine_records(self._tris, self._alive, base + cur, base + tgt, inc.del_ptr, inc.del_slot,
+                               inc.del_tri, inc.rep_ptr, inc.rep_slot, inc.rep_old)
+            else:
+                coarsen_records(self._tris, self._alive, base + tgt, base + cur, inc.del_ptr, inc.del_slot,
+                                inc.rep_ptr, inc.rep_slot, inc.rep_new)
+            self._scales[b] = tgt
+
+    def triangles(self) -> np.ndarray:
+        """(K, 3) int32: the live triangles of the current state (counter-clockwise, indices into
+        :attr:`vertices_m`), in slot order."""
+        return self._tris[self._alive]
+
+    def _mesh(self, compact: bool) -> tuple[np.ndarray, np.ndarray]:
+        t = self.triangles()
+        if not compact:
+            return self.vertices_m, t
+        used, inv = np.unique(t, return_inverse=True)
+        return self.vertices_m[used], inv.reshape(t.shape).astype(np.int32)
+
+    def mesh_at(self, scale: int | Sequence[int] | np.ndarray, *, compact: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """The TIN at a scale.
+
+        Parameters
+        ----------
+        scale : int or (B,) ints
+            A global scale in [0, n_scales) (0: every sub-block at its base; n_scales - 1: the full
+            TIN), or one scale per sub-block.
+        compact : bool
+            False (default): all vertices, triangles index them (unused vertices stay, the paper's
+            shared point array); True: only the used vertices, renumbered.
+
+        Returns
+        -------
+        vertices (N, 3) float64 world metres, triangles (K, 3) int32 counter-clockwise.
+        """
+        if np.ndim(scale) == 0:
+            self.set_block_scales(self.block_scales_of(scale))  # type: ignore[arg-type]
+        else:
+            self.set_block_scales(scale)  # type: ignore[arg-type]
+        return self._mesh(compact)
+
+    def scales_for_camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
+                          threshold_px: float = 2.0) -> np.ndarray:
+        """(B,) per-sub-block scales of the SVO rule (paper 003 §2.3.2) for a perspective camera.
+
+        Each sub-block gets the coarsest scale whose sqrt(MMQE) segment at the sub-block's centre
+        projects to at most ``threshold_px`` pixels. A pure query: the state is not touched.
+
+        Parameters
+        ----------
+        eye_m : (3,) world metres. fov_y_deg : vertical field of view, degrees, in (0, 180).
+        height_px : viewport height, pixels. threshold_px : N, pixels (the paper's 2).
+        """
+        eye = np.asarray(eye_m, np.float64)
+        if eye.shape != (3,) or not np.isfinite(eye).all():
+            raise ValueError(f"Expected a finite eye position (x, y, z) in metres, got {eye_m!r}")
+        if not (0.0 < fov_y_deg < 180.0):
+            raise ValueError(f"Expected fov_y_deg in (0, 180) degrees, got {fov_y_deg}")
+        if not (height_px > 0 and threshold_px > 0):
+            raise ValueError(f"Expected positive height_px and threshold_px, got {height_px}, {threshold_px}")
+        inc = self.increments
+        return select_scales(inc.mmqe_m2, inc.mmqe_ptr, self.block_centres_m, eye, math.radians(fov_y_deg),
+                             float(height_px), float(threshold_px))
+
+    def mesh_for_camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
+                        threshold_px: float = 2.0, *, compact: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The TIN with each sub-block at its SVO scale for this camera (see :meth:`scales_for_camera`)."""
+        self.set_block_scales(self.scales_for_camera(eye_m, fov_y_deg, height_px, threshold_px))
+        return self._mesh(compact)
+
+    def mmqe_m2(self, block: int) -> np.ndarray:
+        """Monotone MMQE of sub-block ``block``'s scales S_0 … S_{n_b}, m²."""
+        return self.increments.mmqe_of(block).copy()
+
+    def records(self, block: int) -> Iterator[DeltaT]:
+        """ΔT_0, ΔT_1, … of a sub-block (paper 003 table 1)."""
+        return self.increments.records(block)
+
+    # -- compression -------------------------------------------------------------------------------------
+    def compressed(self, k: int) -> DetailIncrementModel:
+        """A model whose records each merge k consecutive records (paper 003 §2.2.2), starting at the base.
+
+        Its sub-block scales are this model's S_0, S_k, S_2k, …, S_{n_b}.
+        """
+        m = DetailIncrementModel(self.vertices_m, self._base_tris, self._base_alive, self.increments.merged(k),
+                                 self.k, self.block_centres_m, self.block_bounds_m, source=self.source,
+                                 crs=self.crs, notes=self.notes)
+        m._full_tris = self._full_tris
+        return m
+
+    # -- files -------------------------------------------------------------------------------------------
+    def _payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        inc = self.increments
+        base_slot = np.flatnonzero(self._base_alive).astype(np.int64)
+        meta = {
+            "format": "terralod detail-increment model (paper 003)",
+            "k": self.k,
+            "n_slots": self.n_slots,
+            "step": inc.step,
+            "source": self.source,
+            "crs": self.crs,
+            "notes": list(self.notes),
+            "units": "metres; x east, y north, z up",
+        }
+        arrays = {
+            "vertices_m": self.vertices_m,
+            "base_slot": base_slot,
+            "base_tri": self._base_tris[base_slot],
+            "block_centres_m": self.block_centres_m,
+            "block_bounds_m": self.block_bounds_m,
+            "block_records": np.diff(inc.block_ptr),
+            "del_count": np.diff(inc.del_ptr),
+            "del_slot": inc.del_slot,
+            "del_tri": inc.del_tri,
+            "rep_count": np.diff(inc.rep_ptr),
+            "rep_slot": inc.rep_slot,
+            "rep_old": inc.rep_old,
+            "mmqe_m2": inc.mmqe_m2,
+            "rank": inc.rank,
+        }
+        return meta, arrays
+
+    def save(self, path: str | os.PathLike[str], *, deflate: bool = True) -> int:
+        """Write the model (base mesh + increments + MMQE) to one checksummed file; returns its size, bytes."""
+        meta, arrays = self._payload()
+        return write_container(path, meta, arrays, deflate=deflate)
+
+    def export_text(self, path: str | os.PathLike[str]) -> None:
+        """Write the increments in the paper's text scheme (:func:`write_text`)."""
+        write_text(self.increments, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> DetailIncrementModel:
+        """Read a file written by :meth:`save`; the model starts at its base scale.
+
+        Raises
+        ------
+        InputNotFoundError : no such file.
+        CorruptStoreError : not such a file, newer format, checksum mismatch, or inconsistent content.
+        """
+        src = str(path)
+        meta, a = read_container(path)
+        try:
+            k = int(meta["k"])
+            n_slots = int(meta["n_slots"])
+            v = a["vertices_m"]
+            nb = k * k
+            block_ptr = np.concatenate([[0], np.cumsum(a["block_records"])]).astype(np.int64)
+            del_ptr = np.concatenate([[0], np.cumsum(a["del_count"])]).astype(np.int64)
+            rep_ptr = np.concatenate([[0], np.cumsum(a["rep_count"])]).astype(np.int64)
+            checks = [
+                (v.ndim == 2 and v.shape[1] == 3, "vertices"),
+                (block_ptr.size == nb + 1, "block count"),
+                (del_ptr.size == rep_ptr.size == block_ptr[-1] + 1, "record count"),
+                (del_ptr[-1] == a["del_slot"].size == a["del_tri"].shape[0], "deleted triangles"),
+                (rep_ptr[-1] == a["rep_slot"].size == a["rep_old"].shape[0], "replaced triangles"),
+                (a["mmqe_m2"].size == block_ptr[-1] + nb and a["rank"].size == block_ptr[-1], "MMQE"),
+            ]
+            for arr in ("base_slot", "del_slot", "rep_slot"):
+                checks.append((a[arr].size == 0 or (a[arr].min() >= 0 and a[arr].max() < n_slots), arr))
+            for arr in ("base_tri", "del_tri", "rep_old"):
+                checks.append((a[arr].size == 0 or (a[arr].min() >= 0 and a[arr].max() < v.shape[0]), arr))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise CorruptStoreError(f"incomplete detail-increment file ({exc})", src) from exc
+        for ok, what in checks:
+            if not ok:
+                raise CorruptStoreError(f"inconsistent detail-increment file: {what}", src)
+        base_tris = np.zeros((n_slots, 3), np.int32)
+        base_alive = np.zeros(n_slots, np.bool_)
+        base_tris[a["base_slot"]] = a["base_tri"]
+        base_alive[a["base_slot"]] = True
+        rep_new = np.empty_like(a["rep_old"], dtype=np.int32)
+        tris = base_tris.copy()
+        alive = base_alive.copy()
+        del_slot = np.ascontiguousarray(a["del_slot"], np.int32)
+        del_tri = np.ascontiguousarray(a["del_tri"], np.int32).reshape(-1, 3)
+        rep_slot = np.ascontiguousarray(a["rep_slot"], np.int32)
+        rep_old = np.ascontiguousarray(a["rep_old"], np.int32).reshape(-1, 3)
+        derive_new_triples(tris, alive, 0, int(block_ptr[-1]), del_ptr, del_slot, del_tri, rep_ptr, rep_slot,
+                           rep_old, rep_new)
+        inc = Increments(block_ptr, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new,
+                         a["mmqe_m2"], a["rank"], int(meta.get("step", 1)))
+        m = cls(v, base_tris, base_alive, inc, k, a["block_centres_m"], a["block_bounds_m"],
+                source=str(meta.get("source", src)), crs=meta.get("crs"), notes=meta.get("notes", ()))
+        return m

@@ -1,0 +1,278 @@
+"""Points for the TIN: LAS/LAZ reading (laspy with lazrs), units to metres, ground class, duplicate thinning.
+
+Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §3 ("before generating the TIN model, the point
+cloud was processed ... such as points filtering and thinning"). The paper gives no rule; the rules here:
+
+- **Ground only.** A classified cloud (any point of class 2, ASPRS "ground") keeps its class-2 points, the
+  bare earth a terrain TIN should show; an unclassified cloud keeps every point. ``ground_only=True``
+  demands class 2, ``False`` keeps everything.
+- **Units.** Coordinates become metres from the file's CRS: the linear unit of the WKT VLR (read with
+  GDAL through rasterio: international foot 0.3048, US survey foot 1200/3937, …), else the GeoTIFF keys
+  (ProjLinearUnitsGeoKey, VerticalUnitsGeoKey, or the EPSG code of ProjectedCSTypeGeoKey), else metres
+  with a note. Elevations take the vertical unit when the CRS names one (a VERT_CS in a COMPD_CS WKT, or
+  VerticalUnitsGeoKey) and the horizontal unit otherwise (the LAS habit: Autzen stores x, y and z in
+  international feet). A geographic CRS (degrees) is refused: reproject first.
+- **Thinning.** Points whose xy fall in the same ``tol_m`` square cell (cells anchored at the cloud's
+  south-west corner) are one location; the **lowest** point is kept (for LiDAR the lowest return of a
+  location is the one nearest the ground). Two points closer than ``tol_m`` but on either side of a cell
+  edge both stay; the triangulator then drops any that still coincide, so the TIN never sees a duplicate.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from terralod.errors import InputError, InputNotFoundError
+
+__all__ = ["PointCloud", "check_points", "read_las", "thin_duplicates", "unit_factor_from_wkt"]
+
+log = logging.getLogger(__name__)
+
+#: EPSG unit codes of the GeoTIFF keys → metres per unit.
+_GEOKEY_UNITS = {9001: ("metre", 1.0), 9002: ("foot", 0.3048), 9003: ("US survey foot", 1200.0 / 3937.0)}
+#: Names accepted by ``units=``.
+_UNIT_NAMES = {
+    "m": 1.0,
+    "metre": 1.0,
+    "meter": 1.0,
+    "ft": 0.3048,
+    "foot": 0.3048,
+    "us-ft": 1200.0 / 3937.0,
+    "us_survey_foot": 1200.0 / 3937.0,
+}
+
+#: ASPRS ground class.
+GROUND = 2
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """Points in metres with where they came from.
+
+    Attributes
+    ----------
+    xyz_m : (N, 3) float64
+        x east, y north, z up, metres (the file's projected frame scaled to metres).
+    crs : str or None
+        WKT of the file's CRS as read (its unit may be feet: the coordinates here are metres regardless).
+    source : str
+        The file.
+    n_read : int
+        Points in the file before filtering.
+    classified : bool
+        True when the file had ground (class 2) points.
+    notes : tuple of str
+        Filters and conversions applied, one line each.
+    """
+
+    xyz_m: np.ndarray
+    crs: str | None
+    source: str
+    n_read: int
+    classified: bool
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def check_points(xyz: np.ndarray, source: str | None = None) -> np.ndarray:
+    """(N, 3) float64 C-contiguous copy of ``xyz``; InputError on a bad shape or non-finite coordinates."""
+    a = np.asarray(xyz)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise InputError(f"Expected points of shape (N, 3) (x, y, z metres), got {a.shape}", source)
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
+        raise InputError(f"Expected numeric points, got dtype {a.dtype}", source)
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(
+            f"Expected finite coordinates, got {int(bad.sum())} point(s) with NaN/inf, first at index {i}: "
+            f"{a[i].tolist()}",
+            source,
+        )
+    return a
+
+
+def thin_duplicates(xyz: np.ndarray, tol_m: float = 0.01) -> np.ndarray:
+    """Indices of the points kept when points sharing a ``tol_m`` xy cell are merged (lowest z kept).
+
+    Parameters
+    ----------
+    xyz : (N, 3) float64
+        Points, metres (finite).
+    tol_m : float
+        Cell side, metres; 0 merges exact xy duplicates only.
+
+    Returns
+    -------
+    (K,) int64
+        Ascending indices into ``xyz`` of the kept points (the lowest point of each cell; the first in
+        input order among equal lowest).
+    """
+    n = xyz.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    if tol_m < 0 or not np.isfinite(tol_m):
+        raise InputError(f"Expected a duplicate tolerance >= 0 metres, got {tol_m}")
+    if tol_m == 0:
+        kx, ky = xyz[:, 0], xyz[:, 1]
+    else:
+        kx = np.floor((xyz[:, 0] - xyz[:, 0].min()) / tol_m)
+        ky = np.floor((xyz[:, 1] - xyz[:, 1].min()) / tol_m)
+    order = np.lexsort((np.arange(n), xyz[:, 2], ky, kx))  # by cell, then lowest z, then input order
+    sx, sy = kx[order], ky[order]
+    first = np.ones(n, bool)
+    first[1:] = (sx[1:] != sx[:-1]) | (sy[1:] != sy[:-1])
+    return np.sort(order[first])
+
+
+def unit_factor_from_wkt(wkt: str) -> tuple[str, float, float | None]:
+    """(unit name, metres per horizontal unit, metres per vertical unit or None) of a CRS's WKT.
+
+    Raises InputError for a geographic CRS (degrees) or a WKT GDAL cannot parse.
+    """
+    from rasterio.crs import CRS
+    from rasterio.errors import CRSError
+
+    head = wkt.split("VERT_CS")[0]
+    try:
+        crs = CRS.from_wkt(head if head.strip().startswith("PROJCS") else wkt)
+    except CRSError as exc:
+        raise InputError(f"cannot parse the CRS WKT ({exc})") from exc
+    if crs.is_geographic:
+        raise InputError("coordinates are geographic (degrees); reproject the cloud to a projected CRS first")
+    name, factor = crs.linear_units_factor
+    vert = None
+    m = re.search(r"VERT_CS\[.*?UNIT\[\s*\"([^\"]+)\"\s*,\s*([0-9.eE+-]+)", wkt, flags=re.S)
+    if m:
+        vert = float(m.group(2))
+    return str(name), float(factor), vert
+
+
+def _units_from_geokeys(header) -> tuple[str, float, float | None, str | None] | None:
+    """(name, horizontal factor, vertical factor or None, crs text) from the GeoTIFF keys, or None."""
+    for vlr in header.vlrs:
+        if type(vlr).__name__ != "GeoKeyDirectoryVlr":
+            continue
+        keys = {k.id: k.value_offset for k in vlr.geo_keys if k.tiff_tag_location == 0}
+        vert = _GEOKEY_UNITS.get(keys.get(4099, -1), (None, None))[1]
+        if keys.get(1024) == 2:  # ModelTypeGeographic
+            raise InputError("coordinates are geographic (degrees); reproject the cloud to a projected CRS first")
+        if 3076 in keys and keys[3076] in _GEOKEY_UNITS:
+            name, f = _GEOKEY_UNITS[keys[3076]]
+            return name, f, vert, None
+        code = keys.get(3072)
+        if code and code != 32767:
+            from rasterio.crs import CRS
+
+            crs = CRS.from_epsg(int(code))
+            name, f = crs.linear_units_factor
+            return str(name), float(f), vert, crs.to_wkt()
+    return None
+
+
+def _wkt_of(header) -> str | None:
+    for vlr in header.vlrs:
+        if type(vlr).__name__ == "WktCoordinateSystemVlr":
+            s = vlr.string
+            return s.decode("ascii", "replace").strip("\x00") if isinstance(s, bytes) else str(s).strip("\x00")
+    return None
+
+
+def read_las(
+    path: str | os.PathLike[str],
+    *,
+    ground_only: bool | None = None,
+    units: str | float | None = None,
+) -> PointCloud:
+    """Read a LAS/LAZ cloud as metres, ground points only when it is classified.
+
+    Parameters
+    ----------
+    path : LAS or LAZ file (LAZ needs the lazrs or laszip backend of laspy).
+    ground_only : None (default) keeps class 2 when the cloud has any, else every point; True demands
+        class 2 points; False keeps every point.
+    units : override the file's unit: "m", "ft" (international foot), "us-ft" (US survey foot), or
+        metres per unit as a number (applied to x, y and z).
+
+    Returns
+    -------
+    PointCloud
+
+    Raises
+    ------
+    InputNotFoundError : no such file.
+    InputError : unreadable file, geographic coordinates, no points left after filtering.
+    """
+    import laspy
+
+    p = Path(path)
+    src = str(p)
+    if not p.exists():
+        raise InputNotFoundError("file not found", src)
+    try:
+        las = laspy.read(src)
+    except Exception as exc:  # laspy raises its own and OSError/ValueError subclasses
+        raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
+    header = las.header
+    n_read = int(header.point_count)
+    notes: list[str] = []
+
+    # Units: explicit, WKT, GeoTIFF keys, else metres.
+    wkt = _wkt_of(header)
+    if units is not None:
+        if isinstance(units, str):
+            if units.lower() not in _UNIT_NAMES:
+                raise InputError(f"Expected units in {sorted(_UNIT_NAMES)} or a number, got {units!r}", src)
+            fh = fv = _UNIT_NAMES[units.lower()]
+        else:
+            fh = fv = float(units)
+            if not (fh > 0 and np.isfinite(fh)):
+                raise InputError(f"Expected a positive metres-per-unit factor, got {units}", src)
+        notes.append(f"units given: {units} ({fh} m per unit)")
+    else:
+        found = None
+        if wkt:
+            try:
+                name, fh, fvv = unit_factor_from_wkt(wkt)
+            except InputError as exc:
+                raise InputError(exc.message, src) from exc
+            found = (name, fh, fvv)
+        else:
+            g = _units_from_geokeys(header)
+            if g is not None:
+                found = g[:3]
+                wkt = g[3]
+        if found is None:
+            fh = fv = 1.0
+            notes.append("no CRS in the file: coordinates taken as metres (pass units= to override)")
+            log.info("%s: no CRS; coordinates taken as metres", src)
+        else:
+            name, fh, fvv = found
+            fv = fvv if fvv is not None else fh
+            if fh != 1.0 or fv != 1.0:
+                notes.append(f"coordinates in {name}: x, y scaled by {fh}, z by {fv} to metres")
+
+    xyz = np.empty((n_read, 3), np.float64)
+    xyz[:, 0] = np.asarray(las.x, dtype=np.float64) * fh
+    xyz[:, 1] = np.asarray(las.y, dtype=np.float64) * fh
+    xyz[:, 2] = np.asarray(las.z, dtype=np.float64) * fv
+
+    # Ground class.
+    cls = np.asarray(las.classification) if "classification" in las.point_format.dimension_names else None
+    classified = cls is not None and bool((cls == GROUND).any())
+    if ground_only is True and not classified:
+        raise InputError("no ground points (class 2) in the cloud; pass ground_only=False to use all points", src)
+    if classified and ground_only is not False:
+        keep = cls == GROUND
+        xyz = xyz[keep]
+        notes.append(f"kept {int(keep.sum())} ground points (class 2) of {n_read}")
+    if xyz.shape[0] == 0:
+        raise InputError("the file has no points", src)
+    xyz = check_points(xyz, src)
+    return PointCloud(xyz, wkt, src, n_read, classified, tuple(notes))

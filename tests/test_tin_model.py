@@ -1,0 +1,223 @@
+"""Detail-increment TIN model (paper 003): reconstruction is exact and reversible, every intermediate scale
+is a manifold TIN with no flipped triangle and no gap, merged records give the same scales, files are
+checksummed, degenerate point sets get clear errors, and the SVO rule picks finer scales nearer the eye."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from terralod.errors import CorruptStoreError, InputError
+from terralod.tin import DetailIncrementModel
+
+from conftest import fractal_terrain
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def _cloud(seed: int, n: int, relief_m: float = 40.0) -> np.ndarray:
+    """Random xy over 1 km² with a smooth surface plus noise, metres."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, 1000.0, (n, 2)) + np.array([500000.0, 4100000.0])
+    x, y = xy[:, 0] - 500000.0, xy[:, 1] - 4100000.0
+    z = relief_m * np.sin(x / 130.0) * np.cos(y / 170.0) + rng.normal(0.0, relief_m * 0.05, n) + 200.0
+    return np.c_[xy, z]
+
+
+def _xy_area2(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+
+
+def _check_tin(v: np.ndarray, t: np.ndarray, full_area2: float) -> None:
+    """Manifold (every directed edge once, every undirected edge in at most two triangles), every triangle
+    counter-clockwise with positive area, and the same covered area as the full TIN (no gap, no overlap)."""
+    t = t.astype(np.int64)
+    area2 = _xy_area2(v, t)
+    assert (area2 > 0).all(), f"{int((area2 <= 0).sum())} flipped or degenerate triangles"
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    n = int(v.shape[0])
+    directed = e[:, 0] * n + e[:, 1]
+    assert np.unique(directed).size == directed.size, "a directed edge is used twice (fold or non-manifold)"
+    und = np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1])
+    assert np.unique(und, return_counts=True)[1].max() <= 2
+    assert np.isclose(area2.sum(), full_area2, rtol=1e-9, atol=1e-6), "covered area changed: gap or overlap"
+
+
+def _full_state(m: DetailIncrementModel) -> np.ndarray:
+    m.mesh_at(m.n_scales - 1)
+    return m.triangles().copy()
+
+
+@settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(12, 600),
+    blocks=st.sampled_from([1, 4, 9]),
+    base=st.floats(0.05, 0.6),
+)
+def test_scales_are_exact_reversible_and_watertight(seed: int, n: int, blocks: int, base: float) -> None:
+    m = DetailIncrementModel.from_points(_cloud(seed, n), sub_blocks=blocks, base_fraction=base)
+    full = m._full_tris
+    assert m.n_slots == full.shape[0]
+    # refining the base fully reproduces the input triangulation exactly, slot for slot
+    assert np.array_equal(_full_state(m), full)
+    full_area2 = float(_xy_area2(m.vertices_m, full.astype(np.int64)).sum())
+    rng = np.random.default_rng(seed)
+    nmax = m.increments.block_n_records()
+    # the base has about base_fraction of each block's triangles (blocks with few free vertices stop above)
+    v0, t0 = m.mesh_at(0)
+    assert t0.shape[0] <= full.shape[0]
+    _check_tin(v0, t0, full_area2)
+    for _ in range(4):
+        # a global scale, then independent per-block scales
+        g = int(rng.integers(0, m.n_scales))
+        v, t = m.mesh_at(g)
+        _check_tin(v, t, full_area2)
+        per = np.array([rng.integers(0, k + 1) for k in nmax], np.int64)
+        v, t = m.mesh_at(per)
+        _check_tin(v, t, full_area2)
+        # coarsen, then refine back: the same state, slot for slot
+        before = m.triangles().copy()
+        m.mesh_at(np.array([rng.integers(0, s + 1) for s in per], np.int64))
+        m.mesh_at(per)
+        assert np.array_equal(m.triangles(), before)
+    # MMQE per block is monotone: finer scales never have a larger error
+    for b in range(m.n_blocks):
+        mm = m.mmqe_m2(b)
+        assert mm.size == nmax[b] + 1 and (np.diff(mm) <= 0).all()
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), k=st.integers(2, 7))
+def test_merged_records_reconstruct_the_same_scales(seed: int, k: int) -> None:
+    """§2.2.2 compression: the model whose records each merge k collapses reaches S_0, S_k, S_2k, … with
+    exactly the triangles of the raw model at those scales, forwards and backwards."""
+    m = DetailIncrementModel.from_points(_cloud(seed, 300), sub_blocks=4, base_fraction=0.2)
+    c = m.compressed(k)
+    nmax = m.increments.block_n_records()
+    assert np.array_equal(c.increments.block_n_records(), -(-nmax // k))
+    rng = np.random.default_rng(seed)
+    steps = [np.array([rng.integers(0, -(-x // k) + 1) for x in nmax]) for _ in range(5)]
+    for j in steps + steps[::-1]:
+        _, tc = c.mesh_at(j)
+        _, tm = m.mesh_at(np.minimum(j * k, nmax))
+        assert np.array_equal(tc, tm)
+    # fewer records, fewer (or as many) stored triangle changes
+    assert c.increments.del_slot.size + c.increments.rep_slot.size <= (
+        m.increments.del_slot.size + m.increments.rep_slot.size
+    )
+
+
+def test_save_load_roundtrip_and_checksum(tmp_path: Path) -> None:
+    m = DetailIncrementModel.from_points(_cloud(7, 2000), sub_blocks=4)
+    path = tmp_path / "m.tdim"
+    size = m.save(path)
+    assert size == path.stat().st_size
+    r = DetailIncrementModel.load(path)
+    assert r.n_scales == m.n_scales and r.n_blocks == m.n_blocks
+    for s in (0, m.n_scales // 3, m.n_scales - 1, 5):
+        assert np.array_equal(r.mesh_at(s)[1], m.mesh_at(s)[1])
+        assert np.array_equal(r.mesh_at(s)[0], m.mesh_at(s)[0])
+    for b in range(m.n_blocks):
+        assert np.array_equal(r.mmqe_m2(b), m.mmqe_m2(b))
+    # every record of the paper's table 1 survives the file, new triples included
+    for b in range(m.n_blocks):
+        for a, c in zip(m.records(b), r.records(b), strict=True):
+            assert a.level_index == c.level_index and a.mmqe_value == c.mmqe_value
+            for f in ("deleted_tri", "deleted_tri_vex", "replaced_tri", "replaced_tri_vex_ori", "replaced_tri_vex_new"):
+                assert np.array_equal(getattr(a, f), getattr(c, f)), f
+    # the text scheme export
+    m.export_text(tmp_path / "m.txt")
+    assert (tmp_path / "m.txt").read_text().splitlines()[0].strip() == "1"
+    # one flipped byte in the payload is caught by the checksum
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0x40
+    bad = tmp_path / "bad.tdim"
+    bad.write_bytes(bytes(raw))
+    with pytest.raises(CorruptStoreError, match="bad.tdim"):
+        DetailIncrementModel.load(bad)
+    # a truncated file and a foreign file
+    (tmp_path / "short.tdim").write_bytes(bytes(raw[:100]))
+    with pytest.raises(CorruptStoreError):
+        DetailIncrementModel.load(tmp_path / "short.tdim")
+    (tmp_path / "foreign.tdim").write_text("hello, not a model\n" * 10)
+    with pytest.raises(CorruptStoreError):
+        DetailIncrementModel.load(tmp_path / "foreign.tdim")
+
+
+@pytest.mark.parametrize(
+    ("points", "message"),
+    [
+        (np.zeros((2, 3)), "at least 3"),
+        (np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 2.0], [0.0, 0.0, 3.0], [0.0, 0.0, 4.0]]), "at least 3"),
+        (np.c_[np.arange(10.0), 2.0 * np.arange(10.0), np.ones(10)], "collinear"),
+        (np.array([[0.0, 0.0, 1.0], [1.0, np.nan, 2.0], [0.0, 1.0, 3.0], [1.0, 1.0, 1.0]]), "NaN|finite"),
+        (np.ones((5, 2)), "3"),
+    ],
+)
+def test_degenerate_points_get_clear_errors(points: np.ndarray, message: str) -> None:
+    with pytest.raises(InputError, match=message):
+        DetailIncrementModel.from_points(points, source="cloud.laz")
+
+
+def test_svo_rule_refines_near_the_eye() -> None:
+    """Per-sub-block scales from the smallest-visible-object rule: a block nearer the eye never gets a
+    coarser scale than the same block seen from farther, and every selected scale meets N pixels unless
+    it is the block's finest."""
+    from terralod.tin.svo import svo_length_px
+
+    m = DetailIncrementModel.from_points(_cloud(3, 4000, relief_m=80.0), sub_blocks=9)
+    centre = m.block_centres_m.mean(axis=0)
+    prev = None
+    for height in (20000.0, 5000.0, 1500.0, 400.0):
+        eye = centre + np.array([0.0, 0.0, height])
+        s = m.scales_for_camera(eye, 60.0, 1080, 2.0)
+        d = np.linalg.norm(m.block_centres_m - eye, axis=1)
+        for b in range(m.n_blocks):
+            mm = m.mmqe_m2(b)
+            px = svo_length_px(mm[s[b]], d[b], np.radians(60.0), 1080)
+            assert px <= 2.0 or s[b] == mm.size - 1
+            if s[b] > 0:  # the next coarser scale would not have met the rule
+                assert svo_length_px(mm[s[b] - 1], d[b], np.radians(60.0), 1080) > 2.0
+        if prev is not None:
+            assert (s >= prev).all()
+        prev = s
+        v, t = m.mesh_for_camera(eye, 60.0, 1080, 2.0)
+        assert np.array_equal(m.block_scales, s)
+    assert prev is not None and prev.sum() > 0
+
+
+def test_heightfield_model_full_scale_is_the_grid_tin() -> None:
+    from terralod import Heightfield
+
+    z = fractal_terrain(40, 50, 5, relief_m=200.0)
+    hf = Heightfield.from_array(z, 10.0, origin_m=(300000.0, 5000000.0))
+    m = DetailIncrementModel.from_heightfield(hf, sub_blocks=4)
+    v, t = m.mesh_at(m.n_scales - 1)
+    assert t.shape[0] == 2 * 39 * 49 and v.shape[0] == 40 * 50
+    assert np.allclose(np.sort(v[:, 2]), np.sort(z.ravel().astype(np.float64)))
+    v0, t0 = m.mesh_at(0)
+    assert t0.shape[0] < 0.35 * t.shape[0]
+
+
+@pytest.mark.skipif(not (SHARED / "lidar" / "autzen_trim.laz").exists(),
+                    reason=f"real LiDAR not present at {SHARED} (../shared/data beside the repository)")  # fmt: skip
+def test_real_laz_ground_model() -> None:
+    """Autzen (LAZ, international feet): ground points in metres, and the model's full scale is exactly
+    its Delaunay TIN; the base is a valid TIN of the same footprint."""
+    m = DetailIncrementModel.from_las(SHARED / "lidar" / "autzen_trim.laz", sub_blocks=4)
+    v = m.vertices_m
+    assert 20_000 < v.shape[0] <= 26_107  # ground class only (26,107 of 110,000 points)
+    # metres: the ground lies at 406-434 ft (international feet), 123.8-132.3 m
+    assert 123.0 < v[:, 2].min() and v[:, 2].max() < 133.0
+    assert any("foot" in n for n in m.notes) and any("ground" in n for n in m.notes)
+    full = m._full_tris
+    area2 = float(_xy_area2(v, full.astype(np.int64)).sum())
+    assert np.array_equal(_full_state(m), full)
+    for s in (0, m.n_scales // 2):
+        _check_tin(*m.mesh_at(s), area2)
