@@ -131,6 +131,12 @@ def test_save_load_roundtrip_and_checksum(tmp_path: Path) -> None:
             assert a.level_index == c.level_index and a.mmqe_value == c.mmqe_value
             for f in ("deleted_tri", "deleted_tri_vex", "replaced_tri", "replaced_tri_vex_ori", "replaced_tri_vex_new"):
                 assert np.array_equal(getattr(a, f), getattr(c, f)), f
+    # merged records use the general layout (original triples stored); they survive the file too
+    c = m.compressed(4)
+    c.save(tmp_path / "c.tdim")
+    rc = DetailIncrementModel.load(tmp_path / "c.tdim")
+    for s in (0, c.n_scales // 2, c.n_scales - 1):
+        assert np.array_equal(rc.mesh_at(s)[1], c.mesh_at(s)[1])
     # the text scheme export
     m.export_text(tmp_path / "m.txt")
     assert (tmp_path / "m.txt").read_text().splitlines()[0].strip() == "1"

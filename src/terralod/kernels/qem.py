@@ -616,3 +616,25 @@ def derive_new_triples(tris, alive, r0, r1, del_ptr, del_slot, del_tri, rep_ptr,
             rep_new[i, 1] = tris[s, 1]
             rep_new[i, 2] = tris[s, 2]
         refine_records(tris, alive, r, r + 1, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old)
+
+
+@jit
+def derive_split_triples(tris, alive, r0, r1, rec_u, rec_v, del_ptr, del_slot, del_tri, rep_ptr, rep_slot,
+                         rep_old, rep_new):
+    """Fill ``rep_old`` and ``rep_new`` of raw records r0..r1-1 (one half-edge collapse u -> v each) by
+    replaying them forward from the coarse state in (tris, alive).
+
+    A replaced slot's new triple is its state just before the record refines it; its original triple is
+    the same with v put back to u (the collapse rewrote u to v and nothing else). Used on loading compact
+    files, which store (u, v) per record instead of the original triples.
+    """
+    for r in range(r0, r1):
+        u = rec_u[r]
+        v = rec_v[r]
+        for i in range(rep_ptr[r], rep_ptr[r + 1]):
+            s = rep_slot[i]
+            for j in range(3):
+                t = tris[s, j]
+                rep_new[i, j] = t
+                rep_old[i, j] = u if t == v else t
+        refine_records(tris, alive, r, r + 1, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old)

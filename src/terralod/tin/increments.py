@@ -23,7 +23,9 @@ Deviations, and why:
 - **Binary format** (the paper's text scheme stays as an export): a header (magic, version, payload
   length, sha256 of the payload) and numpy arrays. The file stores each record's new triples only
   implicitly: they are the state just before the record refines it, so loading replays the records
-  from the base once and recovers them exactly. Integers are stored in the narrowest type that holds
+  from the base once and recovers them exactly. Raw records (one collapse u -> v each) go further and
+  store (u, v) instead of the replaced triangles' original triples (the new triple with v put back to
+  u); merged records keep the original triples. Integers are stored in the narrowest type that holds
   them and (by default) byte-shuffled and deflated.
 """
 
@@ -44,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from terralod.errors import CorruptStoreError, InputError, InputNotFoundError
-from terralod.kernels.qem import coarsen_records, derive_new_triples, refine_records
+from terralod.kernels.qem import coarsen_records, derive_new_triples, derive_split_triples, refine_records
 from terralod.tin.svo import monotone_mmqe, select_scales
 
 __all__ = [
@@ -132,6 +134,8 @@ class Increments:
         mmqe_m2: np.ndarray,
         rank: np.ndarray,
         step: int = 1,
+        rec_u: np.ndarray | None = None,
+        rec_v: np.ndarray | None = None,
     ) -> None:
         self.block_ptr = np.ascontiguousarray(block_ptr, np.int64)
         self.del_ptr = np.ascontiguousarray(del_ptr, np.int64)
@@ -144,6 +148,9 @@ class Increments:
         self.mmqe_m2 = np.ascontiguousarray(mmqe_m2, np.float64)
         self.rank = np.ascontiguousarray(rank, np.int64)
         self.step = int(step)
+        #: raw records only: the collapse u -> v each undoes (lets files omit the original triples)
+        self.rec_u = None if rec_u is None else np.ascontiguousarray(rec_u, np.int32)
+        self.rec_v = None if rec_v is None else np.ascontiguousarray(rec_v, np.int32)
         nb = self.block_ptr.size - 1
         self.mmqe_ptr = self.block_ptr + np.arange(nb + 1)
         self.record_block = np.repeat(np.arange(nb, dtype=np.int32), np.diff(self.block_ptr))
@@ -222,6 +229,8 @@ class Increments:
             mmqe,
             rank,
             1,
+            log.u[perm],
+            log.v[perm],
         )
 
     def merged(self, k: int) -> Increments:
@@ -780,10 +789,15 @@ class DetailIncrementModel:
             "del_tri": inc.del_tri,
             "rep_count": np.diff(inc.rep_ptr),
             "rep_slot": inc.rep_slot,
-            "rep_old": inc.rep_old,
             "mmqe_m2": inc.mmqe_m2,
             "rank": inc.rank,
         }
+        if inc.rec_u is not None and inc.step == 1:
+            # compact: the original triples of replaced triangles follow from (u, v) on loading
+            arrays["rec_u"] = inc.rec_u
+            arrays["rec_v"] = inc.rec_v
+        else:
+            arrays["rep_old"] = inc.rep_old
         return meta, arrays
 
     def save(self, path: str | os.PathLike[str], *, deflate: bool = True) -> int:
@@ -819,13 +833,17 @@ class DetailIncrementModel:
                 (block_ptr.size == nb + 1, "block count"),
                 (del_ptr.size == rep_ptr.size == block_ptr[-1] + 1, "record count"),
                 (del_ptr[-1] == a["del_slot"].size == a["del_tri"].shape[0], "deleted triangles"),
-                (rep_ptr[-1] == a["rep_slot"].size == a["rep_old"].shape[0], "replaced triangles"),
+                (rep_ptr[-1] == a["rep_slot"].size, "replaced triangles"),
+                ("rep_old" in a or ("rec_u" in a and a["rec_u"].size == a["rec_v"].size == block_ptr[-1]),
+                 "collapse vertices"),
+                ("rep_old" not in a or a["rep_old"].shape[0] == rep_ptr[-1], "original triples"),
                 (a["mmqe_m2"].size == block_ptr[-1] + nb and a["rank"].size == block_ptr[-1], "MMQE"),
             ]
             for arr in ("base_slot", "del_slot", "rep_slot"):
                 checks.append((a[arr].size == 0 or (a[arr].min() >= 0 and a[arr].max() < n_slots), arr))
-            for arr in ("base_tri", "del_tri", "rep_old"):
-                checks.append((a[arr].size == 0 or (a[arr].min() >= 0 and a[arr].max() < v.shape[0]), arr))
+            for arr in ("base_tri", "del_tri", "rep_old", "rec_u", "rec_v"):
+                if arr in a:
+                    checks.append((a[arr].size == 0 or (a[arr].min() >= 0 and a[arr].max() < v.shape[0]), arr))
         except (KeyError, ValueError, TypeError) as exc:
             raise CorruptStoreError(f"incomplete detail-increment file ({exc})", src) from exc
         for ok, what in checks:
@@ -835,17 +853,26 @@ class DetailIncrementModel:
         base_alive = np.zeros(n_slots, np.bool_)
         base_tris[a["base_slot"]] = a["base_tri"]
         base_alive[a["base_slot"]] = True
-        rep_new = np.empty_like(a["rep_old"], dtype=np.int32)
+        n_rep = int(rep_ptr[-1])
+        rep_new = np.empty((n_rep, 3), np.int32)
         tris = base_tris.copy()
         alive = base_alive.copy()
         del_slot = np.ascontiguousarray(a["del_slot"], np.int32)
         del_tri = np.ascontiguousarray(a["del_tri"], np.int32).reshape(-1, 3)
         rep_slot = np.ascontiguousarray(a["rep_slot"], np.int32)
-        rep_old = np.ascontiguousarray(a["rep_old"], np.int32).reshape(-1, 3)
-        derive_new_triples(tris, alive, 0, int(block_ptr[-1]), del_ptr, del_slot, del_tri, rep_ptr, rep_slot,
-                           rep_old, rep_new)
+        rec_u = rec_v = None
+        if "rep_old" in a:
+            rep_old = np.ascontiguousarray(a["rep_old"], np.int32).reshape(-1, 3)
+            derive_new_triples(tris, alive, 0, int(block_ptr[-1]), del_ptr, del_slot, del_tri, rep_ptr,
+                               rep_slot, rep_old, rep_new)
+        else:
+            rep_old = np.empty((n_rep, 3), np.int32)
+            rec_u = np.ascontiguousarray(a["rec_u"], np.int32)
+            rec_v = np.ascontiguousarray(a["rec_v"], np.int32)
+            derive_split_triples(tris, alive, 0, int(block_ptr[-1]), rec_u, rec_v, del_ptr, del_slot, del_tri,
+                                 rep_ptr, rep_slot, rep_old, rep_new)
         inc = Increments(block_ptr, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new,
-                         a["mmqe_m2"], a["rank"], int(meta.get("step", 1)))
+                         a["mmqe_m2"], a["rank"], int(meta.get("step", 1)), rec_u, rec_v)
         m = cls(v, base_tris, base_alive, inc, k, a["block_centres_m"], a["block_bounds_m"],
                 source=str(meta.get("source", src)), crs=meta.get("crs"), notes=meta.get("notes", ()))
         return m
