@@ -149,6 +149,17 @@ def info(path: str, as_json: bool, **read: Any) -> None:
 
     p = Path(path)
     if p.exists() and _is_store(p):
+        from terralod.store import TIN_METHOD, read_tin_store, store_method
+
+        if store_method(p) == TIN_METHOD:
+            meta, _ = read_tin_store(p)  # checksum verified
+            meta["size_bytes"] = p.stat().st_size
+            if as_json:
+                click.echo(json.dumps(meta, indent=2, default=str))
+            else:
+                console.print(f"source {meta.get('source')}, method tin (paper 003), CRS {_crs_name(meta.get('crs'))}")
+                print_tin_summary(meta)
+            return
         with open_store(p) as s:
             summary = store_summary(s)
             summary["crs"] = _crs_name(s.crs)
@@ -207,7 +218,13 @@ def run_build(
 @click.option("-o", "--output", required=True, help="Output .terra store.")
 @click.option("--tile-size", default=65, show_default=True, help="Vertices per tile side (2^n + 1).")
 @click.option(
-    "--method", default="chunked", show_default=True, help="Tile mesher: chunked or cohesion (paper 000)."
+    "--method", default="chunked", show_default=True,
+    help="Tile mesher: chunked or cohesion (paper 000); tin builds a detail-increment TIN (paper 003), the "
+    "default for LAS/LAZ input.",
+)  # fmt: skip
+@click.option("--sub-blocks", default="4", show_default=True, help="TIN: sub-blocks, a square number or auto.")
+@click.option(
+    "--base-fraction", type=float, default=0.2, show_default=True, help="TIN: triangles kept in the base mesh."
 )
 @click.option("--workers", type=int, default=None, help="Threads (default: all cores).")
 @click.option("--resume", is_flag=True, help="Finish an interrupted build of the same input.")
@@ -219,13 +236,17 @@ def run_build(
 )  # fmt: skip
 @_read_options
 def build(
-    input_path: str, output: str, tile_size: int, method: str, workers, resume, overwrite, fractal_levels,
-    **read: Any,
+    input_path: str, output: str, tile_size: int, method: str, sub_blocks: str, base_fraction: float, workers,
+    resume, overwrite, fractal_levels, **read: Any,
 ) -> None:  # fmt: skip
-    """Build the level-of-detail tile store of a DEM."""
+    """Build the level-of-detail tile store of a DEM, or the detail-increment TIN of a LAS/LAZ cloud."""
     from terralod.build.builder import METHODS, store_summary
     from terralod.store import open_store
     from terralod.tiles import is_valid_tile_size
+
+    if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
+        _build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read)
+        return
 
     if not is_valid_tile_size(tile_size) or tile_size > 257:
         raise click.BadParameter(
@@ -253,6 +274,56 @@ def build(
         console.print(f"fractal: {fractal_levels} levels below the DEM when viewed (from {input_path})")
     with open_store(output) as s:
         print_store_summary(store_summary(s))
+
+
+def _build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: float, overwrite: bool,
+               read: dict[str, Any]) -> None:  # fmt: skip
+    """``build --method tin``: LAS/LAZ points (or a DEM's samples) → detail-increment TIN store."""
+    import time
+
+    from terralod.errors import StoreError
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.terra import save_model_to_store
+
+    blocks: int | str = sub_blocks
+    if sub_blocks != "auto":
+        try:
+            blocks = int(sub_blocks)
+        except ValueError:
+            raise click.BadParameter(f"expected a square number or auto, got {sub_blocks!r}",
+                                     param_hint="--sub-blocks") from None  # fmt: skip
+    if not 0.0 < base_fraction <= 1.0:
+        raise click.BadParameter(f"expected a fraction in (0, 1], got {base_fraction}", param_hint="--base-fraction")
+    if Path(output).exists() and not overwrite:
+        raise StoreError("already exists (pass --overwrite to replace it)", output)
+    t0 = time.perf_counter()
+    if Path(input_path).suffix.lower() in (".las", ".laz"):
+        model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction)
+    else:
+        model = DetailIncrementModel.from_heightfield(_load(input_path, **read), sub_blocks=blocks,
+                                                      base_fraction=base_fraction)  # fmt: skip
+    summary = save_model_to_store(model, output, overwrite=overwrite)
+    console.print(f"built a detail-increment TIN (paper 003) in {time.perf_counter() - t0:.2f} s")
+    print_tin_summary(summary)
+
+
+def print_tin_summary(d: dict[str, Any]) -> None:
+    """Print :func:`terralod.tin.terra.model_summary` output."""
+    console.print(f"  TIN          {d['vertices']:,} vertices, {d['triangles']:,} triangles (full resolution)")
+    base_pct = 100.0 * d["base_triangles"] / max(d["triangles"], 1)
+    console.print(f"  base         {d['base_triangles']:,} triangles ({base_pct:.1f} %)")
+    console.print(
+        f"  scales       {d['scales']:,} ({d['records']:,} ΔT records of {d['collapses_per_record']} collapse(s), "
+        f"{d['triangle_changes']:,} triangle changes) in {d['sub_blocks']} sub-blocks"
+    )  # fmt: skip
+    lo, hi = d["elevation_range_m"]
+    console.print(f"  elevation    {lo:.2f} .. {hi:.2f} m")
+    svo = d["svo_length_m"]
+    console.print(f"  sqrt(MMQE)   {svo['base']:.3f} m at the base, {svo['full']:.3f} m at full resolution")
+    if "size_bytes" in d:
+        console.print(f"  size         {d['size_bytes']:,} bytes")
+    for n in d.get("notes", []):
+        console.print(f"  note         {n}")
 
 
 # -- fractal amplification -----------------------------------------------------------------------------

@@ -9,6 +9,10 @@ Layout
                       ``vertical_error_m``, the raw measured values, RMS, covered sample count, z-range,
                       the quantised geometry and a CRC-32 of everything in the row.
 
+A TIN store (``method = "tin"``, paper 003) holds instead ``meta`` and ``tin_model(name, model, sha256)``:
+one detail-increment model as opaque bytes (written by ``terralod.tin``) and their SHA-256;
+:func:`write_tin_store` / :func:`read_tin_store`. :meth:`TileStore.open` refuses it with a clear error.
+
 Quantisation (quantized-mesh style, 16 bits per axis, but on a lattice shared by a whole level so the
 boundary vertices of neighbouring tiles dequantise to identical coordinates):
 ``col = col0 + u / 2^f``, ``row = row0 + v / 2^f`` (f per level, see ``TilePyramid.xy_frac_bits``) and
@@ -22,6 +26,7 @@ opens with every committed tile and ``complete = false``. The store never import
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sqlite3
@@ -257,6 +262,9 @@ class TileStore:
         if ok != "ok":
             conn.close()
             raise CorruptStoreError(f"corrupted store (SQLite integrity check: {ok})", str(p))
+        if _meta_value(conn, "method") == TIN_METHOD:
+            conn.close()
+            raise StoreError("holds a TIN detail-increment model (paper 003), not tiles", str(p))
         try:
             return cls(p, conn, writable)
         except (KeyError, ValueError, TypeError, sqlite3.DatabaseError) as exc:
@@ -465,3 +473,112 @@ def open_store(path: str | os.PathLike[str]) -> TileStore:
     ...     t = s.tile(0, 0, 0); t.vertices.shape, t.error_m
     """
     return TileStore.open(path, writable=False)
+
+
+# -- TIN detail-increment models (paper 003) ------------------------------------------------------------
+#: ``method`` of a store holding one TIN detail-increment model (``terralod.tin``) instead of tiles.
+TIN_METHOD = "tin"
+
+_TIN_SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS tin_model (name TEXT PRIMARY KEY, model BLOB NOT NULL, sha256 TEXT NOT NULL);
+"""
+
+
+def _meta_value(conn: sqlite3.Connection, key: str) -> Any:
+    """One meta value (JSON-decoded), None when absent or unreadable."""
+    try:
+        row = conn.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else json.loads(row[0])
+    except (sqlite3.DatabaseError, ValueError):
+        return None
+
+
+def write_tin_store(
+    path: str | os.PathLike[str], meta: dict[str, Any], model: bytes, *, overwrite: bool = False
+) -> int:
+    """Write a ``.terra`` holding one TIN model: ``meta`` plus the model's bytes, in one transaction.
+
+    The model bytes are opaque here (the store never imports their producer); their SHA-256 is kept
+    beside them. The file is written under a temporary name and renamed, so a failed write never leaves
+    a half store nor damages an existing one. Returns the file size, bytes.
+    """
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise StoreError("already exists (pass overwrite to replace it)", str(p))
+    parent = p.resolve().parent
+    if not parent.is_dir():
+        raise StoreError(f"output folder {parent} does not exist", str(p))
+    tmp = p.with_name(p.name + ".tmp")
+    tmp.unlink(missing_ok=True)
+    full = {"format": FORMAT_NAME, "version": FORMAT_VERSION, **meta, "method": TIN_METHOD, "complete": True}
+    try:
+        conn = sqlite3.connect(str(tmp))
+        try:
+            conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+            conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
+            with conn:
+                conn.executescript(_TIN_SCHEMA)
+                conn.executemany(
+                    "INSERT INTO meta(key, value) VALUES (?, ?)",
+                    [(k, json.dumps(v, sort_keys=True)) for k, v in full.items()],
+                )
+                conn.execute(
+                    "INSERT INTO tin_model(name, model, sha256) VALUES ('model', ?, ?)",
+                    (model, hashlib.sha256(model).hexdigest()),
+                )
+        finally:
+            conn.close()
+        os.replace(tmp, p)
+    except (sqlite3.Error, OSError) as exc:
+        tmp.unlink(missing_ok=True)
+        raise StoreError(f"cannot write ({exc})", str(p)) from exc
+    for side in (Path(f"{p}-wal"), Path(f"{p}-shm")):  # left by a tile store this file replaced
+        side.unlink(missing_ok=True)
+    return p.stat().st_size
+
+
+def store_method(path: str | os.PathLike[str]) -> str | None:
+    """The ``method`` meta of a ``.terra`` (``"tin"`` for a TIN model), None when unreadable or absent."""
+    p = Path(path)
+    try:
+        conn = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+    except sqlite3.Error:
+        return None
+    try:
+        return _meta_value(conn, "method")
+    finally:
+        conn.close()
+
+
+def read_tin_store(path: str | os.PathLike[str]) -> tuple[dict[str, Any], bytes]:
+    """(meta, model bytes) of a store written by :func:`write_tin_store`, the model's SHA-256 verified.
+
+    Raises StoreError when missing, CorruptStoreError when foreign, damaged or not a TIN store.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise StoreError("store not found", str(p))
+    with open(p, "rb") as fh:
+        head = fh.read(100)
+    if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
+        raise CorruptStoreError("not a terralod store (not an SQLite database)", str(p))
+    if int.from_bytes(head[68:72], "big") != APPLICATION_ID:
+        raise CorruptStoreError("not a terralod store (foreign SQLite database)", str(p))
+    try:
+        conn = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+        try:
+            meta = {k: json.loads(v) for k, v in conn.execute("SELECT key, value FROM meta")}
+            if meta.get("method") != TIN_METHOD:
+                raise CorruptStoreError("holds tiles, not a TIN model", str(p))
+            row = conn.execute("SELECT model, sha256 FROM tin_model WHERE name = 'model'").fetchone()
+        finally:
+            conn.close()
+    except (sqlite3.DatabaseError, ValueError) as exc:
+        raise CorruptStoreError(f"corrupted TIN store ({exc})", str(p)) from exc
+    if row is None:
+        raise CorruptStoreError("TIN store without a model", str(p))
+    blob = bytes(row[0])
+    if hashlib.sha256(blob).hexdigest() != row[1]:
+        raise CorruptStoreError("TIN model fails its checksum", str(p))
+    return meta, blob
