@@ -147,7 +147,7 @@ def test_cli_build_and_info_of_a_cloud(tmp_path: Path) -> None:
     r = run_cli("build", str(las), "-o", str(out), "--overwrite", "--base-fraction", "0.5")
     assert r.returncode == 0, r.stderr
     # tile commands refuse the TIN store with one line
-    r = run_cli("render", str(out), "-o", str(tmp_path / "x.png"))
+    r = run_cli("flythrough", str(out), "-o", str(tmp_path / "x.mp4"), "--frames", "2")
     assert r.returncode == 2 and "TIN" in r.stderr and "Traceback" not in r.stderr
 
 
