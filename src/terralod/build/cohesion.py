@@ -29,10 +29,10 @@ Relocation (eq. 2-9), per level and tile, with the reading of ``READING-NOTES.md
   vertex moves (eq. 9's balance);
 - then our improvement, error-driven refinement (``refine=True``, :func:`refine_max_error`): the quad of
   largest error moves one of its corners onto its worst sample (or half-way) when that lowers the largest
-  error of the quads around that corner; repeated worst-first until no quad improves. The per-sample
-  error it minimises is the vertical one and, in a second run, the distance to the triangle's plane (the
-  measured Hausdorff error's proxy on steep slopes); the tile keeps whichever measures better
-  (``metric="both"``). The benchmark (``benchmarks/cohesion_vs_chunked.py``, results in
+  error of the quads around that corner (or onto a sample next to the worst one when the worst cannot
+  be reached); repeated worst-first until no quad improves. The per-sample error it minimises is the
+  distance to the triangle's plane (``metric="normal"``, the measured Hausdorff error's proxy on steep
+  slopes); ``"vertical"`` and ``"both"`` (relocate with each, keep the better tile) are options. The benchmark (``benchmarks/cohesion_vs_chunked.py``, results in
   ``benchmarks/results/cohesion_vs_chunked.md``) shows why: the force balance as the paper writes it
   (LoG attraction, no refinement) leaves the max error per level at 0.63-1.0 x the regular grid's and
   draws 0.96-1.0 x its triangles at 2 px; with the refinement the max error is well under 0.8 x and the
@@ -122,7 +122,7 @@ class CohesionOptions:
     fallback: bool = True
     refine: bool = True
     refine_budget: int = 2
-    metric: str = "both"
+    metric: str = "normal"
 
     def __post_init__(self) -> None:
         if self.attraction not in ("error", "log"):

@@ -505,8 +505,9 @@ def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy):
 def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
     """Error-driven relocation (our improvement of the attraction term), in place.
 
-    Repeatedly take the kept quad of largest max |vertical error| that is not marked stuck and try to move
-    one of its movable corners onto that quad's worst sample, or half-way there; a candidate is valid when
+    Repeatedly take the kept quad of largest max error that is not marked stuck and try to move one of its
+    movable corners onto that quad's worst sample, half-way there, or onto one of the worst sample's 4
+    neighbours (the worst itself may be out of reach or fold a triangle); a candidate is valid when
     the 4 quads around the vertex stay strictly convex. The candidate of the smallest max error over those 4
     quads is taken when that is below the worst quad's error (so the tile's max error never grows), and the
     4 quads are re-measured and un-stuck; otherwise the quad is marked stuck. Stops after ``budget`` tries
@@ -567,9 +568,14 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
                 p_v = pv[vi, vj]
                 p_u = pu[vi, vj]
                 p_h = hz[vi, vj]
-                for frac in FRACS:
-                    nv = p_v + frac * (tv - p_v)
-                    nu = p_u + frac * (tu - p_u)
+                for cand in range(len(FRACS) + 4):
+                    if cand < len(FRACS):
+                        nv = p_v + FRACS[cand] * (tv - p_v)
+                        nu = p_u + FRACS[cand] * (tu - p_u)
+                    else:  # a sample next to the worst one (when the worst itself cannot be reached)
+                        k = cand - len(FRACS)
+                        nv = tv + (1.0 if k == 0 else (-1.0 if k == 1 else 0.0))
+                        nu = tu + (1.0 if k == 2 else (-1.0 if k == 3 else 0.0))
                     if snap:
                         nv = np.floor(nv + 0.5)
                         nu = np.floor(nu + 0.5)
