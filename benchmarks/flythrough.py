@@ -44,7 +44,7 @@ def run(store_path: Path, frames: int, size: tuple[int, int], threshold_px: floa
             st = fr.last_stats
             rows.append((ms, st["triangles"], st["tiles"], st["max_screen_error_px"], fr.renderer.gpu_bytes,
                          st["draw_ms"]))  # fmt: skip
-        info = {"gl_renderer": fr.renderer.ctx.info.get("GL_RENDERER", "?"), "draw_mode": fr.renderer.draw_mode,
+        info = {"gl_renderer": fr.renderer.gl_renderer, "draw_mode": fr.renderer.draw_mode,
                 "draw_calls_per_frame": fr.renderer.draw_calls / (len(path) + 1)}  # fmt: skip
         fr.close()
     a = np.array(rows, float)

@@ -205,6 +205,7 @@ class TerrainRenderer:
         elif draw_mode == "indirect" and self.ctx.version_code < 430:
             raise RuntimeError(f"Indirect draws need OpenGL 4.3, this context has {self.ctx.version_code}")
         self.draw_mode = draw_mode
+        self.gl_renderer = str(self.ctx.info.get("GL_RENDERER", "?"))
         self.width_px, self.height_px = int(width_px), int(height_px)
         self.memory_budget_bytes = memory_budget_bytes
         vert = (_SHADERS / "terrain.vert").read_text()
@@ -300,7 +301,8 @@ class TerrainRenderer:
         self._make_vao()
 
     def _place(self, n_vertices: int, n_indices: int, keep: set) -> tuple[int, int]:
-        """Ranges for a tile in the arenas: evict least recently drawn tiles first, then grow."""
+        """Ranges for a tile in the arenas: grow them while the memory budget allows, else evict the least
+        recently drawn tiles (never those of the frame being drawn), else grow past the budget."""
         while True:
             fv = self._varena.alloc(n_vertices)
             fi = self._iarena.alloc(n_indices) if fv is not None else None
@@ -308,8 +310,13 @@ class TerrainRenderer:
                 return fv, fi
             if fv is not None:
                 self._varena.release(fv, n_vertices)
+            nv = max(self._varena.capacity + n_vertices, 2 * self._varena.capacity)
+            ni = max(self._iarena.capacity + n_indices, 2 * self._iarena.capacity)
+            if nv * _VERTEX_BYTES + ni * 4 <= self.memory_budget_bytes:
+                self._grow_geometry(nv, ni)
+                continue
             victim = next((c for c in self._tiles if c not in keep), None)
-            if victim is not None and self.gpu_bytes > 0:
+            if victim is not None:
                 self._release(victim)
                 continue
             self._grow_geometry(self._varena.capacity + n_vertices, self._iarena.capacity + n_indices)
