@@ -151,6 +151,26 @@ def test_cli_build_and_info_of_a_cloud(tmp_path: Path) -> None:
     assert r.returncode == 2 and "TIN" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_cli_build_tin_from_a_dem(tmp_path: Path) -> None:
+    """``--method tin`` on a DEM: the grid TIN of its samples (world metres) as a detail-increment model."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    z = (200.0 + 30.0 * np.sin(np.arange(40)[:, None] / 6.0) * np.cos(np.arange(50)[None, :] / 8.0)).astype("f4")
+    tif = tmp_path / "dem.tif"
+    with rasterio.open(tif, "w", driver="GTiff", width=50, height=40, count=1, dtype="float32", crs="EPSG:32610",
+                       transform=from_origin(500000, 5200000, 30.0, 30.0)) as ds:  # fmt: skip
+        ds.write(z, 1)
+    out = tmp_path / "dem.terra"
+    r = run_cli("build", str(tif), "-o", str(out), "--method", "tin")
+    assert r.returncode == 0, r.stderr
+    m, meta = load_model_from_store(out)
+    v, t = m.mesh_at(m.n_scales - 1)
+    assert t.shape[0] == 2 * 39 * 49 == meta["triangles"] and v.shape[0] == 40 * 50
+    assert np.allclose(np.sort(v[:, 2]), np.sort(z.ravel().astype(np.float64)))
+    assert v[:, 0].min() == pytest.approx(500015.0) and v[:, 1].max() == pytest.approx(5199985.0)  # centres
+
+
 @pytest.mark.parametrize(
     ("name", "content", "message"),
     [
