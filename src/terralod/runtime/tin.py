@@ -10,7 +10,8 @@ sub-block (a pure producer: it never imports the GPU backend).
 Deviations, and why:
 
 - **Normals from the whole current TIN**, then cut per sub-block, so shading is continuous across the
-  seams (a sub-block's own triangles alone would give its seam vertices one-sided normals).
+  seams (a sub-block's own triangles alone would give its seam vertices one-sided normals). The
+  per-vertex sums are updated by the changed sub-blocks only (subtract the old cut, add the new).
 - **Sub-block of a triangle slot.** The model does not store it: a slot touched by a record belongs to
   that record's sub-block (collapses never cross a seam); an untouched slot keeps its full-resolution
   triangle, whose centroid cell is how :func:`terralod.tin.delaunay.split_sub_blocks` assigned it.
@@ -45,18 +46,6 @@ def slot_blocks(model: Any) -> np.ndarray:
     out[inc.del_slot] = np.repeat(rec_block, np.diff(inc.del_ptr))
     out[inc.rep_slot] = np.repeat(rec_block, np.diff(inc.rep_ptr))
     return out
-
-
-def _vertex_normals(v: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(N, 3) float32 area-weighted unit normals of the vertices used by triangles ``t`` (z up)."""
-    ti = t.astype(np.int64)
-    fn = np.cross(v[ti[:, 1]] - v[ti[:, 0]], v[ti[:, 2]] - v[ti[:, 0]])
-    nv = v.shape[0]
-    flat = ti.ravel()
-    n = np.stack([np.bincount(flat, weights=np.repeat(fn[:, a], 3), minlength=nv) for a in range(3)], axis=1)
-    ln = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
-    return n.astype(np.float32)
 
 
 @dataclass
@@ -94,6 +83,11 @@ class TinFrame:
 class TinRuntime:
     """A detail-increment model kept at the SVO scales of the latest camera.
 
+    Per frame: the SVO query, the records of the sub-blocks whose scale changed (eq. 2), a new mesh for
+    each of those sub-blocks, and fresh normals for them and for the sub-blocks sharing a vertex with
+    them. Normals come from per-vertex sums of face normals kept for the whole TIN and updated by the
+    changed sub-blocks only, so a frame costs what changed, not the size of the TIN.
+
     Parameters
     ----------
     model : terralod.tin.DetailIncrementModel (moved in place; start it anywhere)
@@ -106,8 +100,15 @@ class TinRuntime:
         self.model = model
         self.threshold_px = float(threshold_px)
         self.slot_block = slot_blocks(model)
+        nb = model.n_blocks
+        order = np.argsort(self.slot_block, kind="stable")
+        ptr = np.searchsorted(self.slot_block[order], np.arange(nb + 1))
+        self._block_slots = [order[ptr[b] : ptr[b + 1]] for b in range(nb)]
+        nv = model.vertices_m.shape[0]
+        self._nsum = np.zeros((nv, 3), np.float64)  # Σ area-weighted face normals of the cut triangles
+        self._mask = np.zeros(nv, np.int64) if nb <= 63 else None  # bit b: sub-block b uses the vertex
+        self._cut: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # b -> (used, local tris, sums)
         self._cache: dict[int, tuple] = {}
-        self._normals: np.ndarray | None = None
         self._first = True
 
     def update(self, camera: Any) -> TinFrame:
@@ -117,11 +118,11 @@ class TinRuntime:
         scales = m.scales_for_camera(camera.eye, camera.fov_y_deg, camera.height_px, self.threshold_px)
         t1 = time.perf_counter()
         before = m.block_scales
-        changed = np.flatnonzero(scales != before) if not self._first else np.arange(m.n_blocks)
         m.set_block_scales(scales)
+        changed = np.arange(m.n_blocks) if self._first else np.flatnonzero(scales != before)
         t2 = time.perf_counter()
         if changed.size:
-            self._rebuild()
+            self._rebuild(changed)
         t3 = time.perf_counter()
         self._first = False
         return TinFrame(
@@ -129,26 +130,45 @@ class TinRuntime:
             int(np.abs(scales - before).sum()), [self._cache[b] for b in sorted(self._cache)],
         )  # fmt: skip
 
-    def _rebuild(self) -> None:
+    def _rebuild(self, changed: np.ndarray) -> None:
         m = self.model
         v = m.vertices_m
-        live = np.flatnonzero(m._alive)
-        tris = m._tris[live]
-        normals = _vertex_normals(v, tris)  # whole TIN: continuous across seams
-        blk = self.slot_block[live]
-        nmax = np.maximum(m.increments.block_n_records(), 1)
-        scales = m.block_scales
-        # Seam vertices are shared, so a scale change next door can change a block's normals: redo all
-        # blocks when any changed (the cut is cheap next to the records and the upload skips unchanged).
-        order = np.argsort(blk, kind="stable")
-        ptr = np.searchsorted(blk[order], np.arange(m.n_blocks + 1))
-        remap = np.full(v.shape[0], -1, np.int64)
-        for b in range(m.n_blocks):
-            t = tris[order[ptr[b] : ptr[b + 1]]]
+        touched = 0
+        for b in changed.tolist():
+            bit = np.int64(1) << np.int64(b) if self._mask is not None else 0
+            old = self._cut.pop(b, None)
+            if old is not None:
+                self._nsum[old[0]] -= old[2]
+                if self._mask is not None:
+                    touched |= int(np.bitwise_or.reduce(self._mask[old[0]])) if old[0].size else 0
+                    self._mask[old[0]] &= ~bit
+            slots = self._block_slots[b]
+            t = m._tris[slots[m._alive[slots]]].astype(np.int64)
             if t.shape[0] == 0:
                 self._cache.pop(b, None)
                 continue
-            used = np.flatnonzero(np.bincount(t.ravel(), minlength=v.shape[0]))
-            remap[used] = np.arange(used.size)
+            used, tloc = np.unique(t, return_inverse=True)
+            tloc = tloc.reshape(t.shape)
+            fn = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+            flat = tloc.ravel()
+            sums = np.stack([np.bincount(flat, weights=np.repeat(fn[:, a], 3), minlength=used.size)
+                             for a in range(3)], axis=1)  # fmt: skip
+            self._nsum[used] += sums
+            self._cut[b] = (used, tloc.astype(np.int32), sums)
+            if self._mask is not None:
+                self._mask[used] |= bit
+                touched |= int(np.bitwise_or.reduce(self._mask[used]))
+        # Sub-blocks sharing a vertex with a changed one get fresh normals too (seams stay continuous).
+        if self._mask is None:
+            refresh = list(self._cut)
+        else:
+            refresh = [b for b in self._cut if (touched >> b) & 1 or b in set(changed.tolist())]
+        nmax = np.maximum(m.increments.block_n_records(), 1)
+        scales = m.block_scales
+        for b in refresh:
+            used, tloc, _ = self._cut[b]
+            n = self._nsum[used]
+            ln = np.linalg.norm(n, axis=1, keepdims=True)
+            n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0])).astype(np.float32)
             band = int(round(7 * scales[b] / nmax[b]))
-            self._cache[b] = ((band, b, 0), v[used], remap[t].astype(np.int32), normals[used])
+            self._cache[b] = ((band, b, 0), v[used], tloc, n)
