@@ -607,6 +607,15 @@ def view(path, size, threshold_px, frames, screenshot, fractal_levels, cull, **r
         raise click.UsageError(
             "no display (DISPLAY is unset); use `terralod render` or `terralod flythrough`"
         )
+    if _is_tin_store(path):
+        from terralod.render.tin import run_tin_viewer
+        from terralod.tin.terra import load_model_from_store
+
+        out = run_tin_viewer(load_model_from_store(path)[0], path, width_px=w, height_px=h,
+                             threshold_px=threshold_px, max_frames=frames, screenshot=screenshot)  # fmt: skip
+        if frames:
+            click.echo(json.dumps({"frames": out["frames"], "hud": out["hud"], "stats": out["stats"]}, default=str))
+        return
     with open_store(store_path) as s:
         out = run_viewer(_with_fractal(s, path, read, fractal_levels), width_px=w, height_px=h, threshold_px=threshold_px, max_frames=frames,
                          screenshot=screenshot, cull=cull)  # fmt: skip

@@ -11,7 +11,7 @@ import numpy as np
 from terralod.render.offscreen import CameraPose
 from terralod.render.renderer import RenderSettings, TerrainRenderer
 
-__all__ = ["TinFrameRenderer", "tin_overview_pose"]
+__all__ = ["TinFrameRenderer", "run_tin_viewer", "tin_overview_pose"]
 
 
 def tin_overview_pose(model: Any, elevation_deg: float = 35.0, azimuth_deg: float = 200.0,
@@ -62,3 +62,22 @@ class TinFrameRenderer:
 
     def close(self) -> None:
         self.renderer.release()
+
+
+def run_tin_viewer(model: Any, store_path: str, *, width_px: int = 1280, height_px: int = 720,
+                   threshold_px: float = 2.0, max_frames: int | None = None, screenshot: str | None = None) -> dict:
+    """The window viewer on a TIN: every frame moves each sub-block to its SVO scale (``TinEngine``)."""
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from terralod.render.viewer import Viewer
+    from terralod.runtime.tin import TinEngine
+
+    v = model.vertices_m
+    viewer = Viewer(SimpleNamespace(path=Path(store_path)), width_px=width_px, height_px=height_px,
+                    threshold_px=threshold_px, title="terralod (TIN)", engine=TinEngine(model, threshold_px=threshold_px),
+                    pose=tin_overview_pose(model), extent=(v.min(axis=0), v.max(axis=0)))  # fmt: skip
+    try:
+        return viewer.run(max_frames, screenshot)
+    finally:
+        viewer.close()

@@ -79,7 +79,8 @@ class Viewer:
     """The window. ``run(max_frames=None)`` loops until closed (or for ``max_frames`` frames)."""
 
     def __init__(self, store, *, width_px: int = 1280, height_px: int = 720, threshold_px: float = 2.0,
-                 fov_y_deg: float = 45.0, title: str = "terralod", cull: tuple[str, ...] = ()) -> None:  # fmt: skip
+                 fov_y_deg: float = 45.0, title: str = "terralod", cull: tuple[str, ...] = (), engine=None,
+                 pose: CameraPose | None = None, extent: tuple[np.ndarray, np.ndarray] | None = None) -> None:  # fmt: skip
         import glfw
         import moderngl
 
@@ -103,14 +104,17 @@ class Viewer:
         self.width_px, self.height_px = width_px, height_px
         self.fov_y_deg = fov_y_deg
         self.threshold_px = threshold_px
-        self.engine = Engine(store, threshold_px=threshold_px, background=True, **cull_options(cull))
+        # any engine with request/latest/update/close and threshold_px (a TIN: terralod.runtime.tin.TinEngine)
+        if engine is None:
+            engine = Engine(store, threshold_px=threshold_px, background=True, **cull_options(cull))
+        self.engine = engine
         self.renderer = TerrainRenderer(width_px, height_px, ctx=self.ctx)
         self.settings = RenderSettings()
         self.hud = _Hud(self.ctx)
-        pose = overview_pose(store)
+        pose = pose or overview_pose(store)
         self.eye = np.array(pose.eye, np.float64)
         self.target = np.array(pose.target, np.float64)
-        lo, hi = store_extent(store)
+        lo, hi = extent if extent is not None else store_extent(store)
         self.scale = float(np.linalg.norm(hi - lo))
         self._mouse = None
         self._buttons = set()

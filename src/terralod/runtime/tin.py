@@ -26,7 +26,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["TinFrame", "TinRuntime", "slot_blocks"]
+from terralod.tin.svo import svo_length_px
+
+__all__ = ["TinEngine", "TinFrame", "TinRuntime", "slot_blocks"]
 
 
 def slot_blocks(model: Any) -> np.ndarray:
@@ -59,6 +61,7 @@ class TinFrame:
     triangles : live triangles drawn
     select_ms, apply_ms, mesh_ms : time of the SVO query, of applying/reverting records, of cutting meshes
     records_applied : ΔT records applied or reverted this frame
+    max_svo_px : the largest projected sqrt(MMQE) segment over the sub-blocks at their scales, pixels
     """
 
     scales: np.ndarray
@@ -68,7 +71,16 @@ class TinFrame:
     apply_ms: float
     mesh_ms: float
     records_applied: int
+    max_svo_px: float = 0.0
     _meshes: list[tuple] = field(default_factory=list, repr=False)
+
+    @property
+    def stats(self) -> dict[str, float]:
+        """The tile engine's statistics keys (for HUDs and tables): sub-blocks count as tiles, the SVO
+        length as the screen error, records + meshes as the stitch step."""
+        return {"tiles": int(self.scales.size), "triangles": self.triangles, "max_screen_error_px": self.max_svo_px,
+                "select_ms": self.select_ms, "stitch_ms": self.apply_ms + self.mesh_ms,
+                "records_applied": self.records_applied, "changed": int(self.changed.size)}  # fmt: skip
 
     @property
     def frame_ms(self) -> float:
@@ -125,9 +137,14 @@ class TinRuntime:
             self._rebuild(changed)
         t3 = time.perf_counter()
         self._first = False
+        inc = m.increments
+        d = np.linalg.norm(m.block_centres_m - np.asarray(camera.eye, np.float64), axis=1)
+        svo = svo_length_px(inc.mmqe_m2[inc.mmqe_ptr[:-1] + scales], d, np.radians(camera.fov_y_deg),
+                            camera.height_px)  # fmt: skip
         return TinFrame(
             scales, changed, int(m._alive.sum()), (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3,
-            int(np.abs(scales - before).sum()), [self._cache[b] for b in sorted(self._cache)],
+            int(np.abs(scales - before).sum()), float(svo.max()) if svo.size else 0.0,
+            [self._cache[b] for b in sorted(self._cache)],
         )  # fmt: skip
 
     def _rebuild(self, changed: np.ndarray) -> None:
@@ -172,3 +189,37 @@ class TinRuntime:
             n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0])).astype(np.float32)
             band = int(round(7 * scales[b] / nmax[b]))
             self._cache[b] = ((band, b, 0), v[used], tloc, n)
+
+
+class TinEngine:
+    """The tile :class:`terralod.runtime.Engine`'s interface (``request`` / ``latest`` / ``update`` /
+    ``close``, ``threshold_px``) over a :class:`TinRuntime`, so the window viewer drives a TIN. Updates run
+    on the caller's thread: a TIN frame costs milliseconds (``benchmarks/results/tin_zoom.md``)."""
+
+    def __init__(self, model: Any, *, threshold_px: float = 2.0) -> None:
+        self.runtime = TinRuntime(model, threshold_px=threshold_px)
+        self._camera: Any = None
+
+    @property
+    def threshold_px(self) -> float:
+        return self.runtime.threshold_px
+
+    @threshold_px.setter
+    def threshold_px(self, px: float) -> None:
+        if not px > 0:
+            raise ValueError(f"Expected threshold_px > 0, got {px}")
+        self.runtime.threshold_px = float(px)
+
+    def update(self, camera: Any) -> TinFrame:
+        return self.runtime.update(camera)
+
+    def request(self, camera: Any) -> None:
+        self._camera = camera
+
+    def latest(self) -> TinFrame | None:
+        """The frame of the last requested camera (None when nothing was requested since)."""
+        cam, self._camera = self._camera, None
+        return None if cam is None else self.runtime.update(cam)
+
+    def close(self) -> None:
+        self._camera = None
