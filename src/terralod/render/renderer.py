@@ -89,18 +89,51 @@ def perspective(fov_y_deg: float, aspect: float, near: float, far: float) -> np.
     return m
 
 
+def depth_range(meshes: list, eye: np.ndarray, z_exaggeration: float = 1.0) -> tuple[float, float]:
+    """Near and far plane distances (metres) that hold every drawn triangle: far just past the farthest
+    tile-box corner, near half the distance to the nearest triangle (exact for the tiles whose boxes come
+    nearest, branch and bound). A tight near plane is what keeps a 24-bit depth buffer precise far away:
+    depth steps grow as distance² / near, and with a near plane of ~1 m a ridge 30 km away gets ~50 m
+    steps, enough for its far side to show through (dark specks along distant crests)."""
+    from terralod.kernels.cull import min_distance_to_triangles
+
+    if not meshes:
+        return 0.05, 10.0
+    scale = np.array([1.0, 1.0, z_exaggeration])
+    boxes = []
+    far = 1.0
+    for m in meshes:
+        v = m[1]
+        a = (v.min(axis=0) - eye) * scale
+        b = (v.max(axis=0) - eye) * scale
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        boxes.append((float(np.linalg.norm(np.maximum(np.maximum(lo, -hi), 0.0))), m))
+        far = max(far, float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi)))))
+    boxes.sort(key=lambda x: x[0])
+    nearest = math.inf
+    for box_m, m in boxes:
+        if box_m >= nearest:
+            break
+        v = (np.asarray(m[1], np.float64) - eye) * scale
+        nearest = min(nearest, min_distance_to_triangles(v, np.asarray(m[2], np.int64), 0.0, 0.0, 0.0))
+    near = max(0.05, 0.5 * nearest) if math.isfinite(nearest) else 0.05
+    return near, max(far * 1.01 + 1.0, near * 2.0)
+
+
 @dataclass
 class RenderSettings:
     """What a frame looks like. Colours are RGB 0..1."""
 
     background: tuple[float, float, float] = (0.66, 0.78, 0.92)
-    mode: str = "elevation"  # "elevation", "lod", "error"
+    mode: str = "elevation"  # "elevation", "lod", "error", "facing" (diagnostic: back faces red)
     wireframe: bool = False
     z_exaggeration: float = 1.0
     sun_azimuth_deg: float = 315.0
     sun_altitude_deg: float = 45.0
     fog: bool = True
     height_range_m: tuple[float, float] | None = None
+    #: skip triangles seen from behind (terrain is seen from above; counter-clockwise from above is front)
+    cull_back_faces: bool = True
 
 
 class _Arena:
@@ -446,6 +479,7 @@ class TerrainRenderer:
             code, v, t, n = m[0], m[1], m[2], (m[3] if len(m) > 3 else None)
             self._upload(code, v, t, n)
             zlo, zhi = min(zlo, float(v[:, 2].min())), max(zhi, float(v[:, 2].max()))
+        near, far = depth_range(meshes, eye, st.z_exaggeration)
         self._evict(keep=self._frame)
         self._frame = set()
         if self.fbo is not None:
@@ -454,14 +488,12 @@ class TerrainRenderer:
         ctx.viewport = (0, 0, self.width_px, self.height_px)
         ctx.clear(*st.background, 1.0)
         ctx.enable(moderngl.DEPTH_TEST)
-        ctx.disable(moderngl.CULL_FACE)
+        if st.cull_back_faces:
+            ctx.enable(moderngl.CULL_FACE)
+            ctx.front_face = "ccw"
+        else:
+            ctx.disable(moderngl.CULL_FACE)
         ctx.wireframe = st.wireframe
-        # near/far from the scene: far reaches past every drawn tile, near keeps 1e5 depth range
-        far = 10.0
-        for c in codes:
-            g = self._tiles[c]
-            far = max(far, float(np.linalg.norm(g.origin - eye)) * 2.0 + 1e5)
-        near = max(0.05, far * 1e-5)
         view = look_at(eye, target, np.asarray(up, np.float64))
         proj = perspective(fov_y_deg, self.width_px / self.height_px, near, far)
         vp = (proj @ view).astype(np.float32)
@@ -475,7 +507,7 @@ class TerrainRenderer:
         dist = float(np.linalg.norm(target - eye))
         self.prog["u_fog_distance"].value = (dist * 6.0) if st.fog else 1e12
         self.prog["u_z_exaggeration"].value = float(st.z_exaggeration)
-        self.prog["u_mode"].value = {"elevation": 0, "lod": 1, "error": 2}[st.mode]
+        self.prog["u_mode"].value = {"elevation": 0, "lod": 1, "error": 2, "facing": 3}[st.mode]
         self.ramp.use(0)
         self.prog["u_ramp"].value = 0
         n = len(codes)

@@ -1,6 +1,7 @@
 #version 330 core
 // Elevation colour ramp x hillshade from the vertex normals, with distance fog toward the sky colour.
-// Modes: 0 = elevation ramp, 1 = level-of-detail colour (per-tile colour), 2 = error heat-map (per-tile colour).
+// Modes: 0 = elevation ramp, 1 = level-of-detail colour (per-tile colour), 2 = error heat-map (per-tile colour),
+// 3 = facing diagnostic (front faces white, back faces red: a back face seen on terrain means lost depth).
 uniform vec3 u_light_dir;        // unit vector toward the sun
 uniform vec2 u_height_range;     // metres, for the ramp
 uniform vec3 u_fog_colour;
@@ -13,6 +14,10 @@ in vec3 v_rel;
 in float v_height;
 out vec4 f_colour;
 void main() {
+    if (u_mode == 3) {
+        f_colour = gl_FrontFacing ? vec4(1.0) : vec4(1.0, 0.0, 0.0, 1.0);
+        return;
+    }
     vec3 n = normalize(v_normal);
     if (!gl_FrontFacing) n = -n;
     float t = clamp((v_height - u_height_range.x) / max(u_height_range.y - u_height_range.x, 1e-3), 0.0, 1.0);
