@@ -52,13 +52,47 @@ def grid_mesh(hf: Heightfield) -> tuple[np.ndarray, np.ndarray]:
 
 
 # -- 1. storage ---------------------------------------------------------------------------------------------
+def _input_rows(model: DetailIncrementModel) -> tuple[np.ndarray, np.ndarray] | None:
+    """(n_slots,) the input TIN's row of every model slot (the model stores the input's triangles in other
+    slots, a triple possibly starting at another vertex) and the rotation that gives the input's vertex
+    order; None when the model was not built here."""
+    full_in = getattr(model, "_full_tris", None)
+    if full_in is None:
+        return None
+    model.mesh_at(model.n_scales - 1)
+    full = model._tris.astype(np.int64)  # every slot is alive at the full scale
+
+    def key(t: np.ndarray) -> np.ndarray:
+        c = np.take_along_axis(t, (np.argmin(t, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+        return (c[:, 0] * (model.vertices_m.shape[0] + 1) + c[:, 1]) * (model.vertices_m.shape[0] + 1) + c[:, 2]
+
+    fi = full_in.astype(np.int64)
+    k_model, k_in = key(full), key(fi)
+    o_in = np.argsort(k_in)
+    rows = o_in[np.searchsorted(k_in[o_in], k_model)]
+    assert np.array_equal(k_in[rows], k_model), "the full scale is not the input TIN"
+    shift = (np.argmin(full, axis=1) - np.argmin(fi[rows], axis=1)) % 3
+    return rows, shift
+
+
 def static_pyramid_bytes(model: DetailIncrementModel, levels: int = 6) -> tuple[int, list[int]]:
+    """Bytes of 6 meshes at evenly spaced scales sharing one vertex array (input order), encoded like the
+    model file. Each mesh is stored in whichever is smaller: the input TIN's triangle order (what a
+    simplifier that deletes rows keeps) or rows sorted by vertex indices."""
     scales = np.linspace(0, model.n_scales - 1, levels).round().astype(int)
+    rows = _input_rows(model)
     arrays: dict[str, np.ndarray] = {"vertices_m": model.vertices_m}
     counts = []
     for i, s in enumerate(scales):
-        t = model.mesh_at(int(s))[1]
-        arrays[f"triangles_{i}"] = t
+        model.mesh_at(int(s))
+        live = np.flatnonzero(model._alive)
+        t = model._tris[live]
+        options = [t[np.lexsort(t.T[::-1])]]
+        if rows is not None:  # the input's order and vertex rotation, kept through every collapse
+            r, sh = rows[0][live], rows[1][live]
+            o = np.argsort(r)
+            options.append(np.take_along_axis(t[o], (sh[o][:, None] + np.arange(3)) % 3, axis=1))
+        arrays[f"triangles_{i}"] = min(options, key=lambda a: len(_encode_arrays({"t": a}, deflate=True)))
         counts.append(int(t.shape[0]))
     model.mesh_at(0)
     return len(_encode_arrays(arrays, deflate=True)), counts
@@ -235,10 +269,14 @@ def main() -> None:
                          (m["bytes"] - vb) / (s["static_pyramid_bytes"] - vb)])  # fmt: skip
     md += md_table(["dataset", "points", "triangles", "merge k", "records", "triangle changes", "model bytes",
                     "static pyramid bytes", "model / pyramid", "without the shared vertex array"], rows)  # fmt: skip
-    md += ("\nBoth files hold the vertex array once and are encoded alike (narrowest integer type, byte "
-           "shuffle, deflate); the pyramid holds the model's scales at 20, 36, 52, 68, 84, 100 % of the "
-           "triangles. Raw records (k = 1) store the collapse (u, v) instead of the replaced triangles' original "
-           "triples; merged records store those triples.\n\n")
+    md += ("\nBoth files hold the same vertex array (input order) once and are encoded alike (narrowest integer "
+           "type, byte shuffle, deflate). The pyramid holds the model's global scales at 20, 36, 52, 68, 84, 100 % "
+           "of the triangles, each mesh in the smaller of two orders: the input TIN's rows and vertex rotation "
+           "(what a simplifier that deletes rows keeps), or rows sorted by vertex index. The model file (format 2) "
+           "stores the base mesh and one vertex split per raw record (removed vertex u, kept vertex v - u, the "
+           "wing's rank among v's neighbours, triangles moved, quantised MMQE drop); table 1's fields are derived "
+           "on loading. Merged records (k = 4, 16) are derived in memory from the raw ones, so their files are the "
+           "raw file plus the merge factor.\n\n")
     md += "## Reconstruction\n\n"
     rows = [[n, r["refine_step_us_median"], r["coarsen_step_us_median"], r["full_to_base_ms"],
              r["zoom_frame_ms_mean"], r["zoom_frame_ms_max"], r["zoom_triangles_first"], r["zoom_triangles_last"]]

@@ -48,7 +48,7 @@ def _camera(eye: np.ndarray, target: np.ndarray) -> Camera:
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(30, 1500), blocks=st.sampled_from([1, 4, 9, 16]))
 def test_slot_blocks_are_the_split(seed: int, n: int, blocks: int) -> None:
     m = DetailIncrementModel.from_points(_cloud(seed, n), sub_blocks=blocks)
-    sb = split_sub_blocks(m.vertices_m, m._full_tris, m.k)
+    sb = split_sub_blocks(m.vertices_m, m.mesh_at(m.n_scales - 1)[1], m.k)
     assert np.array_equal(slot_blocks(m), sb.tri_block)
 
 

@@ -14,19 +14,27 @@ Paper: ``../shared/papers/003_2a2cfcda929de24c.txt``
 
 Deviations, and why:
 
-- **Stable triangle slots.** A triangle's index is its row in the full-resolution triangle array for
-  ever; a deleted triangle leaves its slot empty instead of shifting later triangles down. The paper's
-  index recalculation (§2.2.1, steps 1–4) is then unnecessary, and applying a record is O(its size).
+- **Stable triangle slots.** A triangle keeps its slot (row of the triangle array) for ever; a deleted
+  triangle leaves its slot empty instead of shifting later triangles down. The paper's index
+  recalculation (§2.2.1, steps 1–4) is then unnecessary, and applying a record is O(its size). The
+  base triangles take slots 0 … n_base - 1 (in input order), record r's two re-created triangles
+  n_base + 2r and n_base + 2r + 1: the full scale holds the input triangles as a set, in other slots
+  (a triple may start at another of its vertices, same orientation).
 - **Per-sub-block sequences.** Every collapse touches one sub-block, so each sub-block has its own scale
   S_0 … S_{n_b} and its own records, and the current scale is a vector, one entry per sub-block; an
-  integer scale is a position in the global order in which the simplifier performed the collapses.
-- **Binary format** (the paper's text scheme stays as an export): a header (magic, version, payload
-  length, sha256 of the payload) and numpy arrays. The file stores each record's new triples only
-  implicitly: they are the state just before the record refines it, so loading replays the records
-  from the base once and recovers them exactly. Raw records (one collapse u -> v each) go further and
-  store (u, v) instead of the replaced triangles' original triples (the new triple with v put back to
-  u); merged records keep the original triples. Integers are stored in the narrowest type that holds
-  them and (by default) byte-shuffled and deflated.
+  integer scale is a position in a global order of all records that refines, one record at a time, the
+  sub-block whose current MMQE is the largest (:func:`mmqe_rank`; derived, so files need not store it).
+- **MMQE quantised** to 1/256 octave (0.14 % of the SVO length sqrt(MMQE)); monotone stays monotone.
+- **Binary format, version 2** (the paper's text scheme stays as an export): a header (magic, version,
+  payload length, sha256 of the payload) and numpy arrays. Table 1's fields are not stored: a raw
+  record is one vertex split, stored as the removed vertex u, the kept vertex v (as v - u), the rank of
+  the first wing vertex among v's neighbours and the number of triangles that move from v to u (see
+  :func:`terralod.kernels.qem.replay_splits`), and each block's MMQE codes as the first and the drops.
+  Loading replays the splits from the base once and derives every field of table 1 (slots, deleted
+  triples, original and new triples) exactly. Merged records (§2.2.2) are derived in memory from the
+  raw ones; a file of a merged model stores the raw splits and the merge factor. Integers are stored in
+  the narrowest type that holds them, byte-shuffled and deflated (the same encoding as the static
+  pyramid of ``benchmarks/tin.py``). Version 1 files (slots and triples) are refused with one line.
 """
 
 from __future__ import annotations
@@ -46,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from terralod.errors import CorruptStoreError, InputError, InputNotFoundError
-from terralod.kernels.qem import coarsen_records, derive_new_triples, derive_split_triples, refine_records
+from terralod.kernels.qem import coarsen_records, refine_records, replay_splits
 from terralod.tin.svo import monotone_mmqe, select_scales
 
 __all__ = [
@@ -58,7 +66,7 @@ __all__ = [
 ]
 
 MAGIC = b"TLODDIM\x00"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  #: 2: compact vertex-split records (1: slots and triples; no longer read)
 _HEADER = struct.Struct("<8sHHIQ32s8x")  # magic, version, flags, reserved, payload length, sha256
 _FLAG_DEFLATE = 1
 
@@ -110,6 +118,47 @@ def _csr_take(ptr: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return new_ptr, np.arange(new_ptr[-1], dtype=np.int64) + starts
 
 
+# -- MMQE quantisation -----------------------------------------------------------------------------------
+#: MMQE codes per octave: a code is round(256 · log2(MMQE / m²)), a relative step of 0.27 % in MMQE and
+#: 0.14 % in the SVO length sqrt(MMQE); monotone, so a monotone MMQE stays monotone.
+MMQE_STEPS_PER_OCTAVE = 256
+#: Code of MMQE 0 (and of anything below 2^-40 m², about 1e-12 m²).
+MMQE_ZERO_CODE = -40 * MMQE_STEPS_PER_OCTAVE
+
+
+def quantise_mmqe(mmqe_m2: np.ndarray) -> np.ndarray:
+    """(n,) int64 codes of MMQE values, m² (see :data:`MMQE_STEPS_PER_OCTAVE`)."""
+    mm = np.asarray(mmqe_m2, np.float64)
+    with np.errstate(divide="ignore"):
+        c = np.round(np.log2(np.maximum(mm, 0.0)) * MMQE_STEPS_PER_OCTAVE)
+    return np.maximum(np.nan_to_num(c, nan=MMQE_ZERO_CODE, neginf=MMQE_ZERO_CODE), MMQE_ZERO_CODE).astype(np.int64)
+
+
+def dequantise_mmqe(code: np.ndarray) -> np.ndarray:
+    """(n,) float64 MMQE, m², of codes from :func:`quantise_mmqe` (the zero code gives 0)."""
+    c = np.asarray(code, np.int64)
+    return np.where(c <= MMQE_ZERO_CODE, 0.0, np.exp2(c / MMQE_STEPS_PER_OCTAVE))
+
+
+def mmqe_rank(block_ptr: np.ndarray, mmqe_code: np.ndarray) -> np.ndarray:
+    """(R,) int64: each (block-major) record's position in the global refinement order.
+
+    Record s of block b (S_s -> S_{s+1}) ranks by the MMQE of S_s, largest first, then by block, then
+    by s: the global scale j refines, j times, the sub-block whose current MMQE is the largest. Each
+    block's MMQE never grows with s, so every block keeps its own order.
+    """
+    bp = np.asarray(block_ptr, np.int64)
+    nb = bp.size - 1
+    n = int(bp[-1])
+    blk = np.repeat(np.arange(nb, dtype=np.int64), np.diff(bp))
+    s = np.arange(n, dtype=np.int64) - bp[blk]
+    key = np.asarray(mmqe_code, np.int64)[bp[blk] + blk + s]  # code of S_s (mmqe_ptr = block_ptr + b)
+    order = np.lexsort((s, blk, -key))
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n, dtype=np.int64)
+    return rank
+
+
 class Increments:
     """The records of every sub-block, as flat arrays (records in block-major refinement order).
 
@@ -136,6 +185,9 @@ class Increments:
         step: int = 1,
         rec_u: np.ndarray | None = None,
         rec_v: np.ndarray | None = None,
+        rec_w: np.ndarray | None = None,
+        mmqe_code: np.ndarray | None = None,
+        raw: Increments | None = None,
     ) -> None:
         self.block_ptr = np.ascontiguousarray(block_ptr, np.int64)
         self.del_ptr = np.ascontiguousarray(del_ptr, np.int64)
@@ -148,9 +200,14 @@ class Increments:
         self.mmqe_m2 = np.ascontiguousarray(mmqe_m2, np.float64)
         self.rank = np.ascontiguousarray(rank, np.int64)
         self.step = int(step)
-        #: raw records only: the collapse u -> v each undoes (lets files omit the original triples)
+        #: raw records only: the split each makes (v into v and u; wing rank w), the file's content
         self.rec_u = None if rec_u is None else np.ascontiguousarray(rec_u, np.int32)
         self.rec_v = None if rec_v is None else np.ascontiguousarray(rec_v, np.int32)
+        self.rec_w = None if rec_w is None else np.ascontiguousarray(rec_w, np.int32)
+        #: raw records only: the quantised MMQE codes (mmqe_m2 = dequantise_mmqe(mmqe_code))
+        self.mmqe_code = None if mmqe_code is None else np.ascontiguousarray(mmqe_code, np.int64)
+        #: merged records only: the raw records they were merged from (what a file stores)
+        self.raw = raw
         nb = self.block_ptr.size - 1
         self.mmqe_ptr = self.block_ptr + np.arange(nb + 1)
         self.record_block = np.repeat(np.arange(nb, dtype=np.int32), np.diff(self.block_ptr))
@@ -199,39 +256,103 @@ class Increments:
 
     # -- construction ----------------------------------------------------------------------------------
     @classmethod
-    def from_log(cls, log: Any, n_blocks: int) -> Increments:
-        """Records from a :class:`terralod.tin.qem.CollapseLog` (collapse order → refinement order)."""
+    def from_log(cls, log: Any, n_blocks: int, n_vertices: int) -> tuple[Increments, np.ndarray, np.ndarray]:
+        """Records from a :class:`terralod.tin.qem.CollapseLog` (collapse order → refinement order).
+
+        The log is encoded to the compact vertex splits a file stores and decoded back
+        (:meth:`from_compact`), so a model built here is exactly the model its file loads (slots
+        included). Returns (increments, base triples (S, 3), base alive (S,)) in the decoded slot order:
+        the base triangles first, in their input order.
+        """
         c = log.n_collapses
         block = log.block.astype(np.int64)
         # Block-major, and within a block the last collapse first (ΔT_0 undoes the last collapse).
         perm = np.lexsort((-np.arange(c), block))
-        block_ptr = np.zeros(n_blocks + 1, np.int64)
-        np.cumsum(np.bincount(block, minlength=n_blocks), out=block_ptr[1:])
-        del_slot = log.del_slot.reshape(c, 2)[perm].ravel()
-        del_tri = log.del_tri.reshape(c, 2, 3)[perm].reshape(-1, 3)
-        del_ptr = np.arange(0, 2 * c + 1, 2, dtype=np.int64)
-        rep_ptr, items = _csr_take(log.rep_ptr.astype(np.int64), perm)
-        mmqe = np.empty(c + n_blocks, np.float64)
+        block_records = np.bincount(block, minlength=n_blocks).astype(np.int64)
+        u = log.u[perm].astype(np.int64)
+        v = log.v[perm].astype(np.int64)
+        m = np.diff(log.rep_ptr)[perm].astype(np.int64)
+        # x1: the third vertex of the deleted triangle holding the directed edge u -> v
+        d = log.del_tri.reshape(c, 2, 3)[perm].astype(np.int64)
+        uu, vv = u[:, None], v[:, None]
+        has_uv = ((d[..., 0] == uu) & (d[..., 1] == vv)) | ((d[..., 1] == uu) & (d[..., 2] == vv)) | (
+            (d[..., 2] == uu) & (d[..., 0] == vv)
+        )
+        third = d.sum(axis=2) - uu - vv
+        x1 = np.where(has_uv[:, 0], third[:, 0], third[:, 1])
+        base_tri = np.ascontiguousarray(log.base_tris[log.base_alive], np.int32)
+        w = np.zeros(c, np.int64)
+        status = replay_splits(n_vertices, base_tri, u, v, x1, w, m, True)[0]
+        if status != 0:
+            raise RuntimeError(f"collapse log does not replay as vertex splits (record {status - 1})")
+        mm = np.empty(c + n_blocks, np.float64)
+        block_ptr = np.concatenate([[0], np.cumsum(block_records)])
         for b in range(n_blocks):
             lo, hi = block_ptr[b], block_ptr[b + 1]
-            raw = np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]])
-            mmqe[lo + b : hi + b + 1] = monotone_mmqe(raw)
-        rank = (c - 1 - perm).astype(np.int64)
-        return cls(
+            mm[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]]))
+        return cls.from_compact(n_vertices, base_tri, block_records, u, v, w, m, quantise_mmqe(mm))
+
+    @classmethod
+    def from_compact(
+        cls,
+        n_vertices: int,
+        base_tri: np.ndarray,
+        block_records: np.ndarray,
+        rec_u: np.ndarray,
+        rec_v: np.ndarray,
+        rec_w: np.ndarray,
+        rec_m: np.ndarray,
+        mmqe_code: np.ndarray,
+        *,
+        source: str | None = None,
+    ) -> tuple[Increments, np.ndarray, np.ndarray]:
+        """Raw records from the compact vertex splits (what a file stores), by replaying them from the base.
+
+        Parameters
+        ----------
+        n_vertices : int
+        base_tri : (n_base, 3) int, the base triangles (they take slots 0 … n_base - 1).
+        block_records : (B,) int, n_b; records are block-major, each block's in refinement order.
+        rec_u, rec_v, rec_w, rec_m : (R,) int, the splits (see :func:`terralod.kernels.qem.replay_splits`).
+        mmqe_code : (R + B,) int, quantised monotone MMQE of every block's scales S_0 … S_{n_b}.
+
+        Returns (increments, base triples (S, 3), base alive (S,)); CorruptStoreError (naming ``source``)
+        when the splits do not fit together.
+        """
+        rec_u, rec_v, rec_w, rec_m = (np.ascontiguousarray(a, np.int64) for a in (rec_u, rec_v, rec_w, rec_m))
+        base_tri = np.ascontiguousarray(base_tri, np.int32).reshape(-1, 3)
+        status, _, del_tri, rep_ptr, rep_slot, rep_old, rep_new = replay_splits(
+            int(n_vertices), base_tri, rec_u, rec_v, rec_u, rec_w, rec_m, False
+        )
+        if status != 0:
+            where = "base triangles" if status < 0 else f"record {status - 1}"
+            raise CorruptStoreError(f"inconsistent detail-increment records: {where} does not fit the mesh", source)
+        c = rec_u.size
+        n_base = base_tri.shape[0]
+        block_ptr = np.concatenate([[0], np.cumsum(block_records)]).astype(np.int64)
+        rank = mmqe_rank(block_ptr, mmqe_code)
+        base_tris = np.zeros((n_base + 2 * c, 3), np.int32)
+        base_tris[:n_base] = base_tri
+        base_alive = np.zeros(n_base + 2 * c, np.bool_)
+        base_alive[:n_base] = True
+        inc = cls(
             block_ptr,
-            del_ptr,
-            del_slot,
+            np.arange(0, 2 * c + 1, 2, dtype=np.int64),
+            np.arange(n_base, n_base + 2 * c, dtype=np.int32),
             del_tri,
             rep_ptr,
-            log.rep_slot[items],
-            log.rep_old[items],
-            log.rep_new[items],
-            mmqe,
+            rep_slot,
+            rep_old,
+            rep_new,
+            dequantise_mmqe(mmqe_code),
             rank,
             1,
-            log.u[perm],
-            log.v[perm],
+            rec_u,
+            rec_v,
+            rec_w,
+            mmqe_code,
         )
+        return inc, base_tris, base_alive
 
     def merged(self, k: int) -> Increments:
         """Merge every k consecutive records of each block into one, compressed (paper 003 §2.2.2).
@@ -246,6 +367,8 @@ class Increments:
             raise InputError(f"Expected a merge factor k >= 1, got {k!r}")
         if k == 1:
             return self
+        if self.raw is not None:  # merging merged records = merging the raw ones by the product
+            return self.raw.merged(self.step * k)
         nb = self.n_blocks
         n_b = self.block_n_records()
         g_b = -(-n_b // k)  # groups (merged records) per block
@@ -295,7 +418,7 @@ class Increments:
             np.minimum.at(rank, rec_group, self.rank)
         return Increments(
             gptr, del_ptr, slot[dead], old[dead], rep_ptr, slot[~dead], old[~dead], new[~dead], mm, rank,
-            self.step * k,
+            self.step * k, raw=self if self.rec_u is not None else None,
         )
 
 
@@ -457,6 +580,10 @@ def read_container(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[s
     magic, version, flags, _, length, digest = _HEADER.unpack_from(data)
     if version > FORMAT_VERSION:
         raise CorruptStoreError(f"format version {version} is newer than this terralod's ({FORMAT_VERSION})", src)
+    if version < FORMAT_VERSION:
+        raise CorruptStoreError(
+            f"format version {version} is no longer read (this terralod reads {FORMAT_VERSION}): rebuild the model "
+            "from its source", src)
     payload = data[_HEADER.size :]
     if len(payload) != length:
         raise CorruptStoreError(f"truncated or padded: payload of {len(payload)} bytes, header says {length}", src)
@@ -622,10 +749,12 @@ class DetailIncrementModel:
         sb = split_sub_blocks(vertices, tris, k)
         log = simplify(vertices, tris, sb.kind, sb.tri_block, sb.vert_block, base_fraction=base_fraction,
                        n_blocks=sb.n_blocks)
-        inc = Increments.from_log(log, sb.n_blocks)
-        model = cls(vertices, log.base_tris, log.base_alive, inc, k, sb.centre_m, sb.bounds_m,
+        inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0])
+        model = cls(vertices, base_tris, base_alive, inc, k, sb.centre_m, sb.bounds_m,
                     source=str(source), crs=crs, notes=notes)
-        model._full_tris = np.ascontiguousarray(tris, np.int32)  # the input TIN, kept for checks
+        # the input TIN, kept for checks: the full scale holds the same triangles (in other slots, a
+        # triple possibly rotated)
+        model._full_tris = np.ascontiguousarray(tris, np.int32)
         return model
 
     # -- sizes and scales -------------------------------------------------------------------------------
@@ -766,7 +895,15 @@ class DetailIncrementModel:
     # -- files -------------------------------------------------------------------------------------------
     def _payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         inc = self.increments
-        base_slot = np.flatnonzero(self._base_alive).astype(np.int64)
+        raw = inc.raw if inc.raw is not None else inc
+        if raw.rec_u is None or raw.rec_w is None or raw.mmqe_code is None:
+            raise InputError("these records carry no vertex splits to store (build the model, then save it)")
+        n_base = int(self._base_alive.sum())
+        code = raw.mmqe_code
+        first = code[raw.mmqe_ptr[:-1]]
+        # each block's codes fall from S_0 to S_{n_b}: store the first and the drops (mostly 0, 1 byte)
+        drop = -np.diff(code)
+        drop = np.delete(drop, raw.mmqe_ptr[1:-1] - 1)
         meta = {
             "format": "terralod detail-increment model (paper 003)",
             "k": self.k,
@@ -779,25 +916,17 @@ class DetailIncrementModel:
         }
         arrays = {
             "vertices_m": self.vertices_m,
-            "base_slot": base_slot,
-            "base_tri": self._base_tris[base_slot],
+            "base_tri": self._base_tris[:n_base],
             "block_centres_m": self.block_centres_m,
             "block_bounds_m": self.block_bounds_m,
-            "block_records": np.diff(inc.block_ptr),
-            "del_count": np.diff(inc.del_ptr),
-            "del_slot": inc.del_slot,
-            "del_tri": inc.del_tri,
-            "rep_count": np.diff(inc.rep_ptr),
-            "rep_slot": inc.rep_slot,
-            "mmqe_m2": inc.mmqe_m2,
-            "rank": inc.rank,
+            "block_records": np.diff(raw.block_ptr),
+            "rec_u": raw.rec_u,
+            "rec_dv": raw.rec_v.astype(np.int64) - raw.rec_u,
+            "rec_w": raw.rec_w,
+            "rec_m": np.diff(raw.rep_ptr),
+            "mmqe_first": first,
+            "mmqe_drop": drop,
         }
-        if inc.rec_u is not None and inc.step == 1:
-            # compact: the original triples of replaced triangles follow from (u, v) on loading
-            arrays["rec_u"] = inc.rec_u
-            arrays["rec_v"] = inc.rec_v
-        else:
-            arrays["rep_old"] = inc.rep_old
         return meta, arrays
 
     def save(self, path: str | os.PathLike[str], *, deflate: bool = True) -> int:
@@ -823,56 +952,41 @@ class DetailIncrementModel:
         try:
             k = int(meta["k"])
             n_slots = int(meta["n_slots"])
+            step = int(meta.get("step", 1))
             v = a["vertices_m"]
             nb = k * k
-            block_ptr = np.concatenate([[0], np.cumsum(a["block_records"])]).astype(np.int64)
-            del_ptr = np.concatenate([[0], np.cumsum(a["del_count"])]).astype(np.int64)
-            rep_ptr = np.concatenate([[0], np.cumsum(a["rep_count"])]).astype(np.int64)
+            br = a["block_records"].astype(np.int64)
+            n_rec = int(br.sum()) if br.size else 0
+            per_rec = ("rec_u", "rec_dv", "rec_w", "rec_m", "mmqe_drop")
             checks = [
                 (v.ndim == 2 and v.shape[1] == 3, "vertices"),
-                (block_ptr.size == nb + 1, "block count"),
-                (del_ptr.size == rep_ptr.size == block_ptr[-1] + 1, "record count"),
-                (del_ptr[-1] == a["del_slot"].size == a["del_tri"].shape[0], "deleted triangles"),
-                (rep_ptr[-1] == a["rep_slot"].size, "replaced triangles"),
-                ("rep_old" in a or ("rec_u" in a and a["rec_u"].size == a["rec_v"].size == block_ptr[-1]),
-                 "collapse vertices"),
-                ("rep_old" not in a or a["rep_old"].shape[0] == rep_ptr[-1], "original triples"),
-                (a["mmqe_m2"].size == block_ptr[-1] + nb and a["rank"].size == block_ptr[-1], "MMQE"),
+                (br.shape == (nb,) and (br >= 0).all(), "block count"),
+                (all(a[n].shape == (n_rec,) for n in per_rec), "record count"),
+                (a["base_tri"].ndim == 2 and a["base_tri"].shape[1] == 3, "base triangles"),
+                (n_slots == a["base_tri"].shape[0] + 2 * n_rec, "triangle count"),
+                (a["mmqe_first"].shape == (nb,) and (a["mmqe_drop"] >= 0).all(), "MMQE"),
+                (step >= 1, "merge factor"),
             ]
-            for arr in ("base_slot", "del_slot", "rep_slot"):
-                checks.append((a[arr].size == 0 or (a[arr].min() >= 0 and a[arr].max() < n_slots), arr))
-            for arr in ("base_tri", "del_tri", "rep_old", "rec_u", "rec_v"):
-                if arr in a:
-                    checks.append((a[arr].size == 0 or (a[arr].min() >= 0 and a[arr].max() < v.shape[0]), arr))
         except (KeyError, ValueError, TypeError) as exc:
             raise CorruptStoreError(f"incomplete detail-increment file ({exc})", src) from exc
         for ok, what in checks:
             if not ok:
                 raise CorruptStoreError(f"inconsistent detail-increment file: {what}", src)
-        base_tris = np.zeros((n_slots, 3), np.int32)
-        base_alive = np.zeros(n_slots, np.bool_)
-        base_tris[a["base_slot"]] = a["base_tri"]
-        base_alive[a["base_slot"]] = True
-        n_rep = int(rep_ptr[-1])
-        rep_new = np.empty((n_rep, 3), np.int32)
-        tris = base_tris.copy()
-        alive = base_alive.copy()
-        del_slot = np.ascontiguousarray(a["del_slot"], np.int32)
-        del_tri = np.ascontiguousarray(a["del_tri"], np.int32).reshape(-1, 3)
-        rep_slot = np.ascontiguousarray(a["rep_slot"], np.int32)
-        rec_u = rec_v = None
-        if "rep_old" in a:
-            rep_old = np.ascontiguousarray(a["rep_old"], np.int32).reshape(-1, 3)
-            derive_new_triples(tris, alive, 0, int(block_ptr[-1]), del_ptr, del_slot, del_tri, rep_ptr,
-                               rep_slot, rep_old, rep_new)
-        else:
-            rep_old = np.empty((n_rep, 3), np.int32)
-            rec_u = np.ascontiguousarray(a["rec_u"], np.int32)
-            rec_v = np.ascontiguousarray(a["rec_v"], np.int32)
-            derive_split_triples(tris, alive, 0, int(block_ptr[-1]), rec_u, rec_v, del_ptr, del_slot, del_tri,
-                                 rep_ptr, rep_slot, rep_old, rep_new)
-        inc = Increments(block_ptr, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new,
-                         a["mmqe_m2"], a["rank"], int(meta.get("step", 1)), rec_u, rec_v)
+        # MMQE codes of every block's scales S_0 … S_{n_b}: the first, then the running drops
+        bptr = np.concatenate([[0], np.cumsum(br)])
+        code = np.empty(n_rec + nb, np.int64)
+        drops = a["mmqe_drop"].astype(np.int64)
+        for b in range(nb):
+            seg = drops[bptr[b] : bptr[b + 1]]
+            code[bptr[b] + b] = int(a["mmqe_first"][b])
+            code[bptr[b] + b + 1 : bptr[b + 1] + b + 1] = int(a["mmqe_first"][b]) - np.cumsum(seg)
+        rec_u = a["rec_u"].astype(np.int64)
+        inc, base_tris, base_alive = Increments.from_compact(
+            v.shape[0], a["base_tri"], br, rec_u, rec_u + a["rec_dv"].astype(np.int64),
+            a["rec_w"], a["rec_m"], code, source=src,
+        )
+        if step > 1:
+            inc = inc.merged(step)
         m = cls(v, base_tris, base_alive, inc, k, a["block_centres_m"], a["block_bounds_m"],
                 source=str(meta.get("source", src)), crs=meta.get("crs"), notes=meta.get("notes", ()))
         return m
