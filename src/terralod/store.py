@@ -49,6 +49,17 @@ FORMAT_VERSION = 1
 #: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
 APPLICATION_ID = 0x544C4F44
 
+
+def _check_header(p: Path) -> None:
+    """Refuse, with one line naming the file, anything that is not an SQLite database of terralod's."""
+    with open(p, "rb") as fh:
+        head = fh.read(100)
+    if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
+        raise CorruptStoreError("not a terralod store (not an SQLite database)", str(p))
+    if int.from_bytes(head[68:72], "big") != APPLICATION_ID:
+        raise CorruptStoreError("not a terralod store (foreign SQLite database)", str(p))
+
+
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS tiles (
@@ -246,12 +257,7 @@ class TileStore:
             raise StoreError("store not found", str(p))
         if p.is_dir():
             raise StoreError("is a directory, not a tile store", str(p))
-        with open(p, "rb") as fh:
-            head = fh.read(100)
-        if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
-            raise CorruptStoreError("not a terralod store (not an SQLite database)", str(p))
-        if int.from_bytes(head[68:72], "big") != APPLICATION_ID:
-            raise CorruptStoreError("not a terralod store (foreign SQLite database)", str(p))
+        _check_header(p)
         try:
             uri = f"file:{p.resolve()}" + ("" if writable else "?mode=ro")
             conn = sqlite3.connect(uri, uri=True, check_same_thread=False)
@@ -559,12 +565,7 @@ def read_tin_store(path: str | os.PathLike[str]) -> tuple[dict[str, Any], bytes]
     p = Path(path)
     if not p.exists():
         raise StoreError("store not found", str(p))
-    with open(p, "rb") as fh:
-        head = fh.read(100)
-    if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
-        raise CorruptStoreError("not a terralod store (not an SQLite database)", str(p))
-    if int.from_bytes(head[68:72], "big") != APPLICATION_ID:
-        raise CorruptStoreError("not a terralod store (foreign SQLite database)", str(p))
+    _check_header(p)
     try:
         conn = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
         try:

@@ -73,38 +73,14 @@ class BuildReport:
 
 
 @jit
-def _level_max_range(z, s, m):
-    """Largest (max - min) vertex height of any tile of a level (vertices at stride s, edge-replicated)."""
-    h, w = z.shape
-    cells = m - 1
-    span = cells * s
-    nty = -(-(h - 1) // span)
-    ntx = -(-(w - 1) // span)
-    best = 0.0
-    for ty in range(nty):
-        for tx in range(ntx):
-            lo = np.inf
-            hi = -np.inf
-            for i in range(m):
-                r = min(ty * span + i * s, h - 1)
-                for j in range(m):
-                    c = min(tx * span + j * s, w - 1)
-                    v = z[r, c]
-                    if v < lo:
-                        lo = v
-                    if v > hi:
-                        hi = v
-            if hi - lo > best:
-                best = hi - lo
-    return best
-
-
-@jit
-def _level_max_sample_range(z, s, m):
-    """Largest (max - min) over all source samples of any tile window of a level (relocated vertices may
-    sit on any sample, or between samples with bilinear heights, so all samples bound their heights)."""
+def _level_max_range(z, s, m, step):
+    """Largest (max - min) height over the rows and columns ``step`` apart (edge-replicated) of any tile
+    window of a level: ``step = s`` takes the level's grid vertices; ``step = 1`` every source sample
+    (relocated vertices may sit on any sample, or between samples with bilinear heights, so all samples
+    bound their heights)."""
     h, w = z.shape
     span = (m - 1) * s
+    n = span // step + 1
     nty = -(-(h - 1) // span)
     ntx = -(-(w - 1) // span)
     best = 0.0
@@ -112,8 +88,10 @@ def _level_max_sample_range(z, s, m):
         for tx in range(ntx):
             lo = np.inf
             hi = -np.inf
-            for r in range(ty * span, min(ty * span + span, h - 1) + 1):
-                for c in range(tx * span, min(tx * span + span, w - 1) + 1):
+            for i in range(n):
+                r = min(ty * span + i * step, h - 1)
+                for j in range(n):
+                    c = min(tx * span + j * step, w - 1)
                     v = z[r, c]
                     if v < lo:
                         lo = v
@@ -135,9 +113,9 @@ def plan_quantisation(
     over the grid vertices; otherwise over every source sample of the tile window.
     """
     out = {}
-    fn = _level_max_range if grid_vertices else _level_max_sample_range
     for k in pyramid.levels:
-        rng = fn(hf.elevation_m, pyramid.stride(k), pyramid.tile_size)
+        stride = pyramid.stride(k)
+        rng = _level_max_range(hf.elevation_m, stride, pyramid.tile_size, stride if grid_vertices else 1)
         step = max(float(rng) / 65534.0, 1e-6)
         out[k] = LevelQuantisation(pyramid.xy_frac_bits(k), step)
     return out
