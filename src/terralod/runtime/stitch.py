@@ -228,7 +228,25 @@ class TileCache:
             self._items.move_to_end(code)
             return p
         self.misses += 1
-        p = TilePrep.from_tile(self.source.tile(*code), self.source.pyramid)
+        return self.put(code, self.source.tile(*code))
+
+    def load(self, codes: list[TileCode]) -> int:
+        """Decode the tiles of ``codes`` not cached yet; returns how many. A source with a ``tiles(codes)``
+        method (e.g. :class:`terralod.runtime.FractalSource`, which generates them on threads) is asked for
+        all of them at once."""
+        missing = [c for c in dict.fromkeys(codes) if c not in self._items]
+        if not missing:
+            return 0
+        self.misses += len(missing)
+        many = getattr(self.source, "tiles", None)
+        tiles = many(missing) if many is not None else [self.source.tile(*c) for c in missing]
+        for code, t in zip(missing, tiles, strict=True):
+            self.put(code, t)
+        return len(missing)
+
+    def put(self, code: TileCode, tile: Any) -> TilePrep:
+        """Cache the source tile ``tile`` of ``code`` (evicting least recently used ones); its TilePrep."""
+        p = TilePrep.from_tile(tile, self.source.pyramid)
         self._items[code] = p
         self.nbytes += p.nbytes
         while len(self._items) > max(1, self.floor_tiles) and (
@@ -298,13 +316,7 @@ class Stitcher:
     # -- public ----------------------------------------------------------------------------------------
     def load(self, slots: np.ndarray) -> int:
         """Decode the tiles of ``slots`` not yet cached (I/O, kept apart from stitching); returns how many."""
-        miss = 0
-        for s in np.asarray(slots, dtype=np.int64).tolist():
-            code = self.index.code(s)
-            if code not in self.cache:
-                self.cache.get(code)
-                miss += 1
-        return miss
+        return self.cache.load([self.index.code(s) for s in np.asarray(slots, dtype=np.int64).tolist()])
 
     def update(self, crack: np.ndarray, *, full: bool = False) -> StitchStats:
         """Stitch the tiles of the CrackTileVector ``crack`` (slots, coarsest first) and put them to sleep."""
