@@ -178,8 +178,9 @@ def test_compact_file_gives_every_table1_field(tmp_path_factory, seed: int, n: i
     a, b = m.increments, r.increments
     assert a.step == b.step == k
     for f in ("block_ptr", "del_ptr", "del_slot", "del_tri", "rep_ptr", "rep_slot", "rep_old", "rep_new",
-              "mmqe_m2", "rank"):  # fmt: skip
+              "mmqe_m2", "rank", "error_m"):  # fmt: skip
         assert np.array_equal(getattr(a, f), getattr(b, f)), f
+    assert np.array_equal(r.block_boxes_m, m.block_boxes_m)
     assert np.array_equal(r._base_tris[r._base_alive], m._base_tris[m._base_alive])
     assert np.array_equal(_canonical(r.mesh_at(r.n_scales - 1)[1]), _canonical(m._full_tris))
 
@@ -206,6 +207,11 @@ def test_inconsistent_or_old_files_are_refused(tmp_path: Path) -> None:
     assert bytes(raw[:8]) == MAGIC
     (tmp_path / "old.tdim").write_bytes(bytes(raw))
     with pytest.raises(CorruptStoreError, match="version 1 is no longer read"):
+        DetailIncrementModel.load(tmp_path / "old.tdim")
+    head[1] = 2  # format 2 had no measured error
+    raw[: _HEADER.size] = _HEADER.pack(*head)
+    (tmp_path / "old.tdim").write_bytes(bytes(raw))
+    with pytest.raises(CorruptStoreError, match="version 2 is no longer read"):
         DetailIncrementModel.load(tmp_path / "old.tdim")
 
 
@@ -235,7 +241,7 @@ def test_svo_rule_refines_near_the_eye() -> None:
     prev = None
     for height in (20000.0, 5000.0, 1500.0, 400.0):
         eye = centre + np.array([0.0, 0.0, height])
-        s = m.scales_for_camera(eye, 60.0, 1080, 2.0)
+        s = m.scales_for_camera(eye, 60.0, 1080, 2.0, error="mmqe")
         d = np.linalg.norm(m.block_centres_m - eye, axis=1)
         for b in range(m.n_blocks):
             mm = m.mmqe_m2(b)
@@ -246,9 +252,86 @@ def test_svo_rule_refines_near_the_eye() -> None:
         if prev is not None:
             assert (s >= prev).all()
         prev = s
-        v, t = m.mesh_for_camera(eye, 60.0, 1080, 2.0)
+        v, t = m.mesh_for_camera(eye, 60.0, 1080, 2.0, error="mmqe")
         assert np.array_equal(m.block_scales, s)
     assert prev is not None and prev.sum() > 0
+
+
+def _vertical_error_per_block(m: DetailIncrementModel) -> np.ndarray:
+    """(B,) max over the input points of |z - surface| under the model's current TIN, grouped by the
+    sub-block of the triangle holding each point (brute force: every point against every triangle)."""
+    from terralod.runtime.tin import slot_blocks
+
+    v = m.vertices_m
+    slots = np.flatnonzero(m._alive)
+    t = m._tris[slots].astype(np.int64)
+    blk = slot_blocks(m)[slots]
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    out = np.zeros(m.n_blocks)
+    for p in v:
+        qx, qy = p[0] - a[:, 0], p[1] - a[:, 1]
+        l1 = (qx * (c[:, 1] - a[:, 1]) - qy * (c[:, 0] - a[:, 0])) / det
+        l2 = ((b[:, 0] - a[:, 0]) * qy - (b[:, 1] - a[:, 1]) * qx) / det
+        l0 = 1.0 - l1 - l2
+        inside = np.minimum(l0, np.minimum(l1, l2)) >= -1e-9
+        z = l0 * a[:, 2] + l1 * b[:, 2] + l2 * c[:, 2]
+        for k in np.flatnonzero(inside):
+            out[blk[k]] = max(out[blk[k]], abs(p[2] - z[k]))
+    return out
+
+
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(60, 400), blocks=st.sampled_from([1, 4]),
+       relief=st.floats(1.0, 200.0), pick=st.floats(0.0, 1.0))
+def test_stored_error_bounds_the_measured_error(seed: int, n: int, blocks: int, relief: float, pick: float) -> None:
+    """The stored measured error of every sub-block's scale is at least the max vertical distance, measured
+    independently, from the input points to that scale's surface; it falls to 0 at full resolution, never
+    grows from coarse to fine, and merged records keep it at their scales."""
+    m = DetailIncrementModel.from_points(_cloud(seed, n, relief_m=relief), sub_blocks=blocks)
+    nb = m.increments.block_n_records()
+    rng = np.random.default_rng(seed)
+    for scales in (np.zeros(m.n_blocks, np.int64), np.round(pick * nb).astype(np.int64),
+                   rng.integers(0, nb + 1), nb):  # fmt: skip
+        m.set_block_scales(scales)
+        got = _vertical_error_per_block(m)
+        stored = np.array([m.error_m(b)[scales[b]] for b in range(m.n_blocks)])
+        assert (got <= stored * (1 + 1e-12) + 1e-9).all(), (got, stored)
+    for b in range(m.n_blocks):
+        e = m.error_m(b)
+        assert e[-1] == 0.0 and (np.diff(e) <= 0).all()
+    k4 = m.compressed(4)
+    for b in range(m.n_blocks):
+        assert np.array_equal(k4.error_m(b), m.error_m(b)[np.minimum(np.arange(k4.block_n_scales[b]) * 4, nb[b])])
+
+
+def test_measured_rule_refines_near_the_eye_and_meets_n_pixels() -> None:
+    """error="measured" (the default): every selected scale's measured error, seen from the nearest point of
+    the sub-block's box, projects to at most N pixels, the next coarser scale would not, a nearer eye never
+    coarsens a sub-block, and an eye close above the terrain gets more triangles than a far one."""
+    from terralod.tin.svo import box_distance_m, projected_px
+
+    m = DetailIncrementModel.from_points(_cloud(3, 4000, relief_m=80.0), sub_blocks=9)
+    centre = m.block_centres_m.mean(axis=0)
+    prev, tris = None, []
+    for height in (20000.0, 5000.0, 1500.0, 400.0, 50.0):
+        eye = centre + np.array([0.0, 0.0, height])
+        s = m.scales_for_camera(eye, 60.0, 1080, 2.0)
+        d = box_distance_m(m.block_boxes_m, eye)
+        px = m.projected_error_px(eye, 60.0, 1080, s)
+        for b in range(m.n_blocks):
+            e = m.error_m(b)
+            assert px[b] == pytest.approx(projected_px(e[s[b]], d[b], np.radians(60.0), 1080))
+            assert px[b] <= 2.0 or s[b] == e.size - 1
+            if s[b] > 0:
+                assert projected_px(e[s[b] - 1], d[b], np.radians(60.0), 1080) > 2.0
+        if prev is not None:
+            assert (s >= prev).all()
+        prev = s
+        tris.append(m.mesh_for_camera(eye, 60.0, 1080, 2.0)[1].shape[0])
+    assert tris[-1] > tris[0]
+    with pytest.raises(ValueError, match="measured.*mmqe"):
+        m.scales_for_camera(centre, 60.0, 1080, 2.0, error="max")
 
 
 def test_heightfield_model_full_scale_is_the_grid_tin() -> None:

@@ -320,6 +320,8 @@ def print_tin_summary(d: dict[str, Any]) -> None:
     console.print(f"  elevation    {lo:.2f} .. {hi:.2f} m")
     svo = d["svo_length_m"]
     console.print(f"  sqrt(MMQE)   {svo['base']:.3f} m at the base, {svo['full']:.3f} m at full resolution")
+    if "max_vertical_error_m" in d:
+        console.print(f"  max error    {d['max_vertical_error_m']['base']:.3f} m vertical at the base (measured), 0 at full")
     if "size_bytes" in d:
         console.print(f"  size         {d['size_bytes']:,} bytes")
     for n in d.get("notes", []):

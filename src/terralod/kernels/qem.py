@@ -786,3 +786,102 @@ def replay_splits(n_vertices, base_tri, rec_u, rec_v, rec_x, rec_w, rec_m, encod
             arena, top = _star_add(arena, start, length, cap, top, tris[s2, k], s2)
         present[u] = True
     return 0, tris, del_tri, rep_ptr, rep_slot, rep_old, rep_new
+
+
+# -- measured error of the collapses ---------------------------------------------------------------------
+@jit
+def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
+    """Max vertical distance between the vertices each collapse (and the ones before it) removed and the
+    surface it left, over the region it changed.
+
+    Replays the collapses from the full TIN, keeping every removed vertex in the list of the live slot
+    whose xy triangle holds it. Collapse i (``cu[i]`` removed; slots ``del_slot[2i : 2i+2]`` deleted,
+    ``rep_slot[rep_ptr[i] : rep_ptr[i+1]]`` rewritten to ``rep_new``) gathers ``cu[i]`` and the vertices
+    of the slots it deleted or rewrote, puts each in the rewritten slot that holds it (the largest smallest
+    barycentric coordinate, so a vertex on an edge or outside by rounding still gets one) and measures
+    |z - z_surface| there. The rewritten slots cover star(u)'s region, so no vertex is lost.
+
+    Parameters
+    ----------
+    P : (N, 3) float64 world metres. tris : (S, 3) int32, every slot at full resolution (not modified).
+    cu : (C,) int32. del_slot : (2C,) int32. rep_ptr : (C+1,) int64. rep_slot : (R,), rep_new : (R, 3) int32.
+
+    Returns
+    -------
+    (C,) float64
+        e[i]: max over the vertices gathered by collapse i of their vertical distance to the surface just
+        after it, metres. With the running maximum per sub-block this bounds the max vertical error of
+        every intermediate mesh against the input vertices from above (the vertices collapse i did not
+        gather keep their distance).
+    """
+    n_v = P.shape[0]
+    T = tris.copy()
+    head = np.full(T.shape[0], -1, np.int64)  # first vertex held by each slot
+    nxt = np.full(n_v, -1, np.int64)  # next vertex in the same slot
+    buf = np.empty(n_v, np.int64)
+    c = cu.shape[0]
+    out = np.zeros(c, np.float64)
+    for i in range(c):
+        n = 0
+        buf[0] = cu[i]
+        n = 1
+        for j in range(2):
+            s = del_slot[2 * i + j]
+            p = head[s]
+            while p >= 0:
+                buf[n] = p
+                n += 1
+                p = nxt[p]
+            head[s] = -1
+        r0 = rep_ptr[i]
+        r1 = rep_ptr[i + 1]
+        for j in range(r0, r1):
+            s = rep_slot[j]
+            p = head[s]
+            while p >= 0:
+                buf[n] = p
+                n += 1
+                p = nxt[p]
+            head[s] = -1
+            T[s, 0] = rep_new[j, 0]
+            T[s, 1] = rep_new[j, 1]
+            T[s, 2] = rep_new[j, 2]
+        e = 0.0
+        for k in range(n):
+            p = buf[k]
+            px = P[p, 0]
+            py = P[p, 1]
+            best = -np.inf
+            bs = -1
+            bz = 0.0
+            for j in range(r0, r1):
+                s = rep_slot[j]
+                a = T[s, 0]
+                b = T[s, 1]
+                d = T[s, 2]
+                ax = P[b, 0] - P[a, 0]
+                ay = P[b, 1] - P[a, 1]
+                bx = P[d, 0] - P[a, 0]
+                by = P[d, 1] - P[a, 1]
+                det = ax * by - ay * bx
+                if det == 0.0:
+                    continue
+                qx = px - P[a, 0]
+                qy = py - P[a, 1]
+                l1 = (qx * by - qy * bx) / det
+                l2 = (ax * qy - ay * qx) / det
+                l0 = 1.0 - l1 - l2
+                m = min(l0, min(l1, l2))
+                if m > best:
+                    best = m
+                    bs = s
+                    bz = l0 * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
+            if bs < 0:
+                continue
+            dz = abs(P[p, 2] - bz)
+            if dz > e:
+                e = dz
+            nxt[p] = head[bs]
+            head[bs] = p
+        out[i] = e
+    return out

@@ -1,8 +1,10 @@
 """Runtime of a detail-increment TIN (paper 003): per-frame sub-block scales from the SVO rule, meshes out.
 
 Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §2.3 (reconstruction of any scale by applying or
-reverting ΔT records; each sub-block takes the coarsest scale whose sqrt(MMQE) segment at its centre
-projects to at most N pixels, N = 2 px; sub-blocks change scale independently). The scale query is
+reverting ΔT records; each sub-block takes the coarsest scale whose error projects to at most N pixels,
+N = 2 px; sub-blocks change scale independently). By default the error is the scale's measured max
+vertical error at the nearest point of the sub-block's box (the paper's sqrt(MMQE) at the centre, a mean,
+never refines a large terrain: ``error="mmqe"`` keeps it). The scale query is
 :meth:`terralod.tin.DetailIncrementModel.scales_for_camera`; this module keeps a model at the scales of
 the last camera, moves only the sub-blocks whose scale changed, and hands a renderer one mesh per
 sub-block (a pure producer: it never imports the GPU backend).
@@ -25,8 +27,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-
-from terralod.tin.svo import svo_length_px
 
 __all__ = ["TinEngine", "TinFrame", "TinRuntime", "slot_blocks"]
 
@@ -61,7 +61,9 @@ class TinFrame:
     triangles : live triangles drawn
     select_ms, apply_ms, mesh_ms : time of the SVO query, of applying/reverting records, of cutting meshes
     records_applied : ΔT records applied or reverted this frame
-    max_svo_px : the largest projected sqrt(MMQE) segment over the sub-blocks at their scales, pixels
+    max_svo_px : the largest projected error over the sub-blocks at their scales, pixels (the measured
+        error at the nearest point of each sub-block's box, or the sqrt(MMQE) segment at its centre, by the
+        runtime's ``error`` rule)
     """
 
     scales: np.ndarray
@@ -103,14 +105,19 @@ class TinRuntime:
     Parameters
     ----------
     model : terralod.tin.DetailIncrementModel (moved in place; start it anywhere)
-    threshold_px : N, the largest projected length of a sub-block's sqrt(MMQE) segment, pixels
+    threshold_px : N, the largest projected error of a sub-block, pixels
+    error : "measured" (default: the scale's measured max vertical error) or "mmqe" (the paper's SVO
+        segment, sqrt(MMQE)); see :meth:`terralod.tin.DetailIncrementModel.scales_for_camera`
     """
 
-    def __init__(self, model: Any, *, threshold_px: float = 2.0) -> None:
+    def __init__(self, model: Any, *, threshold_px: float = 2.0, error: str = "measured") -> None:
         if not threshold_px > 0:
             raise ValueError(f"Expected threshold_px > 0, got {threshold_px}")
+        if error not in ("measured", "mmqe"):
+            raise ValueError(f"Expected error 'measured' or 'mmqe', got {error!r}")
         self.model = model
         self.threshold_px = float(threshold_px)
+        self.error = error
         self.slot_block = slot_blocks(model)
         nb = model.n_blocks
         order = np.argsort(self.slot_block, kind="stable")
@@ -127,7 +134,8 @@ class TinRuntime:
         """Move every sub-block to its SVO scale for ``camera`` (a :class:`terralod.runtime.Camera`)."""
         m = self.model
         t0 = time.perf_counter()
-        scales = m.scales_for_camera(camera.eye, camera.fov_y_deg, camera.height_px, self.threshold_px)
+        scales = m.scales_for_camera(camera.eye, camera.fov_y_deg, camera.height_px, self.threshold_px,
+                                     error=self.error)
         t1 = time.perf_counter()
         before = m.block_scales
         m.set_block_scales(scales)
@@ -137,10 +145,7 @@ class TinRuntime:
             self._rebuild(changed)
         t3 = time.perf_counter()
         self._first = False
-        inc = m.increments
-        d = np.linalg.norm(m.block_centres_m - np.asarray(camera.eye, np.float64), axis=1)
-        svo = svo_length_px(inc.mmqe_m2[inc.mmqe_ptr[:-1] + scales], d, np.radians(camera.fov_y_deg),
-                            camera.height_px)  # fmt: skip
+        svo = m.projected_error_px(camera.eye, camera.fov_y_deg, camera.height_px, scales, error=self.error)
         return TinFrame(
             scales, changed, int(m._alive.sum()), (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3,
             int(np.abs(scales - before).sum()), float(svo.max()) if svo.size else 0.0,
@@ -196,8 +201,8 @@ class TinEngine:
     ``close``, ``threshold_px``) over a :class:`TinRuntime`, so the window viewer drives a TIN. Updates run
     on the caller's thread: a TIN frame costs milliseconds (``benchmarks/results/tin_zoom.md``)."""
 
-    def __init__(self, model: Any, *, threshold_px: float = 2.0) -> None:
-        self.runtime = TinRuntime(model, threshold_px=threshold_px)
+    def __init__(self, model: Any, *, threshold_px: float = 2.0, error: str = "measured") -> None:
+        self.runtime = TinRuntime(model, threshold_px=threshold_px, error=error)
         self._camera: Any = None
 
     @property

@@ -34,7 +34,13 @@ Deviations, and why:
   triples, original and new triples) exactly. Merged records (§2.2.2) are derived in memory from the
   raw ones; a file of a merged model stores the raw splits and the merge factor. Integers are stored in
   the narrowest type that holds them, byte-shuffled and deflated (the same encoding as the static
-  pyramid of ``benchmarks/tin.py``). Version 1 files (slots and triples) are refused with one line.
+  pyramid of ``benchmarks/tin.py``). Versions 1 (slots and triples) and 2 (no measured error) are
+  refused with one line.
+- **Measured error per scale** (not in the paper): besides the MMQE, each scale of a sub-block stores an
+  upper bound of its max vertical distance to the input points (:func:`terralod.tin.qem.measured_errors`,
+  quantised rounding up, stored like the MMQE codes: first + drops), and each sub-block a bounding box;
+  scale selection uses them by default (see :mod:`terralod.tin.svo` for why; ``error="mmqe"`` is the
+  paper's rule).
 """
 
 from __future__ import annotations
@@ -55,7 +61,13 @@ import numpy as np
 
 from terralod.errors import CorruptStoreError, InputError, InputNotFoundError
 from terralod.kernels.qem import coarsen_records, refine_records, replay_splits
-from terralod.tin.svo import monotone_mmqe, select_scales
+from terralod.tin.svo import (
+    box_distance_m,
+    monotone_mmqe,
+    projected_px,
+    select_scales,
+    select_scales_measured,
+)
 
 __all__ = [
     "DeltaT",
@@ -66,7 +78,8 @@ __all__ = [
 ]
 
 MAGIC = b"TLODDIM\x00"
-FORMAT_VERSION = 2  #: 2: compact vertex-split records (1: slots and triples; no longer read)
+#: 3: + measured error per scale; 2: compact vertex-split records; 1: slots and triples (1, 2 no longer read)
+FORMAT_VERSION = 3
 _HEADER = struct.Struct("<8sHHIQ32s8x")  # magic, version, flags, reserved, payload length, sha256
 _FLAG_DEFLATE = 1
 
@@ -134,6 +147,16 @@ def quantise_mmqe(mmqe_m2: np.ndarray) -> np.ndarray:
     return np.maximum(np.nan_to_num(c, nan=MMQE_ZERO_CODE, neginf=MMQE_ZERO_CODE), MMQE_ZERO_CODE).astype(np.int64)
 
 
+def quantise_error(error_m: np.ndarray) -> np.ndarray:
+    """(n,) int64 codes of measured errors, metres, rounded *up* (1/256 octave, 0.27 %), so the stored
+    error never falls below the measured one; 0 gets the zero code."""
+    e = np.asarray(error_m, np.float64)
+    with np.errstate(divide="ignore"):
+        c = np.ceil(np.log2(np.maximum(e, 0.0)) * MMQE_STEPS_PER_OCTAVE)
+    c = np.nan_to_num(c, nan=MMQE_ZERO_CODE, neginf=MMQE_ZERO_CODE)
+    return np.where(e > 0.0, np.maximum(c, MMQE_ZERO_CODE + 1), MMQE_ZERO_CODE).astype(np.int64)
+
+
 def dequantise_mmqe(code: np.ndarray) -> np.ndarray:
     """(n,) float64 MMQE, m², of codes from :func:`quantise_mmqe` (the zero code gives 0)."""
     c = np.asarray(code, np.int64)
@@ -188,6 +211,8 @@ class Increments:
         rec_w: np.ndarray | None = None,
         mmqe_code: np.ndarray | None = None,
         raw: Increments | None = None,
+        error_m: np.ndarray | None = None,
+        error_code: np.ndarray | None = None,
     ) -> None:
         self.block_ptr = np.ascontiguousarray(block_ptr, np.int64)
         self.del_ptr = np.ascontiguousarray(del_ptr, np.int64)
@@ -208,6 +233,11 @@ class Increments:
         self.mmqe_code = None if mmqe_code is None else np.ascontiguousarray(mmqe_code, np.int64)
         #: merged records only: the raw records they were merged from (what a file stores)
         self.raw = raw
+        #: measured max vertical error of every block's scales, metres, laid out like ``mmqe_m2`` (monotone,
+        #: an upper bound; 0 at full resolution); raw records also keep its codes (what a file stores)
+        self.error_m = (np.full(self.mmqe_m2.shape, np.inf) if error_m is None
+                        else np.ascontiguousarray(error_m, np.float64))  # fmt: skip
+        self.error_code = None if error_code is None else np.ascontiguousarray(error_code, np.int64)
         nb = self.block_ptr.size - 1
         self.mmqe_ptr = self.block_ptr + np.arange(nb + 1)
         self.record_block = np.repeat(np.arange(nb, dtype=np.int32), np.diff(self.block_ptr))
@@ -229,6 +259,10 @@ class Increments:
     def mmqe_of(self, block: int) -> np.ndarray:
         """Monotone MMQE of block ``block``'s scales S_0 … S_{n_b}, m²."""
         return self.mmqe_m2[self.mmqe_ptr[block] : self.mmqe_ptr[block + 1]]
+
+    def error_of(self, block: int) -> np.ndarray:
+        """Measured max vertical error of block ``block``'s scales S_0 … S_{n_b}, metres (monotone)."""
+        return self.error_m[self.mmqe_ptr[block] : self.mmqe_ptr[block + 1]]
 
     def record(self, block: int, s: int) -> DeltaT:
         """ΔT_s of block ``block`` as the paper's record (copies)."""
@@ -256,8 +290,11 @@ class Increments:
 
     # -- construction ----------------------------------------------------------------------------------
     @classmethod
-    def from_log(cls, log: Any, n_blocks: int, n_vertices: int) -> tuple[Increments, np.ndarray, np.ndarray]:
+    def from_log(cls, log: Any, n_blocks: int, n_vertices: int, error_m: np.ndarray
+                 ) -> tuple[Increments, np.ndarray, np.ndarray]:
         """Records from a :class:`terralod.tin.qem.CollapseLog` (collapse order → refinement order).
+
+        ``error_m`` (C,): the measured error of each collapse (:func:`terralod.tin.qem.measured_errors`).
 
         The log is encoded to the compact vertex splits a file stores and decoded back
         (:meth:`from_compact`), so a model built here is exactly the model its file loads (slots
@@ -286,11 +323,15 @@ class Increments:
         if status != 0:
             raise RuntimeError(f"collapse log does not replay as vertex splits (record {status - 1})")
         mm = np.empty(c + n_blocks, np.float64)
+        ee = np.empty(c + n_blocks, np.float64)
+        err = np.asarray(error_m, np.float64)
         block_ptr = np.concatenate([[0], np.cumsum(block_records)])
         for b in range(n_blocks):
             lo, hi = block_ptr[b], block_ptr[b + 1]
             mm[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]]))
-        return cls.from_compact(n_vertices, base_tri, block_records, u, v, w, m, quantise_mmqe(mm))
+            ee[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([err[perm[lo:hi]], [0.0]]))
+        return cls.from_compact(n_vertices, base_tri, block_records, u, v, w, m, quantise_mmqe(mm),
+                                quantise_error(ee))
 
     @classmethod
     def from_compact(
@@ -303,6 +344,7 @@ class Increments:
         rec_w: np.ndarray,
         rec_m: np.ndarray,
         mmqe_code: np.ndarray,
+        error_code: np.ndarray,
         *,
         source: str | None = None,
     ) -> tuple[Increments, np.ndarray, np.ndarray]:
@@ -315,6 +357,7 @@ class Increments:
         block_records : (B,) int, n_b; records are block-major, each block's in refinement order.
         rec_u, rec_v, rec_w, rec_m : (R,) int, the splits (see :func:`terralod.kernels.qem.replay_splits`).
         mmqe_code : (R + B,) int, quantised monotone MMQE of every block's scales S_0 … S_{n_b}.
+        error_code : (R + B,) int, quantised measured error of the same scales (:func:`quantise_error`).
 
         Returns (increments, base triples (S, 3), base alive (S,)); CorruptStoreError (naming ``source``)
         when the splits do not fit together.
@@ -351,6 +394,9 @@ class Increments:
             rec_v,
             rec_w,
             mmqe_code,
+            None,
+            dequantise_mmqe(error_code),
+            error_code,
         )
         return inc, base_tris, base_alive
 
@@ -408,9 +454,11 @@ class Increments:
 
         # Scales S_0, S_k, …, S_{n_b}: the monotone MMQE sampled there (still monotone).
         mm = np.empty(n_groups + nb, np.float64)
+        ee = np.empty(n_groups + nb, np.float64)
         for b in range(nb):
             scales = np.minimum(np.arange(g_b[b] + 1) * k, n_b[b])
             mm[gptr[b] + b : gptr[b + 1] + b + 1] = self.mmqe_of(b)[scales]
+            ee[gptr[b] + b : gptr[b + 1] + b + 1] = self.error_of(b)[scales]
         # A merged record ranks where its first member does (keeps each block's order).
         rank = np.zeros(n_groups, np.int64)
         if self.n_records:
@@ -418,7 +466,7 @@ class Increments:
             np.minimum.at(rank, rec_group, self.rank)
         return Increments(
             gptr, del_ptr, slot[dead], old[dead], rep_ptr, slot[~dead], old[~dead], new[~dead], mm, rank,
-            self.step * k, raw=self if self.rec_u is not None else None,
+            self.step * k, raw=self if self.rec_u is not None else None, error_m=ee,
         )
 
 
@@ -639,6 +687,7 @@ class DetailIncrementModel:
         source: str = "<points>",
         crs: str | None = None,
         notes: Sequence[str] = (),
+        block_boxes_m: np.ndarray | None = None,
     ) -> None:
         self.vertices_m = np.ascontiguousarray(vertices_m, np.float64)
         self.vertices_m.setflags(write=False)
@@ -648,6 +697,15 @@ class DetailIncrementModel:
         self.k = int(k)
         self.block_centres_m = np.ascontiguousarray(block_centres_m, np.float64)
         self.block_bounds_m = np.ascontiguousarray(block_bounds_m, np.float64)
+        if block_boxes_m is None:  # the cells, all heights (a box around each block's triangles is tighter)
+            z = self.vertices_m[:, 2]
+            nb = self.block_bounds_m.shape[0]
+            zlo = np.full(nb, z.min() if z.size else 0.0)
+            zhi = np.full(nb, z.max() if z.size else 0.0)
+            bb = self.block_bounds_m
+            block_boxes_m = np.stack([bb[:, 0], bb[:, 1], zlo, bb[:, 2], bb[:, 3], zhi], axis=1)
+        #: (B, 6) float64: (west, south, low, east, north, high) around each sub-block's triangles, metres
+        self.block_boxes_m = np.ascontiguousarray(block_boxes_m, np.float64)
         self.source = source
         self.crs = crs
         self.notes = tuple(notes)
@@ -744,14 +802,24 @@ class DetailIncrementModel:
     @classmethod
     def _build(cls, vertices, tris, k, base_fraction, source, crs, notes) -> DetailIncrementModel:
         from terralod.tin.delaunay import split_sub_blocks
-        from terralod.tin.qem import simplify
+        from terralod.tin.qem import measured_errors, simplify
 
         sb = split_sub_blocks(vertices, tris, k)
         log = simplify(vertices, tris, sb.kind, sb.tri_block, sb.vert_block, base_fraction=base_fraction,
                        n_blocks=sb.n_blocks)
-        inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0])
+        err = measured_errors(vertices, tris, log)
+        inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0], err)
+        # a box around each block's triangles: every scale's surface lies inside it
+        t = np.asarray(tris, np.int64).ravel()
+        tb = np.repeat(sb.tri_block.astype(np.int64), 3)
+        lo = np.repeat(vertices.min(axis=0)[None, :], sb.n_blocks, axis=0) if t.size else np.zeros((sb.n_blocks, 3))
+        hi = lo.copy()
+        has = np.bincount(tb, minlength=sb.n_blocks) > 0
+        lo[has], hi[has] = np.inf, -np.inf
+        np.minimum.at(lo, tb, vertices[t])
+        np.maximum.at(hi, tb, vertices[t])
         model = cls(vertices, base_tris, base_alive, inc, k, sb.centre_m, sb.bounds_m,
-                    source=str(source), crs=crs, notes=notes)
+                    source=str(source), crs=crs, notes=notes, block_boxes_m=np.concatenate([lo, hi], axis=1))
         # the input TIN, kept for checks: the full scale holds the same triangles (in other slots, a
         # triple possibly rotated)
         model._full_tris = np.ascontiguousarray(tris, np.int32)
@@ -843,18 +911,9 @@ class DetailIncrementModel:
             self.set_block_scales(scale)  # type: ignore[arg-type]
         return self._mesh(compact)
 
-    def scales_for_camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
-                          threshold_px: float = 2.0) -> np.ndarray:
-        """(B,) per-sub-block scales of the SVO rule (paper 003 §2.3.2) for a perspective camera.
-
-        Each sub-block gets the coarsest scale whose sqrt(MMQE) segment at the sub-block's centre
-        projects to at most ``threshold_px`` pixels. A pure query: the state is not touched.
-
-        Parameters
-        ----------
-        eye_m : (3,) world metres. fov_y_deg : vertical field of view, degrees, in (0, 180).
-        height_px : viewport height, pixels. threshold_px : N, pixels (the paper's 2).
-        """
+    def _camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
+                threshold_px: float, error: str) -> tuple[np.ndarray, np.ndarray]:
+        """Checked camera: (eye (3,), distance of every sub-block (B,), metres, for ``error``'s rule)."""
         eye = np.asarray(eye_m, np.float64)
         if eye.shape != (3,) or not np.isfinite(eye).all():
             raise ValueError(f"Expected a finite eye position (x, y, z) in metres, got {eye_m!r}")
@@ -862,15 +921,58 @@ class DetailIncrementModel:
             raise ValueError(f"Expected fov_y_deg in (0, 180) degrees, got {fov_y_deg}")
         if not (height_px > 0 and threshold_px > 0):
             raise ValueError(f"Expected positive height_px and threshold_px, got {height_px}, {threshold_px}")
+        if error == "measured":
+            return eye, box_distance_m(self.block_boxes_m, eye)
+        if error == "mmqe":
+            return eye, np.linalg.norm(self.block_centres_m - eye[None, :], axis=1)
+        raise ValueError(f"Expected error 'measured' or 'mmqe', got {error!r}")
+
+    def scales_for_camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
+                          threshold_px: float = 2.0, *, error: str = "measured") -> np.ndarray:
+        """(B,) per-sub-block scales for a perspective camera: the coarsest scale whose error projects to at
+        most ``threshold_px`` pixels. A pure query: the state is not touched.
+
+        Parameters
+        ----------
+        eye_m : (3,) world metres. fov_y_deg : vertical field of view, degrees, in (0, 180).
+        height_px : viewport height, pixels. threshold_px : N, pixels (the paper's 2).
+        error : "measured" (default) or "mmqe"
+            "measured": the scale's measured max vertical error (metres, an upper bound over the input
+            points) at the nearest point of the sub-block's box, so no point of the drawn surface is
+            more than N pixels off. "mmqe": the paper's SVO rule (§2.3.2), a segment of sqrt(monotone
+            MMQE) metres at the sub-block's centre; a mean error, so it keeps far coarser scales.
+        """
+        _, d = self._camera(eye_m, fov_y_deg, height_px, threshold_px, error)
         inc = self.increments
-        return select_scales(inc.mmqe_m2, inc.mmqe_ptr, self.block_centres_m, eye, math.radians(fov_y_deg),
-                             float(height_px), float(threshold_px))
+        if error == "measured":
+            return select_scales_measured(inc.error_m, inc.mmqe_ptr, d, math.radians(fov_y_deg), float(height_px),
+                                          float(threshold_px))  # fmt: skip
+        return select_scales(inc.mmqe_m2, inc.mmqe_ptr, self.block_centres_m, np.asarray(eye_m, np.float64),
+                             math.radians(fov_y_deg), float(height_px), float(threshold_px))  # fmt: skip
+
+    def projected_error_px(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
+                           scales: np.ndarray | None = None, *, error: str = "measured") -> np.ndarray:
+        """(B,) each sub-block's error at ``scales`` (default: its current scale) projected to the screen,
+        pixels, by the rule of ``error`` (see :meth:`scales_for_camera`)."""
+        _, d = self._camera(eye_m, fov_y_deg, height_px, 1.0, error)
+        inc = self.increments
+        s = self._scales if scales is None else np.asarray(scales, np.int64)
+        if error == "measured":
+            return projected_px(inc.error_m[inc.mmqe_ptr[:-1] + s], d, math.radians(fov_y_deg), float(height_px))
+        return projected_px(np.sqrt(inc.mmqe_m2[inc.mmqe_ptr[:-1] + s]), d, math.radians(fov_y_deg),
+                            float(height_px))  # fmt: skip
 
     def mesh_for_camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
-                        threshold_px: float = 2.0, *, compact: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """The TIN with each sub-block at its SVO scale for this camera (see :meth:`scales_for_camera`)."""
-        self.set_block_scales(self.scales_for_camera(eye_m, fov_y_deg, height_px, threshold_px))
+                        threshold_px: float = 2.0, *, compact: bool = False, error: str = "measured"
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """The TIN with each sub-block at its scale for this camera (see :meth:`scales_for_camera`)."""
+        self.set_block_scales(self.scales_for_camera(eye_m, fov_y_deg, height_px, threshold_px, error=error))
         return self._mesh(compact)
+
+    def error_m(self, block: int) -> np.ndarray:
+        """Measured max vertical error of sub-block ``block``'s scales S_0 … S_{n_b}, metres (monotone, an
+        upper bound of the distance from every input point of the block to the scale's surface)."""
+        return self.increments.error_of(block).copy()
 
     def mmqe_m2(self, block: int) -> np.ndarray:
         """Monotone MMQE of sub-block ``block``'s scales S_0 … S_{n_b}, m²."""
@@ -888,7 +990,7 @@ class DetailIncrementModel:
         """
         m = DetailIncrementModel(self.vertices_m, self._base_tris, self._base_alive, self.increments.merged(k),
                                  self.k, self.block_centres_m, self.block_bounds_m, source=self.source,
-                                 crs=self.crs, notes=self.notes)
+                                 crs=self.crs, notes=self.notes, block_boxes_m=self.block_boxes_m)
         m._full_tris = self._full_tris
         return m
 
@@ -896,7 +998,7 @@ class DetailIncrementModel:
     def _payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         inc = self.increments
         raw = inc.raw if inc.raw is not None else inc
-        if raw.rec_u is None or raw.rec_w is None or raw.mmqe_code is None:
+        if raw.rec_u is None or raw.rec_w is None or raw.mmqe_code is None or raw.error_code is None:
             raise InputError("these records carry no vertex splits to store (build the model, then save it)")
         n_base = int(self._base_alive.sum())
         code = raw.mmqe_code
@@ -904,6 +1006,8 @@ class DetailIncrementModel:
         # each block's codes fall from S_0 to S_{n_b}: store the first and the drops (mostly 0, 1 byte)
         drop = -np.diff(code)
         drop = np.delete(drop, raw.mmqe_ptr[1:-1] - 1)
+        ecode = raw.error_code
+        edrop = np.delete(-np.diff(ecode), raw.mmqe_ptr[1:-1] - 1)
         meta = {
             "format": "terralod detail-increment model (paper 003)",
             "k": self.k,
@@ -919,6 +1023,7 @@ class DetailIncrementModel:
             "base_tri": self._base_tris[:n_base],
             "block_centres_m": self.block_centres_m,
             "block_bounds_m": self.block_bounds_m,
+            "block_boxes_m": self.block_boxes_m,
             "block_records": np.diff(raw.block_ptr),
             "rec_u": raw.rec_u,
             "rec_dv": raw.rec_v.astype(np.int64) - raw.rec_u,
@@ -926,6 +1031,8 @@ class DetailIncrementModel:
             "rec_m": np.diff(raw.rep_ptr),
             "mmqe_first": first,
             "mmqe_drop": drop,
+            "error_first": ecode[raw.mmqe_ptr[:-1]],
+            "error_drop": edrop,
         }
         return meta, arrays
 
@@ -957,7 +1064,7 @@ class DetailIncrementModel:
             nb = k * k
             br = a["block_records"].astype(np.int64)
             n_rec = int(br.sum()) if br.size else 0
-            per_rec = ("rec_u", "rec_dv", "rec_w", "rec_m", "mmqe_drop")
+            per_rec = ("rec_u", "rec_dv", "rec_w", "rec_m", "mmqe_drop", "error_drop")
             checks = [
                 (v.ndim == 2 and v.shape[1] == 3, "vertices"),
                 (br.shape == (nb,) and (br >= 0).all(), "block count"),
@@ -965,28 +1072,36 @@ class DetailIncrementModel:
                 (a["base_tri"].ndim == 2 and a["base_tri"].shape[1] == 3, "base triangles"),
                 (n_slots == a["base_tri"].shape[0] + 2 * n_rec, "triangle count"),
                 (a["mmqe_first"].shape == (nb,) and (a["mmqe_drop"] >= 0).all(), "MMQE"),
+                (a["error_first"].shape == (nb,) and (a["error_drop"] >= 0).all(), "measured error"),
                 (step >= 1, "merge factor"),
+                (a["block_boxes_m"].shape == (nb, 6), "block boxes"),
             ]
         except (KeyError, ValueError, TypeError) as exc:
             raise CorruptStoreError(f"incomplete detail-increment file ({exc})", src) from exc
         for ok, what in checks:
             if not ok:
                 raise CorruptStoreError(f"inconsistent detail-increment file: {what}", src)
-        # MMQE codes of every block's scales S_0 … S_{n_b}: the first, then the running drops
+        # MMQE and error codes of every block's scales S_0 … S_{n_b}: the first, then the running drops
         bptr = np.concatenate([[0], np.cumsum(br)])
-        code = np.empty(n_rec + nb, np.int64)
-        drops = a["mmqe_drop"].astype(np.int64)
-        for b in range(nb):
-            seg = drops[bptr[b] : bptr[b + 1]]
-            code[bptr[b] + b] = int(a["mmqe_first"][b])
-            code[bptr[b] + b + 1 : bptr[b + 1] + b + 1] = int(a["mmqe_first"][b]) - np.cumsum(seg)
+
+        def codes(first: np.ndarray, drop: np.ndarray) -> np.ndarray:
+            code = np.empty(n_rec + nb, np.int64)
+            drops = drop.astype(np.int64)
+            for b in range(nb):
+                seg = drops[bptr[b] : bptr[b + 1]]
+                code[bptr[b] + b] = int(first[b])
+                code[bptr[b] + b + 1 : bptr[b + 1] + b + 1] = int(first[b]) - np.cumsum(seg)
+            return code
+
         rec_u = a["rec_u"].astype(np.int64)
         inc, base_tris, base_alive = Increments.from_compact(
             v.shape[0], a["base_tri"], br, rec_u, rec_u + a["rec_dv"].astype(np.int64),
-            a["rec_w"], a["rec_m"], code, source=src,
+            a["rec_w"], a["rec_m"], codes(a["mmqe_first"], a["mmqe_drop"]),
+            codes(a["error_first"], a["error_drop"]), source=src,
         )
         if step > 1:
             inc = inc.merged(step)
         m = cls(v, base_tris, base_alive, inc, k, a["block_centres_m"], a["block_bounds_m"],
-                source=str(meta.get("source", src)), crs=meta.get("crs"), notes=meta.get("notes", ()))
+                source=str(meta.get("source", src)), crs=meta.get("crs"), notes=meta.get("notes", ()),
+                block_boxes_m=a["block_boxes_m"])
         return m

@@ -33,9 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from terralod.errors import InputError
-from terralod.kernels.qem import FREE, LOCKED, qem_simplify
+from terralod.kernels.qem import FREE, LOCKED, collapse_vertical_errors, qem_simplify
 
-__all__ = ["CollapseLog", "simplify", "simplify_mesh"]
+__all__ = ["CollapseLog", "measured_errors", "simplify", "simplify_mesh"]
 
 #: Default orientation tolerance of rewritten triangles: twice the area must exceed this times the sum
 #: of the squared xy edge lengths (an equilateral triangle has ~0.58; 1e-9 only rejects slivers whose
@@ -147,6 +147,33 @@ def simplify(
     return CollapseLog(
         cu, cv, cblock, cmmqe, ccost, mmqe0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new, tris, alive
     )
+
+
+def measured_errors(vertices_m: np.ndarray, triangles: np.ndarray, log: CollapseLog) -> np.ndarray:
+    """(C,) float64: an upper bound, metres, of the max vertical error of each sub-block's mesh just after
+    each collapse, against the input vertices (the TIN's own points).
+
+    Collapse i measures the vertical distance from the vertices it removed or displaced (the removed vertex
+    and every removed vertex under a triangle it changed) to the surface it left
+    (:func:`terralod.kernels.qem.collapse_vertical_errors`); the running maximum over the collapses of the
+    same sub-block, in collapse order, makes it monotone (like the MMQE, §2.3.2) and an upper bound of the
+    true max (a vertex no collapse since touched keeps its distance).
+    """
+    e = collapse_vertical_errors(
+        np.ascontiguousarray(vertices_m, np.float64), np.ascontiguousarray(triangles, np.int32), log.u,
+        log.del_slot, log.rep_ptr, log.rep_slot, log.rep_new,
+    )
+    if e.size == 0:
+        return e
+    blk = log.block.astype(np.int64)
+    o = np.argsort(blk, kind="stable")  # block-major, collapse order kept
+    es = e[o]
+    starts = np.flatnonzero(np.r_[True, blk[o][1:] != blk[o][:-1]])
+    for a, b in zip(starts, np.r_[starts[1:], es.size], strict=True):  # one running max per sub-block
+        np.maximum.accumulate(es[a:b], out=es[a:b])
+    out = np.empty_like(e)
+    out[o] = es
+    return out
 
 
 def simplify_mesh(

@@ -26,7 +26,9 @@ def model_summary(model: DetailIncrementModel) -> dict[str, Any]:
     """Sizes, scales and errors of a model (what ``terralod info`` shows; JSON-ready).
 
     ``svo_length_m`` gives sqrt(monotone MMQE) at the base (S_0) and at full resolution (S_n), the
-    largest over the sub-blocks: the length in metres the SVO rule projects to the screen (§2.3.2).
+    largest over the sub-blocks: the length in metres the SVO rule projects to the screen (§2.3.2);
+    ``max_vertical_error_m`` the measured error (an upper bound over the input points) the default scale
+    selection projects instead.
     """
     inc = model.increments
     v = model.vertices_m
@@ -50,6 +52,10 @@ def model_summary(model: DetailIncrementModel) -> dict[str, Any]:
         "svo_length_m": {
             "base": math.sqrt(max(mm0)) if mm0 else 0.0,
             "full": math.sqrt(max(mmn)) if mmn else 0.0,
+        },
+        "max_vertical_error_m": {
+            "base": max((float(model.error_m(b)[0]) for b in range(model.n_blocks)), default=0.0),
+            "full": 0.0,
         },
         "notes": list(model.notes),
     }
