@@ -51,7 +51,9 @@ TILE_SIZE = 65
 THRESHOLD_PX = 2.0
 #: "cohesion_paper" is paper 000 as written: LoG attraction + Hooke balance, no error-driven refinement.
 METHOD_NAMES = ("chunked", "cohesion", "cohesion_paper")
-register_method("cohesion_paper", cohesion.make_mesher(attraction="log", refine=False, metric="vertical"))
+register_method(
+    "cohesion_paper", cohesion.make_mesher(attraction="log", refine=False, metric="vertical", work_stride=0)
+)
 N_KEY = 16
 
 

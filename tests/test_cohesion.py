@@ -67,6 +67,9 @@ options = st.fixed_dictionaries(
         "fallback": st.booleans(),
         "iterations": st.integers(0, 6),
         "alpha": st.sampled_from([0.25, 0.5, 1.0, 3.0]),
+        "escape": st.sampled_from([0, 1, 4]),
+        "focus": st.sampled_from([0.0, 0.5, 1.0]),
+        "work_stride": st.sampled_from([0, 1, 2, 4]),
     }
 )
 
@@ -148,6 +151,39 @@ def test_fallback_never_worse_than_grid(seed: int, m: int) -> None:
                 measure_error_window(loc, tris, hf.elevation_m[win], hf.valid[win], dx, dy).hausdorff_m
             )
         assert errs[0] <= errs[1] + 1e-9, (code, errs)
+
+
+@given(
+    seed=st.integers(0, 10_000),
+    m=st.sampled_from([5, 9, 17]),
+    work_stride=st.sampled_from([0, 2, 4]),
+    holes=st.booleans(),
+)
+@settings(max_examples=20, deadline=None)
+def test_escape_never_measures_worse(seed: int, m: int, work_stride: int, holes: bool) -> None:
+    """The star search only adds a fallback candidate: with it every tile measures at most its error without."""
+    hf = _hf(70, 66, seed, holes)
+    pyr = TilePyramid(hf.width, hf.height, m)
+    fns = [cohesion.make_mesher(escape=e, work_stride=work_stride) for e in (0, 4)]
+    dx, dy = hf.spacing_m
+    for code in pyr.all_codes():
+        r0, c0 = pyr.origin_rc(code)
+        span = pyr.span(code[0])
+        win = (slice(r0, min(r0 + span, hf.height - 1) + 1), slice(c0, min(c0 + span, hf.width - 1) + 1))
+        errs = []
+        for fn in fns:
+            rows, cols, z, tris = fn(hf.elevation_m, hf.valid, pyr, code, spacing_m=hf.spacing_m)
+            loc = np.stack([(cols - c0) * dx, (rows - r0) * dy, z], axis=1)
+            errs.append(
+                measure_error_window(loc, tris, hf.elevation_m[win], hf.valid[win], dx, dy).hausdorff_m
+            )
+        assert errs[1] <= errs[0] + 1e-9, (code, errs)
+
+
+def test_options_are_checked() -> None:
+    for bad in ({"escape": -1}, {"focus": 1.5}, {"work_stride": 3}, {"work_stride": -2}):
+        with pytest.raises(ValueError, match="Expected"):
+            cohesion.CohesionOptions(**bad)
 
 
 def test_flat_and_planar_terrain_give_the_regular_grid() -> None:

@@ -502,7 +502,7 @@ def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy):
 
 
 @jit
-def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
+def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape, focus):
     """Error-driven relocation (our improvement of the attraction term), in place.
 
     Repeatedly take the kept quad of largest max error that is not marked stuck and try to move one of its
@@ -542,6 +542,7 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
         _row_max(qmax, stuck, i, rowbest, rowarg)
     min_turn = 1e-6 * s * s
     moves = 0
+    stuck_max = 0.0
     for _ in range(budget):
         bi = -1
         best = 0.0
@@ -551,6 +552,14 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
                 bi = i
         if bi < 0:
             break
+        if best < focus * stuck_max:  # every quad left is well below a quad that cannot improve
+            stuck_max = 0.0
+            for i in range(cells):
+                for j in range(cells):
+                    if stuck[i, j] and qmax[i, j] > stuck_max:
+                        stuck_max = qmax[i, j]
+            if best < focus * stuck_max:
+                break
         bj = rowarg[bi]
         tv = wr[bi, bj]
         tu = wc[bi, bj]
@@ -608,8 +617,24 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
                     pv[vi, vj] = p_v
                     pu[vi, vj] = p_u
                     hz[vi, vj] = p_h
+        if cand_i < 0 and escape > 0:  # no short move helps: search every lattice point of the corners' stars
+            for di in (0, 1):
+                for dj in (0, 1):
+                    vi = bi + di
+                    vj = bj + dj
+                    if not movable[vi, vj]:
+                        continue
+                    e, nv, nu = _star_search(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, cand_err, escape,
+                                             snap, a0, a1, pl, min_area2, min_turn, sxy)  # fmt: skip
+                    if e < cand_err:
+                        cand_err = e
+                        cand_i = vi
+                        cand_j = vj
+                        cand_v = nv
+                        cand_u = nu
         if cand_i < 0:
             stuck[bi, bj] = True
+            stuck_max = max(stuck_max, best)
             _row_max(qmax, stuck, bi, rowbest, rowarg)
             continue
         pv[cand_i, cand_j] = cand_v
@@ -630,6 +655,77 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy):
             if 0 <= qi < cells:
                 _row_max(qmax, stuck, qi, rowbest, rowarg)
     return moves
+
+
+@jit
+def _local_max(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, a0, a1, pl, min_area2, sxy):
+    """Max error of the (kept) quads around vertex (vi, vj), quad (bi, bj) first; stops at ``bound``."""
+    cells = keep.shape[0]
+    loc = 0.0
+    for k in range(4):
+        qi, qj = bi, bj
+        if k > 0:
+            qi, qj = _kth_other_quad(vi, vj, bi, bj, k)
+        if loc >= bound:
+            break
+        if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
+            e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
+            if e > loc:
+                loc = e
+    return loc
+
+
+@jit
+def _star_search(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, n_side, snap, a0, a1, pl, min_area2,
+                 min_turn, sxy):  # fmt: skip
+    """Best position of vertex (vi, vj) over a lattice of at most (2 n_side + 1)^2 sample points covering the
+    box of its 8 neighbours (step 1 sample when the box is small): (max error of its 4 quads, v, u), the
+    error ``bound`` when no valid point is below it. Positions restored on return."""
+    cells = keep.shape[0]
+    p_v = pv[vi, vj]
+    p_u = pu[vi, vj]
+    p_h = hz[vi, vj]
+    vlo = p_v
+    vhi = p_v
+    ulo = p_u
+    uhi = p_u
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            vlo = min(vlo, pv[vi + di, vj + dj])
+            vhi = max(vhi, pv[vi + di, vj + dj])
+            ulo = min(ulo, pu[vi + di, vj + dj])
+            uhi = max(uhi, pu[vi + di, vj + dj])
+    v0 = int(np.ceil(vlo))
+    u0 = int(np.ceil(ulo))
+    nvv = int(np.floor(vhi)) - v0
+    nuu = int(np.floor(uhi)) - u0
+    step_v = max(1, (nvv + 2 * n_side - 1) // (2 * n_side))
+    step_u = max(1, (nuu + 2 * n_side - 1) // (2 * n_side))
+    best = bound
+    bv = p_v
+    bu = p_u
+    h, w = zw.shape
+    for a in range(0, nvv + 1, step_v):
+        for b in range(0, nuu + 1, step_u):
+            nv = float(v0 + a)
+            nu = float(u0 + b)
+            if (nv == p_v and nu == p_u) or nv > h - 1 or nu > w - 1:
+                continue
+            pv[vi, vj] = nv
+            pu[vi, vj] = nu
+            if _around_ok(pv, pu, vi, vj, cells, min_turn):
+                hz[vi, vj] = height_at(zw, nv, nu, snap)
+                loc = _local_max(
+                    zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, best, a0, a1, pl, min_area2, sxy
+                )
+                if loc < best:
+                    best = loc
+                    bv = nv
+                    bu = nu
+            pv[vi, vj] = p_v
+            pu[vi, vj] = p_u
+            hz[vi, vj] = p_h
+    return best, bv, bu
 
 
 @jit
