@@ -224,7 +224,23 @@ def _meshoptimizer(v, t, target):
     return v, dest[:n].reshape(-1, 3).astype(np.int64)
 
 
-PEERS = {"terralod QEM (endpoint)": _terralod, "pyfqmr": _pyfqmr, "fast-simplification": _fast_simplification,
+import functools  # noqa: E402
+
+VARIANTS = {"metric=plane": dict(metric=1), "metric=vertical": dict(metric=2), "self_cost=0": dict(self_cost=0.0),
+            "self_cost=0.5": dict(self_cost=0.5), "normalised": dict(normalised=True), "vterm=1 (u only)": dict(vterm=1.0),
+            "vterm=10 (u only)": dict(vterm=10.0), "metric=vertical+normalised": dict(metric=2, normalised=True),
+            "metric=vertical+vterm=1": dict(metric=2, vterm=1.0),
+            "vertical term 3 (u + carried)": dict(vterm=3.0, carry=True),
+            "vertical term 10 (u + carried)": dict(vterm=10.0, carry=True),
+            "vertical term 30 (u + carried)": dict(vterm=30.0, carry=True)}
+
+
+def _variant(kw, v, t, target):
+    return simplify_mesh(v, t, target_triangles=target, **kw)
+
+
+PEERS = {**{f"terralod {k}": functools.partial(_variant, kw) for k, kw in VARIANTS.items()},
+         "terralod QEM (endpoint)": _terralod, "pyfqmr": _pyfqmr, "fast-simplification": _fast_simplification,
          "meshoptimizer": _meshoptimizer}  # fmt: skip
 
 

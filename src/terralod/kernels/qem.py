@@ -60,6 +60,10 @@ import numpy as np
 
 from terralod.kernels import jit
 
+METRIC_AREA = 0  #: unit planes weighted by triangle area (Garland–Heckbert), the default
+METRIC_PLANE = 1  #: unit planes, unweighted (paper 003 eq. 3 as printed)
+METRIC_VERTICAL = 2  #: planes scaled to vertical distance (p = n / n_z), weighted by xy area
+
 FREE = np.uint8(0)  #: interior vertex of one sub-block: may be collapsed away
 LOCKED = np.uint8(1)  #: mesh boundary or sub-block seam: never removed, may be a collapse target
 
@@ -115,7 +119,7 @@ def _next_after(tris, t, u):
 
 # -- quadrics -------------------------------------------------------------------------------------------
 @jit
-def plane_quadrics(P, tris, alive):
+def plane_quadrics(P, tris, alive, metric=0):
     """Area-weighted plane quadrics per vertex.
 
     Returns ``(Q, W)``: Q (N, 10) float64, the entries (aa, ab, ac, ad, bb, bc, bd, cc, cd, dd) of
@@ -143,10 +147,19 @@ def plane_quadrics(P, tris, alive):
         ln = math.sqrt(nx * nx + ny * ny + nz * nz)
         if ln == 0.0:
             continue
-        area = 0.5 * ln
-        a = nx / ln
-        b = ny / ln
-        c = nz / ln
+        if metric == METRIC_VERTICAL:
+            # plane z = αx + βy + γ as p = n / n_z: pᵀv is the vertical distance; weight: the xy area
+            area = 0.5 * abs(nz)
+            if nz == 0.0:
+                continue
+            a = nx / nz
+            b = ny / nz
+            c = 1.0
+        else:
+            area = 0.5 * ln if metric == METRIC_AREA else 1.0
+            a = nx / ln
+            b = ny / ln
+            c = nz / ln
         d = -(a * P[i, 0] + b * P[i, 1] + c * P[i, 2])
         q0 = area * a * a
         q1 = area * a * b
@@ -286,8 +299,96 @@ def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps
 
 
 @jit
+def _vertical_gap2(u, w, P, tris, arena, su, n):
+    """Squared vertical distance from u to the triangle (w, a, b) of the collapse u -> w that covers u's xy
+    (0 when none does: u on an edge, or rounding)."""
+    ux = P[u, 0]
+    uy = P[u, 1]
+    wx = P[w, 0]
+    wy = P[w, 1]
+    wz = P[w, 2]
+    for i in range(n):
+        t = arena[su + i]
+        a = _next_after(tris, t, u)
+        b = _next_after(tris, t, a)
+        if a == w or b == w:
+            continue
+        ax = P[a, 0] - wx
+        ay = P[a, 1] - wy
+        bx = P[b, 0] - wx
+        by = P[b, 1] - wy
+        px = ux - wx
+        py = uy - wy
+        det = ax * by - ay * bx
+        if det <= 0.0:
+            continue
+        s = (px * by - py * bx) / det
+        r = (ax * py - ay * px) / det
+        if s >= 0.0 and r >= 0.0 and s + r <= 1.0:
+            z = wz + s * (P[a, 2] - wz) + r * (P[b, 2] - wz)
+            d = P[u, 2] - z
+            return d * d
+    return 0.0
+
+
+@jit
+def _carried_gap2(u, w, P, tris, arena, su, n, head, nxt, glim):
+    """Largest squared vertical distance from u and the removed vertices held by star(u)'s slots to the
+    triangles of the collapse u -> w (each point in the one with the largest smallest barycentric); stops
+    early, with a lower bound >= ``glim``, once it reaches ``glim``."""
+    g = 0.0
+    k = -1  # -1: u itself, then slot k's list
+    q = -1
+    while True:
+        if k == -1:
+            q = u
+            k = 0
+            cur = -1
+        else:
+            if cur >= 0:
+                cur = nxt[cur]
+            while cur < 0 and k < n:
+                cur = head[arena[su + k]]
+                k += 1
+            if cur < 0:
+                break
+            q = cur
+        px = P[q, 0]
+        py = P[q, 1]
+        best = -np.inf
+        bz = 0.0
+        for i in range(n):
+            t = arena[su + i]
+            a = _next_after(tris, t, u)
+            b = _next_after(tris, t, a)
+            if a == w or b == w:
+                continue
+            ax = P[a, 0] - P[w, 0]
+            ay = P[a, 1] - P[w, 1]
+            bx = P[b, 0] - P[w, 0]
+            by = P[b, 1] - P[w, 1]
+            det = ax * by - ay * bx
+            if det == 0.0:
+                continue
+            qx = px - P[w, 0]
+            qy = py - P[w, 1]
+            l1 = (qx * by - qy * bx) / det
+            l2 = (ax * qy - ay * qx) / det
+            m = min(1.0 - l1 - l2, min(l1, l2))
+            if m > best:
+                best = m
+                bz = P[w, 2] + l1 * (P[a, 2] - P[w, 2]) + l2 * (P[b, 2] - P[w, 2])
+        d = P[q, 2] - bz
+        if d * d > g:
+            g = d * d
+            if g >= glim:
+                return g
+    return g
+
+
+@jit
 def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mark, stampbox, shape_eps, wbuf,
-              cbuf, validate):
+              cbuf, validate, normalised=False, vterm=0.0, carry=False, head=None, nxt=None, dbuf=None, qbuf=None):
     """Best collapse target of u and u's minimum normalised quadric error.
 
     Returns ``(v, cost, emin)``: with ``validate``, the ring neighbour v with the smallest cost among the
@@ -300,42 +401,80 @@ def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mar
     su = start[u]
     n = length[u]
     emin = np.inf
-    c0 = np.inf
-    w0 = -1
+    exact = not (carry and vterm > 0.0)
     for i in range(n):
         w = _next_after(tris, arena[su + i], u)
         c = _quadric_at(Q, u, P[w, 0], P[w, 1], P[w, 2]) + selfq[w]  # = _collapse_cost(Q, P, u, w)
         if c < 0.0:
             c = 0.0
-        wbuf[i] = w
-        cbuf[i] = c
+        if vterm > 0.0 and not carry:
+            c += vterm * W[u] * _vertical_gap2(u, w, P, tris, arena, su, n)
         e = c / (W[u] + W[w])
         if e < emin:
             emin = e
-        if c < c0 or (c == c0 and w < w0):
-            c0 = c
-            w0 = w
+        if normalised:
+            c = e
+        wbuf[i] = w
+        cbuf[i] = c
+    if not exact:
+        # cbuf: lower bounds (the quadric alone); add the vertical term in increasing bound order until the
+        # next bound exceeds the best exact cost (branch and bound)
+        wt = vterm * (1.0 if normalised else W[u])
+        for i in range(n):
+            dbuf[i] = False
+            qbuf[i] = cbuf[i]
+        best = np.inf
+        for _ in range(n):
+            k = _cheapest(cbuf, wbuf, n, -np.inf, -1, dbuf, True)
+            if k < 0 or cbuf[k] >= best:
+                break
+            glim = (best - cbuf[k]) / wt if best < np.inf and wt > 0.0 else np.inf
+            g = _carried_gap2(u, wbuf[k], P, tris, arena, su, n, head, nxt, glim)
+            cbuf[k] += wt * g
+            if g < glim:  # exact (else a bound past the best: never picked before it is made exact)
+                dbuf[k] = True
+                if cbuf[k] < best:
+                    best = cbuf[k]
+    k0 = _cheapest(cbuf, wbuf, n, -np.inf, -1, dbuf, False)
+    c0 = cbuf[k0] if k0 >= 0 else np.inf
+    w0 = wbuf[k0] if k0 >= 0 else -1
     if (w0 == prev_v and c0 == prev_c) or not validate:
         return w0, c0, emin
-    # Candidates in increasing (cost, vertex) order until one passes the test (usually the first).
-    bc = c0
-    bw = w0
-    for _ in range(n):
-        if _can_collapse(u, bw, P, tris, arena, start, length, mark, stampbox, shape_eps):
-            return bw, bc, emin
-        last_c = bc
-        last_w = bw
-        bc = np.inf
-        bw = -1
-        for i in range(n):
-            c = cbuf[i]
-            w = wbuf[i]
-            if (c > last_c or (c == last_c and w > last_w)) and (bw < 0 or c < bc or (c == bc and w < bw)):
-                bc = c
-                bw = w
-        if bw < 0:
+    # Candidates in increasing (cost, vertex) order until one passes the test (usually the first); a bound
+    # that comes first is made exact and the order taken again.
+    last_c = -np.inf
+    last_w = -1
+    for _ in range(2 * n + 1):
+        k = _cheapest(cbuf, wbuf, n, last_c, last_w, dbuf, False)
+        if k < 0:
             break
+        if not exact and not dbuf[k]:
+            cbuf[k] = qbuf[k] + vterm * (1.0 if normalised else W[u]) * _carried_gap2(
+                u, wbuf[k], P, tris, arena, su, n, head, nxt, np.inf)
+            dbuf[k] = True
+            continue
+        if _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
+            return wbuf[k], cbuf[k], emin
+        last_c = cbuf[k]
+        last_w = wbuf[k]
     return -1, np.inf, emin
+
+
+@jit
+def _cheapest(cbuf, wbuf, n, last_c, last_w, dbuf, undone_only):
+    """Index of the smallest (cost, vertex) after (last_c, last_w) (-1 when none); with ``undone_only``,
+    among the candidates whose cost is still a bound."""
+    bk = -1
+    for i in range(n):
+        if undone_only and dbuf[i]:
+            continue
+        c = cbuf[i]
+        w = wbuf[i]
+        if (c > last_c or (c == last_c and w > last_w)) and (
+            bk < 0 or c < cbuf[bk] or (c == cbuf[bk] and w < wbuf[bk])
+        ):
+            bk = i
+    return bk
 
 
 # -- the simplifier --------------------------------------------------------------------------------------
@@ -354,7 +493,8 @@ def _grow(a, n):
 
 
 @jit
-def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps):
+def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps, metric=0, self_cost=1.0,
+                 normalised=False, vterm=0.0, carry=False):
     """Half-edge QEM collapses until every sub-block is down to its target triangle count.
 
     Parameters
@@ -386,15 +526,20 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps)
     n_v = P.shape[0]
     n_b = target.shape[0]
     arena, start, length, cap, top = _build_stars(tris, alive, n_v)
-    Q, W = plane_quadrics(P, tris, alive)
+    Q, W = plane_quadrics(P, tris, alive, metric)
     selfq = np.empty(n_v, np.float64)  # Q_w(P_w): the half of a collapse cost that depends on w only
     for w in range(n_v):
-        selfq[w] = _quadric_at(Q, w, P[w, 0], P[w, 1], P[w, 2])
+        selfq[w] = self_cost * _quadric_at(Q, w, P[w, 0], P[w, 1], P[w, 2])
     mark = np.zeros(n_v, np.int64)  # stamps of the link test
     seen = np.zeros(n_v, np.int64)  # collapse number + 1 of the last ring visit
     stampbox = np.zeros(1, np.int64)
     wbuf = np.empty(n_v, np.int64)
     cbuf = np.empty(n_v, np.float64)
+    head = np.full(tris.shape[0], -1, np.int64)  # carry: first removed vertex held by each slot
+    nxt = np.full(n_v, -1, np.int64)
+    pbuf = np.empty(n_v, np.int64)
+    dbuf = np.zeros(n_v, np.bool_)
+    qbuf = np.zeros(n_v, np.float64)
 
     count = np.zeros(n_b, np.int64)  # live triangles per block
     for t in range(tris.shape[0]):
@@ -416,7 +561,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps)
         if kind[u] != FREE or length[u] == 0:
             continue
         v, c, e = _evaluate(u, -1, np.inf, P, tris, Q, W, selfq, arena, start, length, mark, stampbox,
-                            shape_eps, wbuf, cbuf, True)
+                            shape_eps, wbuf, cbuf, True, normalised, vterm, carry, head, nxt, dbuf, qbuf)
         b = vert_block[u]
         emin[u] = e
         esum[b] += e
@@ -459,7 +604,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps)
         if not _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
             # The neighbourhood changed since u was evaluated: evaluate again, requeue.
             v2, c2, e2 = _evaluate(u, -1, np.inf, P, tris, Q, W, selfq, arena, start, length, mark, stampbox,
-                                   shape_eps, wbuf, cbuf, True)
+                                   shape_eps, wbuf, cbuf, True, normalised, vterm, carry, head, nxt, dbuf, qbuf)
             esum[b] += e2 - emin[u]
             emin[u] = e2
             best[u] = v2
@@ -480,6 +625,18 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps)
             rep_new = _grow_rows(rep_new, need)
         nd = 2 * nc
         su = start[u]
+        npb = 0
+        if carry:
+            pbuf[0] = u
+            npb = 1
+            for i in range(length[u]):
+                t = arena[su + i]
+                q = head[t]
+                while q >= 0:
+                    pbuf[npb] = q
+                    npb += 1
+                    q = nxt[q]
+                head[t] = -1
         for i in range(length[u]):
             t = arena[su + i]
             a0 = tris[t, 0]
@@ -520,12 +677,40 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps)
                     top += ncap
                 arena[start[v] + length[v]] = t
                 length[v] += 1
+        if carry:
+            for k in range(npb):
+                q = pbuf[k]
+                bsl = -1
+                bm = -np.inf
+                for j in range(rep_ptr[nc], nr):
+                    t = rep_slot[j]
+                    a0 = tris[t, 0]
+                    a1 = tris[t, 1]
+                    a2 = tris[t, 2]
+                    ax = P[a1, 0] - P[a0, 0]
+                    ay = P[a1, 1] - P[a0, 1]
+                    bx = P[a2, 0] - P[a0, 0]
+                    by = P[a2, 1] - P[a0, 1]
+                    det = ax * by - ay * bx
+                    if det == 0.0:
+                        continue
+                    qx = P[q, 0] - P[a0, 0]
+                    qy = P[q, 1] - P[a0, 1]
+                    l1 = (qx * by - qy * bx) / det
+                    l2 = (ax * qy - ay * qx) / det
+                    m = min(1.0 - l1 - l2, min(l1, l2))
+                    if m > bm:
+                        bm = m
+                        bsl = t
+                if bsl >= 0:
+                    nxt[q] = head[bsl]
+                    head[bsl] = q
         length[u] = 0
         removed[u] = True
         for k in range(10):
             Q[v, k] += Q[u, k]
         W[v] += W[u]
-        selfq[v] = _quadric_at(Q, v, P[v, 0], P[v, 1], P[v, 2])
+        selfq[v] = self_cost * _quadric_at(Q, v, P[v, 0], P[v, 1], P[v, 2])
         count[b] -= 2
         esum[b] -= emin[u]
         ecnt[b] -= 1
@@ -548,7 +733,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps)
                     continue
                 seen[x] = nc + 1
                 vx, cx, ex = _evaluate(x, best[x], bestc[x], P, tris, Q, W, selfq, arena, start, length, mark,
-                                       stampbox, shape_eps, wbuf, cbuf, False)
+                                       stampbox, shape_eps, wbuf, cbuf, False, normalised, vterm, carry, head, nxt, dbuf, qbuf)
                 bx = vert_block[x]
                 esum[bx] += ex - emin[x]
                 emin[x] = ex

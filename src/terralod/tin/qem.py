@@ -97,6 +97,11 @@ def simplify(
     base_fraction: float = 0.2,
     shape_eps: float = SHAPE_EPS,
     n_blocks: int | None = None,
+    metric: int = 0,
+    self_cost: float = 1.0,
+    normalised: bool = False,
+    vterm: float = 0.0,
+    carry: bool = False,
 ) -> CollapseLog:
     """Collapse edges by increasing QEM cost until each sub-block keeps ``base_fraction`` of its triangles.
 
@@ -142,6 +147,11 @@ def simplify(
         np.ascontiguousarray(vert_block, np.int32),
         target,
         float(shape_eps),
+        int(metric),
+        float(self_cost),
+        bool(normalised),
+        float(vterm),
+        bool(carry),
     )
     (_, cu, cv, cblock, cmmqe, ccost, mmqe0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new) = out
     return CollapseLog(
@@ -182,6 +192,7 @@ def simplify_mesh(
     *,
     target_triangles: int,
     shape_eps: float = SHAPE_EPS,
+    **kw,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Simplify one TIN (a single block, its outline locked) to about ``target_triangles`` triangles.
 
@@ -197,5 +208,5 @@ def simplify_mesh(
     vb = np.where(locked, -1, 0).astype(np.int32)
     frac = min(max(target_triangles / max(tris.shape[0], 1), math.ulp(1.0)), 1.0)
     log = simplify(vertices_m, tris, kind, np.zeros(tris.shape[0], np.int32), vb, base_fraction=frac,
-                   shape_eps=shape_eps)
+                   shape_eps=shape_eps, **kw)
     return vertices_m, log.base_tris[log.base_alive]
