@@ -363,3 +363,27 @@ def test_real_laz_ground_model() -> None:
     assert np.array_equal(_canonical(_full_state(m)), _canonical(full))
     for s in (0, m.n_scales // 2):
         _check_tin(*m.mesh_at(s), area2)
+
+
+@pytest.mark.parametrize("weight", [-1.0, float("nan"), float("inf")])
+def test_bad_vertical_weight_is_refused(weight: float) -> None:
+    from terralod.tin.qem import simplify_mesh
+
+    m = DetailIncrementModel.from_points(_cloud(1, 200), sub_blocks=1)
+    with pytest.raises(InputError, match="vertical_weight"):
+        simplify_mesh(m.vertices_m, m._full_tris, target_triangles=50, vertical_weight=weight)
+
+
+def test_both_costs_reach_the_target_with_valid_tins() -> None:
+    """The default cost (quadric + vertical term) and the paper's (quadric alone) both stop at the target
+    with every triangle counter-clockwise and the covered area kept."""
+    from terralod.tin.qem import simplify_mesh
+
+    m = DetailIncrementModel.from_points(_cloud(2, 1500, relief_m=60.0), sub_blocks=1)
+    full = m._full_tris
+    total = _xy_area2(m.vertices_m, full.astype(np.int64)).sum()
+    for w in (None, 0.0):
+        v, t = simplify_mesh(m.vertices_m, full, target_triangles=600, vertical_weight=w)
+        assert t.shape[0] <= 601
+        area2 = _xy_area2(v, t.astype(np.int64))
+        assert (area2 > 0).all() and area2.sum() == pytest.approx(total, rel=1e-9)

@@ -37,6 +37,13 @@ distinct entries of the symmetric 4×4 matrix, ``W`` the summed area). Cost of u
 sqrt(MMQE) is a length in metres as §2.3.2 needs. After u → v, Q_v += Q_u (Garland–Heckbert).
 Q_w(P_w) is kept per vertex, so a cost costs one quadric evaluation.
 
+Vertical term (``vweight`` > 0, not in the paper): each live slot carries the removed vertices whose xy
+it covers (a list per slot: ``head``, ``nxt``; a collapse hands the lists of star(u), and u, to the
+rewritten slots). The cost of u → w adds ``vweight · W_u · g²``, g the largest vertical distance from u
+and the vertices star(u) carries to the surface after the collapse (m⁴, like the quadric), so a collapse
+that moves the surface far from points removed earlier waits. Only the candidates whose quadric alone is
+below the best full cost get g (branch and bound), and g stops early once it passes that bound.
+
 Lazy validity: after a collapse, the vertices around it are re-queued at their cheapest collapse
 *untested*; the test runs when the entry leaves the heap, and a failure re-evaluates the vertex with
 tests and re-queues it at its cheapest valid cost (never lower than the untested key). Every key is a
@@ -59,10 +66,6 @@ import math
 import numpy as np
 
 from terralod.kernels import jit
-
-METRIC_AREA = 0  #: unit planes weighted by triangle area (Garland–Heckbert), the default
-METRIC_PLANE = 1  #: unit planes, unweighted (paper 003 eq. 3 as printed)
-METRIC_VERTICAL = 2  #: planes scaled to vertical distance (p = n / n_z), weighted by xy area
 
 FREE = np.uint8(0)  #: interior vertex of one sub-block: may be collapsed away
 LOCKED = np.uint8(1)  #: mesh boundary or sub-block seam: never removed, may be a collapse target
@@ -119,7 +122,7 @@ def _next_after(tris, t, u):
 
 # -- quadrics -------------------------------------------------------------------------------------------
 @jit
-def plane_quadrics(P, tris, alive, metric=0):
+def plane_quadrics(P, tris, alive):
     """Area-weighted plane quadrics per vertex.
 
     Returns ``(Q, W)``: Q (N, 10) float64, the entries (aa, ab, ac, ad, bb, bc, bd, cc, cd, dd) of
@@ -147,19 +150,10 @@ def plane_quadrics(P, tris, alive, metric=0):
         ln = math.sqrt(nx * nx + ny * ny + nz * nz)
         if ln == 0.0:
             continue
-        if metric == METRIC_VERTICAL:
-            # plane z = αx + βy + γ as p = n / n_z: pᵀv is the vertical distance; weight: the xy area
-            area = 0.5 * abs(nz)
-            if nz == 0.0:
-                continue
-            a = nx / nz
-            b = ny / nz
-            c = 1.0
-        else:
-            area = 0.5 * ln if metric == METRIC_AREA else 1.0
-            a = nx / ln
-            b = ny / ln
-            c = nz / ln
+        area = 0.5 * ln
+        a = nx / ln
+        b = ny / ln
+        c = nz / ln
         d = -(a * P[i, 0] + b * P[i, 1] + c * P[i, 2])
         q0 = area * a * a
         q1 = area * a * b
@@ -299,11 +293,12 @@ def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps
 
 
 @jit
-def _vertical_gap2(u, w, P, tris, arena, su, n):
-    """Squared vertical distance from u to the triangle (w, a, b) of the collapse u -> w that covers u's xy
-    (0 when none does: u on an edge, or rounding)."""
-    ux = P[u, 0]
-    uy = P[u, 1]
+def _gap2_after(q, u, w, P, tris, arena, su, n):
+    """Squared vertical distance from point q to the surface of star(u) after the collapse u -> w: the
+    rewritten triangle (w, a, b) with the largest smallest barycentric coordinate of q's xy (so a point on
+    an edge, or outside by rounding, still gets one)."""
+    best = -np.inf
+    bz = 0.0
     wx = P[w, 0]
     wy = P[w, 1]
     wz = P[w, 2]
@@ -312,83 +307,49 @@ def _vertical_gap2(u, w, P, tris, arena, su, n):
         a = _next_after(tris, t, u)
         b = _next_after(tris, t, a)
         if a == w or b == w:
-            continue
+            continue  # deleted by the collapse
         ax = P[a, 0] - wx
         ay = P[a, 1] - wy
         bx = P[b, 0] - wx
         by = P[b, 1] - wy
-        px = ux - wx
-        py = uy - wy
         det = ax * by - ay * bx
-        if det <= 0.0:
+        if det == 0.0:
             continue
-        s = (px * by - py * bx) / det
-        r = (ax * py - ay * px) / det
-        if s >= 0.0 and r >= 0.0 and s + r <= 1.0:
-            z = wz + s * (P[a, 2] - wz) + r * (P[b, 2] - wz)
-            d = P[u, 2] - z
-            return d * d
-    return 0.0
+        qx = P[q, 0] - wx
+        qy = P[q, 1] - wy
+        l1 = (qx * by - qy * bx) / det
+        l2 = (ax * qy - ay * qx) / det
+        m = min(1.0 - l1 - l2, min(l1, l2))
+        if m > best:
+            best = m
+            bz = wz + l1 * (P[a, 2] - wz) + l2 * (P[b, 2] - wz)
+    d = P[q, 2] - bz
+    return d * d
 
 
 @jit
 def _carried_gap2(u, w, P, tris, arena, su, n, head, nxt, glim):
-    """Largest squared vertical distance from u and the removed vertices held by star(u)'s slots to the
-    triangles of the collapse u -> w (each point in the one with the largest smallest barycentric); stops
-    early, with a lower bound >= ``glim``, once it reaches ``glim``."""
-    g = 0.0
-    k = -1  # -1: u itself, then slot k's list
-    q = -1
-    while True:
-        if k == -1:
-            q = u
-            k = 0
-            cur = -1
-        else:
-            if cur >= 0:
-                cur = nxt[cur]
-            while cur < 0 and k < n:
-                cur = head[arena[su + k]]
-                k += 1
-            if cur < 0:
-                break
-            q = cur
-        px = P[q, 0]
-        py = P[q, 1]
-        best = -np.inf
-        bz = 0.0
-        for i in range(n):
-            t = arena[su + i]
-            a = _next_after(tris, t, u)
-            b = _next_after(tris, t, a)
-            if a == w or b == w:
-                continue
-            ax = P[a, 0] - P[w, 0]
-            ay = P[a, 1] - P[w, 1]
-            bx = P[b, 0] - P[w, 0]
-            by = P[b, 1] - P[w, 1]
-            det = ax * by - ay * bx
-            if det == 0.0:
-                continue
-            qx = px - P[w, 0]
-            qy = py - P[w, 1]
-            l1 = (qx * by - qy * bx) / det
-            l2 = (ax * qy - ay * qx) / det
-            m = min(1.0 - l1 - l2, min(l1, l2))
-            if m > best:
-                best = m
-                bz = P[w, 2] + l1 * (P[a, 2] - P[w, 2]) + l2 * (P[b, 2] - P[w, 2])
-        d = P[q, 2] - bz
-        if d * d > g:
-            g = d * d
-            if g >= glim:
-                return g
+    """Largest squared vertical distance, m², from u and the removed vertices that star(u)'s slots carry
+    to the surface after the collapse u -> w; stops early, returning a lower bound >= ``glim``, once the
+    largest reaches ``glim``."""
+    g = _gap2_after(u, u, w, P, tris, arena, su, n)
+    if g >= glim:
+        return g
+    for i in range(n):
+        q = head[arena[su + i]]
+        while q >= 0:
+            d = _gap2_after(q, u, w, P, tris, arena, su, n)
+            if d > g:
+                g = d
+                if g >= glim:
+                    return g
+            q = nxt[q]
     return g
 
 
 @jit
 def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mark, stampbox, shape_eps, wbuf,
-              cbuf, validate, normalised=False, vterm=0.0, carry=False, head=None, nxt=None, dbuf=None, qbuf=None):
+              cbuf, validate, vweight, head, nxt, dbuf, qbuf):
     """Best collapse target of u and u's minimum normalised quadric error.
 
     Returns ``(v, cost, emin)``: with ``validate``, the ring neighbour v with the smallest cost among the
@@ -401,25 +362,21 @@ def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mar
     su = start[u]
     n = length[u]
     emin = np.inf
-    exact = not (carry and vterm > 0.0)
+    exact = not vweight > 0.0
     for i in range(n):
         w = _next_after(tris, arena[su + i], u)
         c = _quadric_at(Q, u, P[w, 0], P[w, 1], P[w, 2]) + selfq[w]  # = _collapse_cost(Q, P, u, w)
         if c < 0.0:
             c = 0.0
-        if vterm > 0.0 and not carry:
-            c += vterm * W[u] * _vertical_gap2(u, w, P, tris, arena, su, n)
         e = c / (W[u] + W[w])
         if e < emin:
             emin = e
-        if normalised:
-            c = e
         wbuf[i] = w
         cbuf[i] = c
     if not exact:
         # cbuf: lower bounds (the quadric alone); add the vertical term in increasing bound order until the
         # next bound exceeds the best exact cost (branch and bound)
-        wt = vterm * (1.0 if normalised else W[u])
+        wt = vweight * W[u]
         for i in range(n):
             dbuf[i] = False
             qbuf[i] = cbuf[i]
@@ -449,8 +406,7 @@ def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mar
         if k < 0:
             break
         if not exact and not dbuf[k]:
-            cbuf[k] = qbuf[k] + vterm * (1.0 if normalised else W[u]) * _carried_gap2(
-                u, wbuf[k], P, tris, arena, su, n, head, nxt, np.inf)
+            cbuf[k] = qbuf[k] + vweight * W[u] * _carried_gap2(u, wbuf[k], P, tris, arena, su, n, head, nxt, np.inf)
             dbuf[k] = True
             continue
         if _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
@@ -493,8 +449,7 @@ def _grow(a, n):
 
 
 @jit
-def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps, metric=0, self_cost=1.0,
-                 normalised=False, vterm=0.0, carry=False):
+def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps, vweight):
     """Half-edge QEM collapses until every sub-block is down to its target triangle count.
 
     Parameters
@@ -513,6 +468,8 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         Stop collapsing in block b once it has at most ``target[b]`` live triangles.
     shape_eps : float
         Orientation tolerance of rewritten triangles (see the module docstring), dimensionless.
+    vweight : float
+        Weight of the vertical term (see the module docstring), dimensionless; 0: the quadric alone.
 
     Returns
     -------
@@ -526,16 +483,16 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     n_v = P.shape[0]
     n_b = target.shape[0]
     arena, start, length, cap, top = _build_stars(tris, alive, n_v)
-    Q, W = plane_quadrics(P, tris, alive, metric)
+    Q, W = plane_quadrics(P, tris, alive)
     selfq = np.empty(n_v, np.float64)  # Q_w(P_w): the half of a collapse cost that depends on w only
     for w in range(n_v):
-        selfq[w] = self_cost * _quadric_at(Q, w, P[w, 0], P[w, 1], P[w, 2])
+        selfq[w] = _quadric_at(Q, w, P[w, 0], P[w, 1], P[w, 2])
     mark = np.zeros(n_v, np.int64)  # stamps of the link test
     seen = np.zeros(n_v, np.int64)  # collapse number + 1 of the last ring visit
     stampbox = np.zeros(1, np.int64)
     wbuf = np.empty(n_v, np.int64)
     cbuf = np.empty(n_v, np.float64)
-    head = np.full(tris.shape[0], -1, np.int64)  # carry: first removed vertex held by each slot
+    head = np.full(tris.shape[0], -1, np.int64)  # first removed vertex held by each slot (vertical term)
     nxt = np.full(n_v, -1, np.int64)
     pbuf = np.empty(n_v, np.int64)
     dbuf = np.zeros(n_v, np.bool_)
@@ -561,7 +518,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         if kind[u] != FREE or length[u] == 0:
             continue
         v, c, e = _evaluate(u, -1, np.inf, P, tris, Q, W, selfq, arena, start, length, mark, stampbox,
-                            shape_eps, wbuf, cbuf, True, normalised, vterm, carry, head, nxt, dbuf, qbuf)
+                            shape_eps, wbuf, cbuf, True, vweight, head, nxt, dbuf, qbuf)
         b = vert_block[u]
         emin[u] = e
         esum[b] += e
@@ -604,7 +561,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         if not _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
             # The neighbourhood changed since u was evaluated: evaluate again, requeue.
             v2, c2, e2 = _evaluate(u, -1, np.inf, P, tris, Q, W, selfq, arena, start, length, mark, stampbox,
-                                   shape_eps, wbuf, cbuf, True, normalised, vterm, carry, head, nxt, dbuf, qbuf)
+                                   shape_eps, wbuf, cbuf, True, vweight, head, nxt, dbuf, qbuf)
             esum[b] += e2 - emin[u]
             emin[u] = e2
             best[u] = v2
@@ -626,7 +583,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         nd = 2 * nc
         su = start[u]
         npb = 0
-        if carry:
+        if vweight > 0.0:
             pbuf[0] = u
             npb = 1
             for i in range(length[u]):
@@ -677,7 +634,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                     top += ncap
                 arena[start[v] + length[v]] = t
                 length[v] += 1
-        if carry:
+        if vweight > 0.0:
             for k in range(npb):
                 q = pbuf[k]
                 bsl = -1
@@ -710,7 +667,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         for k in range(10):
             Q[v, k] += Q[u, k]
         W[v] += W[u]
-        selfq[v] = self_cost * _quadric_at(Q, v, P[v, 0], P[v, 1], P[v, 2])
+        selfq[v] = _quadric_at(Q, v, P[v, 0], P[v, 1], P[v, 2])
         count[b] -= 2
         esum[b] -= emin[u]
         ecnt[b] -= 1
@@ -733,7 +690,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                     continue
                 seen[x] = nc + 1
                 vx, cx, ex = _evaluate(x, best[x], bestc[x], P, tris, Q, W, selfq, arena, start, length, mark,
-                                       stampbox, shape_eps, wbuf, cbuf, False, normalised, vterm, carry, head, nxt, dbuf, qbuf)
+                                       stampbox, shape_eps, wbuf, cbuf, False, vweight, head, nxt, dbuf, qbuf)
                 bx = vert_block[x]
                 esum[bx] += ex - emin[x]
                 emin[x] = ex
