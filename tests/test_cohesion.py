@@ -70,6 +70,7 @@ options = st.fixed_dictionaries(
         "escape": st.sampled_from([0, 1, 4]),
         "focus": st.sampled_from([0.0, 0.5, 1.0]),
         "work_stride": st.sampled_from([0, 1, 2, 4]),
+        "pairs": st.sampled_from([0, 1, 4]),
     }
 )
 
@@ -157,14 +158,16 @@ def test_fallback_never_worse_than_grid(seed: int, m: int) -> None:
     seed=st.integers(0, 10_000),
     m=st.sampled_from([5, 9, 17]),
     work_stride=st.sampled_from([0, 2, 4]),
+    pairs=st.sampled_from([0, 4]),
     holes=st.booleans(),
 )
 @settings(max_examples=20, deadline=None)
-def test_escape_never_measures_worse(seed: int, m: int, work_stride: int, holes: bool) -> None:
-    """The star search only adds a fallback candidate: with it every tile measures at most its error without."""
+def test_escape_never_measures_worse(seed: int, m: int, work_stride: int, pairs: int, holes: bool) -> None:
+    """The star search (and the pair moves after it) only add a fallback candidate: with them every tile
+    measures at most its error without."""
     hf = _hf(70, 66, seed, holes)
     pyr = TilePyramid(hf.width, hf.height, m)
-    fns = [cohesion.make_mesher(escape=e, work_stride=work_stride) for e in (0, 4)]
+    fns = [cohesion.make_mesher(escape=e, pairs=pairs, work_stride=work_stride) for e in (0, 4)]
     dx, dy = hf.spacing_m
     for code in pyr.all_codes():
         r0, c0 = pyr.origin_rc(code)
@@ -181,7 +184,7 @@ def test_escape_never_measures_worse(seed: int, m: int, work_stride: int, holes:
 
 
 def test_options_are_checked() -> None:
-    for bad in ({"escape": -1}, {"focus": 1.5}, {"work_stride": 3}, {"work_stride": -2}):
+    for bad in ({"escape": -1}, {"focus": 1.5}, {"work_stride": 3}, {"work_stride": -2}, {"pairs": -1}):
         with pytest.raises(ValueError, match="Expected"):
             cohesion.CohesionOptions(**bad)
 

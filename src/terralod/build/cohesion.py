@@ -38,11 +38,13 @@ Relocation (eq. 2-9), per level and tile, with the reading of ``READING-NOTES.md
   max errors on Puget Sound), and ``escape=4`` lets a stuck worst quad search a lattice of up to 9 x 9
   sample points over each corner's star (the tile before that search stays a fallback candidate: the
   per-sample proxy can be fooled at sharp rims, Grand Canyon level 3 otherwise measured 0.89 x Chunked
-  LOD). The benchmark (``benchmarks/cohesion_vs_chunked.py``, results in
+  LOD); when the tile's worst quad (only that one) is still stuck, ``pairs=4`` moves two of its corners
+  together over a lattice of each one's star (a single-vertex optimum is not a pair optimum; the max error
+  of a tile is one quad's). The benchmark (``benchmarks/cohesion_vs_chunked.py``, results in
   ``benchmarks/results/cohesion_vs_chunked.md``) shows why: the force balance as the paper writes it
   (LoG attraction, no refinement) leaves the max error per level at 0.63-1.0 x the regular grid's and
-  draws 0.96-1.0 x its triangles at 2 px; with the refinement the max error is 0.18-0.61 x and the
-  triangles 0.42-0.52 x on the real DEMs (0.76 x on the small Jacksboro sample).
+  draws 0.96-1.0 x its triangles at 2 px; with the refinement the max error is 0.15-0.61 x and the
+  triangles 0.42-0.51 x on the real DEMs (0.75 x on the small Jacksboro sample).
 
 Deviations, and why:
 
@@ -125,6 +127,9 @@ class CohesionOptions:
     escape : when no short move lowers the worst quad, search a lattice of up to (2 escape + 1)^2 sample
         points over each of its corners' stars (0: off); the tile before that search stays a fallback
         candidate, since the per-sample proxy can be fooled at sharp rims
+    pairs : when the tile's worst quad is still stuck after the star search, move two of its corners
+        together over a lattice of up to (2 pairs + 1)^2 points each (the 4 sides and 2 diagonals of the
+        quad; 0: off; levels refined coarse to fine skip it)
     focus : the refinement stops once every quad it could still improve is below focus x the largest
         error of a quad that cannot improve (0: run the whole budget; 1: pursue the tile's max error only)
     work_stride : levels of stride s > work_stride are relaxed and refined first on every
@@ -144,6 +149,7 @@ class CohesionOptions:
     escape: int = 4
     focus: float = 0.5
     work_stride: int = 4
+    pairs: int = 4
 
     def __post_init__(self) -> None:
         if self.attraction not in ("error", "log"):
@@ -154,6 +160,8 @@ class CohesionOptions:
             raise ValueError(f"Expected iterations >= 0, got {self.iterations}")
         if self.escape < 0:
             raise ValueError(f"Expected escape >= 0, got {self.escape}")
+        if self.pairs < 0:
+            raise ValueError(f"Expected pairs >= 0, got {self.pairs}")
         if not 0.0 <= self.focus <= 1.0:
             raise ValueError(f"Expected focus in [0, 1], got {self.focus}")
         if self.work_stride < 0 or (self.work_stride & (self.work_stride - 1)):
@@ -309,6 +317,7 @@ def mesh_tile_with(
     normal = np.array([1.0 / spacing_m[0], 1.0 / spacing_m[1]])
     metrics = {"vertical": [np.zeros(2)], "normal": [normal], "both": [np.zeros(2), normal]}[opt.metric]
     budget = opt.refine_budget * m * m
+    pairs = opt.pairs if f == 1 else 0  # joint moves on the full source of a coarse level cost too much
 
     def mesh(pv, pu, sxy):  # the tile on the full source
         return assemble(zf, vf, feat_f, pv, pu, keep, r0, c0, opt.snap, sxy)[:4]
@@ -324,16 +333,18 @@ def mesh_tile_with(
         relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, sd, opt.snap, opt.iterations, opt.alpha,
                        1.0 / s, float(s), sxy / f, vmax, umax)  # fmt: skip
         if opt.refine and f > 1:
-            refine_max_error(zw, vw, pv, pu, movable, keep, sd, opt.snap, budget, sxy / f, 0, opt.focus)
+            refine_max_error(zw, vw, pv, pu, movable, keep, sd, opt.snap, budget, sxy / f, 0, opt.focus, 0)
         pv *= f
         pu *= f
         if opt.refine:
             # after a coarse pass only the tile's max error is pursued (focus 1) on the full source
             focus = opt.focus if f == 1 else 1.0
-            refine_max_error(zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, 0, focus)
+            refine_max_error(zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, 0, focus, 0)
             if opt.escape:  # the star search can fool the per-sample proxy: keep the tile before it too
                 cands.append(mesh(pv, pu, sxy))
-                refine_max_error(zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, opt.escape, focus)
+                refine_max_error(
+                    zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, opt.escape, focus, pairs
+                )
         cands.append(mesh(pv, pu, sxy))
     if not opt.fallback or len(cands) == 1:
         return cands[-1]

@@ -502,7 +502,7 @@ def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy):
 
 
 @jit
-def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape, focus):
+def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape, focus, pairs):
     """Error-driven relocation (our improvement of the attraction term), in place.
 
     Repeatedly take the kept quad of largest max error that is not marked stuck and try to move one of its
@@ -632,6 +632,24 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
                         cand_j = vj
                         cand_v = nv
                         cand_u = nu
+        pair_i = -1
+        pair_j = -1
+        pair_v = 0.0
+        pair_u = 0.0
+        if cand_i < 0 and pairs > 0 and best >= stuck_max:  # the tile's worst quad is stuck: move 2 corners
+            for k in range(6):
+                ai = bi + PAIRS[k, 0]
+                aj = bj + PAIRS[k, 1]
+                ci = bi + PAIRS[k, 2]
+                cj = bj + PAIRS[k, 3]
+                if not (movable[ai, aj] and movable[ci, cj]):
+                    continue
+                e, av, au, cv, cu = _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, cand_err,
+                                                 pairs, snap, a0, a1, pl, min_area2, min_turn, sxy)  # fmt: skip
+                if e < cand_err:
+                    cand_err = e
+                    cand_i, cand_j, cand_v, cand_u = ai, aj, av, au
+                    pair_i, pair_j, pair_v, pair_u = ci, cj, cv, cu
         if cand_i < 0:
             stuck[bi, bj] = True
             stuck_max = max(stuck_max, best)
@@ -640,21 +658,147 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
         pv[cand_i, cand_j] = cand_v
         pu[cand_i, cand_j] = cand_u
         hz[cand_i, cand_j] = height_at(zw, cand_v, cand_u, snap)
+        if pair_i >= 0:
+            pv[pair_i, pair_j] = pair_v
+            pu[pair_i, pair_j] = pair_u
+            hz[pair_i, pair_j] = height_at(zw, pair_v, pair_u, snap)
         moves += 1
-        for ei in (-1, 0):
-            for ej in (-1, 0):
-                qi = cand_i + ei
-                qj = cand_j + ej
-                if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-                    e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
-                    qmax[qi, qj] = e
-                    wr[qi, qj] = r
-                    wc[qi, qj] = c
-                    stuck[qi, qj] = False
-        for qi in (cand_i - 1, cand_i):
-            if 0 <= qi < cells:
-                _row_max(qmax, stuck, qi, rowbest, rowarg)
+        for t in range(2):
+            vi = cand_i if t == 0 else pair_i
+            vj = cand_j if t == 0 else pair_j
+            if vi < 0:
+                continue
+            for ei in (-1, 0):
+                for ej in (-1, 0):
+                    qi = vi + ei
+                    qj = vj + ej
+                    if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
+                        e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
+                        qmax[qi, qj] = e
+                        wr[qi, qj] = r
+                        wc[qi, qj] = c
+                        stuck[qi, qj] = False
+            for qi in (vi - 1, vi):
+                if 0 <= qi < cells:
+                    _row_max(qmax, stuck, qi, rowbest, rowarg)
     return moves
+
+
+#: Corner pairs of quad (i, j) moved together by the pair search: (di_a, dj_a, di_b, dj_b), the 4 sides
+#: then the 2 diagonals.
+PAIRS = np.array(
+    [[0, 0, 0, 1], [0, 1, 1, 1], [1, 1, 1, 0], [1, 0, 0, 0], [0, 0, 1, 1], [0, 1, 1, 0]], np.int64
+)
+
+
+@jit
+def _lattice(pv, pu, vi, vj, n_side):
+    """(v0, u0, nv, nu, step_v, step_u): a lattice of at most (2 n_side + 1)^2 sample points over the box of
+    vertex (vi, vj)'s 8 neighbours (step 1 sample when the box is small)."""
+    vlo = pv[vi, vj]
+    vhi = vlo
+    ulo = pu[vi, vj]
+    uhi = ulo
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            vlo = min(vlo, pv[vi + di, vj + dj])
+            vhi = max(vhi, pv[vi + di, vj + dj])
+            ulo = min(ulo, pu[vi + di, vj + dj])
+            uhi = max(uhi, pu[vi + di, vj + dj])
+    v0 = int(np.ceil(vlo))
+    u0 = int(np.ceil(ulo))
+    nvv = int(np.floor(vhi)) - v0
+    nuu = int(np.floor(uhi)) - u0
+    step_v = max(1, (nvv + 2 * n_side - 1) // (2 * n_side))
+    step_u = max(1, (nuu + 2 * n_side - 1) // (2 * n_side))
+    return v0, u0, nvv, nuu, step_v, step_u
+
+
+@jit
+def _block_max(zw, vw, feat, pv, pu, hz, keep, bi, bj, i0, i1, j0, j1, bound, a0, a1, pl, min_area2, sxy):
+    """Max error of the kept quads of rows i0..i1, cols j0..j1 (clipped), quad (bi, bj) first (most
+    candidates fail there); stops at ``bound``."""
+    cells = keep.shape[0]
+    loc, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, bi, bj, a0, a1, pl, min_area2, sxy)
+    if loc >= bound:
+        return loc
+    for qi in range(max(i0, 0), min(i1, cells - 1) + 1):
+        for qj in range(max(j0, 0), min(j1, cells - 1) + 1):
+            if keep[qi, qj]:
+                e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
+                if e > loc:
+                    loc = e
+                    if loc >= bound:
+                        return loc
+    return loc
+
+
+@jit
+def _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, bound, n_side, snap, a0, a1, pl, min_area2,
+                 min_turn, sxy):  # fmt: skip
+    """Best joint position of vertices A = (ai, aj) and C = (ci, cj) (corners of one quad) over a lattice of
+    each one's star (:func:`_lattice`), quad (bi, bj) measured first: (max error of the quads around both, A's v, u, C's v, u), the error
+    ``bound`` when no valid pair is below it. Positions restored on return."""
+    cells = keep.shape[0]
+    h, w = zw.shape
+    pav = pv[ai, aj]
+    pau = pu[ai, aj]
+    pah = hz[ai, aj]
+    pcv = pv[ci, cj]
+    pcu = pu[ci, cj]
+    pch = hz[ci, cj]
+    av0, au0, anv, anu, asv, asu = _lattice(pv, pu, ai, aj, n_side)
+    cv0, cu0, cnv, cnu, csv, csu = _lattice(pv, pu, ci, cj, n_side)
+    i0 = min(ai, ci) - 1
+    i1 = max(ai, ci)
+    j0 = min(aj, cj) - 1
+    j1 = max(aj, cj)
+    best = bound
+    bav = pav
+    bau = pau
+    bcv = pcv
+    bcu = pcu
+    for a in range(0, anv + 1, asv):
+        for b in range(0, anu + 1, asu):
+            nav = float(av0 + a)
+            nau = float(au0 + b)
+            if nav > h - 1 or nau > w - 1:
+                continue
+            pv[ai, aj] = nav
+            pu[ai, aj] = nau
+            hz[ai, aj] = height_at(zw, nav, nau, snap)
+            for c in range(0, cnv + 1, csv):
+                for d in range(0, cnu + 1, csu):
+                    ncv = float(cv0 + c)
+                    ncu = float(cu0 + d)
+                    if (
+                        ncv > h - 1
+                        or ncu > w - 1
+                        or (nav == pav and nau == pau)
+                        or (ncv == pcv and ncu == pcu)
+                    ):
+                        continue
+                    pv[ci, cj] = ncv
+                    pu[ci, cj] = ncu
+                    if _around_ok(pv, pu, ai, aj, cells, min_turn) and _around_ok(
+                        pv, pu, ci, cj, cells, min_turn
+                    ):
+                        hz[ci, cj] = height_at(zw, ncv, ncu, snap)
+                        loc = _block_max(zw, vw, feat, pv, pu, hz, keep, bi, bj, i0, i1, j0, j1, best, a0, a1, pl,
+                                         min_area2, sxy)  # fmt: skip
+                        if loc < best:
+                            best = loc
+                            bav = nav
+                            bau = nau
+                            bcv = ncv
+                            bcu = ncu
+                    pv[ci, cj] = pcv
+                    pu[ci, cj] = pcu
+                    hz[ci, cj] = pch
+            pv[ai, aj] = pav
+            pu[ai, aj] = pau
+            hz[ai, aj] = pah
+    return best, bav, bau, bcv, bcu
 
 
 @jit
