@@ -297,7 +297,8 @@ def main() -> None:
                     "model bytes", "k = 4, 16 files differ by (bytes)", "static pyramid bytes", "model / pyramid",
                     "without the shared vertex array"], rows)  # fmt: skip
     md += ("\nBoth files hold the same vertex array (input order) once and are encoded alike (narrowest integer "
-           "type, byte shuffle, deflate). The pyramid holds the model's global scales at 20, 36, 52, 68, 84, 100 % "
+           "type, byte shuffle, deflate; float columns as their distinct values plus rank changes where that is "
+           "smaller, file format 4). The pyramid holds the model's global scales at 20, 36, 52, 68, 84, 100 % "
            "of the triangles, each mesh in the smaller of two orders: the input TIN's rows and vertex rotation "
            "(what a simplifier that deletes rows keeps), or rows sorted by vertex index. The model file (format 3) "
            "stores the base mesh, a box per sub-block and one vertex split per raw record (removed vertex u, kept "
