@@ -1,11 +1,11 @@
 """Detail-increment TIN (paper 003 §2.3) at run time: a scripted zoom down to one sub-block, frame by frame.
 
 ``benchmarks/tin.py`` times single records and a zoom over the whole terrain's centre; this script follows
-what the runtime does per frame when the eye really comes close to a sub-block (the SVO rule measures the
-distance to each sub-block's *centre*, so only an eye near a centre refines it): 240 frames, the eye
+what the runtime does per frame when the eye really comes close to a sub-block: 240 frames, the eye
 descending geometrically from 20 km to 2 m above the centre of the sub-block with the most records,
 looking at it obliquely (1080 px, 60°, N = 2 px). Per frame, :class:`terralod.runtime.tin.TinRuntime`
-selects the scales (SVO query), applies or reverts the ΔT records (eq. 2) and cuts one mesh per sub-block
+selects the scales (the default rule: each scale's measured error at the nearest point of the sub-block's
+box; ``benchmarks/tin.py`` compares the paper's SVO rule), applies or reverts the ΔT records (eq. 2) and cuts one mesh per sub-block
 with normals; drawing is not included (see ``benchmarks/flythrough.py`` for GPU costs).
 
 Reported for the raw model (one record per collapse) and merged with k = 16 (§2.2.2): mean, p99 and worst
@@ -113,7 +113,7 @@ def main() -> None:
     md += md_table(["model (merge k)", "records of the block", "frame ms (mean)", "frame ms (p99)",
                     "frame ms (max)", "records in the worst frame", "records applied", "µs / record",
                     "triangles at 20 km", "triangles at 2 m", "first frame ms"], rows)  # fmt: skip
-    md += ("\nFrame = SVO scale query + applying/reverting ΔT records + one mesh per sub-block with normals "
+    md += ("\nFrame = scale query (measured error, the default) + applying/reverting ΔT records + one mesh per sub-block with normals "
            "(CPU, one core; no drawing). The first frame cuts every sub-block's mesh and is reported apart. "
            "k = 16 merges 16 collapses per record with the §2.2.2 compression: fewer, larger steps.\n")
     if "png" in results["render"]:
