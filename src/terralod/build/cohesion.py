@@ -39,12 +39,13 @@ Relocation (eq. 2-9), per level and tile, with the reading of ``READING-NOTES.md
   sample points over each corner's star (the tile before that search stays a fallback candidate: the
   per-sample proxy can be fooled at sharp rims, Grand Canyon level 3 otherwise measured 0.89 x Chunked
   LOD); when the tile's worst quad (only that one) is still stuck, ``pairs=4`` moves two of its corners
-  together over a lattice of each one's star (a single-vertex optimum is not a pair optimum; the max error
+  together over a lattice of each one's star, or else a corner with one of its neighbours outside the
+  quad, which makes room for the corner (a single-vertex optimum is not a pair optimum, and the max error
   of a tile is one quad's). The benchmark (``benchmarks/cohesion_vs_chunked.py``, results in
   ``benchmarks/results/cohesion_vs_chunked.md``) shows why: the force balance as the paper writes it
   (LoG attraction, no refinement) leaves the max error per level at 0.63-1.0 x the regular grid's and
   draws 0.96-1.0 x its triangles at 2 px; with the refinement the max error is 0.15-0.61 x and the
-  triangles 0.42-0.51 x on the real DEMs (0.75 x on the small Jacksboro sample).
+  triangles 0.40-0.49 x on the real DEMs (0.74 x on the small Jacksboro sample).
 
 Deviations, and why:
 
@@ -127,9 +128,9 @@ class CohesionOptions:
     escape : when no short move lowers the worst quad, search a lattice of up to (2 escape + 1)^2 sample
         points over each of its corners' stars (0: off); the tile before that search stays a fallback
         candidate, since the per-sample proxy can be fooled at sharp rims
-    pairs : when the tile's worst quad is still stuck after the star search, move two of its corners
-        together over a lattice of up to (2 pairs + 1)^2 points each (the 4 sides and 2 diagonals of the
-        quad; 0: off; levels refined coarse to fine skip it)
+    pairs : when the tile's worst quad is still stuck after the star search, move two vertices together
+        over a lattice of up to (2 pairs + 1)^2 points each: two of its corners (4 sides, 2 diagonals), else
+        a corner and one of its 5 neighbours outside the quad (0: off; levels refined coarse to fine skip it)
     focus : the refinement stops once every quad it could still improve is below focus x the largest
         error of a quad that cannot improve (0: run the whole budget; 1: pursue the tile's max error only)
     work_stride : levels of stride s > work_stride are relaxed and refined first on every

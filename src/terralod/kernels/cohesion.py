@@ -637,12 +637,14 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
         pair_v = 0.0
         pair_u = 0.0
         if cand_i < 0 and pairs > 0 and best >= stuck_max:  # the tile's worst quad is stuck: move 2 corners
-            for k in range(6):
+            for k in range(PAIRS.shape[0]):
+                if k == 6 and cand_i >= 0:  # a pair of the quad's own corners helped
+                    break
                 ai = bi + PAIRS[k, 0]
                 aj = bj + PAIRS[k, 1]
                 ci = bi + PAIRS[k, 2]
                 cj = bj + PAIRS[k, 3]
-                if not (movable[ai, aj] and movable[ci, cj]):
+                if not (0 <= ci < m and 0 <= cj < m and movable[ai, aj] and movable[ci, cj]):
                     continue
                 e, av, au, cv, cu = _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, cand_err,
                                                  pairs, snap, a0, a1, pl, min_area2, min_turn, sxy)  # fmt: skip
@@ -684,11 +686,23 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
     return moves
 
 
-#: Corner pairs of quad (i, j) moved together by the pair search: (di_a, dj_a, di_b, dj_b), the 4 sides
-#: then the 2 diagonals.
-PAIRS = np.array(
-    [[0, 0, 0, 1], [0, 1, 1, 1], [1, 1, 1, 0], [1, 0, 0, 0], [0, 0, 1, 1], [0, 1, 1, 0]], np.int64
-)
+#: Vertex pairs moved together by the pair search for quad (i, j): (di_a, dj_a, di_b, dj_b) from (i, j); the
+#: quad's 4 sides and 2 diagonals, then (tried only when none of those helps) a corner with one of its 5
+#: neighbours outside the quad, which can make room for the corner.
+def _make_pairs():
+    own = [[0, 0, 0, 1], [0, 1, 1, 1], [1, 1, 1, 0], [1, 0, 0, 0], [0, 0, 1, 1], [0, 1, 1, 0]]
+    ring = []
+    for ai in (0, 1):
+        for aj in (0, 1):
+            for ei in (-1, 0, 1):
+                for ej in (-1, 0, 1):
+                    ni, nj = ai + ei, aj + ej
+                    if (ei, ej) != (0, 0) and not (0 <= ni <= 1 and 0 <= nj <= 1):
+                        ring.append([ai, aj, ni, nj])
+    return np.array(own + ring, np.int64)
+
+
+PAIRS = _make_pairs()
 
 
 @jit
