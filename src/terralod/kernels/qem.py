@@ -323,6 +323,8 @@ def _gap2_after(q, u, w, P, tris, arena, su, n):
         if m > best:
             best = m
             bz = wz + l1 * (P[a, 2] - wz) + l2 * (P[b, 2] - wz)
+            if m >= 0.0:
+                break  # inside (or on an edge, where the neighbour gives the same height)
     d = P[q, 2] - bz
     return d * d
 
