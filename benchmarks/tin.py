@@ -300,7 +300,7 @@ def main() -> None:
            "type, byte shuffle, deflate; float columns as their distinct values plus rank changes where that is "
            "smaller, file format 4). The pyramid holds the model's global scales at 20, 36, 52, 68, 84, 100 % "
            "of the triangles, each mesh in the smaller of two orders: the input TIN's rows and vertex rotation "
-           "(what a simplifier that deletes rows keeps), or rows sorted by vertex index. The model file (format 3) "
+           "(what a simplifier that deletes rows keeps), or rows sorted by vertex index. The model file (format 4) "
            "stores the base mesh, a box per sub-block and one vertex split per raw record (removed vertex u, kept "
            "vertex v - u, the wing's rank among v's neighbours, triangles moved, quantised MMQE drop and measured "
            "error drop); table 1's fields are derived "
