@@ -98,6 +98,22 @@ def diagonal_ok(pv, pu, i, j, diag, min_area2):
 
 
 @jit
+def _add_sample(acc, zs, pl, k, nk, feat, mode, r, c):
+    """Add sample (r, c) of height ``zs``, inside triangle k (plane ``pl[k]``, error scale ``nk``), to the
+    diagonal accumulator ``acc`` of :func:`_quad_eval2`."""
+    e = abs(zs - (pl[k, 0] + pl[k, 1] * c + pl[k, 2] * r)) * nk
+    if e > acc[0]:
+        acc[0] = e
+        acc[5] = r
+        acc[6] = c
+    acc[1] += e
+    wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+    acc[2] += wk
+    acc[3] += wk * r
+    acc[4] += wk * c
+
+
+@jit
 def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl, sxy):
     """Errors and attraction moments of quad (i, j) for both diagonals in one pass over its samples.
 
@@ -161,27 +177,9 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
                 continue
             zs = zw[r, c]
             if k0 >= 0:
-                e0 = abs(zs - (pl[k0, 0] + pl[k0, 1] * c + pl[k0, 2] * r)) * (n0 if k0 == 0 else n1)
-                if e0 > acc0[0]:
-                    acc0[0] = e0
-                    acc0[5] = r
-                    acc0[6] = c
-                acc0[1] += e0
-                w0 = (e0 * e0 if e0 > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
-                acc0[2] += w0
-                acc0[3] += w0 * r
-                acc0[4] += w0 * c
+                _add_sample(acc0, zs, pl, k0, n0 if k0 == 0 else n1, feat, mode, r, c)
             if k1 >= 0:
-                e1 = abs(zs - (pl[k1, 0] + pl[k1, 1] * c + pl[k1, 2] * r)) * (n2 if k1 == 2 else n3)
-                if e1 > acc1[0]:
-                    acc1[0] = e1
-                    acc1[5] = r
-                    acc1[6] = c
-                acc1[1] += e1
-                w1 = (e1 * e1 if e1 > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
-                acc1[2] += w1
-                acc1[3] += w1 * r
-                acc1[4] += w1 * c
+                _add_sample(acc1, zs, pl, k1, n2 if k1 == 2 else n3, feat, mode, r, c)
     if not ok0:
         acc0[0] = np.inf
     if not ok1:
@@ -237,6 +235,22 @@ def _around_ok(pv, pu, i, j, cells, min_turn):
                 ):
                     return False
     return True
+
+
+@jit
+def _snapped(v, u, snap):
+    """(v, u) rounded to the nearest sample when ``snap``, else unchanged."""
+    if snap:
+        return np.floor(v + 0.5), np.floor(u + 0.5)
+    return v, u
+
+
+@jit
+def _try_at(pv, pu, i, j, v, u, cells, min_turn):
+    """Put vertex (i, j) at (v, u) (height not updated) and say whether its 4 quads pass :func:`_around_ok`."""
+    pv[i, j] = v
+    pu[i, j] = u
+    return _around_ok(pv, pu, i, j, cells, min_turn)
 
 
 @jit
@@ -412,14 +426,10 @@ def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, a
                 for _try in range(3):
                     nv = min(max(p_v + mv, 0.0), vmax)
                     nu = min(max(p_u + mu, 0.0), umax)
-                    if snap:
-                        nv = np.floor(nv + 0.5)
-                        nu = np.floor(nu + 0.5)
+                    nv, nu = _snapped(nv, nu, snap)
                     if nv == p_v and nu == p_u:
                         break
-                    pv[i, j] = nv
-                    pu[i, j] = nu
-                    if _around_ok(pv, pu, i, j, cells, min_turn):
+                    if _try_at(pv, pu, i, j, nv, nu, cells, min_turn):
                         moved += 1
                         break
                     pv[i, j] = p_v
@@ -490,6 +500,20 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap, sxy):
                 tris[t + 1, 0], tris[t + 1, 1], tris[t + 1, 2] = a, d, b
             t += 2
     return rows, cols, heights, tris, worst
+
+
+@jit
+def _put(pv, pu, hz, i, j, v, u, h):
+    """Set vertex (i, j) to position (v, u) with height h (restores a saved vertex)."""
+    pv[i, j] = v
+    pu[i, j] = u
+    hz[i, j] = h
+
+
+@jit
+def _move(zw, pv, pu, hz, i, j, v, u, snap):
+    """Move vertex (i, j) to (v, u) and give it the source height there."""
+    _put(pv, pu, hz, i, j, v, u, height_at(zw, v, u, snap))
 
 
 @jit
@@ -585,38 +609,21 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
                         k = cand - len(FRACS)
                         nv = tv + (1.0 if k == 0 else (-1.0 if k == 1 else 0.0))
                         nu = tu + (1.0 if k == 2 else (-1.0 if k == 3 else 0.0))
-                    if snap:
-                        nv = np.floor(nv + 0.5)
-                        nu = np.floor(nu + 0.5)
+                    nv, nu = _snapped(nv, nu, snap)
                     if nv == p_v and nu == p_u:
                         continue
-                    pv[vi, vj] = nv
-                    pu[vi, vj] = nu
-                    if _around_ok(pv, pu, vi, vj, cells, min_turn):
+                    if _try_at(pv, pu, vi, vj, nv, nu, cells, min_turn):
                         hz[vi, vj] = height_at(zw, nv, nu, snap)
-                        loc = 0.0
                         # the worst quad first: most candidates fail there, and the rest is skipped
-                        for k in range(4):
-                            qi, qj = bi, bj
-                            if k > 0:
-                                qi, qj = _kth_other_quad(vi, vj, bi, bj, k)
-                            if loc >= cand_err:
-                                break
-                            if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-                                e, _r, _c, _d = _best_quad(
-                                    zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy
-                                )
-                                if e > loc:
-                                    loc = e
+                        loc = _local_max(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, cand_err, a0, a1, pl,
+                                         min_area2, sxy)  # fmt: skip
                         if loc < cand_err:
                             cand_err = loc
                             cand_i = vi
                             cand_j = vj
                             cand_v = nv
                             cand_u = nu
-                    pv[vi, vj] = p_v
-                    pu[vi, vj] = p_u
-                    hz[vi, vj] = p_h
+                    _put(pv, pu, hz, vi, vj, p_v, p_u, p_h)
         if cand_i < 0 and escape > 0:  # no short move helps: search every lattice point of the corners' stars
             for di in (0, 1):
                 for dj in (0, 1):
@@ -657,13 +664,9 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
             stuck_max = max(stuck_max, best)
             _row_max(qmax, stuck, bi, rowbest, rowarg)
             continue
-        pv[cand_i, cand_j] = cand_v
-        pu[cand_i, cand_j] = cand_u
-        hz[cand_i, cand_j] = height_at(zw, cand_v, cand_u, snap)
+        _move(zw, pv, pu, hz, cand_i, cand_j, cand_v, cand_u, snap)
         if pair_i >= 0:
-            pv[pair_i, pair_j] = pair_v
-            pu[pair_i, pair_j] = pair_u
-            hz[pair_i, pair_j] = height_at(zw, pair_v, pair_u, snap)
+            _move(zw, pv, pu, hz, pair_i, pair_j, pair_v, pair_u, snap)
         moves += 1
         for t in range(2):
             vi = cand_i if t == 0 else pair_i
@@ -778,9 +781,7 @@ def _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, bound, 
             nau = float(au0 + b)
             if nav > h - 1 or nau > w - 1:
                 continue
-            pv[ai, aj] = nav
-            pu[ai, aj] = nau
-            hz[ai, aj] = height_at(zw, nav, nau, snap)
+            _move(zw, pv, pu, hz, ai, aj, nav, nau, snap)
             for c in range(0, cnv + 1, csv):
                 for d in range(0, cnu + 1, csu):
                     ncv = float(cv0 + c)
@@ -806,12 +807,8 @@ def _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, bound, 
                             bau = nau
                             bcv = ncv
                             bcu = ncu
-                    pv[ci, cj] = pcv
-                    pu[ci, cj] = pcu
-                    hz[ci, cj] = pch
-            pv[ai, aj] = pav
-            pu[ai, aj] = pau
-            hz[ai, aj] = pah
+                    _put(pv, pu, hz, ci, cj, pcv, pcu, pch)
+            _put(pv, pu, hz, ai, aj, pav, pau, pah)
     return best, bav, bau, bcv, bcu
 
 
@@ -837,28 +834,13 @@ def _local_max(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, a0, a1, pl
 def _star_search(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, n_side, snap, a0, a1, pl, min_area2,
                  min_turn, sxy):  # fmt: skip
     """Best position of vertex (vi, vj) over a lattice of at most (2 n_side + 1)^2 sample points covering the
-    box of its 8 neighbours (step 1 sample when the box is small): (max error of its 4 quads, v, u), the
+    box of its 8 neighbours (:func:`_lattice`): (max error of its 4 quads, v, u), the
     error ``bound`` when no valid point is below it. Positions restored on return."""
     cells = keep.shape[0]
     p_v = pv[vi, vj]
     p_u = pu[vi, vj]
     p_h = hz[vi, vj]
-    vlo = p_v
-    vhi = p_v
-    ulo = p_u
-    uhi = p_u
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            vlo = min(vlo, pv[vi + di, vj + dj])
-            vhi = max(vhi, pv[vi + di, vj + dj])
-            ulo = min(ulo, pu[vi + di, vj + dj])
-            uhi = max(uhi, pu[vi + di, vj + dj])
-    v0 = int(np.ceil(vlo))
-    u0 = int(np.ceil(ulo))
-    nvv = int(np.floor(vhi)) - v0
-    nuu = int(np.floor(uhi)) - u0
-    step_v = max(1, (nvv + 2 * n_side - 1) // (2 * n_side))
-    step_u = max(1, (nuu + 2 * n_side - 1) // (2 * n_side))
+    v0, u0, nvv, nuu, step_v, step_u = _lattice(pv, pu, vi, vj, n_side)
     best = bound
     bv = p_v
     bu = p_u
@@ -869,9 +851,7 @@ def _star_search(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, n_side, 
             nu = float(u0 + b)
             if (nv == p_v and nu == p_u) or nv > h - 1 or nu > w - 1:
                 continue
-            pv[vi, vj] = nv
-            pu[vi, vj] = nu
-            if _around_ok(pv, pu, vi, vj, cells, min_turn):
+            if _try_at(pv, pu, vi, vj, nv, nu, cells, min_turn):
                 hz[vi, vj] = height_at(zw, nv, nu, snap)
                 loc = _local_max(
                     zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, best, a0, a1, pl, min_area2, sxy
@@ -880,9 +860,7 @@ def _star_search(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, n_side, 
                     best = loc
                     bv = nv
                     bu = nu
-            pv[vi, vj] = p_v
-            pu[vi, vj] = p_u
-            hz[vi, vj] = p_h
+            _put(pv, pu, hz, vi, vj, p_v, p_u, p_h)
     return best, bv, bu
 
 
@@ -918,20 +896,11 @@ def _row_max(qmax, stuck, i, rowbest, rowarg):
 @jit
 def _seg_max(line_z, line_ok, t, hz, j0, j1):
     """Max |error| of the line samples between vertices j0 and j1 (> j0) of the polyline (t, hz)."""
-    n = line_z.shape[0]
     worst = 0.0
     for j in range(j0, j1):
-        a = t[j]
-        b = t[j + 1]
-        k0 = max(int(np.ceil(a)), 0)
-        k1 = min(int(np.floor(b)), n - 1)
-        for k in range(k0, k1 + 1):
-            if not line_ok[k]:
-                continue
-            f = (k - a) / (b - a)
-            e = abs(line_z[k] - (hz[j] + f * (hz[j + 1] - hz[j])))
-            if e > worst:
-                worst = e
+        e, _at = _seg_worst(line_z, line_ok, t, hz, j)
+        if e > worst:
+            worst = e
     return worst
 
 
