@@ -73,6 +73,23 @@ LOCKED = np.uint8(1)  #: mesh boundary or sub-block seam: never removed, may be 
 
 # -- vertex → triangle lists (arena) -------------------------------------------------------------------
 @jit
+def _empty_arena(deg, slack):
+    """Empty arena lists for vertices of degree ``deg``: capacity = degree + ``slack``, the arena 1.5x the
+    total (+16) for lists that move to its end; returns (arena, start, length, cap, top)."""
+    n_vertices = deg.shape[0]
+    start = np.empty(n_vertices, np.int64)
+    cap = np.empty(n_vertices, np.int64)
+    top = 0
+    for v in range(n_vertices):
+        start[v] = top
+        cap[v] = deg[v] + slack
+        top += cap[v]
+    arena = np.empty(top + top // 2 + 16, np.int32)
+    length = np.zeros(n_vertices, np.int64)
+    return arena, start, length, cap, top
+
+
+@jit
 def _build_stars(tris, alive, n_vertices):
     """Arena lists star(v) of the live triangles; capacity = degree + 4 (slack for early merges)."""
     deg = np.zeros(n_vertices, np.int64)
@@ -80,15 +97,7 @@ def _build_stars(tris, alive, n_vertices):
         if alive[t]:
             for k in range(3):
                 deg[tris[t, k]] += 1
-    start = np.empty(n_vertices, np.int64)
-    cap = np.empty(n_vertices, np.int64)
-    top = 0
-    for v in range(n_vertices):
-        start[v] = top
-        cap[v] = deg[v] + 4
-        top += cap[v]
-    arena = np.empty(top + top // 2 + 16, np.int32)
-    length = np.zeros(n_vertices, np.int64)
+    arena, start, length, cap, top = _empty_arena(deg, 4)
     for t in range(tris.shape[0]):
         if alive[t]:
             for k in range(3):
@@ -118,6 +127,48 @@ def _next_after(tris, t, u):
     if tris[t, 1] == u:
         return tris[t, 2]
     return tris[t, 0]
+
+
+@jit
+def _bary_xy(P, o, a, b, px, py):
+    """Barycentric coordinates (l1, l2) of the point (px, py) in the xy projection of triangle (o, a, b),
+    and m, the smallest of (1 - l1 - l2, l1, l2); m = -inf for a degenerate (zero-area) triangle, so that
+    it never wins a "largest smallest coordinate" search."""
+    ox = P[o, 0]
+    oy = P[o, 1]
+    ax = P[a, 0] - ox
+    ay = P[a, 1] - oy
+    bx = P[b, 0] - ox
+    by = P[b, 1] - oy
+    det = ax * by - ay * bx
+    if det == 0.0:
+        return 0.0, 0.0, -np.inf
+    qx = px - ox
+    qy = py - oy
+    l1 = (qx * by - qy * bx) / det
+    l2 = (ax * qy - ay * qx) / det
+    return l1, l2, min(1.0 - l1 - l2, min(l1, l2))
+
+
+@jit
+def _take_list(head, nxt, s, buf, n):
+    """Move the vertices held by slot s (its list ``head``/``nxt``) to ``buf[n:]``, empty the list and
+    return the new count."""
+    p = head[s]
+    while p >= 0:
+        buf[n] = p
+        n += 1
+        p = nxt[p]
+    head[s] = -1
+    return n
+
+
+@jit
+def _set_row(dst, i, src, j):
+    """dst[i, 0:3] = src[j, 0:3] (a vertex triple)."""
+    dst[i, 0] = src[j, 0]
+    dst[i, 1] = src[j, 1]
+    dst[i, 2] = src[j, 2]
 
 
 # -- quadrics -------------------------------------------------------------------------------------------
@@ -252,6 +303,15 @@ def _heap_pop(hk, he, size):
     return size
 
 
+@jit
+def _heap_push_grown(hk, he, size, key, entry):
+    """:func:`_heap_push`, doubling the heap's arrays first when full; returns (hk, he, size)."""
+    if size >= hk.shape[0]:
+        hk = _grow(hk, size + 1)
+        he = _grow(he, size + 1)
+    return hk, he, _heap_push(hk, he, size, key, entry)
+
+
 # -- collapse test and evaluation ------------------------------------------------------------------------
 @jit
 def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
@@ -299,8 +359,6 @@ def _gap2_after(q, u, w, P, tris, arena, su, n):
     an edge, or outside by rounding, still gets one)."""
     best = -np.inf
     bz = 0.0
-    wx = P[w, 0]
-    wy = P[w, 1]
     wz = P[w, 2]
     for i in range(n):
         t = arena[su + i]
@@ -308,18 +366,7 @@ def _gap2_after(q, u, w, P, tris, arena, su, n):
         b = _next_after(tris, t, a)
         if a == w or b == w:
             continue  # deleted by the collapse
-        ax = P[a, 0] - wx
-        ay = P[a, 1] - wy
-        bx = P[b, 0] - wx
-        by = P[b, 1] - wy
-        det = ax * by - ay * bx
-        if det == 0.0:
-            continue
-        qx = P[q, 0] - wx
-        qy = P[q, 1] - wy
-        l1 = (qx * by - qy * bx) / det
-        l2 = (ax * qy - ay * qx) / det
-        m = min(1.0 - l1 - l2, min(l1, l2))
+        l1, l2, m = _bary_xy(P, w, a, b, P[q, 0], P[q, 1])
         if m > best:
             best = m
             bz = wz + l1 * (P[a, 2] - wz) + l2 * (P[b, 2] - wz)
@@ -350,8 +397,7 @@ def _carried_gap2(u, w, P, tris, arena, su, n, head, nxt, glim):
 
 
 @jit
-def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mark, stampbox, shape_eps, wbuf,
-              cbuf, validate, vweight, head, nxt, dbuf, qbuf):
+def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     """Best collapse target of u and u's minimum normalised quadric error.
 
     Returns ``(v, cost, emin)``: with ``validate``, the ring neighbour v with the smallest cost among the
@@ -360,7 +406,12 @@ def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mar
     valid or not (the MMQE term of u, m²). When the cheapest neighbour is still ``prev_v`` at cost
     ``prev_c`` it is returned untested (its test is repeated when it leaves the heap anyway).
     ``selfq[w]`` = Q_w(P_w), so a cost is one quadric evaluation: Q_u(P_w) + Q_w(P_w).
+    ``ctx`` = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight) and ``work`` = (mark, stampbox, wbuf,
+    cbuf, dbuf, qbuf) are the simplifier's state and scratch, passed as two tuples (the arena, which moves
+    when it grows, is passed on its own).
     """
+    P, tris, Q, W, selfq, head, nxt, shape_eps, vweight = ctx
+    mark, stampbox, wbuf, cbuf, dbuf, qbuf = work
     su = start[u]
     n = length[u]
     emin = np.inf
@@ -408,7 +459,9 @@ def _evaluate(u, prev_v, prev_c, P, tris, Q, W, selfq, arena, start, length, mar
         if k < 0:
             break
         if not exact and not dbuf[k]:
-            cbuf[k] = qbuf[k] + vweight * W[u] * _carried_gap2(u, wbuf[k], P, tris, arena, su, n, head, nxt, np.inf)
+            cbuf[k] = qbuf[k] + vweight * W[u] * _carried_gap2(
+                u, wbuf[k], P, tris, arena, su, n, head, nxt, np.inf
+            )
             dbuf[k] = True
             continue
         if _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
@@ -499,6 +552,8 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     pbuf = np.empty(n_v, np.int64)
     dbuf = np.zeros(n_v, np.bool_)
     qbuf = np.zeros(n_v, np.float64)
+    ctx = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight)  # what _evaluate reads
+    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf)  # its scratch
 
     count = np.zeros(n_b, np.int64)  # live triangles per block
     for t in range(tris.shape[0]):
@@ -519,8 +574,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     for u in range(n_v):
         if kind[u] != FREE or length[u] == 0:
             continue
-        v, c, e = _evaluate(u, -1, np.inf, P, tris, Q, W, selfq, arena, start, length, mark, stampbox,
-                            shape_eps, wbuf, cbuf, True, vweight, head, nxt, dbuf, qbuf)
+        v, c, e = _evaluate(u, -1, np.inf, True, arena, start, length, ctx, work)
         b = vert_block[u]
         emin[u] = e
         esum[b] += e
@@ -562,18 +616,14 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         v = best[u]
         if not _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
             # The neighbourhood changed since u was evaluated: evaluate again, requeue.
-            v2, c2, e2 = _evaluate(u, -1, np.inf, P, tris, Q, W, selfq, arena, start, length, mark, stampbox,
-                                   shape_eps, wbuf, cbuf, True, vweight, head, nxt, dbuf, qbuf)
+            v2, c2, e2 = _evaluate(u, -1, np.inf, True, arena, start, length, ctx, work)
             esum[b] += e2 - emin[u]
             emin[u] = e2
             best[u] = v2
             bestc[u] = c2
             version[u] += 1
             if v2 >= 0:
-                if hsize >= hk.shape[0]:
-                    hk = _grow(hk, hsize + 1)
-                    he = _grow(he, hsize + 1)
-                hsize = _heap_push(hk, he, hsize, c2, (u << 32) | version[u])
+                hk, he, hsize = _heap_push_grown(hk, he, hsize, c2, (u << 32) | version[u])
             continue
 
         # -- perform the collapse u → v --------------------------------------------------------------
@@ -589,13 +639,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
             pbuf[0] = u
             npb = 1
             for i in range(length[u]):
-                t = arena[su + i]
-                q = head[t]
-                while q >= 0:
-                    pbuf[npb] = q
-                    npb += 1
-                    q = nxt[q]
-                head[t] = -1
+                npb = _take_list(head, nxt, arena[su + i], pbuf, npb)
         for i in range(length[u]):
             t = arena[su + i]
             a0 = tris[t, 0]
@@ -625,17 +669,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                 rep_new[nr, 1] = tris[t, 1]
                 rep_new[nr, 2] = tris[t, 2]
                 nr += 1
-                # append t to star(v), moving the list to the arena's end when full
-                if length[v] == cap[v]:
-                    ncap = 2 * cap[v] + 4
-                    if top + ncap > arena.shape[0]:
-                        arena = _grow(arena, top + ncap)
-                    arena[top : top + length[v]] = arena[start[v] : start[v] + length[v]]
-                    start[v] = top
-                    cap[v] = ncap
-                    top += ncap
-                arena[start[v] + length[v]] = t
-                length[v] += 1
+                arena, top = _star_add(arena, start, length, cap, top, v, t)
         if vweight > 0.0:
             for k in range(npb):
                 q = pbuf[k]
@@ -643,21 +677,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                 bm = -np.inf
                 for j in range(rep_ptr[nc], nr):
                     t = rep_slot[j]
-                    a0 = tris[t, 0]
-                    a1 = tris[t, 1]
-                    a2 = tris[t, 2]
-                    ax = P[a1, 0] - P[a0, 0]
-                    ay = P[a1, 1] - P[a0, 1]
-                    bx = P[a2, 0] - P[a0, 0]
-                    by = P[a2, 1] - P[a0, 1]
-                    det = ax * by - ay * bx
-                    if det == 0.0:
-                        continue
-                    qx = P[q, 0] - P[a0, 0]
-                    qy = P[q, 1] - P[a0, 1]
-                    l1 = (qx * by - qy * bx) / det
-                    l2 = (ax * qy - ay * qx) / det
-                    m = min(1.0 - l1 - l2, min(l1, l2))
+                    _, _, m = _bary_xy(P, tris[t, 0], tris[t, 1], tris[t, 2], P[q, 0], P[q, 1])
                     if m > bm:
                         bm = m
                         bsl = t
@@ -691,8 +711,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                 if kind[x] != FREE or removed[x] or seen[x] == nc + 1:
                     continue
                 seen[x] = nc + 1
-                vx, cx, ex = _evaluate(x, best[x], bestc[x], P, tris, Q, W, selfq, arena, start, length, mark,
-                                       stampbox, shape_eps, wbuf, cbuf, False, vweight, head, nxt, dbuf, qbuf)
+                vx, cx, ex = _evaluate(x, best[x], bestc[x], False, arena, start, length, ctx, work)
                 bx = vert_block[x]
                 esum[bx] += ex - emin[x]
                 emin[x] = ex
@@ -702,10 +721,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                 bestc[x] = cx
                 version[x] += 1
                 if vx >= 0:
-                    if hsize >= hk.shape[0]:
-                        hk = _grow(hk, hsize + 1)
-                        he = _grow(he, hsize + 1)
-                    hsize = _heap_push(hk, he, hsize, cx, (x << 32) | version[x])
+                    hk, he, hsize = _heap_push_grown(hk, he, hsize, cx, (x << 32) | version[x])
         cu[nc] = u
         cv[nc] = v
         cblock[nc] = b
@@ -740,15 +756,10 @@ def refine_records(tris, alive, r0, r1, del_ptr, del_slot, del_tri, rep_ptr, rep
     for r in range(r0, r1):
         for i in range(del_ptr[r], del_ptr[r + 1]):
             s = del_slot[i]
-            tris[s, 0] = del_tri[i, 0]
-            tris[s, 1] = del_tri[i, 1]
-            tris[s, 2] = del_tri[i, 2]
+            _set_row(tris, s, del_tri, i)
             alive[s] = True
         for i in range(rep_ptr[r], rep_ptr[r + 1]):
-            s = rep_slot[i]
-            tris[s, 0] = rep_old[i, 0]
-            tris[s, 1] = rep_old[i, 1]
-            tris[s, 2] = rep_old[i, 2]
+            _set_row(tris, rep_slot[i], rep_old, i)
 
 
 @jit
@@ -758,10 +769,7 @@ def coarsen_records(tris, alive, r0, r1, del_ptr, del_slot, rep_ptr, rep_slot, r
         for i in range(del_ptr[r], del_ptr[r + 1]):
             alive[del_slot[i]] = False
         for i in range(rep_ptr[r], rep_ptr[r + 1]):
-            s = rep_slot[i]
-            tris[s, 0] = rep_new[i, 0]
-            tris[s, 1] = rep_new[i, 1]
-            tris[s, 2] = rep_new[i, 2]
+            _set_row(tris, rep_slot[i], rep_new, i)
 
 
 # -- vertex-split records (paper 003 §2.2.1, compact file layout) ------------------------------------------
@@ -834,15 +842,7 @@ def replay_splits(n_vertices, base_tri, rec_u, rec_v, rec_x, rec_w, rec_m, encod
             tris[t, k] = w
             deg[w] += 1
             present[w] = True
-    start = np.empty(n_vertices, np.int64)
-    cap = np.empty(n_vertices, np.int64)
-    top = 0
-    for w in range(n_vertices):
-        start[w] = top
-        cap[w] = deg[w] + 6
-        top += cap[w]
-    arena = np.empty(top + top // 2 + 16, np.int32)
-    length = np.zeros(n_vertices, np.int64)
+    arena, start, length, cap, top = _empty_arena(deg, 6)
     for t in range(n_base):
         for k in range(3):
             w = tris[t, k]
@@ -970,26 +970,13 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
         buf[0] = cu[i]
         n = 1
         for j in range(2):
-            s = del_slot[2 * i + j]
-            p = head[s]
-            while p >= 0:
-                buf[n] = p
-                n += 1
-                p = nxt[p]
-            head[s] = -1
+            n = _take_list(head, nxt, del_slot[2 * i + j], buf, n)
         r0 = rep_ptr[i]
         r1 = rep_ptr[i + 1]
         for j in range(r0, r1):
             s = rep_slot[j]
-            p = head[s]
-            while p >= 0:
-                buf[n] = p
-                n += 1
-                p = nxt[p]
-            head[s] = -1
-            T[s, 0] = rep_new[j, 0]
-            T[s, 1] = rep_new[j, 1]
-            T[s, 2] = rep_new[j, 2]
+            n = _take_list(head, nxt, s, buf, n)
+            _set_row(T, s, rep_new, j)
         e = 0.0
         for k in range(n):
             p = buf[k]
@@ -1003,23 +990,11 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
                 a = T[s, 0]
                 b = T[s, 1]
                 d = T[s, 2]
-                ax = P[b, 0] - P[a, 0]
-                ay = P[b, 1] - P[a, 1]
-                bx = P[d, 0] - P[a, 0]
-                by = P[d, 1] - P[a, 1]
-                det = ax * by - ay * bx
-                if det == 0.0:
-                    continue
-                qx = px - P[a, 0]
-                qy = py - P[a, 1]
-                l1 = (qx * by - qy * bx) / det
-                l2 = (ax * qy - ay * qx) / det
-                l0 = 1.0 - l1 - l2
-                m = min(l0, min(l1, l2))
+                l1, l2, m = _bary_xy(P, a, b, d, px, py)
                 if m > best:
                     best = m
                     bs = s
-                    bz = l0 * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
+                    bz = (1.0 - l1 - l2) * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
             if bs < 0:
                 continue
             dz = abs(P[p, 2] - bz)
