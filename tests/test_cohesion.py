@@ -138,20 +138,22 @@ def test_fallback_never_worse_than_grid(seed: int, m: int) -> None:
     hf = _hf(70, 66, seed)
     pyr = TilePyramid(hf.width, hf.height, m)
     fn = cohesion.make_mesher(slide_boundary=False)
-    dx, dy = hf.spacing_m
     for code in pyr.all_codes():
-        r0, c0 = pyr.origin_rc(code)
-        span = pyr.span(code[0])
-        win = (slice(r0, min(r0 + span, hf.height - 1) + 1), slice(c0, min(c0 + span, hf.width - 1) + 1))
-        errs = []
-        for mesh in (fn(hf.elevation_m, hf.valid, pyr, code, spacing_m=hf.spacing_m),
-                     chunked.mesh_tile(hf.elevation_m, hf.valid, pyr, code)):  # fmt: skip
-            rows, cols, z, tris = mesh
-            loc = np.stack([(cols - c0) * dx, (rows - r0) * dy, z], axis=1)
-            errs.append(
-                measure_error_window(loc, tris, hf.elevation_m[win], hf.valid[win], dx, dy).hausdorff_m
-            )
+        errs = [_tile_hausdorff_m(hf, pyr, code, mesh)
+                for mesh in (fn(hf.elevation_m, hf.valid, pyr, code, spacing_m=hf.spacing_m),
+                             chunked.mesh_tile(hf.elevation_m, hf.valid, pyr, code))]  # fmt: skip
         assert errs[0] <= errs[1] + 1e-9, (code, errs)
+
+
+def _tile_hausdorff_m(hf: Heightfield, pyr: TilePyramid, code, mesh) -> float:
+    """Measured one-sided Hausdorff error (metres) of a tile mesh (rows, cols, z, tris) over its window."""
+    rows, cols, z, tris = mesh
+    r0, c0 = pyr.origin_rc(code)
+    span = pyr.span(code[0])
+    win = (slice(r0, min(r0 + span, hf.height - 1) + 1), slice(c0, min(c0 + span, hf.width - 1) + 1))
+    dx, dy = hf.spacing_m
+    loc = np.stack([(cols - c0) * dx, (rows - r0) * dy, z], axis=1)
+    return measure_error_window(loc, tris, hf.elevation_m[win], hf.valid[win], dx, dy).hausdorff_m
 
 
 @given(
@@ -168,18 +170,9 @@ def test_escape_never_measures_worse(seed: int, m: int, work_stride: int, pairs:
     hf = _hf(70, 66, seed, holes)
     pyr = TilePyramid(hf.width, hf.height, m)
     fns = [cohesion.make_mesher(escape=e, pairs=pairs, work_stride=work_stride) for e in (0, 4)]
-    dx, dy = hf.spacing_m
     for code in pyr.all_codes():
-        r0, c0 = pyr.origin_rc(code)
-        span = pyr.span(code[0])
-        win = (slice(r0, min(r0 + span, hf.height - 1) + 1), slice(c0, min(c0 + span, hf.width - 1) + 1))
-        errs = []
-        for fn in fns:
-            rows, cols, z, tris = fn(hf.elevation_m, hf.valid, pyr, code, spacing_m=hf.spacing_m)
-            loc = np.stack([(cols - c0) * dx, (rows - r0) * dy, z], axis=1)
-            errs.append(
-                measure_error_window(loc, tris, hf.elevation_m[win], hf.valid[win], dx, dy).hausdorff_m
-            )
+        errs = [_tile_hausdorff_m(hf, pyr, code, fn(hf.elevation_m, hf.valid, pyr, code, spacing_m=hf.spacing_m))
+                for fn in fns]  # fmt: skip
         assert errs[1] <= errs[0] + 1e-9, (code, errs)
 
 
