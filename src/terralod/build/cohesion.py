@@ -98,6 +98,8 @@ from terralod.kernels.cohesion import (
     WEIGHT_ERROR,
     WEIGHT_FEATURE,
     assemble,
+    assemble_diagonals,
+    measure_quads,
     refine_edge_max_error,
     refine_max_error,
     relax_edge,
@@ -195,15 +197,23 @@ def roughness_log(z: np.ndarray, stride: int, *, threshold_m: float = ROUGHNESS_
 def _window(
     z: np.ndarray, valid: np.ndarray, r0: int, c0: int, n: int, step: int = 1
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(n, n) source window from (r0, c0), every ``step``-th sample, edge-replicated past the data, padding
-    marked invalid."""
+    """Source window of up to (n, n) samples from (r0, c0), every ``step``-th, cut at the data's edge: a
+    last row (column) of the data that falls between two steps is added, marked invalid, so that the kernels,
+    which read past the window's end as edge-replicated, see the data's last sample there."""
     h, w = z.shape
-    ri = r0 + step * np.arange(n)
-    ci = c0 + step * np.arange(n)
-    rr = np.minimum(ri, h - 1)
-    cc = np.minimum(ci, w - 1)
-    zw = np.ascontiguousarray(z[np.ix_(rr, cc)], dtype=np.float64)
-    vw = valid[np.ix_(rr, cc)] & (ri <= h - 1)[:, None] & (ci <= w - 1)[None, :]
+    rows = np.arange(r0, min(r0 + step * (n - 1), h - 1) + 1, step)
+    cols = np.arange(c0, min(c0 + step * (n - 1), w - 1) + 1, step)
+    rows_ok = np.ones(len(rows), np.bool_)
+    cols_ok = np.ones(len(cols), np.bool_)
+    if len(rows) < n and rows[-1] < h - 1:
+        rows, rows_ok = np.append(rows, h - 1), np.append(rows_ok, False)
+    if len(cols) < n and cols[-1] < w - 1:
+        cols, cols_ok = np.append(cols, w - 1), np.append(cols_ok, False)
+    if step == 1:
+        win = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        return np.ascontiguousarray(z[win], dtype=np.float64), np.ascontiguousarray(valid[win])
+    zw = np.ascontiguousarray(z[np.ix_(rows, cols)], dtype=np.float64)
+    vw = valid[np.ix_(rows, cols)] & rows_ok[:, None] & cols_ok[None, :]
     return zw, np.ascontiguousarray(vw)
 
 
@@ -334,24 +344,40 @@ def mesh_tile_with(
         pv, pu = base_v.copy(), base_u.copy()
         relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, sd, opt.snap, opt.iterations, opt.alpha,
                        1.0 / s, float(s), sxy / f, vmax, umax)  # fmt: skip
-        if opt.refine and f > 1:
-            refine_max_error(zw, vw, pv, pu, movable, keep, sd, opt.snap, budget, sxy / f, 0, opt.focus, 0)
+        if not opt.refine:
+            cands.append(mesh(pv * f, pu * f, sxy))
+            continue
+        if f > 1:
+            state = _quad_state(m)
+            measure_quads(zw, vw, pv, pu, keep, opt.snap, sxy / f, *state)
+            refine_max_error(
+                zw, vw, pv, pu, movable, keep, sd, opt.snap, budget, sxy / f, 0, opt.focus, 0, *state
+            )
         pv *= f
         pu *= f
-        if opt.refine:
-            # after a coarse pass only the tile's max error is pursued (focus 1) on the full source
-            focus = opt.focus if f == 1 else 1.0
-            refine_max_error(zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, 0, focus, 0)
-            if opt.escape:  # the star search can fool the per-sample proxy: keep the tile before it too
-                cands.append(mesh(pv, pu, sxy))
-                refine_max_error(
-                    zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, opt.escape, focus, pairs
-                )
-        cands.append(mesh(pv, pu, sxy))
+        # per-quad errors and diagonals, measured once on the full source and kept up to date by the refinement
+        state = _quad_state(m)
+        measure_quads(zf, vf, pv, pu, keep, opt.snap, sxy, *state)
+        # after a coarse pass only the tile's max error is pursued (focus 1) on the full source
+        focus = opt.focus if f == 1 else 1.0
+        refine_max_error(zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, 0, focus, 0, *state)
+        cands.append(assemble_diagonals(zf, pv, pu, keep, state[3], r0, c0, opt.snap))
+        # the star search can fool the per-sample proxy: the tile before it stays a candidate
+        if opt.escape and refine_max_error(
+            zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, opt.escape, focus, pairs, *state
+        ):
+            cands.append(assemble_diagonals(zf, pv, pu, keep, state[3], r0, c0, opt.snap))
     if not opt.fallback or len(cands) == 1:
         return cands[-1]
     errs = [_hausdorff(c, z, valid, r0, c0, span, spacing_m) for c in cands]
     return cands[int(np.argmin(errs))]
+
+
+def _quad_state(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-quad (max error, worst row, worst col, diagonal) arrays of :func:`measure_quads`."""
+    cells = m - 1
+    return (np.full((cells, cells), -1.0), np.zeros((cells, cells)), np.zeros((cells, cells)),
+            np.zeros((cells, cells), np.int8))  # fmt: skip
 
 
 def _hausdorff(mesh, z, valid, r0: int, c0: int, span: int, spacing_m: tuple[float, float]) -> float:

@@ -32,12 +32,15 @@ WEIGHT_FEATURE = 1
 
 @jit
 def height_at(zw, v, u, snap):
-    """Source height at (v, u): the sample itself when ``snap`` (integer positions), else bilinear.
+    """Source height at (v, u): the sample itself when ``snap`` (integer positions), else bilinear; the
+    window is taken as edge-replicated past its last row and column (it may end at the data's edge).
 
     On a sample row (or column) the value is the linear interpolation along it, computed exactly as
     :func:`_line_height` does, so side vertices get bit-identical heights in both tiles sharing the side.
     """
     h, w = zw.shape
+    v = min(v, h - 1.0)  # past the window's last row or column the source is edge-replicated
+    u = min(u, w - 1.0)
     if snap:
         return zw[int(v), int(u)]
     r0 = int(np.floor(v))
@@ -98,22 +101,6 @@ def diagonal_ok(pv, pu, i, j, diag, min_area2):
 
 
 @jit
-def _add_sample(acc, zs, pl, k, nk, feat, mode, r, c):
-    """Add sample (r, c) of height ``zs``, inside triangle k (plane ``pl[k]``, error scale ``nk``), to the
-    diagonal accumulator ``acc`` of :func:`_quad_eval2`."""
-    e = abs(zs - (pl[k, 0] + pl[k, 1] * c + pl[k, 2] * r)) * nk
-    if e > acc[0]:
-        acc[0] = e
-        acc[5] = r
-        acc[6] = c
-    acc[1] += e
-    wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
-    acc[2] += wk
-    acc[3] += wk * r
-    acc[4] += wk * c
-
-
-@jit
 def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl, sxy):
     """Errors and attraction moments of quad (i, j) for both diagonals in one pass over its samples.
 
@@ -151,6 +138,25 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
     chi = min(int(np.floor(max(max(ua, ub), max(uc, ud)) + eps)), w - 1)
     # in the (u, v) frame (v south) a point inside a counter-clockwise triangle has every _side <= 0
     sc = 1e-9 * (1.0 + (ud - ua) * (ud - ua) + (vd - va) * (vd - va))
+    # accumulators as locals (x0 for diagonal a-d, x1 for b-c): max, sum, W, W*v, W*u, row and col of max
+    mx0 = 0.0
+    sm0 = 0.0
+    w0 = 0.0
+    wv0 = 0.0
+    wu0 = 0.0
+    ar0 = 0.0
+    ac0 = 0.0
+    mx1 = 0.0
+    sm1 = 0.0
+    w1 = 0.0
+    wv1 = 0.0
+    wu1 = 0.0
+    ar1 = 0.0
+    ac1 = 0.0
+    p00, p01, p02 = pl[0, 0], pl[0, 1], pl[0, 2]
+    p10, p11, p12 = pl[1, 0], pl[1, 1], pl[1, 2]
+    p20, p21, p22 = pl[2, 0], pl[2, 1], pl[2, 2]
+    p30, p31, p32 = pl[3, 0], pl[3, 1], pl[3, 2]
     for r in range(rlo, rhi + 1):
         for c in range(clo, chi + 1):
             if not vw[r, c]:
@@ -177,9 +183,35 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
                 continue
             zs = zw[r, c]
             if k0 >= 0:
-                _add_sample(acc0, zs, pl, k0, n0 if k0 == 0 else n1, feat, mode, r, c)
+                if k0 == 0:
+                    e = abs(zs - (p00 + p01 * c + p02 * r)) * n0
+                else:
+                    e = abs(zs - (p10 + p11 * c + p12 * r)) * n1
+                if e > mx0:
+                    mx0 = e
+                    ar0 = r
+                    ac0 = c
+                sm0 += e
+                wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+                w0 += wk
+                wv0 += wk * r
+                wu0 += wk * c
             if k1 >= 0:
-                _add_sample(acc1, zs, pl, k1, n2 if k1 == 2 else n3, feat, mode, r, c)
+                if k1 == 2:
+                    e = abs(zs - (p20 + p21 * c + p22 * r)) * n2
+                else:
+                    e = abs(zs - (p30 + p31 * c + p32 * r)) * n3
+                if e > mx1:
+                    mx1 = e
+                    ar1 = r
+                    ac1 = c
+                sm1 += e
+                wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+                w1 += wk
+                wv1 += wk * r
+                wu1 += wk * c
+    acc0[0], acc0[1], acc0[2], acc0[3], acc0[4], acc0[5], acc0[6] = mx0, sm0, w0, wv0, wu0, ar0, ac0
+    acc1[0], acc1[1], acc1[2], acc1[3], acc1[4], acc1[5], acc1[6] = mx1, sm1, w1, wv1, wu1, ar1, ac1
     if not ok0:
         acc0[0] = np.inf
     if not ok1:
@@ -455,6 +487,16 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap, sxy):
     qmax = np.zeros((cells, cells), np.float64)
     mom = np.zeros((cells, cells, 3), np.float64)
     worst = choose_diagonals(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, keep, diag, qmax, mom, sxy)
+    rows, cols, heights, tris = assemble_diagonals(zw, pv, pu, keep, diag, r0, c0, snap)
+    return rows, cols, heights, tris, worst
+
+
+@jit
+def assemble_diagonals(zw, pv, pu, keep, diag, r0, c0, snap):
+    """The mesh of :func:`assemble` with the diagonals already chosen (``diag``: 0 a-d, 1 b-c per quad):
+    (rows (N,), cols (N,), heights (N,), triangles (K, 3) int32)."""
+    m = pv.shape[0]
+    cells = m - 1
     used = np.zeros((m, m), np.bool_)
     nq = 0
     for i in range(cells):
@@ -481,7 +523,7 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap, sxy):
             if k >= 0:
                 rows[k] = r0 + pv[i, j]
                 cols[k] = c0 + pu[i, j]
-                heights[k] = hz[i, j]
+                heights[k] = height_at(zw, pv[i, j], pu[i, j], snap)
     tris = np.empty((2 * nq, 3), np.int32)
     t = 0
     for i in range(cells):
@@ -499,7 +541,7 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap, sxy):
                 tris[t, 0], tris[t, 1], tris[t, 2] = a, c, d
                 tris[t + 1, 0], tris[t + 1, 1], tris[t + 1, 2] = a, d, b
             t += 2
-    return rows, cols, heights, tris, worst
+    return rows, cols, heights, tris
 
 
 @jit
@@ -526,7 +568,39 @@ def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy):
 
 
 @jit
-def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape, focus, pairs):
+def measure_quads(zw, vw, pv, pu, keep, snap, sxy, qmax, wr, wc, diag):
+    """Per kept quad: max error with its better diagonal (:func:`_best_quad`) into ``qmax``, the worst
+    sample's row and col into ``wr``, ``wc`` and the diagonal into ``diag`` (the state that
+    :func:`refine_max_error` keeps up to date and :func:`assemble_diagonals` triangulates); -1 elsewhere."""
+    m = pv.shape[0]
+    cells = m - 1
+    feat = np.zeros((1, 1), np.float64)
+    hz = np.empty((m, m), np.float64)
+    for i in range(m):
+        for j in range(m):
+            hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
+    a0 = np.zeros(8, np.float64)
+    a1 = np.zeros(8, np.float64)
+    pl = np.empty((4, 3), np.float64)
+    min_area2 = _min_area2(pv)
+    for i in range(cells):
+        for j in range(cells):
+            qmax[i, j] = -1.0
+            wr[i, j] = 0.0
+            wc[i, j] = 0.0
+            diag[i, j] = 0
+            if keep[i, j]:
+                e, r, c, d = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy)
+                qmax[i, j] = e
+                wr[i, j] = r
+                wc[i, j] = c
+                diag[i, j] = d
+
+
+@jit
+def refine_max_error(
+    zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape, focus, pairs, qmax, wr, wc, diag
+):
     """Error-driven relocation (our improvement of the attraction term), in place.
 
     Repeatedly take the kept quad of largest max error that is not marked stuck and try to move one of its
@@ -536,6 +610,10 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
     quads is taken when that is below the worst quad's error (so the tile's max error never grows), and the
     4 quads are re-measured and un-stuck; otherwise the quad is marked stuck. Stops after ``budget`` tries
     or when every quad is stuck or exact. Returns the number of moves made.
+
+    ``qmax``, ``wr``, ``wc``, ``diag`` hold the per-quad state of :func:`measure_quads` for the current
+    positions on entry (computed by the caller, or left by a previous call) and are kept up to date, so a
+    later call or :func:`assemble_diagonals` needs no new pass over the samples (snapped positions only).
     """
     m = pv.shape[0]
     cells = m - 1
@@ -544,21 +622,11 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
     for i in range(m):
         for j in range(m):
             hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
-    qmax = np.full((cells, cells), -1.0)
-    wr = np.zeros((cells, cells), np.float64)
-    wc = np.zeros((cells, cells), np.float64)
     stuck = np.zeros((cells, cells), np.bool_)
     a0 = np.zeros(8, np.float64)
     a1 = np.zeros(8, np.float64)
     pl = np.empty((4, 3), np.float64)
     min_area2 = _min_area2(pv)
-    for i in range(cells):
-        for j in range(cells):
-            if keep[i, j]:
-                e, r, c, _ = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy)
-                qmax[i, j] = e
-                wr[i, j] = r
-                wc[i, j] = c
     # per row of quads: the largest error of a quad not stuck and where it is (a 2-level max search)
     rowbest = np.zeros(cells, np.float64)
     rowarg = np.zeros(cells, np.int64)
@@ -678,10 +746,11 @@ def refine_max_error(zw, vw, pv, pu, movable, keep, s, snap, budget, sxy, escape
                     qi = vi + ei
                     qj = vj + ej
                     if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-                        e, r, c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
+                        e, r, c, d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
                         qmax[qi, qj] = e
                         wr[qi, qj] = r
                         wc[qi, qj] = c
+                        diag[qi, qj] = d
                         stuck[qi, qj] = False
             for qi in (vi - 1, vi):
                 if 0 <= qi < cells:
@@ -732,16 +801,22 @@ def _lattice(pv, pu, vi, vj, n_side):
 
 
 @jit
-def _block_max(zw, vw, feat, pv, pu, hz, keep, bi, bj, i0, i1, j0, j1, bound, a0, a1, pl, min_area2, sxy):
-    """Max error of the kept quads of rows i0..i1, cols j0..j1 (clipped), quad (bi, bj) first (most
-    candidates fail there); stops at ``bound``."""
+def _has(qi, qj, vi, vj):
+    """Quad (qi, qj) has vertex (vi, vj) as a corner."""
+    return vi - 1 <= qi <= vi and vj - 1 <= qj <= vj
+
+
+@jit
+def _part_max(
+    zw, vw, feat, pv, pu, hz, keep, ai, aj, ci, cj, with_a, with_c, bound, a0, a1, pl, min_area2, sxy
+):
+    """Max error of the kept quads around A = (ai, aj) or C = (ci, cj) (8-neighbours) that have A as a corner
+    iff ``with_a`` and C iff ``with_c`` (both False: the block's quads around neither); stops at ``bound``."""
     cells = keep.shape[0]
-    loc, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, bi, bj, a0, a1, pl, min_area2, sxy)
-    if loc >= bound:
-        return loc
-    for qi in range(max(i0, 0), min(i1, cells - 1) + 1):
-        for qj in range(max(j0, 0), min(j1, cells - 1) + 1):
-            if keep[qi, qj]:
+    loc = 0.0
+    for qi in range(max(min(ai, ci) - 1, 0), min(max(ai, ci), cells - 1) + 1):
+        for qj in range(max(min(aj, cj) - 1, 0), min(max(aj, cj), cells - 1) + 1):
+            if keep[qi, qj] and _has(qi, qj, ai, aj) == with_a and _has(qi, qj, ci, cj) == with_c:
                 e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
                 if e > loc:
                     loc = e
@@ -751,11 +826,29 @@ def _block_max(zw, vw, feat, pv, pu, hz, keep, bi, bj, i0, i1, j0, j1, bound, a0
 
 
 @jit
+def _part_ok(pv, pu, ai, aj, ci, cj, with_a, with_c, cells, min_area2):
+    """The quads (kept or not) with corner A iff ``with_a`` and corner C iff ``with_c`` (not both False) keep
+    a valid diagonal (the test of :func:`_around_ok`, split by the vertices a quad depends on)."""
+    for qi in range(max(min(ai, ci) - 1, 0), min(max(ai, ci), cells - 1) + 1):
+        for qj in range(max(min(aj, cj) - 1, 0), min(max(aj, cj), cells - 1) + 1):
+            if _has(qi, qj, ai, aj) == with_a and _has(qi, qj, ci, cj) == with_c:
+                if not (
+                    diagonal_ok(pv, pu, qi, qj, 0, min_area2) or diagonal_ok(pv, pu, qi, qj, 1, min_area2)
+                ):
+                    return False
+    return True
+
+
+@jit
 def _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, bound, n_side, snap, a0, a1, pl, min_area2,
                  min_turn, sxy):  # fmt: skip
-    """Best joint position of vertices A = (ai, aj) and C = (ci, cj) (corners of one quad) over a lattice of
-    each one's star (:func:`_lattice`), quad (bi, bj) measured first: (max error of the quads around both, A's v, u, C's v, u), the error
-    ``bound`` when no valid pair is below it. Positions restored on return."""
+    """Best joint position of vertices A = (ai, aj) and C = (ci, cj) (8-neighbours, A a corner of quad
+    (bi, bj)) over a lattice of each one's star (:func:`_lattice`): (max error of the quads around both, A's
+    v, u, C's v, u), the error ``bound`` when no valid pair is below it. Positions restored on return.
+
+    The max splits by what each quad depends on: the quads with corner A only are measured (and checked for
+    a valid diagonal) once per position of A, those with C only once per position of C, so a pair costs
+    only the 1-2 quads sharing both, and none when either part is already at the bound."""
     cells = keep.shape[0]
     h, w = zw.shape
     pav = pv[ai, aj]
@@ -766,10 +859,28 @@ def _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, bound, 
     pch = hz[ci, cj]
     av0, au0, anv, anu, asv, asu = _lattice(pv, pu, ai, aj, n_side)
     cv0, cu0, cnv, cnu, csv, csu = _lattice(pv, pu, ci, cj, n_side)
-    i0 = min(ai, ci) - 1
-    i1 = max(ai, ci)
-    j0 = min(aj, cj) - 1
-    j1 = max(aj, cj)
+    # the quads around neither (diagonal neighbours) do not change
+    fixed = _part_max(
+        zw, vw, feat, pv, pu, hz, keep, ai, aj, ci, cj, False, False, bound, a0, a1, pl, min_area2, sxy
+    )
+    if fixed >= bound:
+        return bound, pav, pau, pcv, pcu
+    # per position of C: the quads with corner C only (bound when invalid, moved nowhere or past the data)
+    ncu = cnu // csu + 1
+    err_c = np.empty((cnv // csv + 1) * ncu, np.float64)
+    for c in range(0, cnv + 1, csv):
+        for d in range(0, cnu + 1, csu):
+            k = (c // csv) * ncu + d // csu
+            ncv = float(cv0 + c)
+            nc_u = float(cu0 + d)
+            err_c[k] = bound
+            if ncv > h - 1 or nc_u > w - 1 or (ncv == pcv and nc_u == pcu):
+                continue
+            _move(zw, pv, pu, hz, ci, cj, ncv, nc_u, snap)
+            if _part_ok(pv, pu, ai, aj, ci, cj, False, True, cells, min_area2):
+                err_c[k] = _part_max(zw, vw, feat, pv, pu, hz, keep, ai, aj, ci, cj, False, True, bound, a0, a1, pl,
+                                     min_area2, sxy)  # fmt: skip
+            _put(pv, pu, hz, ci, cj, pcv, pcu, pch)
     best = bound
     bav = pav
     bau = pau
@@ -779,35 +890,33 @@ def _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, bound, 
         for b in range(0, anu + 1, asu):
             nav = float(av0 + a)
             nau = float(au0 + b)
-            if nav > h - 1 or nau > w - 1:
+            if nav > h - 1 or nau > w - 1 or (nav == pav and nau == pau):
                 continue
             _move(zw, pv, pu, hz, ai, aj, nav, nau, snap)
-            for c in range(0, cnv + 1, csv):
-                for d in range(0, cnu + 1, csu):
-                    ncv = float(cv0 + c)
-                    ncu = float(cu0 + d)
-                    if (
-                        ncv > h - 1
-                        or ncu > w - 1
-                        or (nav == pav and nau == pau)
-                        or (ncv == pcv and ncu == pcu)
-                    ):
-                        continue
-                    pv[ci, cj] = ncv
-                    pu[ci, cj] = ncu
-                    if _around_ok(pv, pu, ai, aj, cells, min_turn) and _around_ok(
-                        pv, pu, ci, cj, cells, min_turn
-                    ):
-                        hz[ci, cj] = height_at(zw, ncv, ncu, snap)
-                        loc = _block_max(zw, vw, feat, pv, pu, hz, keep, bi, bj, i0, i1, j0, j1, best, a0, a1, pl,
-                                         min_area2, sxy)  # fmt: skip
-                        if loc < best:
-                            best = loc
-                            bav = nav
-                            bau = nau
-                            bcv = ncv
-                            bcu = ncu
-                    _put(pv, pu, hz, ci, cj, pcv, pcu, pch)
+            if _part_ok(pv, pu, ai, aj, ci, cj, True, False, cells, min_area2):
+                ea = _part_max(zw, vw, feat, pv, pu, hz, keep, ai, aj, ci, cj, True, False, best, a0, a1, pl,
+                               min_area2, sxy)  # fmt: skip
+                if max(ea, fixed) < best:
+                    for c in range(0, cnv + 1, csv):
+                        for d in range(0, cnu + 1, csu):
+                            ec = err_c[(c // csv) * ncu + d // csu]
+                            part = max(max(ea, fixed), ec)
+                            if part >= best:
+                                continue
+                            ncv = float(cv0 + c)
+                            nc_u = float(cu0 + d)
+                            _move(zw, pv, pu, hz, ci, cj, ncv, nc_u, snap)
+                            if _part_ok(pv, pu, ai, aj, ci, cj, True, True, cells, min_area2):
+                                eb = _part_max(zw, vw, feat, pv, pu, hz, keep, ai, aj, ci, cj, True, True, best,
+                                               a0, a1, pl, min_area2, sxy)  # fmt: skip
+                                loc = max(part, eb)
+                                if loc < best:
+                                    best = loc
+                                    bav = nav
+                                    bau = nau
+                                    bcv = ncv
+                                    bcu = nc_u
+                            _put(pv, pu, hz, ci, cj, pcv, pcu, pch)
             _put(pv, pu, hz, ai, aj, pav, pau, pah)
     return best, bav, bau, bcv, bcu
 
