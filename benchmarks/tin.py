@@ -20,6 +20,7 @@ Writes ``benchmarks/results/tin.{json,md}``. Run: ``python benchmarks/tin.py``.
 
 from __future__ import annotations
 
+import struct
 import sys
 import time
 from pathlib import Path
@@ -30,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from terralod import Heightfield, measure_error, sample_heightfield  # noqa: E402
 from terralod.tin import DetailIncrementModel  # noqa: E402
 from terralod.tin.delaunay import grid_tin  # noqa: E402
-from terralod.tin.increments import _encode_arrays  # noqa: E402
+from terralod.tin.increments import _encode_arrays, canonical_rows, encode_mesh_rows  # noqa: E402
 from terralod.tin.qem import simplify_mesh  # noqa: E402
 
 from _common import SHARED, md_table, puget_sound_1k, write_results  # noqa: E402
@@ -76,41 +77,100 @@ def _input_rows(model: DetailIncrementModel) -> tuple[np.ndarray, np.ndarray] | 
     return rows, shift
 
 
-def static_pyramid_bytes(model: DetailIncrementModel, levels: int = 6) -> tuple[int, list[int]]:
-    """Bytes of 6 meshes at evenly spaced scales sharing one vertex array (input order), encoded like the
-    model file. Each mesh is stored in whichever is smaller: the input TIN's triangle order (what a
-    simplifier that deletes rows keeps) or rows sorted by vertex indices."""
+def static_pyramid_bytes(model: DetailIncrementModel, levels: int = 6) -> dict:
+    """Bytes of 6 meshes at evenly spaced scales sharing one vertex array (input order), coded like the
+    model file (same container, same entropy coder, one stream).
+
+    Each mesh is stored in whichever coding is smallest, among three row orders (the input TIN's triangle
+    order, what a simplifier that deletes rows keeps; rows sorted by vertex indices; each triple from its
+    smallest vertex, rows sorted), each as plain index triples or as the delta rows the model's base mesh
+    uses (:func:`encode_mesh_rows`): ``bytes``. ``plain_bytes``: the plain index triples only (the codings
+    the pyramid had up to file format 4), for comparison with earlier results."""
     scales = np.linspace(0, model.n_scales - 1, levels).round().astype(int)
     rows = _input_rows(model)
-    arrays: dict[str, np.ndarray] = {"vertices_m": model.vertices_m}
+    best: dict[str, np.ndarray] = {"vertices_m": model.vertices_m}
+    plain: dict[str, np.ndarray] = {"vertices_m": model.vertices_m}
     counts = []
     for i, s in enumerate(scales):
         model.mesh_at(int(s))
         live = np.flatnonzero(model._alive)
         t = model._tris[live]
-        options = [t[np.lexsort(t.T[::-1])]]
+        orders = [t[np.lexsort(t.T[::-1])], canonical_rows(t)]
         if rows is not None:  # the input's order and vertex rotation, kept through every collapse
             r, sh = rows[0][live], rows[1][live]
             o = np.argsort(r)
-            options.append(np.take_along_axis(t[o], (sh[o][:, None] + np.arange(3)) % 3, axis=1))
-        arrays[f"triangles_{i}"] = min(options, key=lambda a: len(_encode_arrays({"t": a}, deflate=True)))
+            orders.append(np.take_along_axis(t[o], (sh[o][:, None] + np.arange(3)) % 3, axis=1))
+        sizes = [len(_encode_arrays({"t": a})) for a in orders]
+        coded = [encode_mesh_rows(a) for a in orders]
+        csizes = [len(_encode_arrays({"t": a})) for a in coded]
+        plain[f"triangles_{i}"] = orders[int(np.argmin(sizes))]
+        both = [*orders, *coded]
+        best[f"triangles_{i}"] = both[int(np.argmin(sizes + csizes))]
         counts.append(int(t.shape[0]))
     model.mesh_at(0)
-    return len(_encode_arrays(arrays, deflate=True)), counts
+    return {"bytes": len(_encode_arrays(best)), "plain_bytes": len(_encode_arrays(plain)), "triangles": counts}
+
+
+#: sections of the model file, in file order, for the byte breakdown
+SECTIONS = {
+    "metadata": (),
+    "vertices": ("vertices_m",),
+    "base mesh": ("base_rows",),
+    "sub-block geometry": ("block_centres_m", "block_bounds_m", "block_boxes_m", "block_records"),
+    "vertex sub-blocks": ("vertex_block_escape",),
+    "split u (rank)": ("split_u",),
+    "split v (corner)": ("split_v",),
+    "split fan (j, after)": ("split_j", "split_after"),
+    "split escapes": ("escape_v", "escape_x1"),
+    "MMQE + measured error": ("mmqe_first", "mmqe_drop", "error_first", "error_drop"),
+}
+
+
+def model_breakdown(model: DetailIncrementModel) -> dict[str, int]:
+    """Bytes each section adds to the model file: the compressed size of the payload up to and including
+    it, less the size up to the section before (file order; the 64-byte header counted with the metadata)."""
+    import json
+
+    from terralod.tin.increments import _HEADER, _array_section, _pack, _uvarint
+
+    meta, arrays = model._payload()
+    assert set(arrays) == {n for names in SECTIONS.values() for n in names}, sorted(arrays)
+    body = json.dumps(meta, sort_keys=True, separators=(",", ":")).encode()
+    plain = _uvarint(len(body)) + body + struct.pack("<I", len(arrays))
+    out, prev = {}, 0
+    for name, keys in SECTIONS.items():
+        for k in keys:
+            plain += _array_section({k: arrays[k]})[4:]
+        size = _HEADER.size + len(_pack(plain))
+        out[name] = size - prev
+        prev = size
+    return out
 
 
 def storage(name: str, model: DetailIncrementModel, tmp: Path) -> dict:
-    static, counts = static_pyramid_bytes(model)
-    vbytes = len(_encode_arrays({"vertices_m": model.vertices_m}, deflate=True))
+    pyr = static_pyramid_bytes(model)
+    vbytes = len(_encode_arrays({"vertices_m": model.vertices_m}))
     out = {"dataset": name, "points": int(model.vertices_m.shape[0]), "triangles": model.n_slots,
-           "static_pyramid_bytes": static, "static_pyramid_triangles": counts, "vertex_bytes": vbytes,
-           "model": {}}  # fmt: skip
+           "static_pyramid_bytes": pyr["bytes"], "static_pyramid_plain_bytes": pyr["plain_bytes"],
+           "static_pyramid_triangles": pyr["triangles"], "vertex_bytes": vbytes, "model": {},
+           "model_sections": model_breakdown(model)}  # fmt: skip
     for k in (1, 4, 16):
         m = model if k == 1 else model.compressed(k)
         size = m.save(tmp / f"{name}_k{k}.tdim")
         inc = m.increments
         out["model"][k] = {"bytes": size, "records": inc.n_records,
                            "triangle_changes": int(inc.del_slot.size + inc.rep_slot.size)}  # fmt: skip
+    assert sum(out["model_sections"].values()) == out["model"][1]["bytes"]
+    path = tmp / f"{name}_k1.tdim"
+    DetailIncrementModel.load(path)  # compile
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        model.save(path)
+        t1 = time.perf_counter()
+        DetailIncrementModel.load(path)
+        times.append((t1 - t0, time.perf_counter() - t1))
+    out["save_s"], out["load_s"] = (float(x) for x in np.min(np.array(times), axis=0))
     return out
 
 
@@ -292,21 +352,41 @@ def main() -> None:
                      " / ".join(f"{mk['records']:,}" for mk in s["model"].values()),
                      " / ".join(f"{mk['triangle_changes']:,}" for mk in s["model"].values()),
                      m["bytes"], f"{max(sizes) - min(sizes)}", s["static_pyramid_bytes"],
-                     m["bytes"] / s["static_pyramid_bytes"], (m["bytes"] - vb) / (s["static_pyramid_bytes"] - vb)])  # fmt: skip
+                     m["bytes"] / s["static_pyramid_bytes"], (m["bytes"] - vb) / (s["static_pyramid_bytes"] - vb),
+                     s["static_pyramid_plain_bytes"], m["bytes"] / s["static_pyramid_plain_bytes"],
+                     s["save_s"], s["load_s"]])  # fmt: skip
     md += md_table(["dataset", "points", "triangles", "records (k = 1 / 4 / 16)", "triangle changes (k = 1 / 4 / 16)",
                     "model bytes", "k = 4, 16 files differ by (bytes)", "static pyramid bytes", "model / pyramid",
-                    "without the shared vertex array"], rows)  # fmt: skip
-    md += ("\nBoth files hold the same vertex array (input order) once and are encoded alike (narrowest integer "
-           "type, byte shuffle, deflate; float columns as their distinct values plus rank changes where that is "
-           "smaller, file format 4). The pyramid holds the model's global scales at 20, 36, 52, 68, 84, 100 % "
-           "of the triangles, each mesh in the smaller of two orders: the input TIN's rows and vertex rotation "
-           "(what a simplifier that deletes rows keeps), or rows sorted by vertex index. The model file (format 4) "
-           "stores the base mesh, a box per sub-block and one vertex split per raw record (removed vertex u, kept "
-           "vertex v - u, the wing's rank among v's neighbours, triangles moved, quantised MMQE drop and measured "
-           "error drop); table 1's fields are derived "
-           "on loading. Merged records (k = 4, 16, paper §2.2.2) are derived in memory from the raw ones, so a merged "
-           "model's file is the raw file with its merge factor: one size per dataset (the records and changes of "
-           "each k are those of the model in memory).\n\n")
+                    "without the shared vertex array", "pyramid as plain index triples (bytes)",
+                    "model / that pyramid", "save (s)", "load (s)"], rows)  # fmt: skip
+    md += ("\nBoth files hold the same vertex array (input order) once and go through the same container: integers "
+           "in their narrowest type, byte-shuffled, float columns as their distinct values plus rank changes where "
+           "that is smaller, everything in one LZMA2 stream (file format 5). The pyramid holds the model's global "
+           "scales at 20, 36, 52, 68, 84, 100 % of the triangles, each mesh in the smallest of six codings: three "
+           "row orders (the input TIN's rows and vertex rotation, what a simplifier that deletes rows keeps; rows "
+           "sorted by vertex index; each triple from its smallest vertex, rows sorted), each as plain index triples "
+           "or as delta rows (first vertex minus the previous row's, the other two minus the first), the coding the "
+           "model's base mesh uses; 'model / pyramid' is against that pyramid. 'pyramid as plain index triples' "
+           "keeps only the plain codings (what the pyramid had up to format 4, now in the same LZMA2 stream), for "
+           "comparison with earlier results; it is not the fair reference, since the model's base mesh is "
+           "delta-coded. The model file stores the base mesh (delta rows, canonical order), a box per sub-block and "
+           "one vertex split per raw record, coded from geometry (`terralod.kernels.tincodec`): the removed vertex "
+           "u as its rank among the vertices its sub-block has still to insert (a per-vertex sub-block label, "
+           "predicted from the vertex's cell, says which), the kept vertex v as a corner (0-2, nearest first) of the "
+           "current triangle holding u's xy, the moved fan as the number of its triangles before and after that "
+           "triangle, plus the quantised MMQE and measured-error drops; table 1's fields are derived on loading. "
+           "Merged records (k = 4, 16, paper §2.2.2) are derived in memory from the raw ones, so a merged model's "
+           "file is the raw file with its merge factor: one size per dataset (the records and changes of each k are "
+           "those of the model in memory). Save and load: best of 3, the model file (k = 1), compile excluded.\n\n")
+    md += "### Where the model file's bytes go\n\n"
+    names = list(SECTIONS)
+    rows = [[s["dataset"], *(s["model_sections"][n] for n in names), s["model"][1]["bytes"], s["vertex_bytes"],
+             s["static_pyramid_bytes"] - s["vertex_bytes"]] for s in results["storage"]]  # fmt: skip
+    md += md_table(["dataset", *names, "model total", "pyramid: vertices", "pyramid: 6 meshes"], rows)
+    md += ("\nEach section's bytes: what it adds to the compressed payload, in file order (the 64-byte header is "
+           "counted with the metadata: source, CRS, notes, merge factor). 'pyramid: vertices' is the vertex "
+           "array coded alone; the pyramid's meshes are the rest of its stream. Neither file can go below its "
+           "vertex array, which both share.\n\n")
     md += "## Reconstruction\n\n"
     rows = [[n, r["refine_step_us_median"], r["coarsen_step_us_median"], r["full_to_base_ms"]]
             for n, r in results["reconstruction"].items()]  # fmt: skip

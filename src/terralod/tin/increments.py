@@ -25,19 +25,23 @@ Deviations, and why:
   integer scale is a position in a global order of all records that refines, one record at a time, the
   sub-block whose current MMQE is the largest (:func:`mmqe_rank`; derived, so files need not store it).
 - **MMQE quantised** to 1/256 octave (0.14 % of the SVO length sqrt(MMQE)); monotone stays monotone.
-- **Binary format, version 2** (the paper's text scheme stays as an export): a header (magic, version,
-  payload length, sha256 of the payload) and numpy arrays. Table 1's fields are not stored: a raw
-  record is one vertex split, stored as the removed vertex u, the kept vertex v (as v - u), the rank of
-  the first wing vertex among v's neighbours and the number of triangles that move from v to u (see
-  :func:`terralod.kernels.qem.replay_splits`), and each block's MMQE codes as the first and the drops.
-  Loading replays the splits from the base once and derives every field of table 1 (slots, deleted
-  triples, original and new triples) exactly. Merged records (§2.2.2) are derived in memory from the
-  raw ones; a file of a merged model stores the raw splits and the merge factor. Integers are stored in
-  the narrowest type that holds them, byte-shuffled and deflated; float arrays (the vertices) column
-  by column as their distinct values and the rank changes from one element to the next when that is
-  smaller (the 513² Puget Sound crop: 1,066,575 to 319,860 bytes; the same encoding as the static pyramid of
-  ``benchmarks/tin.py``). Versions 1 (slots and triples), 2 (no measured error) and 3 (floats not
-  coded by column) are refused with one line.
+- **Binary format, version 5** (the paper's text scheme stays as an export): a header (magic, version,
+  payload length, sha256 of the payload) and one raw LZMA2 stream holding the metadata (JSON) and numpy
+  arrays (integers in the narrowest type, byte-shuffled; float arrays column by column as their distinct
+  values and the rank changes from one element to the next when that is smaller, the same container as
+  the static pyramid of ``benchmarks/tin.py``). Table 1's fields are not stored: a raw record is one vertex
+  split (removed vertex u, kept vertex v, the wing x1 where the fan of m moved triangles starts, see
+  :func:`terralod.kernels.qem.replay_splits`), coded from geometry by :mod:`terralod.kernels.tincodec`: u
+  as its rank among the vertices its sub-block has still to insert (a per-vertex sub-block label, stored
+  as "the cell holding the vertex" or an exception), v as a corner (0-2, nearest first) of the current
+  triangle holding u's xy, the fan as its triangles before and after that triangle (escape: v and x1 as
+  they are); the base mesh in canonical order (each triple from its smallest vertex, rows sorted) as
+  delta rows (:func:`encode_mesh_rows`); each block's MMQE and measured-error codes as the first and the
+  drops. Loading decodes the splits and replays them from the base once, deriving every field of table 1
+  (slots, deleted triples, original and new triples) exactly. Merged records (§2.2.2) are derived in
+  memory from the raw ones; a file of a merged model stores the raw splits and the merge factor.
+  Versions 1 (slots and triples), 2 (no measured error), 3 (floats not coded by column) and 4 (splits as
+  plain indices, deflated per array) are refused with one line naming the file.
 - **Measured error per scale** (not in the paper): besides the MMQE, each scale of a sub-block stores an
   upper bound of its max vertical distance to the input points (:func:`terralod.tin.qem.measured_errors`,
   quantised rounding up, stored like the MMQE codes: first + drops), and each sub-block a bounding box;
@@ -50,6 +54,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import lzma
 import math
 import os
 import struct
@@ -63,6 +68,7 @@ import numpy as np
 
 from terralod.errors import CorruptStoreError, InputError, InputNotFoundError
 from terralod.kernels.qem import coarsen_records, refine_records, replay_splits
+from terralod.kernels.tincodec import V_ESCAPE, split_codes
 from terralod.tin.svo import (
     box_distance_m,
     monotone_mmqe,
@@ -80,11 +86,13 @@ __all__ = [
 ]
 
 MAGIC = b"TLODDIM\x00"
-#: 4: float arrays coded by column (distinct values + rank changes); 3: + measured error per scale;
-#: 2: compact vertex-split records; 1: slots and triples (1 to 3 no longer read)
-FORMAT_VERSION = 4
+#: 5: splits coded from geometry (u's rank in its sub-block, v a corner of the triangle holding u, the
+#: fan's offset), base rows delta-coded, one LZMA2 stream; 4: float arrays coded by column (distinct values
+#: + rank changes); 3: + measured error per scale; 2: compact vertex-split records; 1: slots and triples
+#: (1 to 4 no longer read)
+FORMAT_VERSION = 5
 _HEADER = struct.Struct("<8sHHIQ32s8x")  # magic, version, flags, reserved, payload length, sha256
-_FLAG_DEFLATE = 1
+_FLAG_LZMA = 2  #: the payload is one raw LZMA2 stream
 
 
 # -- records ---------------------------------------------------------------------------------------------
@@ -320,11 +328,9 @@ class Increments:
         )
         third = d.sum(axis=2) - uu - vv
         x1 = np.where(has_uv[:, 0], third[:, 0], third[:, 1])
-        base_tri = np.ascontiguousarray(log.base_tris[log.base_alive], np.int32)
-        w = np.zeros(c, np.int64)
-        status = replay_splits(n_vertices, base_tri, u, v, x1, w, m, True)[0]
-        if status != 0:
-            raise RuntimeError(f"collapse log does not replay as vertex splits (record {status - 1})")
+        # the base in canonical order (each triple from its smallest vertex, rows sorted): the file codes
+        # its rows as deltas (:func:`encode_mesh_rows`)
+        base_tri = canonical_rows(log.base_tris[log.base_alive])
         mm = np.empty(c + n_blocks, np.float64)
         ee = np.empty(c + n_blocks, np.float64)
         err = np.asarray(error_m, np.float64)
@@ -333,8 +339,8 @@ class Increments:
             lo, hi = block_ptr[b], block_ptr[b + 1]
             mm[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]]))
             ee[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([err[perm[lo:hi]], [0.0]]))
-        return cls.from_compact(n_vertices, base_tri, block_records, u, v, w, m, quantise_mmqe(mm),
-                                quantise_error(ee))
+        return cls.from_compact(n_vertices, base_tri, block_records, u, v, x1, m, quantise_mmqe(mm),
+                                quantise_error(ee), source="collapse log")
 
     @classmethod
     def from_compact(
@@ -344,7 +350,7 @@ class Increments:
         block_records: np.ndarray,
         rec_u: np.ndarray,
         rec_v: np.ndarray,
-        rec_w: np.ndarray,
+        rec_x1: np.ndarray,
         rec_m: np.ndarray,
         mmqe_code: np.ndarray,
         error_code: np.ndarray,
@@ -358,17 +364,19 @@ class Increments:
         n_vertices : int
         base_tri : (n_base, 3) int, the base triangles (they take slots 0 … n_base - 1).
         block_records : (B,) int, n_b; records are block-major, each block's in refinement order.
-        rec_u, rec_v, rec_w, rec_m : (R,) int, the splits (see :func:`terralod.kernels.qem.replay_splits`).
+        rec_u, rec_v, rec_x1, rec_m : (R,) int, the splits: v splits into v and u, the fan of m triangles
+            from the wing vertex x1 moves to u (see :func:`terralod.kernels.qem.replay_splits`).
         mmqe_code : (R + B,) int, quantised monotone MMQE of every block's scales S_0 … S_{n_b}.
         error_code : (R + B,) int, quantised measured error of the same scales (:func:`quantise_error`).
 
         Returns (increments, base triples (S, 3), base alive (S,)); CorruptStoreError (naming ``source``)
         when the splits do not fit together.
         """
-        rec_u, rec_v, rec_w, rec_m = (np.ascontiguousarray(a, np.int64) for a in (rec_u, rec_v, rec_w, rec_m))
+        rec_u, rec_v, rec_x1, rec_m = (np.ascontiguousarray(a, np.int64) for a in (rec_u, rec_v, rec_x1, rec_m))
+        rec_w = np.zeros(rec_u.size, np.int64)
         base_tri = np.ascontiguousarray(base_tri, np.int32).reshape(-1, 3)
         status, _, del_tri, rep_ptr, rep_slot, rep_old, rep_new = replay_splits(
-            int(n_vertices), base_tri, rec_u, rec_v, rec_u, rec_w, rec_m, False
+            int(n_vertices), base_tri, rec_u, rec_v, rec_x1, rec_w, rec_m, True
         )
         if status != 0:
             where = "base triangles" if status < 0 else f"record {status - 1}"
@@ -532,6 +540,22 @@ def read_text(path: str | os.PathLike[str]) -> tuple[int, list[list[DeltaT]]]:
 
 
 # -- binary container ------------------------------------------------------------------------------------
+#: The generic entropy coder of format 5: the whole payload after the header is one raw LZMA2 stream (no
+#: per-section stream overheads; the static pyramid of ``benchmarks/tin.py`` is coded by the same function).
+_LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 9}]
+
+
+def _pack(raw: bytes) -> bytes:
+    return lzma.compress(raw, format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+
+
+def _unpack(buf: bytes, src: str) -> bytes:
+    try:
+        return lzma.decompress(buf, format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+    except lzma.LZMAError as exc:
+        raise CorruptStoreError(f"damaged compressed payload ({exc})", src) from exc
+
+
 def _narrow(a: np.ndarray) -> np.ndarray:
     """Integers in the narrowest little-endian type holding them."""
     if a.dtype.kind not in "iu" or a.size == 0:
@@ -547,60 +571,88 @@ def _narrow(a: np.ndarray) -> np.ndarray:
 _FLOAT_CODED = "coded"  #: stored-dtype tag of a float64 array coded column by column (:func:`_encode_floats`)
 
 
-def _shuffled(a: np.ndarray) -> bytes:
-    """Bytes of ``a`` regrouped by byte position (all first bytes, then all second bytes, …), deflated."""
+def _shuffle(a: np.ndarray) -> bytes:
+    """Bytes of ``a`` regrouped by byte position (all first bytes, then all second bytes, …)."""
     raw = a.tobytes()
     if a.dtype.itemsize > 1 and a.size:
         raw = np.frombuffer(raw, np.uint8).reshape(-1, a.dtype.itemsize).T.tobytes()
-    return zlib.compress(raw, 6)
+    return raw
 
 
-def _unshuffled(buf: bytes, dtype: np.dtype, n: int) -> np.ndarray:
-    raw = zlib.decompress(buf)
+def _unshuffle(raw: bytes, dtype: np.dtype, n: int) -> np.ndarray:
     if dtype.itemsize > 1 and n:
         raw = np.frombuffer(raw, np.uint8).reshape(dtype.itemsize, -1).T.tobytes()
     return np.frombuffer(raw, dtype)
 
 
 def _zigzag(d: np.ndarray) -> np.ndarray:
+    d = np.asarray(d, np.int64)
     return ((d << 1) ^ (d >> 63)).view(np.uint64)
 
 
 def _unzigzag(z: np.ndarray) -> np.ndarray:
-    z = z.astype(np.uint64)
+    z = np.asarray(z).astype(np.uint64)
     return (z >> np.uint64(1)).view(np.int64) ^ -(z & np.uint64(1)).view(np.int64)
+
+
+def encode_mesh_rows(tris: np.ndarray) -> np.ndarray:
+    """(K, 3) uint64: triangle rows as (first vertex - previous row's first, second - first, third - first),
+    zigzag: a mesh coding for any row order, compact when rows are sorted by their first vertex and
+    neighbouring vertices have near indices. The model's base mesh and every mesh of the static pyramid
+    (``benchmarks/tin.py``) use it; :func:`decode_mesh_rows` inverts it."""
+    t = np.asarray(tris, np.int64).reshape(-1, 3)
+    a = t[:, 0]
+    return np.ascontiguousarray(np.stack([_zigzag(np.diff(a, prepend=0)), _zigzag(t[:, 1] - a),
+                                          _zigzag(t[:, 2] - a)], axis=1))  # fmt: skip
+
+
+def decode_mesh_rows(rows: np.ndarray) -> np.ndarray:
+    """(K, 3) int64 triangles of :func:`encode_mesh_rows` output."""
+    d = _unzigzag(np.asarray(rows).reshape(-1, 3))
+    a = np.cumsum(d[:, 0])
+    return np.stack([a, a + d[:, 1], a + d[:, 2]], axis=1)
+
+
+def canonical_rows(tris: np.ndarray) -> np.ndarray:
+    """(K, 3) int32: each triple turned to start at its smallest vertex (orientation kept), rows sorted."""
+    t = np.asarray(tris, np.int64).reshape(-1, 3)
+    t = np.take_along_axis(t, (np.argmin(t, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
+    return np.ascontiguousarray(t[np.lexsort((t[:, 2], t[:, 1], t[:, 0]))], np.int32)
+
+
+def _estimate(raw: bytes) -> int:
+    """Cheap stand-in for the coded size, to choose between two codings of a float column."""
+    return len(zlib.compress(raw, 6))
 
 
 def _encode_floats(a: np.ndarray) -> bytes:
     """A float64 array (1-D, or 2-D coded column by column) losslessly, each column the smaller of:
-    0, its values shuffled and deflated; 1, its sorted distinct values (bit patterns made monotone, then
-    differences) and, per element, the change of its rank from the previous element (zigzag), each
-    narrowed, shuffled and deflated. A grid's heights take few distinct values and change little from one
-    vertex to the next: 1 halves them; scattered LiDAR coordinates keep 0."""
+    0, its values, shuffled; 1, its sorted distinct values (bit patterns made monotone, then differences)
+    and, per element, the change of its rank from the previous element (zigzag), each narrowed and
+    shuffled. A grid's heights take few distinct values and change little from one vertex to the next: 1
+    halves them; scattered LiDAR coordinates keep 0. The bytes go to the payload's one compressed stream."""
     cols = a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1)
     out = io.BytesIO()
     for j in range(cols.shape[1]):
         c = np.ascontiguousarray(cols[:, j], np.float64)
-        plain = _shuffled(c.astype("<f8"))
-        best = (0, [plain])
+        plain = _shuffle(c.astype("<f8"))
+        best: tuple = (0, [plain])
         if c.size > 64:
             bits = c.view(np.int64)
             mono = bits ^ ((bits >> 63) & np.int64(0x7FFFFFFFFFFFFFFF))  # order of the floats, as integers
             uniq, rank = np.unique(mono, return_inverse=True)
-            du = np.diff(uniq, prepend=np.int64(0)) if uniq.size else uniq
-            parts = [_shuffled(_narrow(_zigzag(du))), _shuffled(_narrow(_zigzag(np.diff(rank.astype(np.int64),
-                                                                                       prepend=0))))]  # fmt: skip
-            if sum(map(len, parts)) + 32 < len(plain):
-                best = (1, parts, _narrow(_zigzag(du)).dtype.str, _narrow(_zigzag(np.diff(rank.astype(np.int64),
-                                                                                          prepend=0))).dtype.str,
-                        uniq.size)  # fmt: skip
+            du = _narrow(_zigzag(np.diff(uniq, prepend=np.int64(0)) if uniq.size else uniq))
+            dr = _narrow(_zigzag(np.diff(rank.astype(np.int64).ravel(), prepend=0)))
+            parts = [_shuffle(du), _shuffle(dr)]
+            if sum(map(_estimate, parts)) + 16 < _estimate(plain):
+                best = (1, parts, du.dtype.str, dr.dtype.str, uniq.size)
         out.write(struct.pack("<B", best[0]))
         if best[0] == 1:
             out.write(struct.pack("<Q", best[4]))
             for dt in (best[2], best[3]):
                 out.write(struct.pack("<B", len(dt)) + dt.encode())
         for part in best[1]:
-            out.write(struct.pack("<Q", len(part)) + part)
+            out.write(part)
     return out.getvalue()
 
 
@@ -612,7 +664,7 @@ def _decode_floats(buf: bytes, shape: tuple[int, ...], src: str) -> np.ndarray:
 
     def take(m: int) -> bytes:
         nonlocal pos
-        if pos + m > len(buf):
+        if m < 0 or pos + m > len(buf):
             raise CorruptStoreError("truncated float array", src)
         pos += m
         return buf[pos - m : pos]
@@ -620,99 +672,130 @@ def _decode_floats(buf: bytes, shape: tuple[int, ...], src: str) -> np.ndarray:
     for j in range(k):
         (mode,) = struct.unpack("<B", take(1))
         if mode == 0:
-            (ln,) = struct.unpack("<Q", take(8))
-            cols[:, j] = _unshuffled(take(ln), np.dtype("<f8"), n)
+            cols[:, j] = _unshuffle(take(8 * n), np.dtype("<f8"), n)
         elif mode == 1:
             (nu,) = struct.unpack("<Q", take(8))
             dts = []
             for _ in range(2):
                 (ld,) = struct.unpack("<B", take(1))
                 dts.append(np.dtype(take(ld).decode()))
-            (ln,) = struct.unpack("<Q", take(8))
-            uniq = np.cumsum(_unzigzag(_unshuffled(take(ln), dts[0], nu)))
-            (ln,) = struct.unpack("<Q", take(8))
-            rank = np.cumsum(_unzigzag(_unshuffled(take(ln), dts[1], n)))
-            if uniq.size != nu or rank.size != n or (n and (rank.min() < 0 or rank.max() >= nu)):
+            uniq = np.cumsum(_unzigzag(_unshuffle(take(nu * dts[0].itemsize), dts[0], nu)))
+            rank = np.cumsum(_unzigzag(_unshuffle(take(n * dts[1].itemsize), dts[1], n)))
+            if n and (rank.min() < 0 or rank.max() >= nu):
                 raise CorruptStoreError("inconsistent float array", src)
             mono = uniq[rank]
             cols[:, j] = (mono ^ ((mono >> 63) & np.int64(0x7FFFFFFFFFFFFFFF))).view(np.float64)
         else:
             raise CorruptStoreError(f"unknown float coding {mode}", src)
+    if pos != len(buf):
+        raise CorruptStoreError("inconsistent float array", src)
     return cols.reshape(shape)
 
 
-def _encode_arrays(arrays: dict[str, np.ndarray], deflate: bool) -> bytes:
+def _array_section(arrays: dict[str, np.ndarray]) -> bytes:
+    """Named arrays, uncoded: per array its name, dtype, stored dtype, shape, byte length and bytes
+    (integers narrowed and shuffled; large float arrays by :func:`_encode_floats`)."""
     out = io.BytesIO()
     out.write(struct.pack("<I", len(arrays)))
     for name, arr in arrays.items():
         a = np.ascontiguousarray(arr)
-        if deflate and a.dtype == np.float64 and a.ndim in (1, 2) and a.size > 256:  # small ones: as they are
+        if a.dtype == np.float64 and a.ndim in (1, 2) and a.size > 256:  # small ones: as they are
             stored_str = _FLOAT_CODED
             raw = _encode_floats(a)
         else:
             stored = _narrow(a)
             stored_str = stored.dtype.str
-            raw = stored.tobytes()
-            if deflate:
-                raw = _shuffled(stored)
+            raw = _shuffle(stored)
         nm = name.encode()
-        out.write(struct.pack("<H", len(nm)) + nm)
+        out.write(struct.pack("<B", len(nm)) + nm)
         for dt in (a.dtype.newbyteorder("<").str, stored_str):
             out.write(struct.pack("<B", len(dt)) + dt.encode())
-        out.write(struct.pack("<B", a.ndim) + struct.pack(f"<{a.ndim}Q", *a.shape))
-        out.write(struct.pack("<Q", len(raw)) + raw)
+        out.write(struct.pack("<B", a.ndim) + b"".join(_uvarint(s) for s in a.shape))
+        out.write(_uvarint(len(raw)) + raw)
     return out.getvalue()
 
 
-def _decode_arrays(buf: bytes, deflate: bool, src: str) -> dict[str, np.ndarray]:
+def _uvarint(x: int) -> bytes:
+    """LEB128: 7 bits a byte, low first (array shapes and lengths: mostly 1 to 3 bytes)."""
+    out = bytearray()
+    x = int(x)
+    while True:
+        b = x & 0x7F
+        x >>= 7
+        if x:
+            out.append(b | 0x80)
+        else:
+            out.append(b)
+            return bytes(out)
+
+
+def _encode_arrays(arrays: dict[str, np.ndarray], compress: bool = True) -> bytes:
+    """Named arrays as one stream, compressed by the file's entropy coder when ``compress``."""
+    raw = _array_section(arrays)
+    return _pack(raw) if compress else raw
+
+
+def _decode_arrays(buf: bytes, compress: bool, src: str) -> dict[str, np.ndarray]:
+    return _parse_arrays(_unpack(buf, src) if compress else buf, src)
+
+
+def _parse_arrays(buf: bytes, src: str) -> dict[str, np.ndarray]:
     view = memoryview(buf)
     pos = 0
 
     def take(n: int) -> memoryview:
         nonlocal pos
-        if pos + n > len(view):
+        if n < 0 or pos + n > len(view):
             raise CorruptStoreError("truncated array section", src)
         out = view[pos : pos + n]
         pos += n
         return out
 
+    def varint() -> int:
+        x, shift = 0, 0
+        while True:
+            (b,) = take(1)
+            x |= (b & 0x7F) << shift
+            if b < 0x80:
+                return x
+            shift += 7
+            if shift > 63:
+                raise CorruptStoreError("malformed length", src)
+
     (count,) = struct.unpack("<I", take(4))
     arrays = {}
     for _ in range(count):
-        (ln,) = struct.unpack("<H", take(2))
+        (ln,) = take(1)
         name = bytes(take(ln)).decode()
         dts = []
         for _ in range(2):
-            (ld,) = struct.unpack("<B", take(1))
+            (ld,) = take(1)
             dts.append(bytes(take(ld)).decode())
-        (ndim,) = struct.unpack("<B", take(1))
-        shape = struct.unpack(f"<{ndim}Q", take(8 * ndim))
-        (nbytes,) = struct.unpack("<Q", take(8))
-        raw = bytes(take(nbytes))
+        (ndim,) = take(1)
+        shape = tuple(varint() for _ in range(ndim))
+        raw = bytes(take(varint()))
         if dts[1] == _FLOAT_CODED:
-            arrays[name] = _decode_floats(raw, tuple(shape), src).astype(np.dtype(dts[0]).newbyteorder("="))
+            arrays[name] = _decode_floats(raw, shape, src).astype(np.dtype(dts[0]).newbyteorder("="))
             continue
-        dts = [np.dtype(d) for d in dts]
-        stored = dts[1]
-        if deflate:
-            raw = zlib.decompress(raw)
-            n = int(np.prod(shape))
-            if stored.itemsize > 1 and n:
-                raw = np.frombuffer(raw, np.uint8).reshape(stored.itemsize, -1).T.tobytes()
-        a = np.frombuffer(raw, stored).reshape(shape).astype(dts[0].newbyteorder("="))
-        arrays[name] = a
+        stored = np.dtype(dts[1])
+        n = int(np.prod(shape))
+        if len(raw) != n * stored.itemsize:
+            raise CorruptStoreError(f"array {name}: {len(raw)} bytes for shape {shape}", src)
+        arrays[name] = _unshuffle(raw, stored, n).reshape(shape).astype(np.dtype(dts[0]).newbyteorder("="))
     return arrays
 
 
 def write_container(path: str | os.PathLike[str], meta: dict[str, Any], arrays: dict[str, np.ndarray],
-                    *, deflate: bool = True) -> int:
+                    *, compress: bool = True) -> int:
     """Write ``meta`` (JSON) and named arrays with the checksummed header; returns the file size, bytes.
 
-    Written to ``path + '.tmp'`` then renamed, so an interrupted write never leaves a half file.
+    The payload (meta + arrays) is one stream, compressed once (:func:`_pack`) when ``compress``. Written
+    to ``path + '.tmp'`` then renamed, so an interrupted write never leaves a half file.
     """
-    body = json.dumps(meta, sort_keys=True).encode()
-    payload = struct.pack("<I", len(body)) + body + _encode_arrays(arrays, deflate)
-    head = _HEADER.pack(MAGIC, FORMAT_VERSION, _FLAG_DEFLATE if deflate else 0, 0, len(payload),
+    body = json.dumps(meta, sort_keys=True, separators=(",", ":")).encode()
+    plain = _uvarint(len(body)) + body + _array_section(arrays)
+    payload = _pack(plain) if compress else plain
+    head = _HEADER.pack(MAGIC, FORMAT_VERSION, _FLAG_LZMA if compress else 0, 0, len(payload),
                         hashlib.sha256(payload).digest())
     p = Path(path)
     tmp = p.with_name(p.name + ".tmp")
@@ -724,7 +807,7 @@ def write_container(path: str | os.PathLike[str], meta: dict[str, Any], arrays: 
 
 
 def read_container(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
-    """Read :func:`write_container` output; CorruptStoreError on a foreign, damaged or newer file."""
+    """Read :func:`write_container` output; CorruptStoreError on a foreign, damaged, older or newer file."""
     p = Path(path)
     src = str(p)
     if not p.exists():
@@ -744,10 +827,60 @@ def read_container(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[s
         raise CorruptStoreError(f"truncated or padded: payload of {len(payload)} bytes, header says {length}", src)
     if hashlib.sha256(payload).digest() != digest:
         raise CorruptStoreError("checksum mismatch: the file is corrupted", src)
-    (lm,) = struct.unpack_from("<I", payload)
-    meta = json.loads(payload[4 : 4 + lm].decode())
-    arrays = _decode_arrays(payload[4 + lm :], bool(flags & _FLAG_DEFLATE), src)
+    plain = _unpack(payload, src) if flags & _FLAG_LZMA else payload
+    view = memoryview(plain)
+    lm, shift, pos = 0, 0, 0
+    while pos < len(view):
+        b = view[pos]
+        pos += 1
+        lm |= (b & 0x7F) << shift
+        shift += 7
+        if b < 0x80:
+            break
+    try:
+        meta = json.loads(bytes(view[pos : pos + lm]).decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CorruptStoreError(f"unreadable metadata ({exc})", src) from exc
+    arrays = _parse_arrays(bytes(view[pos + lm :]), src)
     return meta, arrays
+
+
+def _grid_xy(vertices_m: np.ndarray) -> np.ndarray:
+    """(V, 2) int64: vertex xy on an integer grid of 2^26 steps over the larger side, so the split coder's
+    orientation tests are exact and its walks the same on every machine (numpy's elementwise arithmetic is
+    correctly rounded)."""
+    xy = np.asarray(vertices_m, np.float64)[:, :2]
+    if not xy.size:
+        return np.zeros((0, 2), np.int64)
+    lo = xy.min(axis=0)
+    span = float((xy.max(axis=0) - lo).max())
+    if not span > 0.0:
+        return np.zeros(xy.shape, np.int64)
+    return np.floor((xy - lo) * (2.0**26 / span)).astype(np.int64)
+
+
+def _block_cells(vertices_m: np.ndarray, k: int) -> np.ndarray:
+    """(V,) int64: the k × k sub-block cell holding each vertex's xy (row-major from the north-west, the
+    rule :func:`terralod.tin.delaunay.split_sub_blocks` applies to triangle centroids)."""
+    xy = np.asarray(vertices_m, np.float64)[:, :2]
+    if not xy.size:
+        return np.zeros(0, np.int64)
+    lo = xy.min(axis=0)
+    hi = xy.max(axis=0)
+    span = np.maximum(hi - lo, np.finfo(np.float64).tiny)
+    col = np.clip(((xy[:, 0] - lo[0]) / span[0] * k).astype(np.int64), 0, k - 1)
+    row = np.clip(((hi[1] - xy[:, 1]) / span[1] * k).astype(np.int64), 0, k - 1)
+    return row * k + col
+
+
+def _insert_order(label: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices by (sub-block that inserts them, index): (position of each vertex, vertex at each position,
+    first and end position of each block's segment); label ``n_blocks``: never inserted (base or unused)."""
+    vat = np.argsort(label, kind="stable").astype(np.int64)
+    vpos = np.empty_like(vat)
+    vpos[vat] = np.arange(vat.size, dtype=np.int64)
+    seg = np.searchsorted(label[vat], np.arange(n_blocks + 1)).astype(np.int64)
+    return vpos, vat, seg[:-1], seg[1:]
 
 
 # -- the model -------------------------------------------------------------------------------------------
@@ -1105,9 +1238,10 @@ class DetailIncrementModel:
     def _payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         inc = self.increments
         raw = inc.raw if inc.raw is not None else inc
-        if raw.rec_u is None or raw.rec_w is None or raw.mmqe_code is None or raw.error_code is None:
+        if raw.rec_u is None or raw.rec_v is None or raw.mmqe_code is None or raw.error_code is None:
             raise InputError("these records carry no vertex splits to store (build the model, then save it)")
         n_base = int(self._base_alive.sum())
+        nb = raw.n_blocks
         code = raw.mmqe_code
         first = code[raw.mmqe_ptr[:-1]]
         # each block's codes fall from S_0 to S_{n_b}: store the first and the drops (mostly 0, 1 byte)
@@ -1115,6 +1249,28 @@ class DetailIncrementModel:
         drop = np.delete(drop, raw.mmqe_ptr[1:-1] - 1)
         ecode = raw.error_code
         edrop = np.delete(-np.diff(ecode), raw.mmqe_ptr[1:-1] - 1)
+        # the splits as symbols predicted from geometry (terralod.kernels.tincodec)
+        n_rec = raw.n_records
+        rec_u = raw.rec_u.astype(np.int64)
+        rec_m = np.diff(raw.rep_ptr)
+        label = np.full(self.vertices_m.shape[0], nb, np.int64)
+        label[rec_u] = raw.record_block
+        vpos, vat, lo, hi = _insert_order(label, nb)
+        # a vertex out of the base is mostly inserted by the sub-block whose cell holds it: 0, else label + 1
+        out = np.ones(label.size, np.bool_)
+        out[self._base_tris[:n_base].ravel()] = False
+        cell = _block_cells(self.vertices_m, self.k)[out]
+        label_escape = np.where(label[out] == cell, 0, label[out] + 1)
+        sym = [np.zeros(n_rec, np.int64) for _ in range(5)]
+        status, n_esc = split_codes(True, _grid_xy(self.vertices_m), self._base_tris[:n_base], raw.block_ptr, vpos,
+                                    vat, lo, hi, rec_u, raw.rec_v.astype(np.int64),
+                                    raw.del_tri[0::2, 2].astype(np.int64), rec_m, *sym)  # fmt: skip
+        if status != 0:
+            raise RuntimeError(f"vertex splits do not code (record {status - 1})")
+        sym_u, sym_v, sym_j, esc_v, esc_x = sym
+        fan = sym_v != V_ESCAPE
+        # m - 1 - j: the fan triangles after T (T is the j-th of the m moved), as stored m for escapes
+        after = np.where(fan, rec_m - 1 - sym_j, rec_m)
         meta = {
             "format": "terralod detail-increment model (paper 003)",
             "k": self.k,
@@ -1127,15 +1283,18 @@ class DetailIncrementModel:
         }
         arrays = {
             "vertices_m": self.vertices_m,
-            "base_tri": self._base_tris[:n_base],
+            "base_rows": encode_mesh_rows(self._base_tris[:n_base]),
             "block_centres_m": self.block_centres_m,
             "block_bounds_m": self.block_bounds_m,
             "block_boxes_m": self.block_boxes_m,
             "block_records": np.diff(raw.block_ptr),
-            "rec_u": raw.rec_u,
-            "rec_dv": raw.rec_v.astype(np.int64) - raw.rec_u,
-            "rec_w": raw.rec_w,
-            "rec_m": np.diff(raw.rep_ptr),
+            "vertex_block_escape": label_escape,
+            "split_u": sym_u,
+            "split_v": sym_v,
+            "split_j": sym_j,
+            "split_after": after,
+            "escape_v": esc_v[:n_esc],
+            "escape_x1": esc_x[:n_esc],
             "mmqe_first": first,
             "mmqe_drop": drop,
             "error_first": ecode[raw.mmqe_ptr[:-1]],
@@ -1143,10 +1302,10 @@ class DetailIncrementModel:
         }
         return meta, arrays
 
-    def save(self, path: str | os.PathLike[str], *, deflate: bool = True) -> int:
+    def save(self, path: str | os.PathLike[str], *, compress: bool = True) -> int:
         """Write the model (base mesh + increments + MMQE) to one checksummed file; returns its size, bytes."""
         meta, arrays = self._payload()
-        return write_container(path, meta, arrays, deflate=deflate)
+        return write_container(path, meta, arrays, compress=compress)
 
     def export_text(self, path: str | os.PathLike[str]) -> None:
         """Write the increments in the paper's text scheme (:func:`write_text`)."""
@@ -1159,7 +1318,7 @@ class DetailIncrementModel:
         Raises
         ------
         InputNotFoundError : no such file.
-        CorruptStoreError : not such a file, newer format, checksum mismatch, or inconsistent content.
+        CorruptStoreError : not such a file, older or newer format, checksum mismatch, or inconsistent content.
         """
         src = str(path)
         meta, a = read_container(path)
@@ -1171,13 +1330,18 @@ class DetailIncrementModel:
             nb = k * k
             br = a["block_records"].astype(np.int64)
             n_rec = int(br.sum()) if br.size else 0
-            per_rec = ("rec_u", "rec_dv", "rec_w", "rec_m", "mmqe_drop", "error_drop")
+            rows = a["base_rows"]
+            lab_esc = a["vertex_block_escape"].astype(np.int64)
+            n_esc = int((a["split_v"] == V_ESCAPE).sum())
+            per_rec = ("split_u", "split_v", "split_j", "split_after", "mmqe_drop", "error_drop")
             checks = [
                 (v.ndim == 2 and v.shape[1] == 3, "vertices"),
                 (br.shape == (nb,) and (br >= 0).all(), "block count"),
                 (all(a[n].shape == (n_rec,) for n in per_rec), "record count"),
-                (a["base_tri"].ndim == 2 and a["base_tri"].shape[1] == 3, "base triangles"),
-                (n_slots == a["base_tri"].shape[0] + 2 * n_rec, "triangle count"),
+                (rows.ndim == 2 and rows.shape[1] == 3, "base triangles"),
+                (n_slots == rows.shape[0] + 2 * n_rec, "triangle count"),
+                (lab_esc.ndim == 1 and ((lab_esc >= 0) & (lab_esc <= nb + 1)).all(), "vertex blocks"),
+                (a["escape_v"].shape == a["escape_x1"].shape == (n_esc,), "escapes"),
                 (a["mmqe_first"].shape == (nb,) and (a["mmqe_drop"] >= 0).all(), "MMQE"),
                 (a["error_first"].shape == (nb,) and (a["error_drop"] >= 0).all(), "measured error"),
                 (step >= 1, "merge factor"),
@@ -1200,10 +1364,31 @@ class DetailIncrementModel:
                 code[bptr[b] + b + 1 : bptr[b + 1] + b + 1] = int(first[b]) - np.cumsum(seg)
             return code
 
-        rec_u = a["rec_u"].astype(np.int64)
+        # the splits from their symbols, replaying them over the base (terralod.kernels.tincodec)
+        base_tri = decode_mesh_rows(rows)
+        if base_tri.size and (base_tri.min() < 0 or base_tri.max() >= v.shape[0]):
+            raise CorruptStoreError("inconsistent detail-increment records: base triangles do not fit the mesh", src)
+        out = np.ones(v.shape[0], np.bool_)
+        out[base_tri.ravel()] = False
+        label = np.full(v.shape[0], nb, np.int64)
+        if lab_esc.size != int(out.sum()):
+            raise CorruptStoreError("inconsistent detail-increment file: vertex blocks", src)
+        label[out] = np.where(lab_esc == 0, _block_cells(v, k)[out], lab_esc - 1)
+        if not np.array_equal(np.bincount(label, minlength=nb + 1)[:nb], br):
+            raise CorruptStoreError("inconsistent detail-increment file: vertex blocks", src)
+        sym_u, sym_v, sym_j, after = (a[n].astype(np.int64) for n in ("split_u", "split_v", "split_j", "split_after"))
+        fan = sym_v != V_ESCAPE
+        rec_m = np.where(fan, after + 1 + sym_j, after)
+        rec_u, rec_v, rec_x = (np.zeros(n_rec, np.int64) for _ in range(3))
+        vpos, vat, lo, hi = _insert_order(label, nb)
+        status, _ = split_codes(False, _grid_xy(v), base_tri.astype(np.int32), bptr, vpos, vat, lo, hi, rec_u, rec_v,
+                                rec_x, rec_m, sym_u, sym_v, sym_j, a["escape_v"].astype(np.int64),
+                                a["escape_x1"].astype(np.int64))  # fmt: skip
+        if status != 0 or ((sym_j < 0) | (fan & (after < 0))).any():
+            where = "base triangles" if status < 0 else f"record {max(status, 1) - 1}"
+            raise CorruptStoreError(f"inconsistent detail-increment records: {where} does not fit the mesh", src)
         inc, base_tris, base_alive = Increments.from_compact(
-            v.shape[0], a["base_tri"], br, rec_u, rec_u + a["rec_dv"].astype(np.int64),
-            a["rec_w"], a["rec_m"], codes(a["mmqe_first"], a["mmqe_drop"]),
+            v.shape[0], base_tri, br, rec_u, rec_v, rec_x, rec_m, codes(a["mmqe_first"], a["mmqe_drop"]),
             codes(a["error_first"], a["error_drop"]), source=src,
         )
         if step > 1:

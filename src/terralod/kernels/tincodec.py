@@ -1,0 +1,334 @@
+"""Detail-increment file coding kernels: vertex splits as small, predictable symbols (format 5).
+
+Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §2.2.2 and §4 (the increments stored compactly, against
+a static pyramid). Pure functions on arrays: no I/O, no exceptions; the file layout, validation and the
+generic entropy coder live in :mod:`terralod.tin.increments`.
+
+A raw record splits kept vertex v into v and the removed vertex u, moving the fan (v, x1, x2) …
+(v, x_m, x_{m+1}) of v's triangles to u (see :func:`terralod.kernels.qem.replay_splits`). Every vertex's
+position is in the file before the records, so the coder predicts from geometry (the deviations from the
+paper's table 1 are in :mod:`terralod.tin.increments`)::
+
+    u   its rank among the vertices its sub-block has still to insert (a label per vertex says which
+        sub-block inserts it): about log2(n_b / e) bits instead of log2(V);
+    v   u lies in the fan's region, so the current triangle T that holds u's xy (found by a walk from the
+        previous record's triangle) has v as a corner: v is T's corner 0, 1 or 2 by distance to u
+        (nearest first), 3 = escape (v and x1 stored as they are);
+    x1  T is one of the m moved triangles: j, the number of fan triangles before T (counter-clockwise
+        order), gives x1; m stays as it is.
+
+Coordinates are integers (xy scaled to [0, 2^26]) so the walk's orientation tests are exact and the
+encoder and decoder take the same path on every machine.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from terralod.kernels import jit
+
+#: v's symbol when it is not a corner of the triangle holding u (or T is not in the fan): stored raw
+V_ESCAPE = 3
+
+
+@jit
+def _after(tris, t, w):
+    """The vertex after ``w`` in triangle ``t`` (counter-clockwise); -1 when ``w`` is not in it."""
+    for k in range(3):
+        if tris[t, k] == w:
+            return tris[t, (k + 1) % 3]
+    return -1
+
+
+@jit
+def _star_add(head, nxt, node_tri, free, w, t):
+    """Push slot ``t`` on vertex ``w``'s star list; returns the new free-list head."""
+    n = free
+    free = nxt[n]
+    node_tri[n] = t
+    nxt[n] = head[w]
+    head[w] = n
+    return free
+
+
+@jit
+def _star_remove(head, nxt, node_tri, free, w, t):
+    """Unlink slot ``t`` from vertex ``w``'s star list; returns the new free-list head."""
+    prev = -1
+    n = head[w]
+    while n >= 0:
+        if node_tri[n] == t:
+            if prev < 0:
+                head[w] = nxt[n]
+            else:
+                nxt[prev] = nxt[n]
+            nxt[n] = free
+            return n
+        prev = n
+        n = nxt[n]
+    return free
+
+
+@jit
+def _edge_tri(tris, head, nxt, node_tri, a, b):
+    """The live slot holding the directed edge a -> b, or -1."""
+    n = head[a]
+    while n >= 0:
+        t = node_tri[n]
+        if _after(tris, t, a) == b:
+            return t
+        n = nxt[n]
+    return -1
+
+
+@jit
+def _orient(qxy, a, b, px, py):
+    """Twice the signed area of (a, b, p), exact (integer coordinates below 2^26)."""
+    return (qxy[b, 0] - qxy[a, 0]) * (py - qxy[a, 1]) - (qxy[b, 1] - qxy[a, 1]) * (px - qxy[a, 0])
+
+
+@jit
+def _walk(tris, head, nxt, node_tri, qxy, t, px, py, max_steps):
+    """Slot of the triangle holding (px, py), walking from slot ``t`` across the edge p lies beyond (the
+    edge tried first turns with a fixed pseudo-random sequence, so the walk cannot cycle for ever); -1 when
+    it leaves the mesh or takes more than ``max_steps``."""
+    seed = np.uint32(12345)
+    for _ in range(max_steps):
+        seed = seed * np.uint32(1103515245) + np.uint32(12345)
+        e0 = np.int64((seed >> np.uint32(16)) % np.uint32(3))
+        moved = False
+        for kk in range(3):
+            e = (e0 + kk) % 3
+            a = tris[t, e]
+            b = tris[t, (e + 1) % 3]
+            if _orient(qxy, a, b, px, py) < 0:
+                n = _edge_tri(tris, head, nxt, node_tri, b, a)
+                if n < 0:
+                    return -1
+                t = n
+                moved = True
+                break
+        if not moved:
+            return t
+    return -1
+
+
+@jit
+def _fen_add(tree, i, d):
+    i += 1
+    while i < tree.size:
+        tree[i] += d
+        i += i & -i
+
+
+@jit
+def _fen_sum(tree, i):
+    """Sum of positions [0, i)."""
+    s = 0
+    while i > 0:
+        s += tree[i]
+        i -= i & -i
+    return s
+
+
+@jit
+def _fen_find(tree, k):
+    """Position of the (k+1)-th one (k >= 0); tree.size - 1 when there are not that many."""
+    n = tree.size - 1
+    step = 1
+    while step * 2 <= n:
+        step *= 2
+    pos = 0
+    while step > 0:
+        if pos + step <= n and tree[pos + step] <= k:
+            pos += step
+            k -= tree[pos]
+        step //= 2
+    return pos
+
+
+@jit
+def split_codes(encode, qxy, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec_u, rec_v, rec_x, rec_m,
+                sym_u, sym_v, sym_j, esc_v, esc_x):
+    """Vertex splits to symbols (``encode``) or back, replaying them from the base mesh.
+
+    Parameters
+    ----------
+    encode : bool
+        True: read ``rec_u, rec_v, rec_x`` (x1), write ``sym_u, sym_v, sym_j`` and the escapes; False: the
+        reverse (``rec_u, rec_v, rec_x`` written).
+    qxy : (V, 2) int64, vertex xy on the integer grid (exact orientation tests).
+    base_tri : (n_base, 3) int32, counter-clockwise. block_ptr : (B + 1,) int64, records block-major.
+    vpos : (V,) int64, each vertex's position in the block-major insertion order (``vat`` its inverse);
+        block b's vertices to insert take positions ``seg_lo[b] … seg_hi[b] - 1``.
+    rec_m : (R,) int64, triangles moved by each split (read in both directions).
+    sym_u, sym_v, sym_j : (R,) int64. esc_v, esc_x : (R,) int64, the first n_escapes entries used.
+
+    Returns
+    -------
+    status, n_escapes
+        status 0, or r + 1 for the first record that does not fit (a corrupt file).
+    """
+    n_rec = rec_m.shape[0]
+    n_base = base_tri.shape[0]
+    n_slots = n_base + 2 * n_rec
+    n_v = qxy.shape[0]
+    tris = np.zeros((max(n_slots, 1), 3), np.int64)
+    head = np.full(n_v, -1, np.int64)
+    n_nodes = 3 * n_slots + 1
+    nxt = np.arange(1, n_nodes + 1, dtype=np.int64)
+    nxt[n_nodes - 1] = -1
+    node_tri = np.zeros(n_nodes, np.int64)
+    free = 0
+    present = np.zeros(n_v, np.bool_)
+    for t in range(n_base):
+        for k in range(3):
+            w = base_tri[t, k]
+            if w < 0 or w >= n_v:
+                return -1, 0
+            tris[t, k] = w
+            present[w] = True
+            free = _star_add(head, nxt, node_tri, free, w, t)
+    tree = np.zeros(n_v + 1, np.int64)  # Fenwick tree: 1 at each vertex still to insert
+    for b in range(seg_lo.shape[0]):
+        for p in range(seg_lo[b], seg_hi[b]):
+            _fen_add(tree, p, 1)
+    max_steps = n_slots + 16
+    n_esc = 0
+    # walks start from a hint: per cell of a coarse grid, the last slot made around a vertex in it
+    g = 1
+    shift = 26  # cell of integer coordinate q: q >> shift (q <= 2^26)
+    while g * g * 16 < n_slots and shift > 0:
+        g *= 2
+        shift -= 1
+    hint = np.full(g * g, -1, np.int64)
+    for t in range(n_base):
+        w = tris[t, 0]
+        hint[min(qxy[w, 1] >> shift, g - 1) * g + min(qxy[w, 0] >> shift, g - 1)] = t
+    last = 0
+    for c in range(g * g):  # an empty cell takes the hint of the cell before it (row-major)
+        if hint[c] < 0:
+            hint[c] = last
+        last = hint[c]
+    for b in range(block_ptr.shape[0] - 1):
+        for r in range(block_ptr[b], block_ptr[b + 1]):
+            m = rec_m[r]
+            # u: rank among the block's vertices still to insert
+            below = _fen_sum(tree, seg_lo[b])
+            if encode:
+                u = rec_u[r]
+                if u < 0 or u >= n_v or vpos[u] < seg_lo[b] or vpos[u] >= seg_hi[b]:
+                    return r + 1, n_esc
+                sym_u[r] = _fen_sum(tree, vpos[u]) - below
+            else:
+                p = _fen_find(tree, sym_u[r] + below)
+                if sym_u[r] < 0 or p >= seg_hi[b]:
+                    return r + 1, n_esc
+                u = vat[p]
+                rec_u[r] = u
+            if present[u] or m < 1:
+                return r + 1, n_esc
+            _fen_add(tree, vpos[u], -1)
+            px = qxy[u, 0]
+            py = qxy[u, 1]
+            cell = min(py >> shift, g - 1) * g + min(px >> shift, g - 1)
+            t_in = _walk(tris, head, nxt, node_tri, qxy, hint[cell], px, py, max_steps) if n_base else -1
+            # T's corners, nearest to u first (ties: corner order)
+            c0 = c1 = c2 = -1
+            if t_in >= 0:
+                d = np.empty(3, np.int64)
+                for k in range(3):
+                    w = tris[t_in, k]
+                    d[k] = (qxy[w, 0] - px) ** 2 + (qxy[w, 1] - py) ** 2
+                o = np.argsort(d, kind="mergesort")
+                c0 = tris[t_in, o[0]]
+                c1 = tris[t_in, o[1]]
+                c2 = tris[t_in, o[2]]
+            if encode:
+                v = rec_v[r]
+                x1 = rec_x[r]
+                if v < 0 or v >= n_v or not present[v]:
+                    return r + 1, n_esc
+                sv = V_ESCAPE
+                if v == c0:
+                    sv = 0
+                elif v == c1:
+                    sv = 1
+                elif v == c2:
+                    sv = 2
+                j = -1
+                if sv != V_ESCAPE:  # T's place in the fan
+                    x = x1
+                    for i in range(m):
+                        t = _edge_tri(tris, head, nxt, node_tri, v, x)
+                        if t < 0:
+                            return r + 1, n_esc
+                        if t == t_in:
+                            j = i
+                            break
+                        x = _after(tris, t, x)
+                    if j < 0:
+                        sv = V_ESCAPE
+                sym_v[r] = sv
+                if sv == V_ESCAPE:
+                    esc_v[n_esc] = v
+                    esc_x[n_esc] = x1
+                    n_esc += 1
+                    sym_j[r] = 0
+                else:
+                    sym_j[r] = j
+            else:
+                sv = sym_v[r]
+                if sv == V_ESCAPE:
+                    if n_esc >= esc_v.shape[0]:
+                        return r + 1, n_esc
+                    v = esc_v[n_esc]
+                    x1 = esc_x[n_esc]
+                    n_esc += 1
+                elif 0 <= sv < V_ESCAPE and t_in >= 0:
+                    v = c0 if sv == 0 else (c1 if sv == 1 else c2)
+                    # step back j triangles around v (clockwise) from T to the fan's first
+                    t = t_in
+                    for _ in range(sym_j[r]):
+                        a = _after(tris, t, v)
+                        t = _edge_tri(tris, head, nxt, node_tri, a, v)  # (v, ., a) shares edge v-a
+                        if t < 0:
+                            return r + 1, n_esc
+                    x1 = _after(tris, t, v)
+                else:
+                    return r + 1, n_esc
+                if v < 0 or v >= n_v or x1 < 0 or x1 >= n_v:
+                    return r + 1, n_esc
+                rec_v[r] = v
+                rec_x[r] = x1
+            if not present[v]:
+                return r + 1, n_esc
+            # the split: the fan (v, x1, x2) … moves to u; (u, v, x1) and (u, x_m, v) come back
+            x = x1
+            for _ in range(m):
+                t = _edge_tri(tris, head, nxt, node_tri, v, x)
+                if t < 0:
+                    return r + 1, n_esc
+                for k in range(3):
+                    if tris[t, k] == v:
+                        tris[t, k] = u
+                x = _after(tris, t, x)
+                free = _star_remove(head, nxt, node_tri, free, v, t)
+                free = _star_add(head, nxt, node_tri, free, u, t)
+            xm = x
+            if xm == x1 or xm == v:
+                return r + 1, n_esc
+            s1 = n_base + 2 * r
+            s2 = s1 + 1
+            tris[s1, 0] = u
+            tris[s1, 1] = v
+            tris[s1, 2] = x1
+            tris[s2, 0] = u
+            tris[s2, 1] = xm
+            tris[s2, 2] = v
+            for k in range(3):
+                free = _star_add(head, nxt, node_tri, free, tris[s1, k], s1)
+                free = _star_add(head, nxt, node_tri, free, tris[s2, k], s2)
+            present[u] = True
+            hint[cell] = s1
+    return 0, n_esc
