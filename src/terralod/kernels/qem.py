@@ -42,7 +42,10 @@ it covers (a list per slot: ``head``, ``nxt``; a collapse hands the lists of sta
 rewritten slots). The cost of u → w adds ``vweight · W_u · g²``, g the largest vertical distance from u
 and the vertices star(u) carries to the surface after the collapse (m⁴, like the quadric), so a collapse
 that moves the surface far from points removed earlier waits. Only the candidates whose quadric alone is
-below the best full cost get g (branch and bound), and g stops early once it passes that bound.
+below the best full cost get g (branch and bound), and g stops early once it passes that bound. star(u)
+and its points are gathered once per evaluation (contiguous xyz), each candidate's triangles once per
+candidate, and a point is looked for first in the triangle of the slot that carries it (where it almost
+always stays), by signs alone, dividing only for the height.
 
 Lazy validity: after a collapse, the vertices around it are re-queued at their cheapest collapse
 *untested*; the test runs when the entry leaves the heap, and a failure re-evaluates the vertex with
@@ -51,6 +54,13 @@ lower bound of the vertex's valid cost, so collapses still leave in increasing v
 difference from testing at once is that a cheaper collapse that was invalid when queued and turned valid
 by the time it is popped goes first. Most link tests are never run: 1.6x faster on a 512² grid TIN, with
 exactly the same collapses there (and on Autzen).
+
+Refresh after u → v: v and ring(u) get a full evaluation (their stars, and the points the vertical term
+measures, changed). A vertex of ring(v) outside ring(u) keeps its star and its points; only Q_v grew, so
+its collapse onto v got dearer and nothing else moved: its best collapse stands unless it was onto v, and
+only its MMQE term is refreshed (through x → v alone unless that gave its minimum). About a third of the
+ring visits are such; the collapse sequence is the one of a full evaluation except where a full
+evaluation would have re-queued an invalid collapse.
 
 MMQE (§2.1): per sub-block, the mean over its alive FREE vertices of their minimum (normalised) quadric
 error over all ring neighbours; kept as a running sum updated on every re-evaluation.
@@ -353,69 +363,115 @@ def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps
 
 
 @jit
-def _gap2_after(q, u, w, P, tris, arena, su, n):
-    """Squared vertical distance from point q to the surface of star(u) after the collapse u -> w: the
-    rewritten triangle (w, a, b) with the largest smallest barycentric coordinate of q's xy (so a point on
-    an edge, or outside by rounding, still gets one)."""
-    best = -np.inf
-    bz = 0.0
-    wz = P[w, 2]
+def _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps):
+    """star(u) and the points its collapse moves away from, gathered once per evaluation (every candidate
+    target w reads them): slot i of the star is (u, sa[i], sb[i]) counter-clockwise, ``geo[i]`` = the xyz
+    of sa[i] then sb[i]; the points are u then the removed vertices the slots carry, ``pxyz[j]`` their xyz
+    and ``ps[j]`` the star index of the slot that carries them (-1 for u). Returns the point count."""
+    pxyz[0, 0] = P[u, 0]
+    pxyz[0, 1] = P[u, 1]
+    pxyz[0, 2] = P[u, 2]
+    ps[0] = -1
+    m = 1
     for i in range(n):
         t = arena[su + i]
         a = _next_after(tris, t, u)
         b = _next_after(tris, t, a)
-        if a == w or b == w:
-            continue  # deleted by the collapse
-        l1, l2, m = _bary_xy(P, w, a, b, P[q, 0], P[q, 1])
-        if m > best:
-            best = m
-            bz = wz + l1 * (P[a, 2] - wz) + l2 * (P[b, 2] - wz)
-            if m >= 0.0:
-                break  # inside (or on an edge, where the neighbour gives the same height)
-    d = P[q, 2] - bz
-    return d * d
+        sa[i] = a
+        sb[i] = b
+        for k in range(3):
+            geo[i, k] = P[a, k]
+            geo[i, 3 + k] = P[b, k]
+        q = head[t]
+        while q >= 0:
+            pxyz[m, 0] = P[q, 0]
+            pxyz[m, 1] = P[q, 1]
+            pxyz[m, 2] = P[q, 2]
+            ps[m] = i
+            m += 1
+            q = nxt[q]
+    return m
 
 
 @jit
-def _carried_gap2(u, w, P, tris, arena, su, n, head, nxt, glim):
-    """Largest squared vertical distance, m², from u and the removed vertices that star(u)'s slots carry
-    to the surface after the collapse u -> w; stops early, returning a lower bound >= ``glim``, once the
-    largest reaches ``glim``."""
-    g = _gap2_after(u, u, w, P, tris, arena, su, n)
-    if g >= glim:
-        return g
+def _carried_gap2(w, P, sa, sb, n, geo, pxyz, ps, npts, tri, glim):
+    """Largest squared vertical distance, m², from the gathered points (:func:`_gather_star`) to the
+    surface after the collapse u -> w; stops early, returning a lower bound >= ``glim``, once the largest
+    reaches ``glim``.
+
+    Each point is located in the rewritten triangle (w, sa[i], sb[i]) with the largest smallest
+    barycentric coordinate of its xy (so a point on an edge, or outside by rounding, still gets one),
+    trying first the slot that carries it (where it usually stays) and stopping at the first that holds it.
+    ``tri[i]`` gets triangle i's edge vectors from w, twice its signed area (0: deleted by the collapse or
+    degenerate, never picked) and its z rises from w.
+    """
+    wx = P[w, 0]
+    wy = P[w, 1]
+    wz = P[w, 2]
     for i in range(n):
-        q = head[arena[su + i]]
-        while q >= 0:
-            d = _gap2_after(q, u, w, P, tris, arena, su, n)
-            if d > g:
-                g = d
-                if g >= glim:
-                    return g
-            q = nxt[q]
+        tri[i, 0] = geo[i, 0] - wx
+        tri[i, 1] = geo[i, 1] - wy
+        tri[i, 2] = geo[i, 3] - wx
+        tri[i, 3] = geo[i, 4] - wy
+        tri[i, 4] = 0.0 if sa[i] == w or sb[i] == w else tri[i, 0] * tri[i, 3] - tri[i, 1] * tri[i, 2]
+        tri[i, 5] = geo[i, 2] - wz
+        tri[i, 6] = geo[i, 5] - wz
+    g = 0.0
+    for j in range(npts):
+        qx = pxyz[j, 0] - wx
+        qy = pxyz[j, 1] - wy
+        # the first triangle that holds q (its own slot first), by signs alone: det·l1, det·l2 and
+        # det·(1 - l1 - l2) all >= 0 with det > 0; one division pair for the height
+        s0 = ps[j]
+        hit = -1
+        for ii in range(-1, n):
+            i = s0 if ii < 0 else ii
+            if i < 0 or (ii >= 0 and i == s0):
+                continue
+            det = tri[i, 4]
+            if not det > 0.0:
+                continue
+            n1 = qx * tri[i, 3] - qy * tri[i, 2]
+            n2 = tri[i, 0] * qy - tri[i, 1] * qx
+            if n1 >= 0.0 and n2 >= 0.0 and det - n1 - n2 >= 0.0:
+                hit = i
+                break
+        if hit >= 0:
+            det = tri[hit, 4]
+            l1 = (qx * tri[hit, 3] - qy * tri[hit, 2]) / det
+            l2 = (tri[hit, 0] * qy - tri[hit, 1] * qx) / det
+            bz = wz + l1 * tri[hit, 5] + l2 * tri[hit, 6]
+        else:
+            # outside every triangle (rounding, or a fold): the largest smallest barycentric coordinate
+            best = -np.inf
+            bz = 0.0
+            for i in range(n):
+                det = tri[i, 4]
+                if det == 0.0:
+                    continue
+                l1 = (qx * tri[i, 3] - qy * tri[i, 2]) / det
+                l2 = (tri[i, 0] * qy - tri[i, 1] * qx) / det
+                m = min(1.0 - l1 - l2, min(l1, l2))
+                if m > best:
+                    best = m
+                    bz = wz + l1 * tri[i, 5] + l2 * tri[i, 6]
+        d = pxyz[j, 2] - bz
+        d *= d
+        if j == 0 or d > g:
+            g = d
+            if g >= glim:
+                return g
+    return g
     return g
 
 
 @jit
-def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
-    """Best collapse target of u and u's minimum normalised quadric error.
-
-    Returns ``(v, cost, emin)``: with ``validate``, the ring neighbour v with the smallest cost among the
-    valid collapses (-1 and inf when none is valid); without, the cheapest neighbour untested (the caller
-    tests it when it leaves the heap). emin is the smallest normalised error over every ring neighbour,
-    valid or not (the MMQE term of u, m²). When the cheapest neighbour is still ``prev_v`` at cost
-    ``prev_c`` it is returned untested (its test is repeated when it leaves the heap anyway).
-    ``selfq[w]`` = Q_w(P_w), so a cost is one quadric evaluation: Q_u(P_w) + Q_w(P_w).
-    ``ctx`` = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight) and ``work`` = (mark, stampbox, wbuf,
-    cbuf, dbuf, qbuf) are the simplifier's state and scratch, passed as two tuples (the arena, which moves
-    when it grows, is passed on its own).
-    """
-    P, tris, Q, W, selfq, head, nxt, shape_eps, vweight = ctx
-    mark, stampbox, wbuf, cbuf, dbuf, qbuf = work
-    su = start[u]
-    n = length[u]
+def _quadric_costs(u, P, tris, Q, W, selfq, arena, su, n, wbuf, cbuf):
+    """The ring neighbours w of u (``wbuf``) and the quadric costs of u -> w (``cbuf``, m⁴); returns u's
+    minimum normalised quadric error (m², the MMQE term of u). ``selfq[w]`` = Q_w(P_w), so a cost is one
+    quadric evaluation: Q_u(P_w) + Q_w(P_w). Returns (emin, the neighbour that gives it)."""
     emin = np.inf
-    exact = not vweight > 0.0
+    ew = -1
     for i in range(n):
         w = _next_after(tris, arena[su + i], u)
         c = _quadric_at(Q, u, P[w, 0], P[w, 1], P[w, 2]) + selfq[w]  # = _collapse_cost(Q, P, u, w)
@@ -424,12 +480,37 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         e = c / (W[u] + W[w])
         if e < emin:
             emin = e
+            ew = w
         wbuf[i] = w
         cbuf[i] = c
+    return emin, ew
+
+
+@jit
+def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
+    """Best collapse target of u and u's minimum normalised quadric error.
+
+    Returns ``(v, cost, emin, ew)``: with ``validate``, the ring neighbour v with the smallest cost among the
+    valid collapses (-1 and inf when none is valid); without, the cheapest neighbour untested (the caller
+    tests it when it leaves the heap). emin is the smallest normalised error over every ring neighbour,
+    valid or not (the MMQE term of u, m²), ew the neighbour that gives it. When the cheapest neighbour is still ``prev_v`` at cost
+    ``prev_c`` it is returned untested (its test is repeated when it leaves the heap anyway).
+    ``ctx`` = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight) and ``work`` = (mark, stampbox, wbuf,
+    cbuf, dbuf, qbuf) are the simplifier's state and scratch, passed as two tuples (the arena, which moves
+    when it grows, is passed on its own).
+    """
+    P, tris, Q, W, selfq, head, nxt, shape_eps, vweight = ctx
+    mark, stampbox, wbuf, cbuf, dbuf, qbuf, sa, sb, geo, pxyz, ps, tri = work
+    su = start[u]
+    n = length[u]
+    exact = not vweight > 0.0
+    wt = vweight * W[u]
+    npts = 0
+    emin, ew = _quadric_costs(u, P, tris, Q, W, selfq, arena, su, n, wbuf, cbuf)
     if not exact:
         # cbuf: lower bounds (the quadric alone); add the vertical term in increasing bound order until the
         # next bound exceeds the best exact cost (branch and bound)
-        wt = vweight * W[u]
+        npts = _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps)
         for i in range(n):
             dbuf[i] = False
             qbuf[i] = cbuf[i]
@@ -439,7 +520,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
             if k < 0 or cbuf[k] >= best:
                 break
             glim = (best - cbuf[k]) / wt if best < np.inf and wt > 0.0 else np.inf
-            g = _carried_gap2(u, wbuf[k], P, tris, arena, su, n, head, nxt, glim)
+            g = _carried_gap2(wbuf[k], P, sa, sb, n, geo, pxyz, ps, npts, tri, glim)
             cbuf[k] += wt * g
             if g < glim:  # exact (else a bound past the best: never picked before it is made exact)
                 dbuf[k] = True
@@ -449,7 +530,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     c0 = cbuf[k0] if k0 >= 0 else np.inf
     w0 = wbuf[k0] if k0 >= 0 else -1
     if (w0 == prev_v and c0 == prev_c) or not validate:
-        return w0, c0, emin
+        return w0, c0, emin, ew
     # Candidates in increasing (cost, vertex) order until one passes the test (usually the first); a bound
     # that comes first is made exact and the order taken again.
     last_c = -np.inf
@@ -459,16 +540,14 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         if k < 0:
             break
         if not exact and not dbuf[k]:
-            cbuf[k] = qbuf[k] + vweight * W[u] * _carried_gap2(
-                u, wbuf[k], P, tris, arena, su, n, head, nxt, np.inf
-            )
+            cbuf[k] = qbuf[k] + wt * _carried_gap2(wbuf[k], P, sa, sb, n, geo, pxyz, ps, npts, tri, np.inf)
             dbuf[k] = True
             continue
         if _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
-            return wbuf[k], cbuf[k], emin
+            return wbuf[k], cbuf[k], emin, ew
         last_c = cbuf[k]
         last_w = wbuf[k]
-    return -1, np.inf, emin
+    return -1, np.inf, emin, ew
 
 
 @jit
@@ -544,6 +623,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         selfq[w] = _quadric_at(Q, w, P[w, 0], P[w, 1], P[w, 2])
     mark = np.zeros(n_v, np.int64)  # stamps of the link test
     seen = np.zeros(n_v, np.int64)  # collapse number + 1 of the last ring visit
+    nearu = np.zeros(n_v, np.int64)  # collapse number + 1 when in ring(u) of that collapse
     stampbox = np.zeros(1, np.int64)
     wbuf = np.empty(n_v, np.int64)
     cbuf = np.empty(n_v, np.float64)
@@ -553,7 +633,13 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     dbuf = np.zeros(n_v, np.bool_)
     qbuf = np.zeros(n_v, np.float64)
     ctx = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight)  # what _evaluate reads
-    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf)  # its scratch
+    sa = np.empty(n_v, np.int64)  # star(u) as fans (u, sa[i], sb[i]), gathered for the vertical term
+    sb = np.empty(n_v, np.int64)
+    geo = np.empty((n_v, 6), np.float64)
+    pxyz = np.empty((n_v, 3), np.float64)  # points re-measured by the vertical term, their star slot
+    ps = np.empty(n_v, np.int64)
+    tri = np.empty((n_v, 7), np.float64)
+    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf, sa, sb, geo, pxyz, ps, tri)  # its scratch
 
     count = np.zeros(n_b, np.int64)  # live triangles per block
     for t in range(tris.shape[0]):
@@ -564,6 +650,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     best = np.full(n_v, -1, np.int64)  # best valid target (-1: none)
     bestc = np.full(n_v, np.inf)  # its cost, m⁴
     emin = np.zeros(n_v, np.float64)
+    eminw = np.full(n_v, -1, np.int64)  # the neighbour that gives emin
     esum = np.zeros(n_b, np.float64)  # Σ emin over the block's live FREE vertices
     ecnt = np.zeros(n_b, np.int64)
 
@@ -574,7 +661,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     for u in range(n_v):
         if kind[u] != FREE or length[u] == 0:
             continue
-        v, c, e = _evaluate(u, -1, np.inf, True, arena, start, length, ctx, work)
+        v, c, e, eminw[u] = _evaluate(u, -1, np.inf, True, arena, start, length, ctx, work)
         b = vert_block[u]
         emin[u] = e
         esum[b] += e
@@ -616,7 +703,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         v = best[u]
         if not _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
             # The neighbourhood changed since u was evaluated: evaluate again, requeue.
-            v2, c2, e2 = _evaluate(u, -1, np.inf, True, arena, start, length, ctx, work)
+            v2, c2, e2, eminw[u] = _evaluate(u, -1, np.inf, True, arena, start, length, ctx, work)
             esum[b] += e2 - emin[u]
             emin[u] = e2
             best[u] = v2
@@ -634,6 +721,8 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
             rep_new = _grow_rows(rep_new, need)
         nd = 2 * nc
         su = start[u]
+        for i in range(length[u]):
+            nearu[_next_after(tris, arena[su + i], u)] = nc + 1  # ring(u): their stars change
         npb = 0
         if vweight > 0.0:
             pbuf[0] = u
@@ -711,8 +800,26 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                 if kind[x] != FREE or removed[x] or seen[x] == nc + 1:
                     continue
                 seen[x] = nc + 1
-                vx, cx, ex = _evaluate(x, best[x], bestc[x], False, arena, start, length, ctx, work)
                 bx = vert_block[x]
+                if x != v and nearu[x] != nc + 1 and best[x] != v:
+                    # star(x) and what its slots carry did not change, only Q_v grew: x -> v got dearer,
+                    # the other costs stand, so x's best collapse stands (and a collapse of x that was
+                    # invalid stays so: v's ring only grew); only x's MMQE term moves, through x -> v alone
+                    # unless that was its minimum
+                    if eminw[x] == v:
+                        ex, eminw[x] = _quadric_costs(
+                            x, P, tris, Q, W, selfq, arena, start[x], length[x], wbuf, cbuf
+                        )
+                    else:
+                        ex = _collapse_cost(Q, P, x, v) / (W[x] + W[v])
+                        if ex < emin[x]:
+                            eminw[x] = v
+                        else:
+                            ex = emin[x]
+                    esum[bx] += ex - emin[x]
+                    emin[x] = ex
+                    continue
+                vx, cx, ex, eminw[x] = _evaluate(x, best[x], bestc[x], False, arena, start, length, ctx, work)
                 esum[bx] += ex - emin[x]
                 emin[x] = ex
                 if vx == best[x] and cx == bestc[x]:
