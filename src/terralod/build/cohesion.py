@@ -93,12 +93,13 @@ import numpy as np
 from scipy import ndimage
 
 from terralod.build import chunked
-from terralod.error import measure_error_window
+from terralod.error import ErrorReport, measure_error_window
 from terralod.kernels.cohesion import (
     WEIGHT_ERROR,
     WEIGHT_FEATURE,
     assemble,
     assemble_diagonals,
+    grid_error_bound,
     measure_quads,
     refine_edge_max_error,
     refine_max_error,
@@ -334,12 +335,27 @@ def mesh_tile_with(
     def mesh(pv, pu, sxy):  # the tile on the full source
         return assemble(zf, vf, feat_f, pv, pu, keep, r0, c0, opt.snap, sxy)[:4]
 
-    # candidates: the unrelocated grid (same side vertices; without sliding exactly the Chunked-LOD tile),
-    # then one relocation per metric; the fallback keeps the first of smallest measured Hausdorff error
-    if not opt.slide_boundary:
-        cands = [chunked.mesh_tile(z, valid, pyramid, code)]
-    else:
-        cands = [mesh(base_v * f, base_u * f, np.zeros(2))]
+    # candidates: the unrelocated grid (same side vertices, diagonals by vertical error; without sliding
+    # exactly the Chunked-LOD tile), then one relocation per metric; the fallback keeps the first of smallest
+    # measured Hausdorff error. The grid is only built and measured when a relocated tile might not beat it:
+    # its Hausdorff error is at least v / sqrt(1 + L^2), v a lower bound of its largest vertical error (from
+    # the work window) and L its steepest slope (a sample dz off a surface z = f(x, y) with |grad f| <= L is
+    # at least |dz| / sqrt(1 + L^2) from it), and a tile's Hausdorff error is at most its vertical error.
+    grid_bound_m = 0.0
+    if opt.slide_boundary and opt.fallback:
+        scale = np.array([1.0 / (f * spacing_m[0]), 1.0 / (f * spacing_m[1])])
+        v_lb, slope2 = grid_error_bound(zw, vw, base_v, base_u, keep, scale)
+        grid_bound_m = v_lb / np.sqrt(1.0 + slope2) * (1.0 - 1e-9) - 1e-9
+
+    def grid_mesh():
+        if not opt.slide_boundary:
+            return chunked.mesh_tile(z, valid, pyramid, code)
+        gv, gu = base_v * f, base_u * f
+        grid = _quad_state(m)
+        measure_quads(zf, vf, gv, gu, keep, opt.snap, np.zeros(2), *grid)
+        return assemble_diagonals(zf, gv, gu, keep, grid[3], r0, c0, opt.snap)
+
+    cands = []
     for sxy in metrics:
         pv, pu = base_v.copy(), base_u.copy()
         relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, sd, opt.snap, opt.iterations, opt.alpha,
@@ -367,9 +383,14 @@ def mesh_tile_with(
             zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, opt.escape, focus, pairs, *state
         ):
             cands.append(assemble_diagonals(zf, pv, pu, keep, state[3], r0, c0, opt.snap))
-    if not opt.fallback or len(cands) == 1:
+    if not opt.fallback:
         return cands[-1]
-    errs = [_hausdorff(c, z, valid, r0, c0, span, spacing_m) for c in cands]
+    reports = [_measure(c, z, valid, r0, c0, span, spacing_m) for c in cands]
+    errs = [r.hausdorff_m for r in reports]
+    if min(r.max_vertical_m for r in reports) < grid_bound_m:  # the grid cannot win
+        return cands[int(np.argmin(errs))]
+    cands.insert(0, grid_mesh())
+    errs.insert(0, _measure(cands[0], z, valid, r0, c0, span, spacing_m).hausdorff_m)
     return cands[int(np.argmin(errs))]
 
 
@@ -380,8 +401,9 @@ def _quad_state(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
             np.zeros((cells, cells), np.int8))  # fmt: skip
 
 
-def _hausdorff(mesh, z, valid, r0: int, c0: int, span: int, spacing_m: tuple[float, float]) -> float:
-    """Measured one-sided Hausdorff error (metres) of a tile mesh, in the builder's window frame."""
+def _measure(mesh, z, valid, r0: int, c0: int, span: int, spacing_m: tuple[float, float]) -> ErrorReport:
+    """Measured error (one-sided Hausdorff and vertical, metres) of a tile mesh, in the builder's window
+    frame."""
     rows, cols, hz, tris = mesh
     h, w = z.shape
     dx, dy = spacing_m
@@ -389,7 +411,7 @@ def _hausdorff(mesh, z, valid, r0: int, c0: int, span: int, spacing_m: tuple[flo
     c1 = min(c0 + span, w - 1)
     local = np.stack([(cols - c0) * dx, (rows - r0) * dy, hz], axis=1)
     win = (slice(r0, r1 + 1), slice(c0, c1 + 1))
-    return measure_error_window(local, tris, z[win], valid[win], dx, dy).hausdorff_m
+    return measure_error_window(local, tris, z[win], valid[win], dx, dy)
 
 
 def make_mesher(**options):

@@ -101,13 +101,69 @@ def diagonal_ok(pv, pu, i, j, diag, min_area2):
 
 
 @jit
-def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl, sxy):
+def _integral(va, ua, vb, ub, vc, uc, vd, ud):
+    """All four corners on the sample lattice."""
+    return (va == np.floor(va) and ua == np.floor(ua) and vb == np.floor(vb) and ub == np.floor(ub)
+            and vc == np.floor(vc) and uc == np.floor(uc) and vd == np.floor(vd) and ud == np.floor(ud))  # fmt: skip
+
+
+@jit
+def _int_edge(vp, up, vq, uq, g, r, lo, hi):
+    """Columns c of [lo, hi] on row r where g * _side(p, q, r, c) <= 0 (integer corners: exact)."""
+    dv = int(vq - vp)
+    a = int(uq - up) * (r - int(vp))  # _side = a - dv * (c - up)
+    if dv == 0:
+        if g * a <= 0:
+            return lo, hi
+        return lo, lo - 1
+    if g * dv > 0:  # dv (c - up) >= a (g > 0) or <= a (g < 0, dv < 0): c >= up + ceil(a / dv)
+        return max(lo, int(up) - ((-a) // dv)), hi
+    return lo, min(hi, int(up) + a // dv)  # c <= up + floor(a / dv)
+
+
+@jit
+def _int_cols(v0, u0, v1, u1, g0, v2, u2, v3, u3, g1, v4, u4, v5, u5, g2, r, lo, hi, ok):
+    """Columns of row r in [lo, hi] passing the three edge tests (p -> q, sign g) of one triangle of
+    :func:`_quad_eval2` (integer corners); (lo, lo - 1) when none or ``ok`` is False."""
+    if not ok:
+        return lo, lo - 1
+    lo, hi = _int_edge(v0, u0, v1, u1, g0, r, lo, hi)
+    lo, hi = _int_edge(v2, u2, v3, u3, g1, r, lo, hi)
+    lo, hi = _int_edge(v4, u4, v5, u5, g2, r, lo, hi)
+    if lo > hi:
+        return lo, lo - 1
+    return lo, hi
+
+
+@jit
+def _run(zw, vw, feat, mode, r, lo, hi, p0, p1, p2, nk, mx, ar, ac, sm, w, wv, wu):
+    """Add the samples of row r, columns lo..hi, to the accumulators of one diagonal (see _quad_eval2)."""
+    for c in range(lo, hi + 1):
+        if not vw[r, c]:
+            continue
+        e = abs(zw[r, c] - (p0 + p1 * c + p2 * r)) * nk
+        if e > mx:
+            mx = e
+            ar = r
+            ac = c
+        sm += e
+        wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+        w += wk
+        wv += wk * r
+        wu += wk * c
+    return mx, ar, ac, sm, w, wv, wu
+
+
+@jit
+def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl, sxy, bound):
     """Errors and attraction moments of quad (i, j) for both diagonals in one pass over its samples.
 
     ``acc0`` (diagonal a-d) and ``acc1`` (diagonal b-c) get [max |err|, sum |err|, W, W*v, W*u, row of max,
     col of max, valid] with W = err^2 (mode WEIGHT_ERROR) or feat (WEIGHT_FEATURE), over the samples of the
     diagonal's two (closed) triangles; a diagonal whose triangles are not both counter-clockwise (the quad is
     not convex) is marked invalid (acc[7] = 0) and gets max = inf. ``pl`` is (4, 3) scratch for the planes.
+    The scan stops after a row where both diagonals' max already reach ``bound`` (the sums and moments are
+    then partial: callers give a finite bound only to reject the quad; np.inf for the full measure).
     """
     for k in range(8):
         acc0[k] = 0.0
@@ -157,6 +213,33 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
     p10, p11, p12 = pl[1, 0], pl[1, 1], pl[1, 2]
     p20, p21, p22 = pl[2, 0], pl[2, 1], pl[2, 2]
     p30, p31, p32 = pl[3, 0], pl[3, 1], pl[3, 2]
+    if chi - clo >= 12 and sc < 0.5 and _integral(va, ua, vb, ub, vc, uc, vd, ud):
+        # lattice corners (snapped positions): every _side is an exact integer, so each triangle's samples
+        # on a row are one interval found by integer division, and the loops below visit exactly the samples
+        # the tests further down accept, in the same order (bit-identical results, without the 6 tests)
+        for r in range(rlo, rhi + 1):
+            # triangle a-c-d: s_ac <= 0, s_cd <= 0, s_ad >= 0; a-d-b: s_ad, s_db, s_ba <= 0
+            l0, h0 = _int_cols(va, ua, vc, uc, 1, vc, uc, vd, ud, 1, va, ua, vd, ud, -1, r, clo, chi, ok0)
+            l1, h1 = _int_cols(va, ua, vd, ud, 1, vd, ud, vb, ub, 1, vb, ub, va, ua, 1, r, clo, chi, ok0)
+            # triangle a-c-b: s_ac <= 0, s_bc >= 0, s_ba <= 0; b-c-d: s_bc, s_cd, s_db <= 0
+            l2, h2 = _int_cols(va, ua, vc, uc, 1, vb, ub, vc, uc, -1, vb, ub, va, ua, 1, r, clo, chi, ok1)
+            l3, h3 = _int_cols(vb, ub, vc, uc, 1, vc, uc, vd, ud, 1, vd, ud, vb, ub, 1, r, clo, chi, ok1)
+            # diagonal a-d: the first triangle wins a shared sample, columns in increasing order
+            mx0, ar0, ac0, sm0, w0, wv0, wu0 = _run(zw, vw, feat, mode, r, l1, min(h1, l0 - 1), p10, p11, p12, n1,
+                                                    mx0, ar0, ac0, sm0, w0, wv0, wu0)  # fmt: skip
+            mx0, ar0, ac0, sm0, w0, wv0, wu0 = _run(zw, vw, feat, mode, r, l0, h0, p00, p01, p02, n0,
+                                                    mx0, ar0, ac0, sm0, w0, wv0, wu0)  # fmt: skip
+            mx0, ar0, ac0, sm0, w0, wv0, wu0 = _run(zw, vw, feat, mode, r, max(l1, h0 + 1), h1, p10, p11, p12, n1,
+                                                    mx0, ar0, ac0, sm0, w0, wv0, wu0)  # fmt: skip
+            mx1, ar1, ac1, sm1, w1, wv1, wu1 = _run(zw, vw, feat, mode, r, l3, min(h3, l2 - 1), p30, p31, p32, n3,
+                                                    mx1, ar1, ac1, sm1, w1, wv1, wu1)  # fmt: skip
+            mx1, ar1, ac1, sm1, w1, wv1, wu1 = _run(zw, vw, feat, mode, r, l2, h2, p20, p21, p22, n2,
+                                                    mx1, ar1, ac1, sm1, w1, wv1, wu1)  # fmt: skip
+            mx1, ar1, ac1, sm1, w1, wv1, wu1 = _run(zw, vw, feat, mode, r, max(l3, h2 + 1), h3, p30, p31, p32, n3,
+                                                    mx1, ar1, ac1, sm1, w1, wv1, wu1)  # fmt: skip
+            if (mx0 >= bound or not ok0) and (mx1 >= bound or not ok1):
+                break  # both diagonals already at the bound: the caller rejects the quad
+        rlo = rhi + 1  # done: skip the per-sample tests
     for r in range(rlo, rhi + 1):
         for c in range(clo, chi + 1):
             if not vw[r, c]:
@@ -210,6 +293,8 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
                 w1 += wk
                 wv1 += wk * r
                 wu1 += wk * c
+        if (mx0 >= bound or not ok0) and (mx1 >= bound or not ok1):
+            break
     acc0[0], acc0[1], acc0[2], acc0[3], acc0[4], acc0[5], acc0[6] = mx0, sm0, w0, wv0, wu0, ar0, ac0
     acc1[0], acc1[1], acc1[2], acc1[3], acc1[4], acc1[5], acc1[6] = mx1, sm1, w1, wv1, wu1, ar1, ac1
     if not ok0:
@@ -221,7 +306,17 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
 @jit
 def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments, sxy):
     """Per kept quad: the valid diagonal (both triangles counter-clockwise) of smaller max |vertical error|
-    (ties: smaller sum, then diagonal 0), its max error ``qmax`` and its attraction moments ``moments[i, j] = (W, W*v, W*u)``. Returns the tile max."""
+    (ties: smaller sum, then diagonal 0), its max error ``qmax`` and its attraction moments
+    ``moments[i, j] = (W, W*v, W*u)``. Returns the tile max."""
+    m = pv.shape[0]
+    return choose_diagonals_moved(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments, sxy,
+                                  np.ones((m, m), np.bool_))  # fmt: skip
+
+
+@jit
+def choose_diagonals_moved(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments, sxy, moved):
+    """:func:`choose_diagonals` for the kept quads with a corner marked in ``moved`` (m, m) only; the others
+    keep their entries (a quad depends on its 4 corners alone). Returns the max over the quads redone."""
     cells = keep.shape[0]
     a0 = np.zeros(8, np.float64)
     a1 = np.zeros(8, np.float64)
@@ -230,9 +325,11 @@ def choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, moments, 
     pl = np.empty((4, 3), np.float64)
     for i in range(cells):
         for j in range(cells):
-            if not keep[i, j]:
+            if not keep[i, j] or not (
+                moved[i, j] or moved[i, j + 1] or moved[i + 1, j] or moved[i + 1, j + 1]
+            ):
                 continue
-            _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy)
+            _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy, np.inf)
             use1 = a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1])
             best = a1 if use1 else a0
             diag[i, j] = 1 if use1 else 0
@@ -426,11 +523,15 @@ def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, a
     qmax = np.zeros((cells, cells), np.float64)
     mom = np.zeros((cells, cells, 3), np.float64)
     min_turn = 1e-6 * s * s
+    # vertices moved by the last sweep: only the quads around them are measured again (all at first)
+    changed = np.ones((m, m), np.bool_)
     for _ in range(n_iter):
         for i in range(m):
             for j in range(m):
-                hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
-        choose_diagonals(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, mom, sxy)
+                if changed[i, j]:
+                    hz[i, j] = height_at(zw, pv[i, j], pu[i, j], snap)
+        choose_diagonals_moved(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, mom, sxy, changed)
+        changed[:, :] = False
         moved = 0
         for i in range(1, m - 1):
             for j in range(1, m - 1):
@@ -463,6 +564,7 @@ def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, a
                         break
                     if _try_at(pv, pu, i, j, nv, nu, cells, min_turn):
                         moved += 1
+                        changed[i, j] = True
                         break
                     pv[i, j] = p_v
                     pu[i, j] = p_u
@@ -559,9 +661,9 @@ def _move(zw, pv, pu, hz, i, j, v, u, snap):
 
 
 @jit
-def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy):
+def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy, bound):
     """(max |err|, worst row, worst col, diagonal) of quad (i, j) with its better diagonal."""
-    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy)
+    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy, bound)
     if a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1]):
         return a1[0], a1[5], a1[6], 1
     return a0[0], a0[5], a0[6], 0
@@ -590,11 +692,44 @@ def measure_quads(zw, vw, pv, pu, keep, snap, sxy, qmax, wr, wc, diag):
             wc[i, j] = 0.0
             diag[i, j] = 0
             if keep[i, j]:
-                e, r, c, d = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy)
+                e, r, c, d = _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy, np.inf)
                 qmax[i, j] = e
                 wr[i, j] = r
                 wc[i, j] = c
                 diag[i, j] = d
+
+
+@jit
+def grid_error_bound(zw, vw, pv, pu, keep, grad_scale):
+    """(v_lb, slope2) of the mesh of positions (pv, pu) whatever its diagonals: v_lb, a lower bound of its
+    largest vertical error over the window's samples (per kept quad the smaller of its two diagonals' max,
+    so a window of every f-th source sample bounds the error on the full source), and slope2 the largest
+    |grad z|^2 of its possible triangles (both diagonals), with the gradient scaled per axis by
+    ``grad_scale`` (1 / metres per window sample: metres per metre)."""
+    m = pv.shape[0]
+    cells = m - 1
+    feat = np.zeros((1, 1), np.float64)
+    hz = np.empty((m, m), np.float64)
+    for i in range(m):
+        for j in range(m):
+            hz[i, j] = height_at(zw, pv[i, j], pu[i, j], True)
+    a0 = np.zeros(8, np.float64)
+    a1 = np.zeros(8, np.float64)
+    pl = np.empty((4, 3), np.float64)
+    min_area2 = _min_area2(pv)
+    v_lb = 0.0
+    slope2 = 0.0
+    for i in range(cells):
+        for j in range(cells):
+            if not keep[i, j]:
+                continue
+            _quad_eval2(
+                zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl, np.zeros(2), np.inf
+            )
+            v_lb = max(v_lb, min(a0[0], a1[0]))
+            for k in range(4):
+                slope2 = max(slope2, (pl[k, 1] * grad_scale[0]) ** 2 + (pl[k, 2] * grad_scale[1]) ** 2)
+    return v_lb, slope2
 
 
 @jit
@@ -746,7 +881,9 @@ def refine_max_error(
                     qi = vi + ei
                     qj = vj + ej
                     if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-                        e, r, c, d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
+                        e, r, c, d = _best_quad(
+                            zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy, np.inf
+                        )
                         qmax[qi, qj] = e
                         wr[qi, qj] = r
                         wc[qi, qj] = c
@@ -817,7 +954,9 @@ def _part_max(
     for qi in range(max(min(ai, ci) - 1, 0), min(max(ai, ci), cells - 1) + 1):
         for qj in range(max(min(aj, cj) - 1, 0), min(max(aj, cj), cells - 1) + 1):
             if keep[qi, qj] and _has(qi, qj, ai, aj) == with_a and _has(qi, qj, ci, cj) == with_c:
-                e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
+                e, _r, _c, _d = _best_quad(
+                    zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy, bound
+                )
                 if e > loc:
                     loc = e
                     if loc >= bound:
@@ -933,7 +1072,7 @@ def _local_max(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, a0, a1, pl
         if loc >= bound:
             break
         if 0 <= qi < cells and 0 <= qj < cells and keep[qi, qj]:
-            e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy)
+            e, _r, _c, _d = _best_quad(zw, vw, feat, pv, pu, hz, qi, qj, a0, a1, pl, min_area2, sxy, bound)
             if e > loc:
                 loc = e
     return loc
