@@ -236,7 +236,7 @@ class Increments:
         self.mmqe_m2 = np.ascontiguousarray(mmqe_m2, np.float64)
         self.rank = np.ascontiguousarray(rank, np.int64)
         self.step = int(step)
-        #: raw records only: the split each makes (v into v and u; wing rank w), the file's content
+        #: raw records only: the split each makes (v into v and u; wing rank w among v's neighbours)
         self.rec_u = None if rec_u is None else np.ascontiguousarray(rec_u, np.int32)
         self.rec_v = None if rec_v is None else np.ascontiguousarray(rec_v, np.int32)
         self.rec_w = None if rec_w is None else np.ascontiguousarray(rec_w, np.int32)
@@ -357,7 +357,7 @@ class Increments:
         *,
         source: str | None = None,
     ) -> tuple[Increments, np.ndarray, np.ndarray]:
-        """Raw records from the compact vertex splits (what a file stores), by replaying them from the base.
+        """Raw records from the compact vertex splits (what a file decodes to), by replaying them from the base.
 
         Parameters
         ----------
