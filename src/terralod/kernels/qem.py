@@ -65,7 +65,7 @@ evaluation would have re-queued an invalid collapse.
 MMQE (§2.1): per sub-block, the mean over its alive FREE vertices of their minimum (normalised) quadric
 error over all ring neighbours; kept as a running sum updated on every re-evaluation.
 
-Memory: quadrics 88 bytes a vertex, arena ~ 3 int32 a triangle (x 1.5 slack), heap 16 bytes an entry,
+Memory: quadrics 88 bytes a vertex, arena ~ 3 int32 a triangle (x 1.5 slack), heap 24 bytes a vertex,
 records ~ 2 deleted + ~4 replaced slots a collapse.
 """
 
@@ -268,58 +268,66 @@ def _collapse_cost(Q, P, u, v):
     return c if c > 0.0 else 0.0
 
 
-# -- min-heap of (cost, vertex, version) with lazy deletion -------------------------------------------
-# Entries are a float64 key and one int64 packing (vertex << 32 | version): two arrays to move, ties
-# broken by vertex then version (deterministic).
+# -- indexed min-heap of (cost, vertex): one entry per vertex ----------------------------------------------
+# hk[i], hv[i]: key and vertex of heap node i; hpos[v]: v's node (-1: not queued). Ties broken by vertex
+# (deterministic). A vertex whose best collapse changes moves in place (no stale entries to pop), so the
+# heap never holds more than the FREE vertices.
 @jit
-def _heap_push(hk, he, size, key, entry):
-    i = size
+def _before(k1, v1, k2, v2):
+    """(k1, v1) < (k2, v2): by key, then by vertex."""
+    return k1 < k2 or (k1 == k2 and v1 < v2)
+
+
+@jit
+def _heap_place(hk, hv, hpos, i, key, v, size):
+    """Put (key, v) at node i (a hole in a heap of ``size`` nodes) and sift it up or down to its place."""
     while i > 0:
         p = (i - 1) >> 1
-        if key < hk[p] or (key == hk[p] and entry < he[p]):
-            hk[i] = hk[p]
-            he[i] = he[p]
-            i = p
-        else:
+        if not _before(key, v, hk[p], hv[p]):
             break
+        hk[i] = hk[p]
+        hv[i] = hv[p]
+        hpos[hv[i]] = i
+        i = p
+    while True:
+        m = 2 * i + 1
+        if m >= size:
+            break
+        if m + 1 < size and _before(hk[m + 1], hv[m + 1], hk[m], hv[m]):
+            m += 1
+        if not _before(hk[m], hv[m], key, v):
+            break
+        hk[i] = hk[m]
+        hv[i] = hv[m]
+        hpos[hv[i]] = i
+        i = m
     hk[i] = key
-    he[i] = entry
-    return size + 1
+    hv[i] = v
+    hpos[v] = i
 
 
 @jit
-def _heap_pop(hk, he, size):
-    """Remove the root (read it before calling); returns the new size."""
-    size -= 1
-    key = hk[size]
-    entry = he[size]
-    i = 0
-    while True:
-        l = 2 * i + 1
-        if l >= size:
-            break
-        m = l
-        r = l + 1
-        if r < size and (hk[r] < hk[l] or (hk[r] == hk[l] and he[r] < he[l])):
-            m = r
-        if hk[m] < key or (hk[m] == key and he[m] < entry):
-            hk[i] = hk[m]
-            he[i] = he[m]
-            i = m
-        else:
-            break
-    hk[i] = key
-    he[i] = entry
+def _heap_set(hk, hv, hpos, size, key, v):
+    """Queue v at ``key``, or move it there when queued; returns the new size."""
+    i = hpos[v]
+    if i < 0:
+        _heap_place(hk, hv, hpos, size, key, v, size + 1)
+        return size + 1
+    _heap_place(hk, hv, hpos, i, key, v, size)
     return size
 
 
 @jit
-def _heap_push_grown(hk, he, size, key, entry):
-    """:func:`_heap_push`, doubling the heap's arrays first when full; returns (hk, he, size)."""
-    if size >= hk.shape[0]:
-        hk = _grow(hk, size + 1)
-        he = _grow(he, size + 1)
-    return hk, he, _heap_push(hk, he, size, key, entry)
+def _heap_remove(hk, hv, hpos, size, v):
+    """Unqueue v (no-op when not queued); returns the new size."""
+    i = hpos[v]
+    if i < 0:
+        return size
+    hpos[v] = -1
+    size -= 1
+    if i < size:
+        _heap_place(hk, hv, hpos, i, hk[size], hv[size], size)
+    return size
 
 
 # -- collapse test and evaluation ------------------------------------------------------------------------
@@ -500,7 +508,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     when it grows, is passed on its own).
     """
     P, tris, Q, W, selfq, head, nxt, shape_eps, vweight = ctx
-    mark, stampbox, wbuf, cbuf, dbuf, qbuf, sa, sb, geo, pxyz, ps, tri = work
+    mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, tri = work
     su = start[u]
     n = length[u]
     exact = not vweight > 0.0
@@ -514,10 +522,19 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         for i in range(n):
             dbuf[i] = False
             qbuf[i] = cbuf[i]
+            # obuf[:i+1]: candidates by increasing (bound, vertex) (insertion sort: a ring is small); a
+            # candidate made exact, or found past the best, never comes before the next bound
+            j = i
+            while j > 0 and (
+                cbuf[obuf[j - 1]] > cbuf[i] or (cbuf[obuf[j - 1]] == cbuf[i] and wbuf[obuf[j - 1]] > wbuf[i])
+            ):
+                obuf[j] = obuf[j - 1]
+                j -= 1
+            obuf[j] = i
         best = np.inf
-        for _ in range(n):
-            k = _cheapest(cbuf, wbuf, n, -np.inf, -1, dbuf, True)
-            if k < 0 or cbuf[k] >= best:
+        for o in range(n):
+            k = obuf[o]
+            if cbuf[k] >= best:
                 break
             glim = (best - cbuf[k]) / wt if best < np.inf and wt > 0.0 else np.inf
             g = _carried_gap2(wbuf[k], P, sa, sb, n, geo, pxyz, ps, npts, tri, glim)
@@ -639,14 +656,14 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     pxyz = np.empty((n_v, 3), np.float64)  # points re-measured by the vertical term, their star slot
     ps = np.empty(n_v, np.int64)
     tri = np.empty((n_v, 7), np.float64)
-    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf, sa, sb, geo, pxyz, ps, tri)  # its scratch
+    obuf = np.empty(n_v, np.int64)  # candidates in increasing bound order
+    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, tri)  # its scratch
 
     count = np.zeros(n_b, np.int64)  # live triangles per block
     for t in range(tris.shape[0]):
         if alive[t]:
             count[tri_block[t]] += 1
     removed = np.zeros(n_v, np.bool_)
-    version = np.zeros(n_v, np.int64)
     best = np.full(n_v, -1, np.int64)  # best valid target (-1: none)
     bestc = np.full(n_v, np.inf)  # its cost, m⁴
     emin = np.zeros(n_v, np.float64)
@@ -655,8 +672,9 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     ecnt = np.zeros(n_b, np.int64)
 
     # Heap of every FREE vertex's best collapse.
-    hk = np.empty(2 * n_v + 16, np.float64)
-    he = np.empty(2 * n_v + 16, np.int64)
+    hk = np.empty(n_v, np.float64)
+    hv = np.empty(n_v, np.int64)
+    hpos = np.full(n_v, -1, np.int64)
     hsize = 0
     for u in range(n_v):
         if kind[u] != FREE or length[u] == 0:
@@ -669,7 +687,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         best[u] = v
         bestc[u] = c
         if v >= 0:
-            hsize = _heap_push(hk, he, hsize, c, (u << 32) | version[u])
+            hsize = _heap_set(hk, hv, hpos, hsize, c, u)
     mmqe0 = np.zeros(n_b, np.float64)
     for b in range(n_b):
         mmqe0[b] = esum[b] / ecnt[b] if ecnt[b] > 0 else 0.0
@@ -692,11 +710,8 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
 
     while hsize > 0:
         cost = hk[0]
-        u = he[0] >> 32
-        stamp = he[0] & 0xFFFFFFFF
-        hsize = _heap_pop(hk, he, hsize)
-        if removed[u] or stamp != version[u]:
-            continue  # stale entry
+        u = hv[0]
+        hsize = _heap_remove(hk, hv, hpos, hsize, u)
         b = vert_block[u]
         if count[b] <= target[b]:
             continue  # this block is done
@@ -708,9 +723,8 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
             emin[u] = e2
             best[u] = v2
             bestc[u] = c2
-            version[u] += 1
             if v2 >= 0:
-                hk, he, hsize = _heap_push_grown(hk, he, hsize, c2, (u << 32) | version[u])
+                hsize = _heap_set(hk, hv, hpos, hsize, c2, u)
             continue
 
         # -- perform the collapse u → v --------------------------------------------------------------
@@ -826,9 +840,10 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                     continue  # same best collapse: its heap entry stands
                 best[x] = vx
                 bestc[x] = cx
-                version[x] += 1
                 if vx >= 0:
-                    hk, he, hsize = _heap_push_grown(hk, he, hsize, cx, (x << 32) | version[x])
+                    hsize = _heap_set(hk, hv, hpos, hsize, cx, x)
+                else:
+                    hsize = _heap_remove(hk, hv, hpos, hsize, x)
         cu[nc] = u
         cv[nc] = v
         cblock[nc] = b
