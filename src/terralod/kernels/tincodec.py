@@ -10,7 +10,9 @@ position is in the file before the records, so the coder predicts from geometry 
 paper's table 1 are in :mod:`terralod.tin.increments`)::
 
     u   its rank among the vertices its sub-block has still to insert (a label per vertex says which
-        sub-block inserts it): about log2(n_b / e) bits instead of log2(V);
+        sub-block inserts it), ordered by their vertical distance to the current surface, largest first
+        (half-octave buckets, ties in insertion order): refinement puts back the vertices the coarse
+        surface misses most, so ranks are small (the Puget crop: 11.1 bits a record, 12.1 by index);
     v   u lies in the fan's region, so the current triangle T that holds u's xy (found by a walk from the
         previous record's triangle) has v as a corner: v is T's corner 0, 1 or 2 by distance to u
         (nearest first), 3 = escape (v and x1 stored as they are);
@@ -18,10 +20,16 @@ paper's table 1 are in :mod:`terralod.tin.increments`)::
         order), gives x1; m stays as it is.
 
 Coordinates are integers (xy scaled to [0, 2^26]) so the walk's orientation tests are exact and the
-encoder and decoder take the same path on every machine.
+encoder and decoder take the same path on every machine; an error's bucket comes from ``frexp`` and one
+comparison, not from a libm logarithm. Each candidate (vertex still to insert) sits in the list of the
+slot holding its xy; a split re-files the candidates of the slots it moved among its m + 2 triangles.
+Per bucket, a Fenwick tree over chunks of the insertion order counts candidates (N_BUCKETS / CHUNK
+counters a vertex).
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -147,9 +155,115 @@ def _fen_find(tree, k):
     return pos
 
 
+#: error buckets: 0 for errors below 2^-16 m, then two a octave (1 … 63)
+N_BUCKETS = 64
+_SQRT_HALF = 0.7071067811865476
+
+
 @jit
-def split_codes(encode, qxy, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec_u, rec_v, rec_x, rec_m,
-                sym_u, sym_v, sym_j, esc_v, esc_x):
+def _bucket(e):
+    """Half-octave bucket of a vertical error e >= 0, metres (exact: frexp and one comparison)."""
+    if not e >= 2.0**-16:
+        return 0
+    mant, ex = math.frexp(e)  # e = mant * 2^ex, mant in [0.5, 1)
+    k = 2 * (ex + 15) + (1 if mant >= _SQRT_HALF else 0)
+    return min(max(k, 1), N_BUCKETS - 1)
+
+
+@jit
+def _bary(qxy, tris, t, px, py):
+    """Twice the areas opposite each corner of slot t for point p, and twice t's area (exact integers)."""
+    a = tris[t, 0]
+    b = tris[t, 1]
+    c = tris[t, 2]
+    wa = _orient(qxy, b, c, px, py)
+    wb = _orient(qxy, c, a, px, py)
+    wc = _orient(qxy, a, b, px, py)
+    return wa, wb, wc, wa + wb + wc
+
+
+@jit
+def _error_bucket(qxy, z, tris, t, w):
+    """Bucket of vertex w's vertical distance to slot t's plane (0 when t is degenerate)."""
+    wa, wb, wc, det = _bary(qxy, tris, t, qxy[w, 0], qxy[w, 1])
+    if det <= 0:
+        return 0
+    zp = (z[tris[t, 0]] * float(wa) + z[tris[t, 1]] * float(wb) + z[tris[t, 2]] * float(wc)) / float(det)
+    return _bucket(abs(z[w] - zp))
+
+
+#: positions per chunk of the per-bucket counts (memory: N_BUCKETS / CHUNK counters a vertex)
+CHUNK = 64
+
+
+@jit
+def _set_bucket(fen, cnt, label, vpos, cbucket, w, k):
+    """Move candidate w to bucket k (-1: out of every bucket)."""
+    old = cbucket[w]
+    if old == k:
+        return
+    if old >= 0:
+        _fen_add(fen[old], vpos[w] // CHUNK, -1)
+        cnt[label[w], old] -= 1
+    if k >= 0:
+        _fen_add(fen[k], vpos[w] // CHUNK, 1)
+        cnt[label[w], k] += 1
+    cbucket[w] = k
+
+
+@jit
+def _bucket_below(fen, cbucket, vat, k, x):
+    """Candidates in bucket k at insertion positions below x: whole chunks from the tree, the rest counted."""
+    c = x // CHUNK
+    n = _fen_sum(fen[k], c)
+    for p in range(c * CHUNK, x):
+        if cbucket[vat[p]] == k:
+            n += 1
+    return n
+
+
+@jit
+def _bucket_find(fen, cbucket, vat, k, i):
+    """Insertion position of the (i+1)-th candidate of bucket k (i >= 0); -1 when there is none."""
+    c = _fen_find(fen[k], i)
+    if c >= fen.shape[1] - 1:
+        return -1
+    i -= _fen_sum(fen[k], c)
+    for p in range(c * CHUNK, min((c + 1) * CHUNK, vat.shape[0])):
+        if cbucket[vat[p]] == k:
+            if i == 0:
+                return p
+            i -= 1
+    return -1
+
+
+@jit
+def _link(slot_head, cnext, cprev, cand_slot, t, w):
+    cand_slot[w] = t
+    cprev[w] = -1
+    cnext[w] = slot_head[t]
+    if slot_head[t] >= 0:
+        cprev[slot_head[t]] = w
+    slot_head[t] = w
+
+
+@jit
+def _unlink(slot_head, cnext, cprev, cand_slot, w):
+    t = cand_slot[w]
+    if t < 0:
+        return
+    if cprev[w] >= 0:
+        cnext[cprev[w]] = cnext[w]
+    else:
+        slot_head[t] = cnext[w]
+    if cnext[w] >= 0:
+        cprev[cnext[w]] = cprev[w]
+    cand_slot[w] = -1
+
+
+@jit
+def split_codes(encode, qxy, z, label, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec_u, rec_v, rec_x,
+                rec_m, sym_u, sym_v, sym_j, esc_v, esc_x):
     """Vertex splits to symbols (``encode``) or back, replaying them from the base mesh.
 
     Parameters
@@ -158,6 +272,8 @@ def split_codes(encode, qxy, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec
         True: read ``rec_u, rec_v, rec_x`` (x1), write ``sym_u, sym_v, sym_j`` and the escapes; False: the
         reverse (``rec_u, rec_v, rec_x`` written).
     qxy : (V, 2) int64, vertex xy on the integer grid (exact orientation tests).
+    z : (V,) float64, vertex heights, metres. label : (V,) int64, the sub-block inserting each vertex
+        (B: none).
     base_tri : (n_base, 3) int32, counter-clockwise. block_ptr : (B + 1,) int64, records block-major.
     vpos : (V,) int64, each vertex's position in the block-major insertion order (``vat`` its inverse);
         block b's vertices to insert take positions ``seg_lo[b] … seg_hi[b] - 1``.
@@ -189,10 +305,6 @@ def split_codes(encode, qxy, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec
             tris[t, k] = w
             present[w] = True
             free = _star_add(head, nxt, node_tri, free, w, t)
-    tree = np.zeros(n_v + 1, np.int64)  # Fenwick tree: 1 at each vertex still to insert
-    for b in range(seg_lo.shape[0]):
-        for p in range(seg_lo[b], seg_hi[b]):
-            _fen_add(tree, p, 1)
     max_steps = n_slots + 16
     n_esc = 0
     # walks start from a hint: per cell of a coarse grid, the last slot made around a vertex in it
@@ -210,29 +322,68 @@ def split_codes(encode, qxy, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec
         if hint[c] < 0:
             hint[c] = last
         last = hint[c]
+    # every vertex still to insert (a candidate) sits in the slot holding its xy, in the bucket of its
+    # vertical distance to that slot's plane; per bucket a Fenwick tree over the insertion order
+    nb = seg_lo.shape[0]
+    cand_slot = np.full(n_v, -1, np.int64)
+    slot_head = np.full(max(n_slots, 1), -1, np.int64)
+    cnext = np.full(n_v, -1, np.int64)
+    cprev = np.full(n_v, -1, np.int64)
+    cbucket = np.full(n_v, -1, np.int64)
+    cnt = np.zeros((max(nb, 1), N_BUCKETS), np.int64)
+    fen = np.zeros((N_BUCKETS, n_v // CHUNK + 2), np.int32)  # per bucket, a Fenwick tree over chunks
+    for b in range(nb):
+        for p in range(seg_lo[b], seg_hi[b]):
+            w = vat[p]
+            k = 0
+            if n_base:
+                t = _walk(tris, head, nxt, node_tri, qxy, hint[min(qxy[w, 1] >> shift, g - 1) * g
+                                                               + min(qxy[w, 0] >> shift, g - 1)],
+                          qxy[w, 0], qxy[w, 1], max_steps)  # fmt: skip
+                if t >= 0:
+                    _link(slot_head, cnext, cprev, cand_slot, t, w)
+                    k = _error_bucket(qxy, z, tris, t, w)
+            _set_bucket(fen, cnt, label, vpos, cbucket, w, k)
+    moved = np.empty(16, np.int64)
+    gather = np.empty(n_v, np.int64)
     for b in range(block_ptr.shape[0] - 1):
         for r in range(block_ptr[b], block_ptr[b + 1]):
             m = rec_m[r]
-            # u: rank among the block's vertices still to insert
-            below = _fen_sum(tree, seg_lo[b])
+            # u: its rank among the block's candidates, by bucket (largest error first), then insertion order
             if encode:
                 u = rec_u[r]
-                if u < 0 or u >= n_v or vpos[u] < seg_lo[b] or vpos[u] >= seg_hi[b]:
+                if u < 0 or u >= n_v or vpos[u] < seg_lo[b] or vpos[u] >= seg_hi[b] or cbucket[u] < 0:
                     return r + 1, n_esc
-                sym_u[r] = _fen_sum(tree, vpos[u]) - below
+                bu = cbucket[u]
+                rank = _bucket_below(fen, cbucket, vat, bu, vpos[u]) - _bucket_below(fen, cbucket, vat, bu, seg_lo[b])
+                for k in range(bu + 1, N_BUCKETS):
+                    rank += cnt[b, k]
+                sym_u[r] = rank
             else:
-                p = _fen_find(tree, sym_u[r] + below)
-                if sym_u[r] < 0 or p >= seg_hi[b]:
+                rank = sym_u[r]
+                bu = -1
+                for k in range(N_BUCKETS - 1, -1, -1):
+                    if rank < cnt[b, k]:
+                        bu = k
+                        break
+                    rank -= cnt[b, k]
+                if sym_u[r] < 0 or bu < 0:
+                    return r + 1, n_esc
+                p = _bucket_find(fen, cbucket, vat, bu, rank + _bucket_below(fen, cbucket, vat, bu, seg_lo[b]))
+                if p < seg_lo[b] or p >= seg_hi[b]:
                     return r + 1, n_esc
                 u = vat[p]
                 rec_u[r] = u
             if present[u] or m < 1:
                 return r + 1, n_esc
-            _fen_add(tree, vpos[u], -1)
             px = qxy[u, 0]
             py = qxy[u, 1]
             cell = min(py >> shift, g - 1) * g + min(px >> shift, g - 1)
-            t_in = _walk(tris, head, nxt, node_tri, qxy, hint[cell], px, py, max_steps) if n_base else -1
+            t_in = cand_slot[u]
+            if t_in < 0 and n_base:
+                t_in = _walk(tris, head, nxt, node_tri, qxy, hint[cell], px, py, max_steps)
+            _set_bucket(fen, cnt, label, vpos, cbucket, u, -1)
+            _unlink(slot_head, cnext, cprev, cand_slot, u)
             # T's corners, nearest to u first (ties: corner order)
             c0 = c1 = c2 = -1
             if t_in >= 0:
@@ -305,10 +456,13 @@ def split_codes(encode, qxy, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec
                 return r + 1, n_esc
             # the split: the fan (v, x1, x2) … moves to u; (u, v, x1) and (u, x_m, v) come back
             x = x1
-            for _ in range(m):
+            if m > moved.shape[0]:
+                moved = np.empty(2 * m, np.int64)
+            for i in range(m):
                 t = _edge_tri(tris, head, nxt, node_tri, v, x)
                 if t < 0:
                     return r + 1, n_esc
+                moved[i] = t
                 for k in range(3):
                     if tris[t, k] == v:
                         tris[t, k] = u
@@ -331,4 +485,29 @@ def split_codes(encode, qxy, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec
                 free = _star_add(head, nxt, node_tri, free, tris[s2, k], s2)
             present[u] = True
             hint[cell] = s1
+            # the candidates of the moved slots go to whichever of the m + 2 new triangles holds them
+            ng = 0
+            for i in range(m):
+                w = slot_head[moved[i]]
+                while w >= 0:
+                    gather[ng] = w
+                    ng += 1
+                    w = cnext[w]
+                slot_head[moved[i]] = -1
+            for i in range(ng):
+                w = gather[i]
+                cand_slot[w] = -1
+                best = -1
+                best_min = np.int64(-(2**62))
+                for q in range(m + 2):
+                    t = moved[q] if q < m else s1 + (q - m)
+                    wa, wb, wc, det = _bary(qxy, tris, t, qxy[w, 0], qxy[w, 1])
+                    lo_ = min(wa, min(wb, wc))
+                    if lo_ > best_min:
+                        best_min = lo_
+                        best = t
+                    if lo_ >= 0:
+                        break
+                _link(slot_head, cnext, cprev, cand_slot, best, w)
+                _set_bucket(fen, cnt, label, vpos, cbucket, w, _error_bucket(qxy, z, tris, best, w))
     return 0, n_esc

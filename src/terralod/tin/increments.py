@@ -32,8 +32,9 @@ Deviations, and why:
   the static pyramid of ``benchmarks/tin.py``). Table 1's fields are not stored: a raw record is one vertex
   split (removed vertex u, kept vertex v, the wing x1 where the fan of m moved triangles starts, see
   :func:`terralod.kernels.qem.replay_splits`), coded from geometry by :mod:`terralod.kernels.tincodec`: u
-  as its rank among the vertices its sub-block has still to insert (a per-vertex sub-block label, stored
-  as "the cell holding the vertex" or an exception), v as a corner (0-2, nearest first) of the current
+  as its rank among the vertices its sub-block has still to insert, largest vertical distance to the
+  current surface first (a per-vertex sub-block label, stored as "the cell holding the vertex" or an
+  exception, says which sub-block inserts a vertex), v as a corner (0-2, nearest first) of the current
   triangle holding u's xy, the fan as its triangles before and after that triangle (escape: v and x1 as
   they are); the base mesh in canonical order (each triple from its smallest vertex, rows sorted) as
   delta rows (:func:`encode_mesh_rows`); each block's MMQE and measured-error codes as the first and the
@@ -1262,8 +1263,9 @@ class DetailIncrementModel:
         cell = _block_cells(self.vertices_m, self.k)[out]
         label_escape = np.where(label[out] == cell, 0, label[out] + 1)
         sym = [np.zeros(n_rec, np.int64) for _ in range(5)]
-        status, n_esc = split_codes(True, _grid_xy(self.vertices_m), self._base_tris[:n_base], raw.block_ptr, vpos,
-                                    vat, lo, hi, rec_u, raw.rec_v.astype(np.int64),
+        status, n_esc = split_codes(True, _grid_xy(self.vertices_m), self.vertices_m[:, 2].copy(), label,
+                                    self._base_tris[:n_base], raw.block_ptr, vpos, vat, lo, hi, rec_u,
+                                    raw.rec_v.astype(np.int64),
                                     raw.del_tri[0::2, 2].astype(np.int64), rec_m, *sym)  # fmt: skip
         if status != 0:
             raise RuntimeError(f"vertex splits do not code (record {status - 1})")
@@ -1381,7 +1383,8 @@ class DetailIncrementModel:
         rec_m = np.where(fan, after + 1 + sym_j, after)
         rec_u, rec_v, rec_x = (np.zeros(n_rec, np.int64) for _ in range(3))
         vpos, vat, lo, hi = _insert_order(label, nb)
-        status, _ = split_codes(False, _grid_xy(v), base_tri.astype(np.int32), bptr, vpos, vat, lo, hi, rec_u, rec_v,
+        status, _ = split_codes(False, _grid_xy(v), v[:, 2].copy(), label, base_tri.astype(np.int32), bptr, vpos, vat,
+                                lo, hi, rec_u, rec_v,
                                 rec_x, rec_m, sym_u, sym_v, sym_j, a["escape_v"].astype(np.int64),
                                 a["escape_x1"].astype(np.int64))  # fmt: skip
         if status != 0 or ((sym_j < 0) | (fan & (after < 0))).any():
