@@ -532,8 +532,17 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
                 j -= 1
             obuf[j] = i
         best = np.inf
+        for k in range(n):
+            if wbuf[k] == prev_v:
+                # the previous best usually still wins: made exact first, it bounds the others tightly
+                cbuf[k] += wt * _carried_gap2(prev_v, P, sa, sb, n, geo, pxyz, ps, npts, tri, np.inf)
+                dbuf[k] = True
+                best = cbuf[k]
+                break
         for o in range(n):
             k = obuf[o]
+            if dbuf[k]:
+                continue
             if cbuf[k] >= best:
                 break
             glim = (best - cbuf[k]) / wt if best < np.inf and wt > 0.0 else np.inf
