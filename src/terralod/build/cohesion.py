@@ -37,7 +37,7 @@ Relocation (eq. 2-9), per level and tile, with the reading of ``READING-NOTES.md
   below 0.8 x the error of a quad that cannot (those no longer decide the tile's max error; with the pair
   moves below, 0.8 costs half of 0.5 for the same triangles on Puget Sound and Grand Canyon, 1.0 draws
   3-5 % more), and ``escape=4`` lets a stuck worst quad search a lattice of up to 9 x 9
-  sample points over each corner's star (the tile before that search stays a fallback candidate: the
+  sample points over each corner's star (5 x 5 on coarse levels, deviation 6) (the tile before that search stays a fallback candidate: the
   per-sample proxy can be fooled at sharp rims, Grand Canyon level 3 otherwise measured 0.89 x Chunked
   LOD); when the tile's worst quad (only that one) is still stuck, ``pairs=4`` moves two of its corners
   together over a lattice of each one's star, or else a corner with one of its neighbours outside the
@@ -79,7 +79,18 @@ Deviations, and why:
    bound its cost, a level of stride s > 4 (``work_stride``) is relaxed and refined first on every
    (s / 4)-th sample (the cost of a stride-4 tile), then refined again on the full source with focus 1 (only
    the tile's max error is pursued, which fixes what the coarse pass could not see between its samples);
-   both passes keep every vertex on a source sample.
+   both passes keep every vertex on a source sample. On those levels the star search on the full source
+   uses a 5 x 5 lattice (``coarse_escape=2``) instead of 9 x 9: it was the costliest step of a root tile
+   (1024^2 samples and more), and the camera path at 2 px draws those levels little (same triangle ratios
+   on the five DEMs of the benchmark; the coarse levels' max error ratio moves by at most 0.05, e.g.
+   Pyrenees level 0 0.58 -> 0.63 x Chunked LOD). Everything else that saves time gives the same tiles
+   bit for bit: per-quad errors are measured once per pass over the full source and kept up to date by the
+   refinement (the mesh reuses its diagonals), the relaxation re-measures only the quads around vertices
+   that moved, a candidate is rejected as soon as a row of samples reaches the error to beat, the pair
+   search measures the quads that depend on one vertex once per position of it, and the unrelocated grid
+   (the fallback of deviation 5) is built and measured only when a lower bound of its Hausdorff error
+   (:func:`terralod.kernels.cohesion.grid_error_bound`) does not already exceed the relocated tile's
+   largest vertical error. Measured per level and core in ``benchmarks/results/cohesion_vs_chunked.md``.
 
 Partial tiles at the data edge: only vertices whose 4 quads lie entirely inside the data move (the rest
 keep their grid position), so the dropped padding quads are the baseline's.
@@ -140,6 +151,9 @@ class CohesionOptions:
     work_stride : levels of stride s > work_stride are relaxed and refined first on every
         (s / work_stride)-th sample, then refined on the full source with focus 1 (coarse to fine; 0: off;
         ``snap`` only)
+    coarse_escape : the star search of those levels (on the full source) uses at most this lattice
+        half-size, min(escape, coarse_escape): (2 coarse_escape + 1)^2 points (2: 25 instead of 81; it is
+        the costliest step of a coarse tile, and the path at 2 px draws those levels little)
     """
 
     attraction: str = "error"
@@ -155,6 +169,7 @@ class CohesionOptions:
     focus: float = 0.8
     work_stride: int = 4
     pairs: int = 4
+    coarse_escape: int = 2
 
     def __post_init__(self) -> None:
         if self.attraction not in ("error", "log"):
@@ -167,6 +182,8 @@ class CohesionOptions:
             raise ValueError(f"Expected escape >= 0, got {self.escape}")
         if self.pairs < 0:
             raise ValueError(f"Expected pairs >= 0, got {self.pairs}")
+        if self.coarse_escape < 0:
+            raise ValueError(f"Expected coarse_escape >= 0, got {self.coarse_escape}")
         if not 0.0 <= self.focus <= 1.0:
             raise ValueError(f"Expected focus in [0, 1], got {self.focus}")
         if self.work_stride < 0 or (self.work_stride & (self.work_stride - 1)):
@@ -331,6 +348,7 @@ def mesh_tile_with(
     metrics = {"vertical": [np.zeros(2)], "normal": [normal], "both": [np.zeros(2), normal]}[opt.metric]
     budget = opt.refine_budget * m * m
     pairs = opt.pairs if f == 1 else 0  # joint moves on the full source of a coarse level cost too much
+    escape = opt.escape if f == 1 else min(opt.escape, opt.coarse_escape)  # likewise a fine star lattice
 
     def mesh(pv, pu, sxy):  # the tile on the full source
         return assemble(zf, vf, feat_f, pv, pu, keep, r0, c0, opt.snap, sxy)[:4]
@@ -344,8 +362,8 @@ def mesh_tile_with(
     grid_bound_m = 0.0
     if opt.slide_boundary and opt.fallback:
         scale = np.array([1.0 / (f * spacing_m[0]), 1.0 / (f * spacing_m[1])])
-        v_lb, slope2 = grid_error_bound(zw, vw, base_v, base_u, keep, scale)
-        grid_bound_m = v_lb / np.sqrt(1.0 + slope2) * (1.0 - 1e-9) - 1e-9
+        side_m = s * min(spacing_m)
+        grid_bound_m = grid_error_bound(zw, vw, base_v, base_u, keep, scale, side_m) * (1.0 - 1e-9) - 1e-9
 
     def grid_mesh():
         if not opt.slide_boundary:
@@ -379,8 +397,8 @@ def mesh_tile_with(
         refine_max_error(zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, 0, focus, 0, *state)
         cands.append(assemble_diagonals(zf, pv, pu, keep, state[3], r0, c0, opt.snap))
         # the star search can fool the per-sample proxy: the tile before it stays a candidate
-        if opt.escape and refine_max_error(
-            zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, opt.escape, focus, pairs, *state
+        if escape and refine_max_error(
+            zf, vf, pv, pu, movable, keep, s, opt.snap, budget, sxy, escape, focus, pairs, *state
         ):
             cands.append(assemble_diagonals(zf, pv, pu, keep, state[3], r0, c0, opt.snap))
     if not opt.fallback:

@@ -10,6 +10,14 @@ a = (i, j) north-west, b = (i, j + 1) north-east, c = (i + 1, j) south-west, d =
 diagonal 0 joins a-d (triangles a-c-d, a-d-b), diagonal 1 joins b-c (a-c-b, b-c-d), both counter-clockwise
 seen from above (x east, y north) while the quad is convex; every accepted move keeps at least one valid
 diagonal per quad (:func:`diagonal_ok`) and only valid diagonals are ever used.
+
+Cost. Nearly all the time goes into :func:`_quad_eval2` (the errors of one quad, both diagonals, over its
+samples). It is kept exact while made cheap: quads of lattice corners wide enough are scanned by row
+intervals found with integer arithmetic (:func:`_edge_start`; the same samples as the per-sample tests),
+a scan stops at the first row where both diagonals already reach the error to beat (``bound``), the
+relaxation re-measures only the quads around moved vertices (:func:`choose_diagonals_moved`), the pair
+search splits the quads by the vertex they depend on (:func:`_pair_search`), and the per-quad state of
+:func:`measure_quads` is carried through :func:`refine_max_error` to :func:`assemble_diagonals`.
 """
 
 from __future__ import annotations
@@ -21,6 +29,10 @@ from terralod.kernels import jit
 #: Errors up to this many metres count as exact: no attraction, nothing to refine (rounding noise of a
 #: plane through float samples must not pull vertices).
 ERR_EPS_M = 1e-6
+
+#: Quads of lattice corners whose bounding box spans at least this many columns are scanned by row intervals
+#: (:func:`_quad_eval2`); narrower ones test every sample of the box (the same samples either way).
+SCAN_MIN_COLS = 12
 
 #: Fractions of the way to a quad's worst sample tried by the error-driven refinement.
 FRACS = (1.0, 0.5)
@@ -108,28 +120,56 @@ def _integral(va, ua, vb, ub, vc, uc, vd, ud):
 
 
 @jit
-def _int_edge(vp, up, vq, uq, g, r, lo, hi):
-    """Columns c of [lo, hi] on row r where g * _side(p, q, r, c) <= 0 (integer corners: exact)."""
+def _edge_start(E, k, vp, up, vq, uq, r):
+    """Row state of edge k (p -> q, integer corners) in ``E[k]`` for row r: _side(p, q, r, c) = a - dv (c - up)
+    with a = du (r - vp); kept as D = |dv|, sg = sign(dv), q = floor(sg a / D), rem = sg a - q D, and the
+    per-row steps of q and rem (D = 0: q holds a, stepped by du)."""
     dv = int(vq - vp)
-    a = int(uq - up) * (r - int(vp))  # _side = a - dv * (c - up)
+    du = int(uq - up)
+    a = du * (r - int(vp))
+    E[k, 2] = int(up)
     if dv == 0:
-        if g * a <= 0:
-            return lo, hi
-        return lo, lo - 1
-    if g * dv > 0:  # dv (c - up) >= a (g > 0) or <= a (g < 0, dv < 0): c >= up + ceil(a / dv)
-        return max(lo, int(up) - ((-a) // dv)), hi
-    return lo, min(hi, int(up) + a // dv)  # c <= up + floor(a / dv)
+        E[k, 0], E[k, 1], E[k, 3], E[k, 4], E[k, 5], E[k, 6] = 0, 0, a, 0, du, 0
+        return
+    sg = 1 if dv > 0 else -1
+    d = dv * sg
+    q = (a * sg) // d
+    qs = (du * sg) // d
+    E[k, 0], E[k, 1], E[k, 3], E[k, 4], E[k, 5], E[k, 6] = d, sg, q, a * sg - q * d, qs, du * sg - qs * d
 
 
 @jit
-def _int_cols(v0, u0, v1, u1, g0, v2, u2, v3, u3, g1, v4, u4, v5, u5, g2, r, lo, hi, ok):
-    """Columns of row r in [lo, hi] passing the three edge tests (p -> q, sign g) of one triangle of
-    :func:`_quad_eval2` (integer corners); (lo, lo - 1) when none or ``ok`` is False."""
+def _edge_next(E, k):
+    """Step the row state of edge k to the next row (exact integer arithmetic, no division)."""
+    E[k, 3] += E[k, 5]
+    if E[k, 0] == 0:
+        return
+    E[k, 4] += E[k, 6]
+    if E[k, 4] >= E[k, 0]:
+        E[k, 3] += 1
+        E[k, 4] -= E[k, 0]
+
+
+@jit
+def _edge_clip(E, k, g, lo, hi):
+    """Columns of [lo, hi] where g * _side of edge k <= 0 on the current row: an interval (lo > hi: none)."""
+    if E[k, 0] == 0:
+        return (lo, hi) if g * E[k, 3] <= 0 else (lo, lo - 1)
+    if g * E[k, 1] > 0:  # dv (c - up) >= a: c >= up + ceil(a / dv)
+        return max(lo, E[k, 2] + E[k, 3] + (1 if E[k, 4] > 0 else 0)), hi
+    return lo, min(hi, E[k, 2] + E[k, 3])  # c <= up + floor(a / dv)
+
+
+@jit
+def _tri_cols(E, e0, g0, e1, g1, e2, g2, lo, hi, ok):
+    """Columns of the current row in [lo, hi] inside one triangle of :func:`_quad_eval2`: its three edges
+    (row states in E) with their test signs g (+1: _side <= 0, -1: _side >= 0); (lo, lo - 1) when none or
+    ``ok`` is False."""
     if not ok:
         return lo, lo - 1
-    lo, hi = _int_edge(v0, u0, v1, u1, g0, r, lo, hi)
-    lo, hi = _int_edge(v2, u2, v3, u3, g1, r, lo, hi)
-    lo, hi = _int_edge(v4, u4, v5, u5, g2, r, lo, hi)
+    lo, hi = _edge_clip(E, e0, g0, lo, hi)
+    lo, hi = _edge_clip(E, e1, g1, lo, hi)
+    lo, hi = _edge_clip(E, e2, g2, lo, hi)
     if lo > hi:
         return lo, lo - 1
     return lo, hi
@@ -213,17 +253,28 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
     p10, p11, p12 = pl[1, 0], pl[1, 1], pl[1, 2]
     p20, p21, p22 = pl[2, 0], pl[2, 1], pl[2, 2]
     p30, p31, p32 = pl[3, 0], pl[3, 1], pl[3, 2]
-    if chi - clo >= 12 and sc < 0.5 and _integral(va, ua, vb, ub, vc, uc, vd, ud):
+    if chi - clo >= SCAN_MIN_COLS and sc < 0.5 and _integral(va, ua, vb, ub, vc, uc, vd, ud):
         # lattice corners (snapped positions): every _side is an exact integer, so each triangle's samples
         # on a row are one interval found by integer division, and the loops below visit exactly the samples
         # the tests further down accept, in the same order (bit-identical results, without the 6 tests)
+        # the 6 edges, as the tests below orient them: 0 a->c, 1 c->d, 2 d->b, 3 b->a, 4 a->d, 5 b->c
+        E = np.empty((6, 7), np.int64)
+        _edge_start(E, 0, va, ua, vc, uc, rlo)
+        _edge_start(E, 1, vc, uc, vd, ud, rlo)
+        _edge_start(E, 2, vd, ud, vb, ub, rlo)
+        _edge_start(E, 3, vb, ub, va, ua, rlo)
+        _edge_start(E, 4, va, ua, vd, ud, rlo)
+        _edge_start(E, 5, vb, ub, vc, uc, rlo)
         for r in range(rlo, rhi + 1):
+            if r > rlo:
+                for k in range(6):
+                    _edge_next(E, k)
             # triangle a-c-d: s_ac <= 0, s_cd <= 0, s_ad >= 0; a-d-b: s_ad, s_db, s_ba <= 0
-            l0, h0 = _int_cols(va, ua, vc, uc, 1, vc, uc, vd, ud, 1, va, ua, vd, ud, -1, r, clo, chi, ok0)
-            l1, h1 = _int_cols(va, ua, vd, ud, 1, vd, ud, vb, ub, 1, vb, ub, va, ua, 1, r, clo, chi, ok0)
+            l0, h0 = _tri_cols(E, 0, 1, 1, 1, 4, -1, clo, chi, ok0)
+            l1, h1 = _tri_cols(E, 4, 1, 2, 1, 3, 1, clo, chi, ok0)
             # triangle a-c-b: s_ac <= 0, s_bc >= 0, s_ba <= 0; b-c-d: s_bc, s_cd, s_db <= 0
-            l2, h2 = _int_cols(va, ua, vc, uc, 1, vb, ub, vc, uc, -1, vb, ub, va, ua, 1, r, clo, chi, ok1)
-            l3, h3 = _int_cols(vb, ub, vc, uc, 1, vc, uc, vd, ud, 1, vd, ud, vb, ub, 1, r, clo, chi, ok1)
+            l2, h2 = _tri_cols(E, 0, 1, 5, -1, 3, 1, clo, chi, ok1)
+            l3, h3 = _tri_cols(E, 5, 1, 1, 1, 2, 1, clo, chi, ok1)
             # diagonal a-d: the first triangle wins a shared sample, columns in increasing order
             mx0, ar0, ac0, sm0, w0, wv0, wu0 = _run(zw, vw, feat, mode, r, l1, min(h1, l0 - 1), p10, p11, p12, n1,
                                                     mx0, ar0, ac0, sm0, w0, wv0, wu0)  # fmt: skip
@@ -700,12 +751,17 @@ def measure_quads(zw, vw, pv, pu, keep, snap, sxy, qmax, wr, wc, diag):
 
 
 @jit
-def grid_error_bound(zw, vw, pv, pu, keep, grad_scale):
-    """(v_lb, slope2) of the mesh of positions (pv, pu) whatever its diagonals: v_lb, a lower bound of its
-    largest vertical error over the window's samples (per kept quad the smaller of its two diagonals' max,
-    so a window of every f-th source sample bounds the error on the full source), and slope2 the largest
-    |grad z|^2 of its possible triangles (both diagonals), with the gradient scaled per axis by
-    ``grad_scale`` (1 / metres per window sample: metres per metre)."""
+def grid_error_bound(zw, vw, pv, pu, keep, grad_scale, side_m):
+    """A lower bound (metres) of the Hausdorff error of the mesh of positions (pv, pu), whatever its
+    diagonals, from the window's samples (a window of every f-th source sample bounds the full source).
+
+    Per kept quad, v = the smaller of its two diagonals' max vertical error is a lower bound of |dz| at
+    some sample; a sample dz off a surface z = f(x, y) with |grad f| <= L within horizontal distance r is at
+    least min(r, |dz| / sqrt(1 + L^2)) from it (r'^2 + (|dz| - L r')^2 >= dz^2 / (1 + L^2)). L is taken over
+    every triangle of both diagonals, for the whole tile and, for quads whose 3 x 3 neighbourhood lies on
+    the regular lattice (interior vertices of the grid: i, j in 2..m-4), over that neighbourhood, with r =
+    ``side_m`` (the quad side, metres). ``grad_scale``: 1 / metres per window sample on each axis.
+    """
     m = pv.shape[0]
     cells = m - 1
     feat = np.zeros((1, 1), np.float64)
@@ -717,19 +773,34 @@ def grid_error_bound(zw, vw, pv, pu, keep, grad_scale):
     a1 = np.zeros(8, np.float64)
     pl = np.empty((4, 3), np.float64)
     min_area2 = _min_area2(pv)
-    v_lb = 0.0
-    slope2 = 0.0
+    vq = np.zeros((cells, cells), np.float64)
+    sq = np.zeros((cells, cells), np.float64)
     for i in range(cells):
         for j in range(cells):
-            if not keep[i, j]:
-                continue
             _quad_eval2(
                 zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl, np.zeros(2), np.inf
             )
-            v_lb = max(v_lb, min(a0[0], a1[0]))
+            if keep[i, j]:
+                vq[i, j] = min(a0[0], a1[0])
             for k in range(4):
-                slope2 = max(slope2, (pl[k, 1] * grad_scale[0]) ** 2 + (pl[k, 2] * grad_scale[1]) ** 2)
-    return v_lb, slope2
+                sq[i, j] = max(sq[i, j], (pl[k, 1] * grad_scale[0]) ** 2 + (pl[k, 2] * grad_scale[1]) ** 2)
+    slope2 = 0.0
+    v_all = 0.0
+    for i in range(cells):
+        for j in range(cells):
+            slope2 = max(slope2, sq[i, j])
+            v_all = max(v_all, vq[i, j])
+    lb = v_all / np.sqrt(1.0 + slope2)
+    for i in range(2, cells - 2):
+        for j in range(2, cells - 2):
+            if vq[i, j] <= lb:
+                continue
+            local = 0.0
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    local = max(local, sq[i + di, j + dj])
+            lb = max(lb, min(side_m, vq[i, j] / np.sqrt(1.0 + local)))
+    return lb
 
 
 @jit
