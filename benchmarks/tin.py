@@ -377,7 +377,7 @@ def main() -> None:
            "current surface first (a per-vertex sub-block label, predicted from the vertex's cell, says which "
            "sub-block), the kept vertex v as a corner (0-2, nearest first) of the "
            "current triangle holding u's xy, the moved fan as the number of its triangles before and after that "
-           "triangle, plus the quantised MMQE and measured-error drops; table 1's fields are derived on loading. "
+           "triangle (v and the fan's counts ranked by their frequency so far within a geometric context), plus the quantised MMQE and measured-error drops; table 1's fields are derived on loading. "
            "Merged records (k = 4, 16, paper §2.2.2) are derived in memory from the raw ones, so a merged model's "
            "file is the raw file with its merge factor: one size per dataset (the records and changes of each k are "
            "those of the model in memory). Save and load: best of 3, the model file (k = 1), compile excluded.\n\n")

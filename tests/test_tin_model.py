@@ -472,14 +472,13 @@ def test_split_coder_roundtrips_with_any_geometry(seed: int, n: int, blocks: int
     base = m._base_tris[m._base_alive]
     u, v, x1 = inc.rec_u.astype(np.int64), inc.rec_v.astype(np.int64), inc.del_tri[0::2, 2].astype(np.int64)
     mm = np.diff(inc.rep_ptr)
-    sym = [np.zeros(inc.n_records, np.int64) for _ in range(5)]
+    sym = [np.zeros(inc.n_records, np.int64) for _ in range(6)]
     z = m.vertices_m[:, 2].copy()
     status, n_esc = split_codes(True, q, z, label, base, inc.block_ptr, vpos, vat, lo, hi, u, v, x1, mm, *sym)
     assert status == 0 and n_esc == int((sym[1] == 3).sum())
-    out = [np.zeros(inc.n_records, np.int64) for _ in range(3)]
-    status, n_dec = split_codes(False, q, z, label, base, inc.block_ptr, vpos, vat, lo, hi, *out, mm, sym[0], sym[1],
-                                sym[2],
-                                sym[3][:n_esc], sym[4][:n_esc])  # fmt: skip
+    out = [np.zeros(inc.n_records, np.int64) for _ in range(4)]
+    status, n_dec = split_codes(False, q, z, label, base, inc.block_ptr, vpos, vat, lo, hi, *out, *sym[:4],
+                                sym[4][:n_esc], sym[5][:n_esc])  # fmt: skip
     assert status == 0 and n_dec == n_esc
-    for a, b in zip(out, (u, v, x1), strict=True):
+    for a, b in zip(out, (u, v, x1, mm), strict=True):
         assert np.array_equal(a, b)

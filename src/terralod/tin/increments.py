@@ -36,9 +36,10 @@ Deviations, and why:
   current surface first (a per-vertex sub-block label, stored as "the cell holding the vertex" or an
   exception, says which sub-block inserts a vertex), v as a corner (0-2, nearest first) of the current
   triangle holding u's xy, the fan as its triangles before and after that triangle (escape: v and x1 as
-  they are); the base mesh in canonical order (each triple from its smallest vertex, rows sorted) as
-  delta rows (:func:`encode_mesh_rows`); each block's MMQE and measured-error codes as the first and the
-  drops. Loading decodes the splits and replays them from the base once, deriving every field of table 1
+  they are), v and the fan's counts ranked by frequency within a geometric context; the base mesh in
+  canonical order (each triple from its smallest vertex, rows sorted) as delta rows
+  (:func:`encode_mesh_rows`); each block's MMQE and measured-error codes as the first and the drops.
+  Loading decodes the splits and replays them from the base once, deriving every field of table 1
   (slots, deleted triples, original and new triples) exactly. Merged records (§2.2.2) are derived in
   memory from the raw ones; a file of a merged model stores the raw splits and the merge factor.
   Versions 1 (slots and triples), 2 (no measured error), 3 (floats not coded by column) and 4 (splits as
@@ -1262,17 +1263,14 @@ class DetailIncrementModel:
         out[self._base_tris[:n_base].ravel()] = False
         cell = _block_cells(self.vertices_m, self.k)[out]
         label_escape = np.where(label[out] == cell, 0, label[out] + 1)
-        sym = [np.zeros(n_rec, np.int64) for _ in range(5)]
+        sym = [np.zeros(n_rec, np.int64) for _ in range(6)]
         status, n_esc = split_codes(True, _grid_xy(self.vertices_m), self.vertices_m[:, 2].copy(), label,
                                     self._base_tris[:n_base], raw.block_ptr, vpos, vat, lo, hi, rec_u,
                                     raw.rec_v.astype(np.int64),
                                     raw.del_tri[0::2, 2].astype(np.int64), rec_m, *sym)  # fmt: skip
         if status != 0:
             raise RuntimeError(f"vertex splits do not code (record {status - 1})")
-        sym_u, sym_v, sym_j, esc_v, esc_x = sym
-        fan = sym_v != V_ESCAPE
-        # m - 1 - j: the fan triangles after T (T is the j-th of the m moved), as stored m for escapes
-        after = np.where(fan, rec_m - 1 - sym_j, rec_m)
+        sym_u, sym_v, sym_j, after, esc_v, esc_x = sym
         meta = {
             "format": "terralod detail-increment model (paper 003)",
             "k": self.k,
@@ -1379,15 +1377,13 @@ class DetailIncrementModel:
         if not np.array_equal(np.bincount(label, minlength=nb + 1)[:nb], br):
             raise CorruptStoreError("inconsistent detail-increment file: vertex blocks", src)
         sym_u, sym_v, sym_j, after = (a[n].astype(np.int64) for n in ("split_u", "split_v", "split_j", "split_after"))
-        fan = sym_v != V_ESCAPE
-        rec_m = np.where(fan, after + 1 + sym_j, after)
-        rec_u, rec_v, rec_x = (np.zeros(n_rec, np.int64) for _ in range(3))
+        rec_u, rec_v, rec_x, rec_m = (np.zeros(n_rec, np.int64) for _ in range(4))
         vpos, vat, lo, hi = _insert_order(label, nb)
         status, _ = split_codes(False, _grid_xy(v), v[:, 2].copy(), label, base_tri.astype(np.int32), bptr, vpos, vat,
                                 lo, hi, rec_u, rec_v,
-                                rec_x, rec_m, sym_u, sym_v, sym_j, a["escape_v"].astype(np.int64),
+                                rec_x, rec_m, sym_u, sym_v, sym_j, after, a["escape_v"].astype(np.int64),
                                 a["escape_x1"].astype(np.int64))  # fmt: skip
-        if status != 0 or ((sym_j < 0) | (fan & (after < 0))).any():
+        if status != 0:
             where = "base triangles" if status < 0 else f"record {max(status, 1) - 1}"
             raise CorruptStoreError(f"inconsistent detail-increment records: {where} does not fit the mesh", src)
         inc, base_tris, base_alive = Increments.from_compact(
