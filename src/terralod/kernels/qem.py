@@ -47,12 +47,12 @@ and its points are gathered once per evaluation (contiguous xyz), each candidate
 candidate, and a point is looked for first in the triangle of the slot that carries it (where it almost
 always stays), by signs alone, dividing only for the height.
 
-Lazy validity: after a collapse, the vertices around it are re-queued at their cheapest collapse
-*untested*; the test runs when the entry leaves the heap, and a failure re-evaluates the vertex with
-tests and re-queues it at its cheapest valid cost (never lower than the untested key). Every key is a
-lower bound of the vertex's valid cost, so collapses still leave in increasing valid cost; the one
-difference from testing at once is that a cheaper collapse that was invalid when queued and turned valid
-by the time it is popped goes first. Most link tests are never run: 1.6x faster on a 512² grid TIN, with
+Lazy validity: every FREE vertex is first queued, and after a collapse the vertices around it are
+re-queued, at its cheapest collapse *untested*; the test runs when the entry leaves the heap, and a failure
+re-evaluates the vertex with tests and re-queues it at its cheapest valid cost (never lower than the
+untested key). Every key is a lower bound of the vertex's valid cost, so collapses still leave in
+increasing valid cost; the one difference from testing at once is that a cheaper collapse that was invalid
+when queued and turned valid by the time it is popped goes first. Most link tests are never run: 1.6x faster on a 512² grid TIN, with
 exactly the same collapses there (and on Autzen).
 
 Refresh after u → v: v and ring(u) get a full evaluation (their stars, and the points the vertical term
@@ -501,11 +501,12 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     Returns ``(v, cost, emin, ew)``: with ``validate``, the ring neighbour v with the smallest cost among the
     valid collapses (-1 and inf when none is valid); without, the cheapest neighbour untested (the caller
     tests it when it leaves the heap). emin is the smallest normalised error over every ring neighbour,
-    valid or not (the MMQE term of u, m²), ew the neighbour that gives it. When the cheapest neighbour is still ``prev_v`` at cost
-    ``prev_c`` it is returned untested (its test is repeated when it leaves the heap anyway).
+    valid or not (the MMQE term of u, m²), ew the neighbour that gives it. When the cheapest neighbour is
+    still ``prev_v`` at cost ``prev_c`` it is returned untested (its test is repeated when it leaves the
+    heap anyway); ``prev_v`` is also the candidate whose vertical term is computed first.
     ``ctx`` = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight) and ``work`` = (mark, stampbox, wbuf,
-    cbuf, dbuf, qbuf) are the simplifier's state and scratch, passed as two tuples (the arena, which moves
-    when it grows, is passed on its own).
+    cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, tri) are the simplifier's state and scratch, passed as
+    two tuples (the arena, which moves when it grows, is passed on its own).
     """
     P, tris, Q, W, selfq, head, nxt, shape_eps, vweight = ctx
     mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, tri = work
@@ -552,7 +553,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
                 dbuf[k] = True
                 if cbuf[k] < best:
                     best = cbuf[k]
-    k0 = _cheapest(cbuf, wbuf, n, -np.inf, -1, dbuf, False)
+    k0 = _cheapest(cbuf, wbuf, n, -np.inf, -1)
     c0 = cbuf[k0] if k0 >= 0 else np.inf
     w0 = wbuf[k0] if k0 >= 0 else -1
     if (w0 == prev_v and c0 == prev_c) or not validate:
@@ -562,7 +563,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     last_c = -np.inf
     last_w = -1
     for _ in range(2 * n + 1):
-        k = _cheapest(cbuf, wbuf, n, last_c, last_w, dbuf, False)
+        k = _cheapest(cbuf, wbuf, n, last_c, last_w)
         if k < 0:
             break
         if not exact and not dbuf[k]:
@@ -577,13 +578,10 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
 
 
 @jit
-def _cheapest(cbuf, wbuf, n, last_c, last_w, dbuf, undone_only):
-    """Index of the smallest (cost, vertex) after (last_c, last_w) (-1 when none); with ``undone_only``,
-    among the candidates whose cost is still a bound."""
+def _cheapest(cbuf, wbuf, n, last_c, last_w):
+    """Index of the smallest (cost, vertex) after (last_c, last_w) (-1 when none)."""
     bk = -1
     for i in range(n):
-        if undone_only and dbuf[i]:
-            continue
         c = cbuf[i]
         w = wbuf[i]
         if (c > last_c or (c == last_c and w > last_w)) and (
@@ -680,7 +678,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     esum = np.zeros(n_b, np.float64)  # Σ emin over the block's live FREE vertices
     ecnt = np.zeros(n_b, np.int64)
 
-    # Heap of every FREE vertex's best collapse.
+    # Heap of every FREE vertex's cheapest collapse, untested (the test runs when it leaves the heap).
     hk = np.empty(n_v, np.float64)
     hv = np.empty(n_v, np.int64)
     hpos = np.full(n_v, -1, np.int64)
@@ -688,7 +686,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     for u in range(n_v):
         if kind[u] != FREE or length[u] == 0:
             continue
-        v, c, e, eminw[u] = _evaluate(u, -1, np.inf, True, arena, start, length, ctx, work)
+        v, c, e, eminw[u] = _evaluate(u, -1, np.inf, False, arena, start, length, ctx, work)
         b = vert_block[u]
         emin[u] = e
         esum[b] += e
