@@ -45,8 +45,10 @@ Relocation (eq. 2-9), per level and tile, with the reading of ``READING-NOTES.md
   of a tile is one quad's). The benchmark (``benchmarks/cohesion_vs_chunked.py``, results in
   ``benchmarks/results/cohesion_vs_chunked.md``) shows why: the force balance as the paper writes it
   (LoG attraction, no refinement) leaves the max error per level at 0.63-1.0 x the regular grid's and
-  draws 0.96-1.0 x its triangles at 2 px; with the refinement the max error is 0.15-0.61 x and the
-  triangles 0.40-0.49 x on the real DEMs (0.74 x on the small Jacksboro sample).
+  draws 0.96-1.0 x its triangles at 2 px; with the refinement the max error is 0.15-0.64 x and the
+  triangles 0.40-0.49 x on the real DEMs (0.75 x on the small Jacksboro sample: with 4 levels the path
+  draws mostly the finest level, the full-resolution grid of both methods; the selection reaches 0.50 x
+  only at 6 px, i.e. it would take every error 3 x smaller).
 
 Deviations, and why:
 
