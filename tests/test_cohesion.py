@@ -18,7 +18,7 @@ from terralod.build import chunked, cohesion
 from terralod.build.builder import METHODS
 from terralod.error import measure_error_window
 from terralod.io.reader import sample_heightfield
-from terralod.kernels.cohesion import stiffness
+from terralod.kernels.cohesion import grid_error_bound, stiffness
 from terralod.tiles import TilePyramid
 
 from conftest import fractal_terrain
@@ -176,8 +176,43 @@ def test_escape_never_measures_worse(seed: int, m: int, work_stride: int, pairs:
         assert errs[1] <= errs[0] + 1e-9, (code, errs)
 
 
+@given(
+    seed=st.integers(0, 10_000),
+    m=st.sampled_from([5, 9, 17]),
+    step=st.sampled_from([1, 2, 4]),
+    holes=st.booleans(),
+    relief=st.sampled_from([5.0, 800.0, 5000.0]),
+)
+@settings(max_examples=25, deadline=None)
+def test_grid_error_bound_is_below_the_measured_error(
+    seed: int, m: int, step: int, holes: bool, relief: float
+):
+    """The fallback skips the grid when this bound says it cannot win: it must never exceed the grid's
+    measured Hausdorff error, whatever its diagonals (here Chunked LOD's), from every step-th sample."""
+    hf = Heightfield.from_array(fractal_terrain(70, 66, seed, relief_m=relief, beta=1.8), (25.0, 35.0),
+                                valid=np.random.default_rng(seed).random((70, 66)) > 0.1 if holes else None)  # fmt: skip
+    pyr = TilePyramid(hf.width, hf.height, m)
+    for code in pyr.all_codes():
+        s = pyr.stride(code[0])
+        if s % step or s == 1:
+            continue
+        r0, c0 = pyr.origin_rc(code)
+        span = pyr.span(code[0])
+        zw, vw = cohesion._window(hf.elevation_m, hf.valid, r0, c0, span // step + 1, step)
+        g = np.arange(m, dtype=np.float64) * (s // step)
+        pv, pu = np.repeat(g[:, None], m, axis=1), np.repeat(g[None, :], m, axis=0)
+        keep = ((r0 + np.arange(m - 1) * s) < hf.height - 1)[:, None] & (
+            (c0 + np.arange(m - 1) * s) < hf.width - 1
+        )
+        scale = np.array([1.0 / (step * hf.spacing_m[0]), 1.0 / (step * hf.spacing_m[1])])
+        bound = grid_error_bound(zw, vw, pv, pu, keep, scale, s * min(hf.spacing_m))
+        measured = _tile_hausdorff_m(hf, pyr, code, chunked.mesh_tile(hf.elevation_m, hf.valid, pyr, code))
+        assert bound <= measured * (1.0 + 1e-9) + 1e-9, (code, bound, measured)
+
+
 def test_options_are_checked() -> None:
-    for bad in ({"escape": -1}, {"focus": 1.5}, {"work_stride": 3}, {"work_stride": -2}, {"pairs": -1}):
+    for bad in ({"escape": -1}, {"focus": 1.5}, {"work_stride": 3}, {"work_stride": -2}, {"pairs": -1},
+                {"coarse_escape": -1}):  # fmt: skip
         with pytest.raises(ValueError, match="Expected"):
             cohesion.CohesionOptions(**bad)
 

@@ -365,7 +365,11 @@ def mesh_tile_with(
     if opt.slide_boundary and opt.fallback:
         scale = np.array([1.0 / (f * spacing_m[0]), 1.0 / (f * spacing_m[1])])
         side_m = s * min(spacing_m)
-        grid_bound_m = grid_error_bound(zw, vw, base_v, base_u, keep, scale, side_m) * (1.0 - 1e-9) - 1e-9
+        # the measure reads float32 elevations: other inputs get the slack of that rounding
+        slack_m = 0.0 if z.dtype == np.float32 else float(np.abs(zw).max(initial=0.0)) * 2.0**-23
+        grid_bound_m = (
+            grid_error_bound(zw, vw, base_v, base_u, keep, scale, side_m) * (1.0 - 1e-9) - 1e-9 - slack_m
+        )
 
     def grid_mesh():
         if not opt.slide_boundary:
