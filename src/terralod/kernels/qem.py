@@ -59,8 +59,11 @@ Refresh after u → v: v and ring(u) get a full evaluation (their stars, and the
 measures, changed). A vertex of ring(v) outside ring(u) keeps its star and its points; only Q_v grew, so
 its collapse onto v got dearer and nothing else moved: its best collapse stands unless it was onto v, and
 only its MMQE term is refreshed (through x → v alone unless that gave its minimum). About a third of the
-ring visits are such; the collapse sequence is the one of a full evaluation except where a full
-evaluation would have re-queued an invalid collapse.
+ring visits are such. With the quadric alone, a vertex of ring(u) whose best collapse is the cheapest
+(untested) and is onto neither u nor v compares it with x → v alone: its other costs did not change.
+The collapse sequence is the one of a full evaluation except where a full evaluation would have re-queued
+an invalid collapse, or where a merged quadric lowered a cost by rounding (Q_v only grows, but
+Q_v(P_v) is a sum of large terms): a few tie-broken collapses on the Puget crop, same errors.
 
 MMQE (§2.1): per sub-block, the mean over its alive FREE vertices of their minimum (normalised) quadric
 error over all ring neighbours; kept as a running sum updated on every re-evaluation.
@@ -675,6 +678,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     bestc = np.full(n_v, np.inf)  # its cost, m⁴
     emin = np.zeros(n_v, np.float64)
     eminw = np.full(n_v, -1, np.int64)  # the neighbour that gives emin
+    cheapest = np.ones(n_v, np.bool_)  # best is the cheapest collapse, untested (False: the cheapest valid)
     esum = np.zeros(n_b, np.float64)  # Σ emin over the block's live FREE vertices
     ecnt = np.zeros(n_b, np.int64)
 
@@ -730,6 +734,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
             emin[u] = e2
             best[u] = v2
             bestc[u] = c2
+            cheapest[u] = False
             if v2 >= 0:
                 hsize = _heap_set(hk, hv, hpos, hsize, c2, u)
             continue
@@ -840,9 +845,34 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                     esum[bx] += ex - emin[x]
                     emin[x] = ex
                     continue
+                if (
+                    not vweight > 0.0
+                    and x != v
+                    and cheapest[x]
+                    and best[x] >= 0
+                    and best[x] != u
+                    and best[x] != v
+                ):
+                    if eminw[x] != u and eminw[x] != v:
+                        # quadric alone, x in ring(u): x lost u and has v, whose quadric grew; its other
+                        # costs stand, so its cheapest collapse is the old one or x -> v
+                        c = _collapse_cost(Q, P, x, v)
+                        ex = c / (W[x] + W[v])
+                        if ex < emin[x]:
+                            eminw[x] = v
+                        else:
+                            ex = emin[x]
+                        esum[bx] += ex - emin[x]
+                        emin[x] = ex
+                        if _before(c, v, bestc[x], best[x]):
+                            best[x] = v
+                            bestc[x] = c
+                            hsize = _heap_set(hk, hv, hpos, hsize, c, x)
+                        continue
                 vx, cx, ex, eminw[x] = _evaluate(x, best[x], bestc[x], False, arena, start, length, ctx, work)
                 esum[bx] += ex - emin[x]
                 emin[x] = ex
+                cheapest[x] = True
                 if vx == best[x] and cx == bestc[x]:
                     continue  # same best collapse: its heap entry stands
                 best[x] = vx
