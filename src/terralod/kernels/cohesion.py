@@ -40,6 +40,8 @@ FRACS = (1.0, 0.5)
 #: Attraction weights: the vertical error of the current mesh squared (default), or a static feature map.
 WEIGHT_ERROR = 0
 WEIGHT_FEATURE = 1
+#: No attraction moments (errors only: the refinement and the measures, which never read them).
+WEIGHT_NONE = 2
 
 
 @jit
@@ -121,9 +123,9 @@ def _integral(va, ua, vb, ub, vc, uc, vd, ud):
 
 @jit
 def _edge_start(E, k, vp, up, vq, uq, r):
-    """Row state of edge k (p -> q, integer corners) in ``E[k]`` for row r: _side(p, q, r, c) = a - dv (c - up)
-    with a = du (r - vp); kept as D = |dv|, sg = sign(dv), q = floor(sg a / D), rem = sg a - q D, and the
-    per-row steps of q and rem (D = 0: q holds a, stepped by du)."""
+    """Row state of edge k (p -> q, integer corners) in ``E[k]`` for row r: _side(p, q, r, c) is
+    a - dv (c - up) with a = du (r - vp), kept as D = |dv|, sg = sign(dv), q = floor(sg a / D),
+    rem = sg a - q D, and the per-row steps of q and rem (D = 0: q holds a, stepped by du)."""
     dv = int(vq - vp)
     du = int(uq - up)
     a = du * (r - int(vp))
@@ -187,10 +189,11 @@ def _run(zw, vw, feat, mode, r, lo, hi, p0, p1, p2, nk, mx, ar, ac, sm, w, wv, w
             ar = r
             ac = c
         sm += e
-        wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
-        w += wk
-        wv += wk * r
-        wu += wk * c
+        if mode != WEIGHT_NONE:
+            wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+            w += wk
+            wv += wk * r
+            wu += wk * c
     return mx, ar, ac, sm, w, wv, wu
 
 
@@ -199,9 +202,10 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
     """Errors and attraction moments of quad (i, j) for both diagonals in one pass over its samples.
 
     ``acc0`` (diagonal a-d) and ``acc1`` (diagonal b-c) get [max |err|, sum |err|, W, W*v, W*u, row of max,
-    col of max, valid] with W = err^2 (mode WEIGHT_ERROR) or feat (WEIGHT_FEATURE), over the samples of the
-    diagonal's two (closed) triangles; a diagonal whose triangles are not both counter-clockwise (the quad is
-    not convex) is marked invalid (acc[7] = 0) and gets max = inf. ``pl`` is (4, 3) scratch for the planes.
+    col of max, valid] with W = err^2 (mode WEIGHT_ERROR), feat (WEIGHT_FEATURE) or 0 (WEIGHT_NONE), over
+    the samples of the diagonal's two (closed) triangles; a diagonal whose triangles are not both
+    counter-clockwise (the quad is not convex) is marked invalid (acc[7] = 0) and gets max = inf. ``pl`` is
+    (4, 3) scratch for the planes.
     The scan stops after a row where both diagonals' max already reach ``bound`` (the sums and moments are
     then partial: callers give a finite bound only to reject the quad; np.inf for the full measure).
     """
@@ -326,10 +330,11 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
                     ar0 = r
                     ac0 = c
                 sm0 += e
-                wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
-                w0 += wk
-                wv0 += wk * r
-                wu0 += wk * c
+                if mode != WEIGHT_NONE:
+                    wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+                    w0 += wk
+                    wv0 += wk * r
+                    wu0 += wk * c
             if k1 >= 0:
                 if k1 == 2:
                     e = abs(zs - (p20 + p21 * c + p22 * r)) * n2
@@ -340,10 +345,11 @@ def _quad_eval2(zw, vw, feat, mode, pv, pu, hz, i, j, acc0, acc1, min_area2, pl,
                     ar1 = r
                     ac1 = c
                 sm1 += e
-                wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
-                w1 += wk
-                wv1 += wk * r
-                wu1 += wk * c
+                if mode != WEIGHT_NONE:
+                    wk = (e * e if e > ERR_EPS_M else 0.0) if mode == WEIGHT_ERROR else feat[r, c]
+                    w1 += wk
+                    wv1 += wk * r
+                    wu1 += wk * c
         if (mx0 >= bound or not ok0) and (mx1 >= bound or not ok1):
             break
     acc0[0], acc0[1], acc0[2], acc0[3], acc0[4], acc0[5], acc0[6] = mx0, sm0, w0, wv0, wu0, ar0, ac0
@@ -639,7 +645,7 @@ def assemble(zw, vw, feat, pv, pu, keep, r0, c0, snap, sxy):
     diag = np.zeros((cells, cells), np.int8)
     qmax = np.zeros((cells, cells), np.float64)
     mom = np.zeros((cells, cells, 3), np.float64)
-    worst = choose_diagonals(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, keep, diag, qmax, mom, sxy)
+    worst = choose_diagonals(zw, vw, feat, WEIGHT_NONE, pv, pu, hz, keep, diag, qmax, mom, sxy)
     rows, cols, heights, tris = assemble_diagonals(zw, pv, pu, keep, diag, r0, c0, snap)
     return rows, cols, heights, tris, worst
 
@@ -714,7 +720,7 @@ def _move(zw, pv, pu, hz, i, j, v, u, snap):
 @jit
 def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy, bound):
     """(max |err|, worst row, worst col, diagonal) of quad (i, j) with its better diagonal."""
-    _quad_eval2(zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy, bound)
+    _quad_eval2(zw, vw, feat, WEIGHT_NONE, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy, bound)
     if a1[0] < a0[0] or (a1[0] == a0[0] and a1[1] < a0[1]):
         return a1[0], a1[5], a1[6], 1
     return a0[0], a0[5], a0[6], 0
@@ -778,7 +784,7 @@ def grid_error_bound(zw, vw, pv, pu, keep, grad_scale, side_m):
     for i in range(cells):
         for j in range(cells):
             _quad_eval2(
-                zw, vw, feat, WEIGHT_ERROR, pv, pu, hz, i, j, a0, a1, min_area2, pl, np.zeros(2), np.inf
+                zw, vw, feat, WEIGHT_NONE, pv, pu, hz, i, j, a0, a1, min_area2, pl, np.zeros(2), np.inf
             )
             if keep[i, j]:
                 vq[i, j] = min(a0[0], a1[0])
