@@ -94,6 +94,8 @@ def test_info_and_build(tmp_path: Path) -> None:
     assert p.returncode == 0, p.stderr
     p = run_cli("info", str(tmp_path / "dem.terra"))
     assert p.returncode == 0 and "complete" in p.stdout and "max error m" in p.stdout
+    with open_store(tmp_path / "dem.terra") as s:
+        assert s.meta["method"] == "cohesion"  # the default mesher: the vertex cohesion map (paper 000)
 
 
 def test_demo_runs(tmp_path: Path) -> None:
@@ -103,6 +105,7 @@ def test_demo_runs(tmp_path: Path) -> None:
     with open_store(tmp_path / "demo.terra") as s:
         assert s.complete and len(s.tile_codes()) == len(s.pyramid.all_codes())
         assert "UTM zone 16N" in (s.crs or "")
+        assert s.meta["method"] == "cohesion"
 
 
 def test_kill_during_build_then_resume(tmp_path: Path) -> None:

@@ -167,7 +167,7 @@ def test_golden_sample_frames(tmp_path: Path) -> None:
     from terralod.render import RenderSettings
     from terralod.render.offscreen import FrameRenderer, auto_path
 
-    build_store(sample_heightfield(), tmp_path / "s.terra", tile_size=33)
+    build_store(sample_heightfield(), tmp_path / "s.terra", tile_size=33, method="chunked")
     with open_store(tmp_path / "s.terra") as s:
         for mode in ("elevation", "lod"):
             fr = FrameRenderer(s, 320, 180, threshold_px=1.0, settings=RenderSettings(mode=mode))

@@ -48,7 +48,7 @@ def terrain_store(
         z[:, : int(sea * cols)] = 0.0
         hf = Heightfield.from_array(z, SPACING_M, origin_m=ORIGIN_M)
         p = _DIR / f"t_{rows}_{cols}_{seed}_{tile_size}_{int(relief_m)}_{beta}_{sea}.terra"
-        build_store(hf, p, tile_size=tile_size, workers=2)
+        build_store(hf, p, tile_size=tile_size, method="chunked", workers=2)
         _STORES[key] = p
     return open_store(p)
 

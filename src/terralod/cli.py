@@ -218,9 +218,9 @@ def run_build(
 @click.option("-o", "--output", required=True, help="Output .terra store.")
 @click.option("--tile-size", default=65, show_default=True, help="Vertices per tile side (2^n + 1).")
 @click.option(
-    "--method", default="chunked", show_default=True,
-    help="Tile mesher: chunked or cohesion (paper 000); tin builds a detail-increment TIN (paper 003), the "
-    "default for LAS/LAZ input.",
+    "--method", default="cohesion", show_default=True,
+    help="Tile mesher: cohesion (paper 000, the vertex cohesion map) or chunked (Chunked LOD); tin builds a "
+    "detail-increment TIN (paper 003), the default for LAS/LAZ input.",
 )  # fmt: skip
 @click.option("--sub-blocks", default="4", show_default=True, help="TIN: sub-blocks, a square number or auto.")
 @click.option(
@@ -391,6 +391,7 @@ def _open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path
         return p
     hf = _load(path, **read)
     cache = p.with_name(p.name + ".terra")
+    from terralod.build.builder import DEFAULT_METHOD
     from terralod.errors import StoreError
     from terralod.store import open_store
 
@@ -402,7 +403,7 @@ def _open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path
         except StoreError:
             pass
     run_build(
-        hf, str(cache), tile_size=tile_size, method="chunked", workers=None, resume=False, overwrite=True
+        hf, str(cache), tile_size=tile_size, method=DEFAULT_METHOD, workers=None, resume=False, overwrite=True
     )
     return cache
 
@@ -636,7 +637,7 @@ def view(path, size, threshold_px, frames, screenshot, fractal_levels, cull, **r
 def demo(output: str, tile_size: int, frames: int, no_window: bool) -> None:
     """Build the bundled real DEM (matplotlib's Jacksboro fault, Tennessee), then open the viewer, or with
     no display render a fly-through to demo.mp4 plus demo.png and print the statistics."""
-    from terralod.build.builder import store_summary
+    from terralod.build.builder import DEFAULT_METHOD, store_summary
     from terralod.io.reader import sample_heightfield
     from terralod.store import open_store
 
@@ -647,7 +648,7 @@ def demo(output: str, tile_size: int, frames: int, no_window: bool) -> None:
         f"{d['elevation_range_m'][0]:.0f}..{d['elevation_range_m'][1]:.0f} m, CRS {_crs_name(d['crs'])}"
     )
     rep = run_build(
-        hf, output, tile_size=tile_size, method="chunked", workers=None, resume=False, overwrite=True
+        hf, output, tile_size=tile_size, method=DEFAULT_METHOD, workers=None, resume=False, overwrite=True
     )
     console.print(f"built {rep.tiles_built} tiles in {rep.seconds:.2f} s")
     with open_store(output) as s:

@@ -44,6 +44,9 @@ MeshFn = Callable[
 ]
 #: A mesher with a true ``needs_spacing`` attribute is also given ``spacing_m=(dx, dy)`` (metres).
 METHODS: dict[str, MeshFn] = {"chunked": chunked.mesh_tile, "cohesion": cohesion.mesh_tile}
+# The vertex cohesion map (paper 000) is the default: at the same measured screen error it draws 0.40-0.49x
+# Chunked LOD's triangles on mountainous DEMs (benchmarks/results/cohesion_vs_chunked.md).
+DEFAULT_METHOD = "cohesion"
 
 #: Tiles committed per SQLite transaction (bounded by time as well, see ``_COMMIT_SECONDS``).
 _BATCH_TILES = 64
@@ -213,7 +216,7 @@ def build_store(
     path: str | os.PathLike[str],
     *,
     tile_size: int = 65,
-    method: str = "chunked",
+    method: str = DEFAULT_METHOD,
     workers: int | None = None,
     resume: bool = False,
     overwrite: bool = False,
