@@ -54,7 +54,7 @@ SHAPE_EPS = 1e-9
 #: Default weight of the vertical term (cost + w · W_u · g², g the largest vertical distance from u and the
 #: removed vertices its star carries to the surface after the collapse). 10 on the 513² Puget Sound crop
 #: (benchmarks/results/tin.md): max vertical error 25.4 m at 20 % of the triangles against 87.3 m with the
-#: quadric alone; 3 and 30 give about the same (28.4 and 23.5 m), at 3-6x the time of the quadric alone.
+#: quadric alone; 3 and 30 give about the same (28.4 and 23.5 m), at 2.5-4x the time of the quadric alone.
 VERTICAL_WEIGHT = 10.0
 
 
