@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from terralod.heightfield import Heightfield
-from terralod.kernels.error import tile_error
+from terralod.kernels.error import _KEEP_SAMPLES, tile_error, tile_error_rows
 
-__all__ = ["ErrorReport", "measure_error", "measure_error_window"]
+__all__ = ["ErrorReport", "measure_error", "measure_error_window", "measure_error_window_series"]
 
 
 @dataclass(frozen=True)
@@ -139,6 +139,66 @@ def measure_error_window(
     if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
         raise ValueError(f"Expected positive finite spacing (dx, dy) in metres, got ({dx}, {dy})")
     return _report(tile_error(v, t, zz, ok, float(dx), float(dy)))
+
+
+def measure_error_window_series(
+    meshes: list[tuple[np.ndarray, np.ndarray]],
+    z: np.ndarray,
+    valid: np.ndarray,
+    dx: float,
+    dy: float,
+) -> list[ErrorReport]:
+    """:func:`measure_error_window` of each (verts_local, tris) of ``meshes`` on one window, bit for bit,
+    cheaper when consecutive meshes differ in a few triangles (the candidates of a tile mesher).
+
+    Each mesh is measured over every covered sample as :func:`measure_error_window` does; only the
+    per-sample vertical errors are carried from one mesh to the next: where a mesh has the previous one's
+    vertex and triangle counts, the rows that a triangle differing between the two (its indices or a
+    vertex's coordinates) reaches in either mesh are rasterised again (with a row of margin), and the
+    rest of the measure (statistics, Hausdorff distances) runs on the whole window (see
+    :func:`terralod.kernels.error.tile_error_rows`). Windows of over 2^21 samples are measured one by one.
+    """
+    zz = np.ascontiguousarray(z, dtype=np.float32)
+    ok = np.ascontiguousarray(valid, dtype=np.bool_)
+    if zz.ndim != 2 or ok.shape != zz.shape:
+        raise ValueError(
+            f"Expected 2-D elevations and a mask of the same shape, got {zz.shape} and {ok.shape}"
+        )
+    if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
+        raise ValueError(f"Expected positive finite spacing (dx, dy) in metres, got ({dx}, {dy})")
+    h, w = zz.shape
+    if h * w > _KEEP_SAMPLES:
+        return [measure_error_window(v, t, zz, ok, dx, dy) for v, t in meshes]
+    vall = np.empty(h * w, np.float64)
+    out = []
+    prev: tuple[np.ndarray, np.ndarray] | None = None
+    for verts, tris in meshes:
+        v, t = _check_mesh(verts, tris)
+        dirty = _changed_rows(prev, v, t, float(dy), h)
+        out.append(_report(tile_error_rows(v, t, zz, ok, float(dx), float(dy), vall, dirty)))
+        prev = (v, t)
+    return out
+
+
+def _changed_rows(
+    prev: tuple[np.ndarray, np.ndarray] | None, v: np.ndarray, t: np.ndarray, dy: float, h: int
+) -> np.ndarray:
+    """(h,) bool: the window rows that the triangles differing between ``prev`` and (v, t) reach in either
+    mesh, with a row of margin; every row when the counts differ or there is no ``prev``."""
+    if prev is None or prev[0].shape != v.shape or prev[1].shape != t.shape:
+        return np.ones(h, np.bool_)
+    pv, pt = prev
+    moved = (pv != v).any(axis=1)
+    changed = (pt != t).any(axis=1)
+    if t.size:
+        changed |= moved[pt].any(axis=1) | moved[t].any(axis=1)
+    ys = np.concatenate([pv[pt[changed], 1], v[t[changed], 1]]) / dy  # (2 * changed, 3)
+    lo = np.clip(np.floor(ys.min(axis=1)).astype(np.int64) - 1, 0, h)
+    hi = np.clip(np.ceil(ys.max(axis=1)).astype(np.int64) + 2, 0, h)  # one past the last row
+    edges = np.zeros(h + 1, np.int64)
+    np.add.at(edges, lo, 1)
+    np.add.at(edges, hi, -1)
+    return np.cumsum(edges[:h]) > 0
 
 
 def measure_error(

@@ -568,20 +568,56 @@ def _bucket_stats(vbuf, r0, r1, c0, c1, w):
 
 
 @jit
-def _vertical_pass(uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall):
+def _rasterise_rows(uv, verts, tris, z, valid, dirty, vall):
+    """Rasterise into vall (h * w) the rows r with dirty[r] only, run of rows by run of rows, each with
+    the triangles whose row span meets it. Rows are independent (a triangle's row is computed from the
+    row alone, its columns clipped to the whole window as always), so each row gets the values a whole
+    window's rasterisation gives it, bit for bit."""
+    h, w = z.shape
+    k = tris.shape[0]
+    tlo = np.empty(k, np.int64)
+    thi = np.empty(k, np.int64)
+    for t in range(k):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        tlo[t] = int(math.floor(min(uv[a, 1], uv[b, 1], uv[c, 1]))) - 1
+        thi[t] = int(math.ceil(max(uv[a, 1], uv[b, 1], uv[c, 1]))) + 1
+    items = np.empty(k, np.int64)
+    r = 0
+    while r < h:
+        if not dirty[r]:
+            r += 1
+            continue
+        e = r
+        while e + 1 < h and dirty[e + 1]:
+            e += 1
+        n = 0
+        for t in range(k):
+            if thi[t] >= r and tlo[t] <= e:
+                items[n] = t
+                n += 1
+        _rasterise_bucket(uv, verts, tris, items, 0, n, z, valid, r, e, 0, w - 1, vall[r * w : (e + 1) * w])
+        r = e + 1
+
+
+@jit
+def _vertical_pass(uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall, dirty):
     """Pass 1: vertical error of every covered sample.
 
     Returns (max_v, sumsq, n, worst, bmax, barg): worst is the window index r * w + c of a sample
     attaining max_v; per bucket, bmax is the max vertical error (-1 when the bucket covers nothing) and
-    barg where it is. With vall of h * w entries, every triangle is rasterised once straight into it
-    (inf where not covered) and start/items are not used; else bucket by bucket through a bucket of
-    scratch, with start/items the buckets' triangles.
+    barg where it is. With vall of h * w entries, every triangle is rasterised straight into it (inf
+    where not covered) and start/items are not used; a ``dirty`` mask of h rows limits that to its rows
+    (the other rows of vall are taken as they are: see :func:`tile_error_rows`), an empty one means
+    every row. Else bucket by bucket through a bucket of scratch, with start/items the buckets'
+    triangles (dirty unused).
     """
     h, w = z.shape
     keep = vall.shape[0] == h * w
-    if keep:
+    if keep and dirty.shape[0] == 0:
         k = tris.shape[0]
         _rasterise_bucket(uv, verts, tris, np.arange(k), 0, k, z, valid, 0, h - 1, 0, w - 1, vall)
+    elif keep:
+        _rasterise_rows(uv, verts, tris, z, valid, dirty, vall)
     vbuf = np.empty(0 if keep else bs * bs, np.float64)
     bmax = np.full(nbr * nbc, -1.0)
     barg = np.full(nbr * nbc, -1, np.int64)
@@ -730,10 +766,37 @@ def tile_error_with(verts, tris, z, valid, dx, dy, bucket_size, keep_samples):
     exercise every path.
     """
     h, w = z.shape
+    vall = np.empty(h * w if h * w <= keep_samples else 0, np.float64)
+    return _tile_error(verts, tris, z, valid, dx, dy, bucket_size, vall, np.empty(0, np.bool_))
+
+
+@jit
+def tile_error_rows(verts, tris, z, valid, dx, dy, vall, dirty):
+    """:func:`tile_error` of a mesh that differs from a previously measured one only on some rows.
+
+    ``vall`` ((h * w,) float64, h * w <= ``_KEEP_SAMPLES``) holds the per-sample vertical errors: on
+    entry those of the previous mesh (left there by the previous call; an all-True ``dirty`` measures
+    from scratch), on return those of this mesh. ``dirty`` ((h,) bool): the caller guarantees that every
+    triangle covering a sample of a row that is not dirty is, in both meshes, the same triangle (same
+    index, same vertex coordinates). Only the dirty rows are rasterised again; everything else (the
+    bucket statistics, the Hausdorff pass) runs on the whole window as in :func:`tile_error`, so the
+    result is :func:`tile_error`'s bit for bit.
+    """
+    return _tile_error(verts, tris, z, valid, dx, dy, 0, vall, dirty)
+
+
+@jit
+def _tile_error(verts, tris, z, valid, dx, dy, bucket_size, vall, dirty):
+    """Body of :func:`tile_error_with` and :func:`tile_error_rows`: vall of h * w entries selects the
+    per-sample path (only the dirty rows rasterised, every row when dirty is empty), of 0 entries the
+    bucket path."""
+    h, w = z.shape
     k = tris.shape[0]
+    keep = vall.shape[0] == h * w
     if k == 0 or h == 0 or w == 0:
+        if keep:
+            vall[:] = np.inf  # nothing covered (a later tile_error_rows call starts from here)
         return 0.0, 0.0, 0, 0.0, -1, -1, -1, -1
-    keep = h * w <= keep_samples
     bs = bucket_size
     if bs <= 0:
         lo = _MIN_BUCKET_KEEP if keep else _MIN_BUCKET
@@ -742,13 +805,11 @@ def tile_error_with(verts, tris, z, valid, dx, dy, bucket_size, keep_samples):
     nbc = (w + bs - 1) // bs
     uv = _sample_units(verts, dx, dy)
     if keep:  # pass 1 rasterises into vall; pass 2 needs each triangle in one bucket only
-        vall = np.empty(h * w, np.float64)
         start = items = np.empty(0, np.int64)
     else:
-        vall = np.empty(0, np.float64)
         start, items = _bin_triangles(uv, tris, nbr, nbc, bs)
     max_v, sumsq, n, wv, bmax, barg = _vertical_pass(
-        uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall
+        uv, verts, tris, z, valid, bs, nbr, nbc, start, items, vall, dirty
     )
     if n == 0:
         return 0.0, 0.0, 0, 0.0, -1, -1, -1, -1
