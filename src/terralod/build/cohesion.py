@@ -92,7 +92,9 @@ Deviations, and why:
    search measures the quads that depend on one vertex once per position of it, and the unrelocated grid
    (the fallback of deviation 5) is built and measured only when a lower bound of its Hausdorff error
    (:func:`terralod.kernels.cohesion.grid_error_bound`) does not already exceed the relocated tile's
-   largest vertical error. Measured per level and core in ``benchmarks/results/cohesion_vs_chunked.md``.
+   largest vertical error; the candidates are measured in a series
+   (:func:`terralod.error.measure_error_window_series`: the second re-rasterises only the rows where it
+   differs from the first, exact and bit-identical to measuring each alone). Measured per level and core in ``benchmarks/results/cohesion_vs_chunked.md``.
 
 Partial tiles at the data edge: only vertices whose 4 quads lie entirely inside the data move (the rest
 keep their grid position), so the dropped padding quads are the baseline's.

@@ -42,6 +42,11 @@ Algorithm (the recipe in :func:`tile_error_with`):
    stops as soon as the distance cannot raise the running max, so it stays local however large v is.
    On terrain tiles pass 2 costs a few percent of pass 1.
 
+Several meshes of one window that differ in a few triangles (a mesher's candidates):
+:func:`tile_error_rows` keeps the per-sample array between calls and rasterises again only the rows that
+a changed triangle reaches (rows are independent in pass 1, so this is bit-identical); the statistics and
+pass 2 run on the whole window as always.
+
 Memory: the per-sample array (8 bytes a sample, at most 16 MiB) or one bucket of scratch; the bucket
 index (1 to 4 int64 a triangle) and, in pass 2, per-triangle boxes (6 float64 a triangle).
 """
