@@ -130,6 +130,12 @@ def measure_error_window(
         On bad shapes, non-finite vertices, indices out of range or non-positive spacing.
     """
     v, t = _check_mesh(verts_local, tris)
+    zz, ok = _check_window(z, valid, dx, dy)
+    return _report(tile_error(v, t, zz, ok, float(dx), float(dy)))
+
+
+def _check_window(z: np.ndarray, valid: np.ndarray, dx: float, dy: float) -> tuple[np.ndarray, np.ndarray]:
+    """(float32 elevations, bool mask), contiguous; ValueError on mismatched shapes or a bad spacing."""
     zz = np.ascontiguousarray(z, dtype=np.float32)
     ok = np.ascontiguousarray(valid, dtype=np.bool_)
     if zz.ndim != 2 or ok.shape != zz.shape:
@@ -138,7 +144,7 @@ def measure_error_window(
         )
     if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
         raise ValueError(f"Expected positive finite spacing (dx, dy) in metres, got ({dx}, {dy})")
-    return _report(tile_error(v, t, zz, ok, float(dx), float(dy)))
+    return zz, ok
 
 
 def measure_error_window_series(
@@ -158,14 +164,7 @@ def measure_error_window_series(
     rest of the measure (statistics, Hausdorff distances) runs on the whole window (see
     :func:`terralod.kernels.error.tile_error_rows`). Windows of over 2^21 samples are measured one by one.
     """
-    zz = np.ascontiguousarray(z, dtype=np.float32)
-    ok = np.ascontiguousarray(valid, dtype=np.bool_)
-    if zz.ndim != 2 or ok.shape != zz.shape:
-        raise ValueError(
-            f"Expected 2-D elevations and a mask of the same shape, got {zz.shape} and {ok.shape}"
-        )
-    if not (dx > 0 and dy > 0 and math.isfinite(dx) and math.isfinite(dy)):
-        raise ValueError(f"Expected positive finite spacing (dx, dy) in metres, got ({dx}, {dy})")
+    zz, ok = _check_window(z, valid, dx, dy)
     h, w = zz.shape
     if h * w > _KEEP_SAMPLES:
         return [measure_error_window(v, t, zz, ok, dx, dy) for v, t in meshes]

@@ -271,6 +271,17 @@ def _collapse_cost(Q, P, u, v):
     return c if c > 0.0 else 0.0
 
 
+@jit
+def _emin_through(x, v, c, W, emin, eminw):
+    """x's MMQE term when only its collapse x -> v (quadric cost ``c``, m⁴) may have changed and was not its
+    minimum: the smaller of the old minimum and c / (W_x + W_v); records v as the minimum's target if so."""
+    ex = c / (W[x] + W[v])
+    if ex < emin[x]:
+        eminw[x] = v
+        return ex
+    return emin[x]
+
+
 # -- indexed min-heap of (cost, vertex): one entry per vertex ----------------------------------------------
 # hk[i], hv[i]: key and vertex of heap node i; hpos[v]: v's node (-1: not queued). Ties broken by vertex
 # (deterministic). A vertex whose best collapse changes moves in place (no stale entries to pop), so the
@@ -837,11 +848,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                             x, P, tris, Q, W, selfq, arena, start[x], length[x], wbuf, cbuf
                         )
                     else:
-                        ex = _collapse_cost(Q, P, x, v) / (W[x] + W[v])
-                        if ex < emin[x]:
-                            eminw[x] = v
-                        else:
-                            ex = emin[x]
+                        ex = _emin_through(x, v, _collapse_cost(Q, P, x, v), W, emin, eminw)
                     esum[bx] += ex - emin[x]
                     emin[x] = ex
                     continue
@@ -857,11 +864,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                         # quadric alone, x in ring(u): x lost u and has v, whose quadric grew; its other
                         # costs stand, so its cheapest collapse is the old one or x -> v
                         c = _collapse_cost(Q, P, x, v)
-                        ex = c / (W[x] + W[v])
-                        if ex < emin[x]:
-                            eminw[x] = v
-                        else:
-                            ex = emin[x]
+                        ex = _emin_through(x, v, c, W, emin, eminw)
                         esum[bx] += ex - emin[x]
                         emin[x] = ex
                         if _before(c, v, bestc[x], best[x]):
