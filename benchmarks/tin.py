@@ -7,7 +7,8 @@ absent), one run, same data for every method:
 1. storage of the model file (base + ΔT records + MMQE, checksummed; raw and merged k = 4, 16) against a
    static pyramid of 6 meshes (the model's scales evenly spaced from the base to the full TIN, sharing one
    vertex array, coded by the same container and LZMA2 stream, each mesh in its smallest of six generic
-   codings, the model's base-mesh coding included), paper 003 §4, with where the model's bytes go and its
+   codings, the model's base-mesh coding included) and against the same 6 meshes as standalone files (each
+   with the vertices it uses, as static LOD is stored), paper 003 §4, with where the model's bytes go and its
    save and load times;
 2. reconstruction: time per scale step (one record applied or reverted) and a scripted zoom (120 frames,
    eye descending from 20 km to 50 m, every sub-block at its scale for 2 px by the measured-error rule and
