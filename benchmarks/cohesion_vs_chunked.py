@@ -40,9 +40,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scipy import ndimage  # noqa: E402
 
 from terralod import Camera, Engine, Heightfield, build_store, measure_error, open_store  # noqa: E402
-from terralod.build import cohesion  # noqa: E402
-from terralod.build.builder import METHODS, register_method  # noqa: E402
 from terralod.io.reader import read_heightfield, sample_heightfield  # noqa: E402
+from terralod.pyramid import cohesion  # noqa: E402
+from terralod.pyramid.builder import METHODS, register_method  # noqa: E402
 
 from _common import RESULTS, SHARED, md_table, puget_sound_1k, write_results  # noqa: E402
 

@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from terralod import build_store, open_store  # noqa: E402
-from terralod.build.builder import METHODS  # noqa: E402
+from terralod.pyramid.builder import METHODS  # noqa: E402
 
 from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
 

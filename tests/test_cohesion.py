@@ -14,11 +14,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from terralod import Heightfield, build_store, open_store
-from terralod.build import chunked, cohesion
-from terralod.build.builder import METHODS
 from terralod.error import measure_error_window
 from terralod.io.reader import sample_heightfield
 from terralod.kernels.cohesion import grid_error_bound, stiffness
+from terralod.pyramid import chunked, cohesion
+from terralod.pyramid.builder import METHODS
 from terralod.tiles import TilePyramid
 
 from conftest import fractal_terrain

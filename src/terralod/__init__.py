@@ -9,7 +9,6 @@ Public API (metres everywhere, x east, y north, z up):
 - :class:`Camera`, :class:`Engine`: view-dependent selection and crack-free stitching of a store
 """
 
-from terralod.build.builder import BuildReport, build_store
 from terralod.error import ErrorReport, measure_error
 from terralod.errors import (
     BuildMismatchError,
@@ -21,6 +20,7 @@ from terralod.errors import (
 )
 from terralod.heightfield import Heightfield
 from terralod.io.reader import read_heightfield, sample_heightfield
+from terralod.pyramid.builder import BuildReport, build_store
 from terralod.runtime import Camera, Engine
 from terralod.store import Tile, TileStore, open_store
 from terralod.tiles import TilePyramid

@@ -144,7 +144,7 @@ def print_store_summary(summary: dict[str, Any]) -> None:
 @_read_options
 def info(path: str, as_json: bool, **read: Any) -> None:
     """Describe a DEM (size, CRS, spacing, range, nodata) or a .terra store (levels, tiles, errors)."""
-    from terralod.build.builder import store_summary
+    from terralod.pyramid.builder import store_summary
     from terralod.store import open_store
 
     p = Path(path)
@@ -190,7 +190,7 @@ def info(path: str, as_json: bool, **read: Any) -> None:
 def run_build(
     hf, out: str, *, tile_size: int, method: str, workers: int | None, resume: bool, overwrite: bool
 ):
-    from terralod.build.builder import build_store
+    from terralod.pyramid.builder import build_store
 
     with Progress(
         TextColumn("[bold]building[/bold] {task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -240,7 +240,7 @@ def build(
     resume, overwrite, fractal_levels, **read: Any,
 ) -> None:  # fmt: skip
     """Build the level-of-detail tile store of a DEM, or the detail-increment TIN of a LAS/LAZ cloud."""
-    from terralod.build.builder import METHODS, store_summary
+    from terralod.pyramid.builder import METHODS, store_summary
     from terralod.store import open_store
     from terralod.tiles import is_valid_tile_size
 
@@ -391,8 +391,8 @@ def _open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path
         return p
     hf = _load(path, **read)
     cache = p.with_name(p.name + ".terra")
-    from terralod.build.builder import DEFAULT_METHOD
     from terralod.errors import StoreError
+    from terralod.pyramid.builder import DEFAULT_METHOD
     from terralod.store import open_store
 
     if cache.exists():
@@ -637,8 +637,8 @@ def view(path, size, threshold_px, frames, screenshot, fractal_levels, cull, **r
 def demo(output: str, tile_size: int, frames: int, no_window: bool) -> None:
     """Build the bundled real DEM (matplotlib's Jacksboro fault, Tennessee), then open the viewer, or with
     no display render a fly-through to demo.mp4 plus demo.png and print the statistics."""
-    from terralod.build.builder import DEFAULT_METHOD, store_summary
     from terralod.io.reader import sample_heightfield
+    from terralod.pyramid.builder import DEFAULT_METHOD, store_summary
     from terralod.store import open_store
 
     hf = sample_heightfield()

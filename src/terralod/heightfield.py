@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from affine import Affine
 
+from terralod.fill import prepare_elevation
+
 
 @dataclass(frozen=True, eq=False)
 class Heightfield:
@@ -132,10 +134,8 @@ class Heightfield:
     ) -> Heightfield:
         """Wrap an array (row 0 north) whose north-west pixel corner is at ``origin_m`` (west, north).
 
-        NaN cells are treated as nodata and filled (see :func:`terralod.io.fill.fill_nodata`).
+        NaN cells are treated as nodata and filled (see :func:`terralod.fill.fill_nodata`).
         """
-        from terralod.io.fill import prepare_elevation
-
         dx, dy = (spacing_m, spacing_m) if np.isscalar(spacing_m) else spacing_m  # type: ignore[misc]
         z, ok, how = prepare_elevation(np.asarray(elevation_m), valid, source)
         t = Affine(float(dx), 0.0, float(origin_m[0]), 0.0, -float(dy), float(origin_m[1]))

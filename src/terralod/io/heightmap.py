@@ -28,62 +28,22 @@ from typing import Any
 import numpy as np
 
 from terralod.errors import InputError
+from terralod.fill import check_dimensions
 from terralod.heightfield import Heightfield
-from terralod.io.fill import check_dimensions
+from terralod.io.encodings import (  # noqa: F401 - re-exported: the codecs' historical home
+    ENCODINGS,
+    decode_rgb,
+    decode_terrain_rgb,
+    decode_terrarium,
+    encode_terrain_rgb,
+    encode_terrarium,
+)
 from terralod.io.raster import FrameHints, apply_vertical, error_line, place_heightfield
 
-#: Canonical encoding names.
-ENCODINGS = ("terrain-rgb", "terrarium")
 #: Pillow modes read as a single greyscale channel without conversion.
 _GREY_MODES = ("L", "I", "F", "I;16", "I;16L", "I;16B", "I;16N")
 #: Pillow modes converted to 8-bit greyscale ("1" bilevel, palette, greyscale with alpha).
 _TO_GREY_MODES = ("1", "P", "PA", "LA", "La")
-
-
-# -- RGB encodings -------------------------------------------------------------------------------------
-def decode_terrain_rgb(rgb: np.ndarray) -> np.ndarray:
-    """Mapbox Terrain-RGB (H, W, >=3) uint8 → (H, W) float64 metres: -10000 + (R*65536 + G*256 + B) * 0.1."""
-    code = _rgb_code(rgb)
-    return code * 0.1 - 10000.0
-
-
-def decode_terrarium(rgb: np.ndarray) -> np.ndarray:
-    """Terrarium (H, W, >=3) uint8 → (H, W) float64 metres: R*256 + G + B/256 - 32768."""
-    code = _rgb_code(rgb)
-    return code / 256.0 - 32768.0
-
-
-def encode_terrain_rgb(elevation_m: np.ndarray) -> np.ndarray:
-    """(H, W) metres → (H, W, 3) uint8 Terrain-RGB, rounded to 0.1 m, clipped to -10000..1667721.5 m."""
-    code = np.clip(np.round((np.asarray(elevation_m, np.float64) + 10000.0) * 10.0), 0, 2**24 - 1)
-    return _code_rgb(code.astype(np.int64))
-
-
-def encode_terrarium(elevation_m: np.ndarray) -> np.ndarray:
-    """(H, W) metres → (H, W, 3) uint8 Terrarium, rounded to 1/256 m, clipped to -32768..32767.996 m."""
-    code = np.clip(np.round((np.asarray(elevation_m, np.float64) + 32768.0) * 256.0), 0, 2**24 - 1)
-    return _code_rgb(code.astype(np.int64))
-
-
-def decode_rgb(rgb: np.ndarray, encoding: str, source: str | None = None) -> np.ndarray:
-    """Decode an (H, W, >=3) RGB array with ``encoding`` ("terrain-rgb" or "terrarium") to metres."""
-    if encoding == "terrain-rgb":
-        return decode_terrain_rgb(rgb)
-    if encoding == "terrarium":
-        return decode_terrarium(rgb)
-    raise InputError(f"unknown encoding {encoding!r}; expected one of {', '.join(ENCODINGS)}", source)
-
-
-def _rgb_code(rgb: np.ndarray) -> np.ndarray:
-    a = np.asarray(rgb)
-    if a.ndim != 3 or a.shape[2] < 3:
-        raise ValueError(f"Expected an (H, W, 3) RGB array, got shape {a.shape}")
-    a = a.astype(np.int64)
-    return ((a[..., 0] << 16) | (a[..., 1] << 8) | a[..., 2]).astype(np.float64)
-
-
-def _code_rgb(code: np.ndarray) -> np.ndarray:
-    return np.stack([(code >> 16) & 255, (code >> 8) & 255, code & 255], axis=-1).astype(np.uint8)
 
 
 # -- images --------------------------------------------------------------------------------------------

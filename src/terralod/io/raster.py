@@ -37,8 +37,9 @@ import numpy as np
 from affine import Affine
 
 from terralod.errors import InputError
+from terralod.fill import check_dimensions, prepare_elevation
 from terralod.heightfield import Heightfield
-from terralod.io.fill import check_dimensions, prepare_elevation
+from terralod.io.encodings import decode_rgb
 
 #: Web-mercator (EPSG:3857) world width, metres: one XYZ tile at zoom z spans this / 2**z.
 EARTH_CIRCUMFERENCE_M = 40075016.686
@@ -146,8 +147,6 @@ def read_raster(
     mask = np.ma.getmaskarray(data)
     raw = np.ma.getdata(data)
     if encoding:
-        from terralod.io.heightmap import decode_rgb
-
         values = decode_rgb(np.moveaxis(raw, 0, -1), encoding, src)
         valid = ~mask.any(axis=0)
         notes = (*notes, f"decoded {encoding} RGB bands 1-3")

@@ -1,7 +1,7 @@
 """Numba kernels of the vertex cohesion map (``../shared/papers/000_0f8c6950ace8a2d1.txt`` §3.1).
 
 Pure functions on arrays, no I/O, no exceptions; validation and the paper's reading live in
-:mod:`terralod.build.cohesion`.
+:mod:`terralod.pyramid.cohesion`.
 
 Frame: tile-local source samples, ``u`` = column offset (east), ``v`` = row offset (south) from the tile's
 north-west vertex; the window ``zw`` holds the source over the tile square (edge-replicated past the data,

@@ -1,4 +1,4 @@
-"""Hole-filling relaxation kernel (see terralod.io.fill): Jacobi averaging over hole cells only."""
+"""Hole-filling relaxation kernel (see terralod.fill): Jacobi averaging over hole cells only."""
 
 from __future__ import annotations
 

@@ -18,7 +18,6 @@ triangles touching the boundary are re-summed after stitching (a patch, not a re
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,17 +26,12 @@ from terralod.kernels.stitch import (
     normal_sums,
     normalize_all,
     normalize_rows,
-    patch_normal_sums,
     triangle_cross,
 )
-
-if TYPE_CHECKING:
-    from terralod.runtime.stitch import TilePrep
 
 __all__ = [
     "boundary_normals",
     "edge_tables",
-    "geometry_normals",
     "reference_normals",
     "tile_local_normals",
 ]
@@ -48,26 +42,6 @@ def tile_local_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarra
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     t = np.ascontiguousarray(triangles, dtype=np.int64)
     return normalize_all(normal_sums(v, t))
-
-
-def geometry_normals(
-    prep: TilePrep, vertices: np.ndarray, triangles: np.ndarray, topology_changed: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """Own-triangle normal sums (N, 3) float64 and normals (N, 3) float32 of a (stitched) tile.
-
-    Shares the prepared arrays when the geometry is the stored one; re-sums only the boundary-touching
-    triangles when just boundary heights moved; recomputes everything when triangles were inserted.
-    """
-    if vertices is prep.vertices and triangles is prep.triangles:
-        return prep.base_sums, prep.base_normals
-    if topology_changed:
-        sums = normal_sums(vertices, triangles)
-        return sums, normalize_all(sums)
-    sums = prep.base_sums.copy()
-    patch_normal_sums(sums, prep.vertices, vertices, triangles, prep.boundary_triangles)
-    normals = prep.base_normals.copy()
-    normalize_rows(sums, prep.boundary_touched, normals)
-    return sums, normals
 
 
 def edge_tables(

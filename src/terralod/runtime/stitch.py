@@ -46,13 +46,15 @@ import numpy as np
 from terralod.kernels.stitch import (
     normal_sums,
     normalize_all,
+    normalize_rows,
+    patch_normal_sums,
     polyline_at,
     split_boundary_triangles,
     stitch_edge,
 )
 from terralod.kernels.stitch import segment_triangles as _segment_triangles
 from terralod.runtime.adjacency import CULLED, OPPOSITE, VISIBLE, Adjacency, QuadIndex
-from terralod.runtime.normals import boundary_normals, edge_tables, geometry_normals
+from terralod.runtime.normals import boundary_normals, edge_tables
 from terralod.tiles import TileCode, TilePyramid
 
 __all__ = [
@@ -183,6 +185,26 @@ class TilePrep:
         for a in (prep.vertices, prep.triangles, prep.base_sums, prep.base_normals):
             a.flags.writeable = False
         return prep
+
+
+def geometry_normals(
+    prep: TilePrep, vertices: np.ndarray, triangles: np.ndarray, topology_changed: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Own-triangle normal sums (N, 3) float64 and normals (N, 3) float32 of a (stitched) tile.
+
+    Shares the prepared arrays when the geometry is the stored one; re-sums only the boundary-touching
+    triangles when just boundary heights moved; recomputes everything when triangles were inserted.
+    """
+    if vertices is prep.vertices and triangles is prep.triangles:
+        return prep.base_sums, prep.base_normals
+    if topology_changed:
+        sums = normal_sums(vertices, triangles)
+        return sums, normalize_all(sums)
+    sums = prep.base_sums.copy()
+    patch_normal_sums(sums, prep.vertices, vertices, triangles, prep.boundary_triangles)
+    normals = prep.base_normals.copy()
+    normalize_rows(sums, prep.boundary_touched, normals)
+    return sums, normals
 
 
 def segment_triangles(tris: np.ndarray, edge_vid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

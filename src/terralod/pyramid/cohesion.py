@@ -1,6 +1,6 @@
 """Vertex cohesion map tiles: paper 000 (``../shared/papers/000_0f8c6950ace8a2d1.txt``), §3.1 and §3.2.
 
-Each tile starts as the Chunked-LOD regular M x M grid of its level (:mod:`terralod.build.chunked`) and its
+Each tile starts as the Chunked-LOD regular M x M grid of its level (:mod:`terralod.pyramid.chunked`) and its
 vertices are relocated toward the places the grid misrepresents, the "vertex cohesion map" of the paper,
 then re-triangulated (per quad, the diagonal of smaller max error, as in the baseline) and measured.
 
@@ -107,7 +107,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from terralod.build import chunked
 from terralod.error import ErrorReport, measure_error_window, measure_error_window_series
 from terralod.kernels.cohesion import (
     WEIGHT_ERROR,
@@ -121,6 +120,7 @@ from terralod.kernels.cohesion import (
     relax_edge,
     relax_interior,
 )
+from terralod.pyramid import chunked
 from terralod.tiles import TileCode, TilePyramid
 
 __all__ = ["CohesionOptions", "make_mesher", "mesh_tile", "roughness_log"]
@@ -453,7 +453,7 @@ def _measure_series(meshes, z, valid, r0: int, c0: int, span: int, spacing_m) ->
 
 
 def make_mesher(**options):
-    """A tile mesher (for :func:`terralod.build.builder.register_method`) with :class:`CohesionOptions`."""
+    """A tile mesher (for :func:`terralod.pyramid.builder.register_method`) with :class:`CohesionOptions`."""
     opt = CohesionOptions(**options)
 
     def mesher(z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, code: TileCode, *,

@@ -21,11 +21,11 @@ from typing import Any
 
 import numpy as np
 
-from terralod.build import chunked, cohesion
 from terralod.error import measure_error_window
 from terralod.errors import BuildMismatchError, StoreError
 from terralod.heightfield import Heightfield
 from terralod.kernels import jit
+from terralod.pyramid import chunked, cohesion
 from terralod.store import (
     FORMAT_VERSION,
     EncodedTile,
