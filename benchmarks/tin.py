@@ -34,8 +34,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from terralod import Heightfield, measure_error, sample_heightfield  # noqa: E402
 from terralod.tin import DetailIncrementModel  # noqa: E402
 from terralod.tin.delaunay import grid_tin  # noqa: E402
-from terralod.tin.increments import _encode_arrays, canonical_rows, encode_mesh_rows  # noqa: E402
+from terralod.tin.fileformat import _encode_arrays, encode_mesh_rows  # noqa: E402
 from terralod.tin.qem import simplify_mesh  # noqa: E402
+from terralod.tin.records import canonical_rows  # noqa: E402
 
 from _common import SHARED, md_table, puget_sound_1k, write_results  # noqa: E402
 
@@ -146,7 +147,7 @@ def model_breakdown(model: DetailIncrementModel) -> dict[str, int]:
     it, less the size up to the section before (file order; the 64-byte header counted with the metadata)."""
     import json
 
-    from terralod.tin.increments import _HEADER, _array_section, _pack, _uvarint
+    from terralod.tin.fileformat import _HEADER, _array_section, _pack, _uvarint
 
     meta, arrays = model._payload()
     assert set(arrays) == {n for names in SECTIONS.values() for n in names}, sorted(arrays)

@@ -188,7 +188,7 @@ def test_compact_file_gives_every_table1_field(tmp_path_factory, seed: int, n: i
 def test_inconsistent_or_old_files_are_refused(tmp_path: Path) -> None:
     """A file whose checksum is right but whose splits do not fit the mesh, and a version-1 file, get one
     clear CorruptStoreError."""
-    from terralod.tin.increments import _HEADER, MAGIC, write_container
+    from terralod.tin.fileformat import _HEADER, MAGIC, write_container
 
     m = DetailIncrementModel.from_points(_cloud(5, 500), sub_blocks=4)
     meta, arrays = m._payload()
@@ -397,7 +397,7 @@ def test_both_costs_reach_the_target_with_valid_tins() -> None:
 def test_float_coding_is_bit_exact(seed: int, n: int, cols: int, distinct: int, special: bool) -> None:
     """Float arrays in a file come back bit for bit (signed zeros, NaN, infinities, subnormals included),
     whether a column is coded by its distinct values or stored as it is."""
-    from terralod.tin.increments import _decode_arrays, _encode_arrays
+    from terralod.tin.fileformat import _decode_arrays, _encode_arrays
 
     rng = np.random.default_rng(seed)
     pool = rng.normal(0.0, 1000.0, distinct)
@@ -440,7 +440,8 @@ def test_grid_models_survive_the_split_coder(tmp_path_factory, seed: int, h: int
 def test_mesh_rows_coding_is_exact(seed: int, n: int, nv: int, canonical: bool) -> None:
     """Delta-coded triangle rows (the base mesh in a file, every mesh of the benchmark's pyramid) decode to
     the same rows, in any order; canonical rows keep every triangle and its orientation."""
-    from terralod.tin.increments import canonical_rows, decode_mesh_rows, encode_mesh_rows
+    from terralod.tin.fileformat import decode_mesh_rows, encode_mesh_rows
+    from terralod.tin.records import canonical_rows
 
     t = np.random.default_rng(seed).integers(0, nv, (n, 3)).astype(np.int32)
     if canonical:

@@ -13,7 +13,9 @@ Public API: :class:`DetailIncrementModel` (``from_points``, ``from_las``, ``from
 :func:`read_las`.
 """
 
-from terralod.tin.increments import DeltaT, DetailIncrementModel, Increments, read_text, write_text
+from terralod.tin.fileformat import read_text, write_text
+from terralod.tin.increments import DetailIncrementModel
 from terralod.tin.pointcloud import PointCloud, read_las
+from terralod.tin.records import DeltaT, Increments
 
 __all__ = ["DeltaT", "DetailIncrementModel", "Increments", "PointCloud", "read_las", "read_text", "write_text"]
