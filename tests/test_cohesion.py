@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 from terralod import Heightfield, build_store, open_store
 from terralod.error import measure_error_window
 from terralod.io.reader import sample_heightfield
-from terralod.kernels.cohesion import grid_error_bound, stiffness
+from terralod.kernels.cohesion import stiffness
+from terralod.kernels.cohesion_measure import grid_error_bound
 from terralod.pyramid import chunked, cohesion
 from terralod.pyramid.builder import METHODS
 from terralod.tiles import TilePyramid

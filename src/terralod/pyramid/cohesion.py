@@ -91,7 +91,7 @@ Deviations, and why:
    that moved, a candidate is rejected as soon as a row of samples reaches the error to beat, the pair
    search measures the quads that depend on one vertex once per position of it, and the unrelocated grid
    (the fallback of deviation 5) is built and measured only when a lower bound of its Hausdorff error
-   (:func:`terralod.kernels.cohesion.grid_error_bound`) does not already exceed the relocated tile's
+   (:func:`terralod.kernels.cohesion_measure.grid_error_bound`) does not already exceed the relocated tile's
    largest vertical error; the candidates are measured in a series
    (:func:`terralod.error.measure_error_window_series`: the second re-rasterises only the rows where it
    differs from the first, exact and bit-identical to measuring each alone). Measured per level and core in ``benchmarks/results/cohesion_vs_chunked.md``.
@@ -109,16 +109,18 @@ from scipy import ndimage
 
 from terralod.error import ErrorReport, measure_error_window, measure_error_window_series
 from terralod.kernels.cohesion import (
+    refine_edge_max_error,
+    refine_max_error,
+    relax_edge,
+    relax_interior,
+)
+from terralod.kernels.cohesion_measure import (
     WEIGHT_ERROR,
     WEIGHT_FEATURE,
     assemble,
     assemble_diagonals,
     grid_error_bound,
     measure_quads,
-    refine_edge_max_error,
-    refine_max_error,
-    relax_edge,
-    relax_interior,
 )
 from terralod.pyramid import chunked
 from terralod.tiles import TileCode, TilePyramid
