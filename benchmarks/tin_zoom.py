@@ -77,9 +77,8 @@ def zoom(model: DetailIncrementModel) -> dict:
 def render_lod(model: DetailIncrementModel, path: Path) -> dict:
     """One frame over the terrain's south-west corner looking north-east, sub-blocks coloured by scale
     band (red = base … pink = full), N = 0.3 px so that several scales are on screen."""
-    from terralod.render.offscreen import CameraPose, save_png
+    from terralod.render.offscreen import CameraPose, FrameRenderer, save_png
     from terralod.render.renderer import RenderSettings
-    from terralod.render.tin import TinFrameRenderer
 
     v = model.vertices_m
     lo, hi = v.min(axis=0), v.max(axis=0)
@@ -87,7 +86,7 @@ def render_lod(model: DetailIncrementModel, path: Path) -> dict:
     eye = (mid[0] - 0.13 * span, mid[1] - 0.13 * span, hi[2] + 0.05 * span)
     target = (mid[0] + 0.04 * span, mid[1] + 0.04 * span, lo[2])
     model.mesh_at(0)
-    fr = TinFrameRenderer(model, 1280, 720, threshold_px=0.3, settings=RenderSettings(mode="lod"))
+    fr = FrameRenderer(model, 1280, 720, threshold_px=0.3, settings=RenderSettings(mode="lod"))
     save_png(fr.frame(CameraPose(eye, target)), path)
     fr.close()
     return {"png": path.name, "eye_m": list(eye), "target_m": list(target), **fr.last_stats,

@@ -91,16 +91,15 @@ def test_runtime_meshes_are_the_current_tin(seed: int, blocks: int) -> None:
 
 
 def test_tin_frame_renders(tmp_path: Path) -> None:
-    from terralod.render.offscreen import CameraPose
+    from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose
     from terralod.render.renderer import RenderSettings
-    from terralod.render.tin import TinFrameRenderer, tin_overview_pose
 
     m = DetailIncrementModel.from_points(_cloud(1, 3000), sub_blocks=4)
     try:
-        fr = TinFrameRenderer(m, 160, 90, settings=RenderSettings(mode="lod", background=(1.0, 0.0, 1.0)))
+        fr = FrameRenderer(m, 160, 90, settings=RenderSettings(mode="lod", background=(1.0, 0.0, 1.0)))
     except Exception as exc:  # noqa: BLE001 - report why the GPU path is unavailable
         pytest.fail(f"EGL/OpenGL context could not be created ({exc}); .ci/run installs Mesa's EGL")
-    img = fr.frame(tin_overview_pose(m))
+    img = fr.frame(overview_pose(m))
     magenta = (img[:, :, 0] == 255) & (img[:, :, 1] == 0) & (img[:, :, 2] == 255)
     assert 0.05 < 1.0 - magenta.mean() < 0.95, "the TIN covers part of the frame"
     # close over the west edge: finer scales there, same frame size

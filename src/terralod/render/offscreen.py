@@ -1,5 +1,7 @@
-"""Headless frames and fly-through videos of a store: selection by the runtime engine, drawing by
-:class:`TerrainRenderer` on an EGL context (Mesa llvmpipe where there is no GPU)."""
+"""Headless frames and fly-through videos of any :class:`terralod.terrain.Terrain` (grid store or TIN):
+selection by the terrain's engine, drawing by :class:`TerrainRenderer` on an EGL context (Mesa llvmpipe
+where there is no GPU). Functions also take an open tile store, a fractal source or a TIN model, wrapped
+by :func:`terralod.terrain.as_terrain`."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from terralod.render.renderer import RenderSettings, TerrainRenderer
+from terralod.terrain import as_terrain, frame_stats
 
 
 @dataclass(frozen=True)
@@ -22,34 +25,31 @@ class CameraPose:
     target: tuple[float, float, float]
 
 
-def store_extent(store) -> tuple[np.ndarray, np.ndarray]:
-    """(min xyz, max xyz) of a store's terrain, metres (xy from the plan, z from the root tile)."""
-    t = store.transform
-    w, h = store.pyramid.width, store.pyramid.height
-    x0, y0 = t.c + 0.5 * t.a, t.f + 0.5 * t.e
-    x1, y1 = x0 + (w - 1) * t.a, y0 + (h - 1) * t.e
-    zs = [(r["z_min_m"], r["z_max_m"]) for r in store.tile_summaries() if r["level"] == 0]
-    zlo, zhi = zs[0] if zs else (0.0, 1.0)
-    return np.array([min(x0, x1), min(y0, y1), zlo]), np.array([max(x0, x1), max(y0, y1), zhi])
+def store_extent(terrain) -> tuple[np.ndarray, np.ndarray]:
+    """(min xyz, max xyz) of a terrain, metres (xy from its bounds, z from its elevation range)."""
+    t = as_terrain(terrain)
+    w, s_, e, n = t.bounds_m
+    zlo, zhi = t.elevation_range_m
+    return np.array([w, s_, zlo], np.float64), np.array([e, n, zhi], np.float64)
 
 
 def overview_pose(
-    store, elevation_deg: float = 35.0, azimuth_deg: float = 200.0, distance: float = 1.1
+    terrain, elevation_deg: float = 35.0, azimuth_deg: float = 200.0, distance: float = 1.1
 ) -> CameraPose:
     """A pose seeing the whole terrain from the south-south-west at ``elevation_deg`` above the horizon."""
-    lo, hi = store_extent(store)
+    lo, hi = store_extent(terrain)
     c = (lo + hi) / 2
     c[2] = lo[2] + 0.3 * (hi[2] - lo[2])
     r = distance * float(np.linalg.norm(hi[:2] - lo[:2]))
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     eye = c + r * np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)])
-    return CameraPose(tuple(eye), tuple(c))
+    return CameraPose(tuple(map(float, eye)), tuple(map(float, c)))
 
 
-def auto_path(store, n_frames: int) -> list[CameraPose]:
+def auto_path(terrain, n_frames: int) -> list[CameraPose]:
     """A scripted fly-through: a descending half-orbit that ends low over the terrain, looking across it,
     so far and near tiles of several levels are on screen together."""
-    lo, hi = store_extent(store)
+    lo, hi = store_extent(terrain)
     c = (lo + hi) / 2
     span = float(np.linalg.norm(hi[:2] - lo[:2]))
     relief = float(hi[2] - lo[2])
@@ -80,16 +80,24 @@ def cull_options(cull: tuple[str, ...] | list[str]) -> dict[str, bool]:
 
 
 class FrameRenderer:
-    """Engine + renderer for one store at one viewport size."""
+    """A terrain's engine + the renderer at one viewport size.
+
+    Parameters
+    ----------
+    terrain : a :class:`terralod.terrain.Terrain` (or what :func:`terralod.terrain.as_terrain` wraps)
+    width_px, height_px : viewport
+    threshold_px : screen-space error threshold, pixels
+    cull : culling names for grid terrains ("backface", "region"; paper 001)
+    """
 
     def __init__(
-        self, store, width_px: int, height_px: int, *, threshold_px: float = 2.0, fov_y_deg: float = 45.0,
+        self, terrain, width_px: int, height_px: int, *, threshold_px: float = 2.0, fov_y_deg: float = 45.0,
         settings: RenderSettings | None = None, ctx=None, draw_mode: str = "auto", cull: tuple[str, ...] = (),
     ) -> None:  # fmt: skip
-        from terralod.runtime import Engine
-
-        self.store = store
-        self.engine = Engine(store, threshold_px=threshold_px, **cull_options(cull))
+        self.store = terrain
+        self.terrain = as_terrain(terrain)
+        cull_options(cull)
+        self.engine = self.terrain.engine(threshold_px=threshold_px, cull=cull)
         self.renderer = TerrainRenderer(width_px, height_px, ctx=ctx, draw_mode=draw_mode)
         self.settings = settings or RenderSettings()
         self.fov_y_deg = fov_y_deg
@@ -99,7 +107,6 @@ class FrameRenderer:
     def camera(self, pose: CameraPose):
         from terralod.runtime import Camera
 
-        lo, hi = store_extent(self.store)
         d = float(np.linalg.norm(np.asarray(pose.eye) - np.asarray(pose.target)))
         return Camera(pose.eye, pose.target, (0.0, 0.0, 1.0), self.fov_y_deg, self.width_px, self.height_px,
                       near_m=max(0.1, d * 1e-4))  # fmt: skip
@@ -112,13 +119,14 @@ class FrameRenderer:
         img = self.renderer.render(
             meshes, pose.eye, pose.target, fov_y_deg=self.fov_y_deg, settings=self.settings
         )
-        stats = dict(sel.stats) if isinstance(sel.stats, dict) else dict(vars(sel.stats))
+        stats = frame_stats(sel)
         stats["draw_ms"] = (time.perf_counter() - t) * 1e3
         self.last_stats = stats
         return img
 
     def close(self) -> None:
         self.renderer.release()
+        self.engine.close()
 
 
 def save_png(img: np.ndarray, path: str | Path) -> None:

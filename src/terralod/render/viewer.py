@@ -19,6 +19,7 @@ import numpy as np
 
 from terralod.render.offscreen import CameraPose, cull_options, overview_pose, store_extent
 from terralod.render.renderer import _SHADERS, RenderSettings, TerrainRenderer
+from terralod.terrain import as_terrain, frame_stats
 
 
 def hud_lines(
@@ -78,13 +79,14 @@ class _Hud:
 class Viewer:
     """The window. ``run(max_frames=None)`` loops until closed (or for ``max_frames`` frames)."""
 
-    def __init__(self, store, *, width_px: int = 1280, height_px: int = 720, threshold_px: float = 2.0,
-                 fov_y_deg: float = 45.0, title: str = "terralod", cull: tuple[str, ...] = (), engine=None,
-                 pose: CameraPose | None = None, extent: tuple[np.ndarray, np.ndarray] | None = None) -> None:  # fmt: skip
+    def __init__(self, terrain, *, width_px: int = 1280, height_px: int = 720, threshold_px: float = 2.0,
+                 fov_y_deg: float = 45.0, title: str = "terralod", cull: tuple[str, ...] = (),
+                 pose: CameraPose | None = None) -> None:  # fmt: skip
         import glfw
         import moderngl
 
-        from terralod.runtime import Engine
+        terrain = as_terrain(terrain)
+        cull_options(cull)
 
         if not glfw.init():
             raise RuntimeError("glfw could not initialise (no display?)")
@@ -100,21 +102,20 @@ class Viewer:
         glfw.swap_interval(0)
         self.glfw = glfw
         self.ctx = moderngl.create_context()
-        self.store = store
+        self.terrain = terrain
+        self.store = terrain
         self.width_px, self.height_px = width_px, height_px
         self.fov_y_deg = fov_y_deg
         self.threshold_px = threshold_px
-        # any engine with request/latest/update/close and threshold_px (a TIN: terralod.runtime.tin.TinEngine)
-        if engine is None:
-            engine = Engine(store, threshold_px=threshold_px, background=True, **cull_options(cull))
-        self.engine = engine
+        # the terrain's own engine (selection on a worker thread where the kind has one)
+        self.engine = terrain.engine(threshold_px=threshold_px, background=True, cull=cull)
         self.renderer = TerrainRenderer(width_px, height_px, ctx=self.ctx)
         self.settings = RenderSettings()
         self.hud = _Hud(self.ctx)
-        pose = pose or overview_pose(store)
+        pose = pose or overview_pose(terrain)
         self.eye = np.array(pose.eye, np.float64)
         self.target = np.array(pose.target, np.float64)
-        lo, hi = extent if extent is not None else store_extent(store)
+        lo, hi = store_extent(terrain)
         self.scale = float(np.linalg.norm(hi - lo))
         self._mouse = None
         self._buttons = set()
@@ -225,11 +226,8 @@ class Viewer:
 
         raw = self.ctx.screen.read(components=3, alignment=1)
         img = np.frombuffer(raw, np.uint8).reshape(self.height_px, self.width_px, 3)[::-1]
-        p = (
-            Path(path)
-            if path
-            else self.store.path.with_name(f"{self.store.path.stem}-{len(self.screenshots):03d}.png")
-        )
+        base = self.terrain.path or Path("terralod.terra")
+        p = Path(path) if path else base.with_name(f"{base.stem}-{len(self.screenshots):03d}.png")
         Image.fromarray(img).save(p)
         self.screenshots.append(p)
         return p
@@ -255,7 +253,7 @@ class Viewer:
                                  read=False)  # fmt: skip
             frame_ms = (time.perf_counter() - t0) * 1e3
             fps = 0.9 * fps + 0.1 * (1000.0 / max(frame_ms, 1e-3)) if frames else 1000.0 / max(frame_ms, 1e-3)
-            stats = dict(sel.stats) if isinstance(sel.stats, dict) else dict(vars(sel.stats))
+            stats = frame_stats(sel)
             self.last_stats = stats
             self.last_hud = hud_lines(stats, fps, frame_ms, self.threshold_px, self.settings)
             self.hud.draw(self.last_hud, self.width_px, self.height_px)
@@ -275,8 +273,9 @@ class Viewer:
         self.glfw.terminate()
 
 
-def run_viewer(store, **kw) -> dict:
-    v = Viewer(store, **{k: kw[k] for k in ("width_px", "height_px", "threshold_px", "cull") if k in kw})
+def run_viewer(terrain, **kw) -> dict:
+    """Open the window on any terrain (grid store or TIN) and run it; returns the last frame's numbers."""
+    v = Viewer(terrain, **{k: kw[k] for k in ("width_px", "height_px", "threshold_px", "cull", "title") if k in kw})
     try:
         return v.run(kw.get("max_frames"), kw.get("screenshot"))
     finally:

@@ -82,7 +82,8 @@ class TinFrame:
         length as the screen error, records + meshes as the stitch step."""
         return {"tiles": int(self.scales.size), "triangles": self.triangles, "max_screen_error_px": self.max_svo_px,
                 "select_ms": self.select_ms, "stitch_ms": self.apply_ms + self.mesh_ms,
-                "records_applied": self.records_applied, "changed": int(self.changed.size)}  # fmt: skip
+                "records_applied": self.records_applied, "changed": int(self.changed.size),
+                "sub_blocks": int(self.scales.size), "apply_ms": self.apply_ms, "mesh_ms": self.mesh_ms}  # fmt: skip
 
     @property
     def frame_ms(self) -> float:

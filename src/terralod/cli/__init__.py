@@ -1,0 +1,50 @@
+"""The ``terralod`` command line, one command per module (rasterio's habit).
+
+User mistakes (missing file, wrong format, no valid samples, unwritable output, corrupt store) print one
+line ``terralod: <file>: <problem>`` and exit with code 2; ``-v`` adds diagnostics and the traceback.
+Shared options, parsing, progress and the error mapping live in :mod:`terralod.cli._common`; a new command
+is a module here with one click command, added to :data:`COMMANDS`.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import sys
+
+import click
+
+from terralod.cli._common import VERBOSE, run_main
+
+#: (module, command name) of every command, in ``--help`` order.
+COMMANDS = [
+    ("info", "info"),
+    ("build", "build"),
+    ("amplify", "amplify"),
+    ("render", "render"),
+    ("flythrough", "flythrough"),
+    ("view", "view"),
+    ("demo", "demo"),
+    ("bench", "bench"),
+]
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", is_flag=True, help="Show diagnostics and tracebacks.")
+@click.version_option(package_name="terralod")
+def cli(verbose: bool) -> None:
+    """terralod: terrain level of detail with measured geometric error."""
+    VERBOSE["on"] = verbose
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(name)s: %(message)s")
+
+
+for _module, _name in COMMANDS:
+    cli.add_command(getattr(importlib.import_module(f"terralod.cli.{_module}"), _name))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: run the CLI, turning terralod errors into one line and exit code 2."""
+    run_main(cli, sys.argv[1:] if argv is None else argv)
+
+
+__all__ = ["COMMANDS", "cli", "main"]

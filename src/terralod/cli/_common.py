@@ -1,0 +1,329 @@
+"""What every ``terralod`` command shares: consoles, the reader options, parsing of points and sizes,
+opening any input as a terrain, progress of long jobs, and the mapping of errors to one line + exit 2.
+
+A command module (``terralod/cli/<command>.py``) defines one click command and imports only from here and
+from the library; :mod:`terralod.cli` registers it.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+console = Console(stderr=False, width=None if sys.stdout.isatty() else 160)
+err_console = Console(stderr=True)
+VERBOSE = {"on": False}
+log = logging.getLogger("terralod.cli")
+
+
+def is_store(path: Path) -> bool:
+    """True when ``path`` is an SQLite file (a ``.terra`` store or something claiming to be one)."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(16) == b"SQLite format 3\x00"
+    except OSError:
+        return False
+
+
+def parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    try:
+        parts = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise click.BadParameter(f"expected a number or DX,DY, got {text!r}", param_hint=name) from None
+    if len(parts) == 1:
+        parts = parts * 2
+    if len(parts) != 2 or min(parts) <= 0:
+        raise click.BadParameter(f"expected positive DX[,DY] in metres, got {text!r}", param_hint=name)
+    return parts[0], parts[1]
+
+
+def read_options(f: Callable[..., Any]) -> Callable[..., Any]:
+    """The options that tell a reader how to decode a heightmap without georeferencing of its own."""
+    f = click.option(
+        "--spacing", "spacing", help="Ground spacing DX[,DY] in metres (un-georeferenced inputs)."
+    )(f)
+    f = click.option("--vertical-scale", type=float, help="Metres per stored unit (PNG/NPY heightmaps).")(f)
+    f = click.option("--vertical-offset", type=float, help="Metres added after scaling.")(f)
+    f = click.option(
+        "--encoding", type=click.Choice(["terrain-rgb", "terrarium"]), help="RGB-encoded elevation tiles."
+    )(f)
+    f = click.option("--tile", "tile_zxy", help="Z/X/Y of an XYZ web-map tile (georeferences it).")(f)
+    return f
+
+
+def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, encoding=None, tile_zxy=None):
+    """Read a DEM with the reader options of :func:`read_options` → :class:`terralod.Heightfield`."""
+    from terralod.io.reader import read_heightfield
+
+    tile = None
+    if tile_zxy:
+        try:
+            tile = tuple(int(v) for v in tile_zxy.replace(",", "/").split("/"))
+            assert len(tile) == 3
+        except (ValueError, AssertionError):
+            raise click.BadParameter(f"expected Z/X/Y, got {tile_zxy!r}", param_hint="--tile") from None
+    return read_heightfield(
+        path,
+        spacing_m=parse_pair(spacing, "--spacing"),
+        vertical_scale=vertical_scale,
+        vertical_offset=vertical_offset,
+        encoding=encoding,
+        tile=tile,
+    )
+
+
+def crs_name(crs: str | None) -> str:
+    if not crs:
+        return "none (local metric frame)"
+    try:
+        from rasterio.crs import CRS
+
+        c = CRS.from_user_input(crs)
+        epsg = c.to_epsg()
+        return f"EPSG:{epsg}" if epsg else c.to_string()[:60]
+    except Exception:  # noqa: BLE001 - a name is cosmetic
+        return crs[:60]
+
+
+def triple(text: str, name: str) -> tuple[float, float, float]:
+    try:
+        v = tuple(float(a) for a in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"expected X,Y,Z in metres, got {text!r}", param_hint=name) from None
+    if len(v) != 3:
+        raise click.BadParameter(f"expected X,Y,Z in metres, got {text!r}", param_hint=name)
+    return v  # type: ignore[return-value]
+
+
+def size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(a) for a in text.lower().split("x"))
+        assert 16 <= w <= 8192 and 16 <= h <= 8192
+    except (ValueError, AssertionError):
+        raise click.BadParameter(
+            f"expected WIDTHxHEIGHT between 16 and 8192, got {text!r}", param_hint="--size"
+        ) from None
+    return w, h
+
+
+def view_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """--fractal and --cull, shared by render, flythrough and view."""
+    fn = click.option(
+        "--cull", multiple=True, type=click.Choice(["backface", "region"]),
+        help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
+    )(fn)  # fmt: skip
+    return click.option(
+        "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
+        help="Fractal levels below the DEM (0-6; default: the store's, from build --fractal).",
+    )(fn)  # fmt: skip
+
+
+def progress(label: str) -> Progress:
+    """A progress bar on stderr (off when stderr is not a terminal, unless -v)."""
+    return Progress(
+        TextColumn(f"[bold]{label}[/bold] {{task.description}}"), BarColumn(), MofNCompleteColumn(),
+        TimeElapsedColumn(), console=err_console, transient=False,
+        disable=not sys.stderr.isatty() and not VERBOSE["on"],
+    )  # fmt: skip
+
+
+def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None, resume: bool, overwrite: bool):
+    """:func:`terralod.pyramid.builder.build_store` with a progress bar."""
+    from terralod.pyramid.builder import build_store
+
+    with progress("building") as prog:
+        task = prog.add_task(Path(out).name, total=None)
+
+        def cb(done: int, total: int) -> None:
+            prog.update(task, completed=done, total=total)
+
+        return build_store(hf, out, tile_size=tile_size, method=method, workers=workers, resume=resume,
+                           overwrite=overwrite, progress=cb)  # fmt: skip
+
+
+def open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path:
+    """A store path as is; a DEM is built into a cache store beside it first (rebuilt only when missing)."""
+    from terralod.errors import StoreError
+    from terralod.pyramid.builder import DEFAULT_METHOD
+    from terralod.store import open_store
+
+    p = Path(path)
+    if p.exists() and is_store(p):
+        return p
+    hf = load(path, **read)
+    cache = p.with_name(p.name + ".terra")
+    if cache.exists():
+        try:
+            with open_store(cache) as s:
+                if s.complete and s.meta.get("source_digest") == hf.digest():
+                    return cache
+        except StoreError:
+            pass
+    run_build(hf, str(cache), tile_size=tile_size, method=DEFAULT_METHOD, workers=None, resume=False,
+              overwrite=True)  # fmt: skip
+    return cache
+
+
+def with_fractal(store, path: str, read: dict[str, Any], levels: int | None):
+    """The store itself, or with ``levels`` fractal levels below its finest (paper 001), generated on demand
+    from the store's source DEM (the DEM given on the command line, else the one recorded in the store)."""
+    if levels is None:  # not given: what the store was built with (``terralod build --fractal N``)
+        levels = int(store.meta.get("fractal_levels", 0))
+    if not levels:
+        return store
+    from terralod.errors import InputError
+    from terralod.fractal import FractalDetail
+    from terralod.io.reader import SAMPLE_SOURCE, sample_heightfield
+    from terralod.runtime.fractal_source import FractalSource
+
+    src = path if not is_store(Path(path)) else store.meta.get("source", "")
+    hf = sample_heightfield() if src == SAMPLE_SOURCE else load(src, **read)
+    if hf.digest() != store.meta.get("source_digest"):
+        raise InputError("is not the DEM this store was built from; --fractal needs the store's source", src)
+    return FractalSource(store, FractalDetail(hf), levels)
+
+
+def open_terrain_arg(path: str, read: dict[str, Any], fractal_levels: int | None = None):
+    """Any input of render / flythrough / view as a :class:`terralod.terrain.Terrain`: a grid store (with its
+    fractal levels), a TIN store, or a DEM built into a cache store first. Close it when done."""
+    from terralod.store import open_store
+    from terralod.terrain import GridTerrain, open_terrain
+
+    p = Path(path)
+    if p.is_file() and is_store(p):
+        t = open_terrain(p)
+        if t.kind != "grid":
+            return t
+        store = t.store  # type: ignore[union-attr]
+    else:
+        store = open_store(open_or_build(path, read))
+    return GridTerrain(store, with_fractal(store, path, read, fractal_levels), own=True)
+
+
+def render_settings(background: str | None, mode: str, wireframe: bool):
+    from terralod.render import RenderSettings
+
+    st = RenderSettings(mode=mode, wireframe=wireframe)
+    if background:
+        try:
+            rgb = tuple(float(a) for a in background.split(","))
+            assert len(rgb) == 3
+        except (ValueError, AssertionError):
+            raise click.BadParameter(f"expected R,G,B, got {background!r}", param_hint="--background") from None
+        st.background = tuple(c / 255.0 if max(rgb) > 1.0 else c for c in rgb)  # type: ignore[assignment]
+    return st
+
+
+def frame_table(stats: dict[str, Any], title: str = "frame") -> None:
+    """One row of frame statistics (tiles, triangles, screen error, select/stitch/draw ms)."""
+    t = Table(title=title)
+    for col in ("tiles", "triangles", "max screen error px", "select ms", "stitch ms", "draw ms"):
+        t.add_column(col, justify="right")
+    t.add_row(
+        f"{float(stats.get('tiles', 0)):.0f}", f"{float(stats.get('triangles', 0)):,.0f}",
+        f"{stats.get('max_screen_error_px', 0):.2f}", f"{stats.get('select_ms', 0):.2f}",
+        f"{stats.get('stitch_ms', 0):.2f}", f"{stats.get('draw_ms', 0):.2f}",
+    )  # fmt: skip
+    console.print(t)
+
+
+def heightfield_info(hf) -> dict[str, Any]:
+    lo, hi = hf.valid_range_m()
+    return {
+        "kind": "heightfield",
+        "source": hf.source,
+        "size": [hf.width, hf.height],
+        "crs": hf.crs,
+        "spacing_m": list(hf.spacing_m),
+        "bounds_m": list(hf.bounds_m),
+        "elevation_range_m": [lo, hi],
+        "nodata_percent": 100.0 * hf.nodata_fraction,
+        "fill_method": hf.fill_method,
+        "notes": list(hf.notes),
+    }
+
+
+def print_store_summary(summary: dict[str, Any]) -> None:
+    console.print(
+        f"{summary['path']}: {'complete' if summary['complete'] else 'INCOMPLETE (finish with --resume)'}"
+    )
+    t = Table()
+    for col in ("level", "tiles", "vertices", "triangles", "max error m", "max vert. m", "RMS m", "KiB"):
+        t.add_column(col, justify="right")
+    for k, d in summary["per_level"].items():
+        t.add_row(
+            str(k), str(d["tiles"]), f"{d['vertices']:,}", f"{d['triangles']:,}", f"{d['max_error_m']:.3f}",
+            f"{d['max_vertical_error_m']:.3f}", f"{d['rms_error_m']:.3f}", f"{d['bytes'] / 1024:.1f}",
+        )  # fmt: skip
+    console.print(t)
+    console.print(
+        f"{summary['levels']} levels, {summary['tiles']}/{summary['tiles_planned']} tiles, tile size "
+        f"{summary['tile_size']}, {summary['size_bytes'] / 1024 / 1024:.2f} MiB on disk"
+    )
+
+
+def print_tin_summary(d: dict[str, Any]) -> None:
+    """Print :func:`terralod.tin.terra.model_summary` output."""
+    console.print(f"  TIN          {d['vertices']:,} vertices, {d['triangles']:,} triangles (full resolution)")
+    base_pct = 100.0 * d["base_triangles"] / max(d["triangles"], 1)
+    console.print(f"  base         {d['base_triangles']:,} triangles ({base_pct:.1f} %)")
+    console.print(
+        f"  scales       {d['scales']:,} ({d['records']:,} ΔT records of {d['collapses_per_record']} collapse(s), "
+        f"{d['triangle_changes']:,} triangle changes) in {d['sub_blocks']} sub-blocks"
+    )  # fmt: skip
+    lo, hi = d["elevation_range_m"]
+    console.print(f"  elevation    {lo:.2f} .. {hi:.2f} m")
+    svo = d["svo_length_m"]
+    console.print(f"  sqrt(MMQE)   {svo['base']:.3f} m at the base, {svo['full']:.3f} m at full resolution")
+    if "max_vertical_error_m" in d:
+        console.print(f"  max error    {d['max_vertical_error_m']['base']:.3f} m vertical at the base (measured), 0 at full")
+    if "size_bytes" in d:
+        console.print(f"  size         {d['size_bytes']:,} bytes")
+    for n in d.get("notes", []):
+        console.print(f"  note         {n}")
+
+
+def run_main(group: click.Group, argv: list[str] | None) -> None:
+    """Run ``group``, turning terralod errors into one line ``terralod: <file>: <problem>`` and exit code 2."""
+    from terralod.errors import TerralodError
+
+    try:
+        group.main(args=argv, prog_name="terralod", standalone_mode=False)
+    except click.exceptions.Abort:
+        err_console.print("terralod: aborted")
+        sys.exit(130)
+    except click.ClickException as exc:
+        exc.show()
+        sys.exit(2)
+    except RuntimeError as exc:  # no GPU context / no window
+        if VERBOSE["on"]:
+            raise
+        click.echo(f"terralod: {exc}", err=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        err_console.print("terralod: interrupted; finished tiles are saved, finish with --resume")
+        sys.exit(130)
+    except TerralodError as exc:
+        if VERBOSE["on"]:
+            raise
+        click.echo(f"terralod: {exc}", err=True)
+        sys.exit(2)
+    except OSError as exc:
+        if VERBOSE["on"]:
+            raise
+        name = getattr(exc, "filename", None)
+        click.echo(f"terralod: {name + ': ' if name else ''}{exc.strerror or exc}", err=True)
+        sys.exit(2)
+    except MemoryError:
+        click.echo("terralod: out of memory; split the input or use a smaller --tile-size", err=True)
+        sys.exit(2)

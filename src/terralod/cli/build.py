@@ -1,0 +1,106 @@
+"""``terralod build INPUT -o STORE``: the level-of-detail tile store of a DEM (papers 000/001), or the
+detail-increment TIN of a LAS/LAZ cloud (paper 003)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import click
+
+from terralod.cli._common import (
+    console,
+    load,
+    print_store_summary,
+    print_tin_summary,
+    read_options,
+    run_build,
+)
+
+
+@click.command()
+@click.argument("input_path", metavar="INPUT")
+@click.option("-o", "--output", required=True, help="Output .terra store.")
+@click.option("--tile-size", default=65, show_default=True, help="Vertices per tile side (2^n + 1).")
+@click.option(
+    "--method", default="cohesion", show_default=True,
+    help="Tile mesher: cohesion (paper 000, the vertex cohesion map) or chunked (Chunked LOD); tin builds a "
+    "detail-increment TIN (paper 003), the default for LAS/LAZ input.",
+)  # fmt: skip
+@click.option("--sub-blocks", default="4", show_default=True, help="TIN: sub-blocks, a square number or auto.")
+@click.option(
+    "--base-fraction", type=float, default=0.2, show_default=True, help="TIN: triangles kept in the base mesh."
+)
+@click.option("--workers", type=int, default=None, help="Threads (default: all cores).")
+@click.option("--resume", is_flag=True, help="Finish an interrupted build of the same input.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output store.")
+@click.option(
+    "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=0, show_default=True,
+    help="Fractal levels below the DEM that view/render/flythrough add by default (paper 001; generated "
+    "on demand from the source DEM, never stored).",
+)  # fmt: skip
+@read_options
+def build(
+    input_path: str, output: str, tile_size: int, method: str, sub_blocks: str, base_fraction: float, workers,
+    resume, overwrite, fractal_levels, **read: Any,
+) -> None:  # fmt: skip
+    """Build the level-of-detail tile store of a DEM, or the detail-increment TIN of a LAS/LAZ cloud."""
+    from terralod.pyramid.builder import METHODS, store_summary
+    from terralod.store import TileStore, open_store
+    from terralod.tiles import is_valid_tile_size
+
+    if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
+        build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read)
+        return
+    if not is_valid_tile_size(tile_size) or tile_size > 257:
+        raise click.BadParameter(f"expected 2^n + 1 between 3 and 257, got {tile_size}", param_hint="--tile-size")
+    if method not in METHODS:
+        raise click.BadParameter(
+            f"expected one of {', '.join(sorted(METHODS))}, got {method!r}", param_hint="--method"
+        )
+    if workers is not None and workers < 1:
+        raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
+    hf = load(input_path, **read)
+    rep = run_build(
+        hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite
+    )
+    console.print(
+        f"built {rep.tiles_built} tiles ({rep.tiles_skipped} already done) in {rep.seconds:.2f} s, "
+        f"{rep.samples_per_second / 1e6:.2f} M source samples/s"
+    )
+    if fractal_levels:
+        with TileStore.open(output, writable=True) as s:
+            s.set_meta("fractal_levels", int(fractal_levels))
+        console.print(f"fractal: {fractal_levels} levels below the DEM when viewed (from {input_path})")
+    with open_store(output) as s:
+        print_store_summary(store_summary(s))
+
+
+def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: float, overwrite: bool,
+              read: dict[str, Any]) -> None:  # fmt: skip
+    """``build --method tin``: LAS/LAZ points (or a DEM's samples) → detail-increment TIN store."""
+    from terralod.errors import StoreError
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.terra import save_model_to_store
+
+    blocks: int | str = sub_blocks
+    if sub_blocks != "auto":
+        try:
+            blocks = int(sub_blocks)
+        except ValueError:
+            raise click.BadParameter(f"expected a square number or auto, got {sub_blocks!r}",
+                                     param_hint="--sub-blocks") from None  # fmt: skip
+    if not 0.0 < base_fraction <= 1.0:
+        raise click.BadParameter(f"expected a fraction in (0, 1], got {base_fraction}", param_hint="--base-fraction")
+    if Path(output).exists() and not overwrite:
+        raise StoreError("already exists (pass --overwrite to replace it)", output)
+    t0 = time.perf_counter()
+    if Path(input_path).suffix.lower() in (".las", ".laz"):
+        model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction)
+    else:
+        model = DetailIncrementModel.from_heightfield(load(input_path, **read), sub_blocks=blocks,
+                                                      base_fraction=base_fraction)  # fmt: skip
+    summary = save_model_to_store(model, output, overwrite=overwrite)
+    console.print(f"built a detail-increment TIN (paper 003) in {time.perf_counter() - t0:.2f} s")
+    print_tin_summary(summary)

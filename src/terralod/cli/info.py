@@ -1,0 +1,72 @@
+"""``terralod info PATH``: describe a DEM (size, CRS, spacing, range, nodata) or a ``.terra`` store."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import click
+
+from terralod.cli._common import (
+    console,
+    crs_name,
+    heightfield_info,
+    is_store,
+    load,
+    print_store_summary,
+    print_tin_summary,
+    read_options,
+)
+
+
+def store_info(p: Path) -> dict[str, Any]:
+    """The summary of a store of either kind (checksums of a TIN payload verified)."""
+    from terralod.pyramid.builder import store_summary
+    from terralod.store import TIN_METHOD, open_store, read_tin_store, store_method
+
+    if store_method(p) == TIN_METHOD:
+        meta, _ = read_tin_store(p)
+        meta["size_bytes"] = p.stat().st_size
+        return meta
+    with open_store(p) as s:
+        summary = store_summary(s)
+        summary["crs"] = crs_name(s.crs)
+        summary["source"] = s.meta.get("source")
+        summary["method"] = s.meta.get("method")
+    return summary
+
+
+@click.command()
+@click.argument("path")
+@click.option("--json", "as_json", is_flag=True, help="Print machine-readable JSON.")
+@read_options
+def info(path: str, as_json: bool, **read: Any) -> None:
+    """Describe a DEM (size, CRS, spacing, range, nodata) or a .terra store (levels, tiles, errors)."""
+    from terralod.store import TIN_METHOD
+
+    p = Path(path)
+    if p.exists() and is_store(p):
+        d = store_info(p)
+        if as_json:
+            click.echo(json.dumps(d, indent=2, default=str))
+        elif d.get("method") == TIN_METHOD:
+            console.print(f"source {d.get('source')}, method tin (paper 003), CRS {crs_name(d.get('crs'))}")
+            print_tin_summary(d)
+        else:
+            console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs']}")
+            print_store_summary(d)
+        return
+    hf = load(path, **read)
+    d = heightfield_info(hf)
+    if as_json:
+        click.echo(json.dumps(d, indent=2))
+        return
+    console.print(f"[bold]{d['source']}[/bold]")
+    console.print(f"  size         {d['size'][0]} x {d['size'][1]} samples")
+    console.print(f"  CRS          {crs_name(d['crs'])}")
+    console.print(f"  spacing      {d['spacing_m'][0]:.3f} x {d['spacing_m'][1]:.3f} m")
+    console.print(f"  elevation    {d['elevation_range_m'][0]:.2f} .. {d['elevation_range_m'][1]:.2f} m")
+    console.print(f"  nodata       {d['nodata_percent']:.2f} %")
+    for n in d["notes"] + ([d["fill_method"]] if d["fill_method"] else []):
+        console.print(f"  note         {n}")

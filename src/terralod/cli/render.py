@@ -1,0 +1,66 @@
+"""``terralod render PATH -o frame.png``: one frame of any terrain (grid store, TIN store, or a DEM built
+into a cache store first), headless on EGL."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import click
+
+from terralod.cli._common import (
+    console,
+    frame_table,
+    open_terrain_arg,
+    read_options,
+    render_settings,
+    size,
+    triple,
+    view_options,
+)
+
+
+def describe_frame(output: str, stats: dict[str, Any]) -> None:
+    """The frame table, plus what a terrain's engine reports beyond the shared keys."""
+    frame_table(stats, output)
+    if "records_applied" in stats:
+        console.print(
+            f"{output}: {int(stats['triangles']):,} triangles, {int(stats['tiles'])} sub-blocks at their SVO "
+            f"scales ({int(stats['records_applied']):,} ΔT records applied)"
+        )
+
+
+@click.command()
+@click.argument("path")
+@click.option("-o", "--output", required=True, help="PNG to write.")
+@click.option("--eye", help="Eye X,Y,Z in world metres (default: an overview).")
+@click.option("--target", help="Target X,Y,Z in world metres.")
+@click.option("--size", "size_text", default="1920x1080", show_default=True, help="WIDTHxHEIGHT pixels.")
+@click.option("--threshold-px", default=2.0, show_default=True, help="Screen-space error threshold, pixels.")
+@click.option("--background", help="Sky colour R,G,B (0..1 or 0..255).")
+@click.option(
+    "--mode", type=click.Choice(["elevation", "lod", "error"]), default="elevation", show_default=True
+)
+@click.option("--wireframe", is_flag=True)
+@view_options
+@read_options
+def render(
+    path, output, eye, target, size_text, threshold_px, background, mode, wireframe, fractal_levels, cull,
+    **read: Any,
+) -> None:  # fmt: skip
+    """Render one frame of a store (or a DEM, built first) to a PNG, headless (EGL)."""
+    from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png
+
+    w, h = size(size_text)
+    if eye and not target or target and not eye:
+        raise click.BadParameter("give both --eye and --target", param_hint="--eye")
+    with open_terrain_arg(path, read, fractal_levels) as terrain:
+        pose = overview_pose(terrain)
+        if eye and target:
+            pose = CameraPose(triple(eye, "--eye"), triple(target, "--target"))
+        fr = FrameRenderer(terrain, w, h, threshold_px=threshold_px,
+                           settings=render_settings(background, mode, wireframe), cull=cull)  # fmt: skip
+        try:
+            save_png(fr.frame(pose), output)
+        finally:
+            fr.close()
+    describe_frame(output, fr.last_stats)
