@@ -15,7 +15,7 @@ Deviation, and why:
   values and the rank changes from one element to the next when that is smaller, the same container as
   the static pyramid of ``benchmarks/tin.py``): :func:`write_container`, :func:`read_container`. Table 1's
   fields are not stored: a raw record is one vertex split (removed vertex u, kept vertex v, the wing x1
-  where the fan of m moved triangles starts, see :func:`terralod.kernels.qem.replay_splits`), coded from
+  where the fan of m moved triangles starts, see :func:`terralod.kernels.qem_replay.replay_splits`), coded from
   geometry by :mod:`terralod.kernels.tincodec`: u as its rank among the vertices its sub-block has still
   to insert, largest vertical distance to the current surface first (a per-vertex sub-block label, stored
   as "the cell holding the vertex" or an exception, says which sub-block inserts a vertex), v as a corner

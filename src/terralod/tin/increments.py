@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from terralod.errors import CorruptStoreError, InputError
-from terralod.kernels.qem import coarsen_records, refine_records
+from terralod.kernels.qem_replay import coarsen_records, refine_records
 from terralod.kernels.tincodec import V_ESCAPE, split_codes
 from terralod.tin.fileformat import (
     decode_mesh_rows,

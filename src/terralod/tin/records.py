@@ -27,7 +27,7 @@ Deviations, and why:
   sub-block whose current MMQE is the largest (:func:`mmqe_rank`; derived, so files need not store it).
 - **MMQE quantised** to 1/256 octave (0.14 % of the SVO length sqrt(MMQE)); monotone stays monotone.
 - **Raw records are vertex splits.** A raw record is one vertex split (removed vertex u, kept vertex v,
-  the wing x1 where the fan of m moved triangles starts, see :func:`terralod.kernels.qem.replay_splits`);
+  the wing x1 where the fan of m moved triangles starts, see :func:`terralod.kernels.qem_replay.replay_splits`);
   :meth:`Increments.from_compact` replays the splits from the base once, deriving every field of table 1
   (slots, deleted triples, original and new triples) exactly. Merged records (§2.2.2) are derived in
   memory from the raw ones.
@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from terralod.errors import CorruptStoreError, InputError
-from terralod.kernels.qem import replay_splits
+from terralod.kernels.qem_replay import replay_splits
 from terralod.tin.svo import monotone_mmqe
 
 __all__ = [
@@ -330,7 +330,7 @@ class Increments:
         base_tri : (n_base, 3) int, the base triangles (they take slots 0 … n_base - 1).
         block_records : (B,) int, n_b; records are block-major, each block's in refinement order.
         rec_u, rec_v, rec_x1, rec_m : (R,) int, the splits: v splits into v and u, the fan of m triangles
-            from the wing vertex x1 moves to u (see :func:`terralod.kernels.qem.replay_splits`).
+            from the wing vertex x1 moves to u (see :func:`terralod.kernels.qem_replay.replay_splits`).
         mmqe_code : (R + B,) int, quantised monotone MMQE of every block's scales S_0 … S_{n_b}.
         error_code : (R + B,) int, quantised measured error of the same scales (:func:`quantise_error`).
 
