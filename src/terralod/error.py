@@ -80,7 +80,7 @@ def _check_mesh(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray
     return v, t
 
 
-def _report(out: tuple, r0: int = 0, c0: int = 0) -> ErrorReport:
+def _report(out: tuple[float, ...], r0: int = 0, c0: int = 0) -> ErrorReport:
     max_v, sumsq, n, hd, wvr, wvc, whr, whc = out
     n = int(n)
     if n == 0:

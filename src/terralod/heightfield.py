@@ -64,7 +64,8 @@ class Heightfield:
     @property
     def shape(self) -> tuple[int, int]:
         """(rows, cols) = (height, width) in samples."""
-        return self.elevation_m.shape  # type: ignore[return-value]
+        h, w = self.elevation_m.shape
+        return int(h), int(w)
 
     @property
     def width(self) -> int:
@@ -136,7 +137,10 @@ class Heightfield:
 
         NaN cells are treated as nodata and filled (see :func:`terralod.fill.fill_nodata`).
         """
-        dx, dy = (spacing_m, spacing_m) if np.isscalar(spacing_m) else spacing_m  # type: ignore[misc]
+        if isinstance(spacing_m, tuple | list | np.ndarray):
+            dx, dy = spacing_m
+        else:  # a scalar (Python or numpy)
+            dx = dy = spacing_m
         z, ok, how = prepare_elevation(np.asarray(elevation_m), valid, source)
         t = Affine(float(dx), 0.0, float(origin_m[0]), 0.0, -float(dy), float(origin_m[1]))
         return cls(z, ok, t, crs=crs, source=source, fill_method=how)

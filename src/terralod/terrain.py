@@ -158,7 +158,8 @@ class _TerrainBase:
         """Select for ``camera`` through one engine kept by the terrain (2 px; incremental between calls)."""
         if self._engine is None:
             self._engine = self.engine()
-        return self._engine.update(camera)
+        frame: Frame = self._engine.update(camera)
+        return frame
 
     def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = ()) -> Any:
         raise NotImplementedError
@@ -201,7 +202,8 @@ class GridTerrain(_TerrainBase):
 
     @property
     def crs(self) -> str | None:
-        return self.store.crs
+        crs: str | None = self.store.crs
+        return crs
 
     @property
     def bounds_m(self) -> tuple[float, float, float, float]:
@@ -228,7 +230,9 @@ class GridTerrain(_TerrainBase):
     def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = ()) -> Any:
         from terralod.runtime import Engine
 
-        return Engine(self.source, threshold_px=threshold_px, background=background, **_cull_options(cull))
+        opts = _cull_options(cull)
+        return Engine(self.source, threshold_px=threshold_px, background=background,
+                      cull_backfacing=opts["cull_backfacing"], cull_region=opts["cull_region"])  # fmt: skip
 
     def lod_tree(self) -> list[LodNode]:
         """Every stored tile, by level: the quadtree as stored, with its measured (monotone) errors."""

@@ -15,9 +15,18 @@ place:
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numba
 
-jit = functools.partial(numba.njit, cache=True, nogil=True, fastmath=False, error_model="numpy")
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+if TYPE_CHECKING:  # to a type checker a kernel is the Python function it compiles (same signature)
+
+    def jit(fn: _F, /) -> _F: ...
+
+else:
+    jit = functools.partial(numba.njit, cache=True, nogil=True, fastmath=False, error_model="numpy")
 
 __all__ = ["jit"]
