@@ -45,9 +45,60 @@ from terralod.kernels.codec import undo_zigzag_delta
 from terralod.tiles import TileCode, TilePyramid
 
 FORMAT_NAME = "terralod-store"
-FORMAT_VERSION = 1
+#: Bumped by every change of the store format. 2: the metadata carries a checksum (``meta_sha256``) and a
+#: closed store is left in rollback-journal mode (no ``-wal``/``-shm`` beside it).
+FORMAT_VERSION = 2
+#: Older versions :func:`upgrade_store` (``terralod check --upgrade``) brings to ``FORMAT_VERSION``.
+UPGRADABLE_VERSIONS = (1,)
 #: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
 APPLICATION_ID = 0x544C4F44
+#: The meta row holding the SHA-256 of every other meta row (see :func:`meta_checksum`).
+META_CHECKSUM_KEY = "meta_sha256"
+#: Tables a tile store must hold (others, e.g. epochs, may be added by later versions).
+REQUIRED_TABLES = ("meta", "tiles")
+
+
+def meta_checksum(conn: sqlite3.Connection) -> str:
+    """SHA-256 of the canonical JSON of every meta row but the checksum itself, ``[[key, value], ...]``
+    sorted by key, values as stored. Covers every key, including ones added later (epochs, fractal
+    levels): whoever writes meta calls :func:`seal_meta` in the same transaction."""
+    rows = conn.execute(
+        "SELECT key, value FROM meta WHERE key != ? ORDER BY key", (META_CHECKSUM_KEY,)
+    ).fetchall()
+    text = json.dumps([[str(k), str(v)] for k, v in rows], separators=(",", ":"), ensure_ascii=True)
+    return hashlib.sha256(text.encode("ascii")).hexdigest()
+
+
+def seal_meta(conn: sqlite3.Connection) -> None:
+    """Store the checksum of the meta table; call inside the transaction that changed it."""
+    conn.execute(
+        "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (META_CHECKSUM_KEY, json.dumps(meta_checksum(conn)))
+    )
+
+
+def verify_meta(conn: sqlite3.Connection, meta: dict[str, Any], path: Path) -> None:
+    """Refuse, with one line, a store whose metadata is from another version or fails its checksum."""
+    if meta.get("format") != FORMAT_NAME:
+        raise CorruptStoreError("not a terralod store (no format marker)", str(path))
+    version = meta.get("version")
+    if version != FORMAT_VERSION:
+        if version in UPGRADABLE_VERSIONS:
+            raise StoreError(
+                f"store format version {version}, this terralod reads {FORMAT_VERSION}; upgrade it with "
+                f"`terralod check --upgrade {path}`",
+                str(path),
+            )
+        raise CorruptStoreError(
+            f"store format version {version!r}, this terralod reads {FORMAT_VERSION}; rebuild it with "
+            "`terralod build SOURCE -o STORE --overwrite`",
+            str(path),
+        )
+    if meta.get(META_CHECKSUM_KEY) != meta_checksum(conn):
+        raise CorruptStoreError(
+            "metadata fails its checksum (quantisation, transform or levels changed after the build); "
+            "rebuild it with `terralod build SOURCE -o STORE --overwrite`",
+            str(path),
+        )
 
 
 def _check_header(p: Path) -> None:
@@ -58,6 +109,121 @@ def _check_header(p: Path) -> None:
         raise CorruptStoreError("not a terralod store (not an SQLite database)", str(p))
     if int.from_bytes(head[68:72], "big") != APPLICATION_ID:
         raise CorruptStoreError("not a terralod store (foreign SQLite database)", str(p))
+
+
+# -- atomic files --------------------------------------------------------------------------------------
+def _temporary_path(p: Path) -> Path:
+    """A hidden name in ``p``'s folder for a file being written (same file system, so a rename is atomic)."""
+    return p.with_name(f".{p.name}.{os.getpid()}.tmp")
+
+
+def _remove_stale_temporaries(p: Path) -> None:
+    """Remove temporaries of ``p`` left by processes that died (``.<name>.<pid>.tmp``, pid not running)."""
+    for f in p.parent.glob(f".{p.name}.*.tmp"):
+        try:
+            pid = int(f.name[len(p.name) + 2 : -4])
+        except ValueError:
+            continue
+        if pid != os.getpid() and not _pid_alive(pid):
+            remove_store_files(f)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True
+    return True
+
+
+def _link_into_place(tmp: Path, p: Path) -> None:
+    """Give the finished file ``tmp`` the name ``p``, failing if ``p`` appeared meanwhile (no clobbering)."""
+    try:
+        os.link(tmp, p)
+    except FileExistsError:
+        raise StoreError("already exists", str(p)) from None
+    except OSError:  # a file system without hard links: check, then rename
+        if p.exists():
+            raise StoreError("already exists", str(p)) from None
+        os.replace(tmp, p)
+        return
+    tmp.unlink(missing_ok=True)
+
+
+def replacement_path(p: str | os.PathLike[str]) -> Path:
+    """Where a store that will replace ``p`` is built (``--overwrite``): the old store stays untouched
+    until :func:`install_store` renames the complete new one over it."""
+    q = Path(p)
+    _remove_stale_temporaries(q)
+    return _temporary_path(q)
+
+
+def remove_store_files(p: str | os.PathLike[str]) -> None:
+    """Delete a store file and its SQLite side files."""
+    for side in ("", "-journal", "-wal", "-shm"):
+        Path(f"{p}{side}").unlink(missing_ok=True)
+
+
+def install_store(new: str | os.PathLike[str], p: str | os.PathLike[str]) -> None:
+    """Atomically replace the store ``p`` by the closed, complete store ``new`` (same folder).
+
+    The old store's WAL is folded into it first (so a kill before the rename leaves the old store whole),
+    then side files that would be replayed onto the new file are removed and ``new`` renamed over ``p``.
+    """
+    new, p = Path(new), Path(p)
+    if Path(f"{p}-wal").exists():
+        try:
+            conn = sqlite3.connect(str(p))
+            try:
+                conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+                conn.execute("PRAGMA journal_mode = DELETE")
+            finally:
+                conn.close()
+        except sqlite3.Error:
+            pass  # not a database we can fold: it is being replaced anyway
+    for side in ("-journal", "-wal", "-shm"):
+        Path(f"{p}{side}").unlink(missing_ok=True)
+    try:
+        os.replace(new, p)
+    except OSError as exc:
+        raise StoreError(f"cannot replace ({exc.strerror or exc}); the new store is at {new}", str(p)) from exc
+
+
+def upgrade_store(path: str | os.PathLike[str]) -> str:
+    """Bring a store of an older format version (:data:`UPGRADABLE_VERSIONS`) to :data:`FORMAT_VERSION`
+    in place, in one transaction; returns a line saying what was done.
+
+    1 -> 2: the metadata gets its checksum (computed from the metadata as found: version 1 had none to
+    check it against) and the file leaves WAL mode.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise StoreError("store not found", str(p))
+    _check_header(p)
+    try:
+        conn = sqlite3.connect(str(p))
+    except sqlite3.Error as exc:
+        raise StoreError(f"cannot open ({exc})", str(p)) from exc
+    try:
+        version = _meta_value(conn, "version")
+        if version == FORMAT_VERSION:
+            return f"{p}: already format version {FORMAT_VERSION}, nothing to do"
+        if version not in UPGRADABLE_VERSIONS:
+            raise CorruptStoreError(f"store format version {version!r} cannot be upgraded; rebuild it", str(p))
+        with conn:
+            conn.execute(
+                "INSERT OR REPLACE INTO meta(key, value) VALUES ('version', ?)", (json.dumps(FORMAT_VERSION),)
+            )
+            seal_meta(conn)
+        conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
+        conn.execute("PRAGMA journal_mode = DELETE")
+    except sqlite3.Error as exc:
+        raise StoreError(f"cannot upgrade ({exc})", str(p)) from exc
+    finally:
+        conn.close()
+    return f"{p}: upgraded from format version {version} to {FORMAT_VERSION} (metadata checksum added)"
 
 
 _SCHEMA = """
@@ -106,8 +272,19 @@ def encode_vertices(q: np.ndarray) -> bytes:
     return zlib.compress(np.concatenate(cols).astype("<u2").tobytes(), ZLIB_LEVEL)
 
 
+def _inflate(blob: bytes, n_bytes: int) -> bytes:
+    """zlib-decompress at most ``n_bytes`` + 2 bytes (a corrupt or hostile blob cannot inflate beyond it)."""
+    d = zlib.decompressobj()
+    out = d.decompress(blob, n_bytes + 2)
+    if d.unconsumed_tail or len(out) > n_bytes:
+        raise ValueError(f"Expected {n_bytes} bytes of codes, got more")
+    return out
+
+
 def decode_vertices(blob: bytes, n: int) -> np.ndarray:
-    raw = np.frombuffer(zlib.decompress(blob), dtype="<u2")
+    if not 0 <= n <= 1 << 26:
+        raise ValueError(f"Expected a vertex count in 0..2^26, got {n}")
+    raw = np.frombuffer(_inflate(blob, 6 * n), dtype="<u2")
     if raw.size != 3 * n:
         raise ValueError(f"Expected {3 * n} vertex codes, got {raw.size}")
     return np.stack([_undo_zigzag_delta16(raw[k * n : (k + 1) * n]) for k in range(3)], axis=1)
@@ -122,11 +299,13 @@ def encode_triangles(t: np.ndarray) -> bytes:
 
 
 def decode_triangles(blob: bytes, k: int) -> np.ndarray:
+    if not 0 <= k <= 1 << 26:
+        raise ValueError(f"Expected a triangle count in 0..2^26, got {k}")
     width = blob[:1]
     if width == b"\x02":
-        flat = _undo_zigzag_delta16(np.frombuffer(zlib.decompress(blob[1:]), dtype="<u2"))
+        flat = _undo_zigzag_delta16(np.frombuffer(_inflate(blob[1:], 6 * k), dtype="<u2"))
     elif width == b"\x04":
-        flat = _undo_zigzag_delta32(np.frombuffer(zlib.decompress(blob[1:]), dtype="<u4"))
+        flat = _undo_zigzag_delta32(np.frombuffer(_inflate(blob[1:], 12 * k), dtype="<u4"))
     else:
         raise ValueError(f"Expected index width 2 or 4, got {width!r}")
     if flat.size != 3 * k:
@@ -261,9 +440,13 @@ class TileStore:
         try:
             uri = f"file:{p.resolve()}" + ("" if writable else "?mode=ro")
             conn = sqlite3.connect(uri, uri=True, check_same_thread=False)
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot open ({exc})", str(p)) from exc
+        try:
             conn.execute(f"PRAGMA query_only = {0 if writable else 1}")
             ok = conn.execute("PRAGMA quick_check").fetchone()[0]
         except sqlite3.DatabaseError as exc:
+            conn.close()
             raise CorruptStoreError(f"corrupted store ({exc})", str(p)) from exc
         if ok != "ok":
             conn.close()
@@ -272,37 +455,61 @@ class TileStore:
             conn.close()
             raise StoreError("holds a TIN detail-increment model (paper 003), not tiles", str(p))
         try:
-            return cls(p, conn, writable)
-        except (KeyError, ValueError, TypeError, sqlite3.DatabaseError) as exc:
+            store = cls(p, conn, writable)
+        except (KeyError, ValueError, TypeError, AttributeError, IndexError, sqlite3.DatabaseError) as exc:
             conn.close()
-            raise CorruptStoreError(f"corrupted store metadata ({exc})", str(p)) from exc
+            raise CorruptStoreError(f"corrupted store metadata ({type(exc).__name__}: {exc})", str(p)) from exc
+        except BaseException:
+            conn.close()
+            raise
+        if writable:  # a writer works in WAL mode (readers alongside); close() leaves rollback mode again
+            try:
+                conn.execute("PRAGMA journal_mode = WAL")
+            except sqlite3.Error as exc:
+                conn.close()
+                raise StoreError(f"cannot open for writing ({exc})", str(p)) from exc
+        return store
 
     @classmethod
     def create(cls, path: str | os.PathLike[str], meta: dict[str, Any]) -> TileStore:
-        """Create a new store with ``meta`` (fails if the file exists)."""
+        """Create a new store with ``meta`` (fails if the file exists).
+
+        Atomic: schema and metadata are committed to a temporary file in the same folder, which is then
+        linked into place, so ``path`` is either absent or a store that opens (and resumes), never a
+        0-byte or half-initialised file, whenever the process dies.
+        """
         p = Path(path)
-        if p.exists():
+        if p.exists() or p.is_symlink():
             raise StoreError("already exists", str(p))
         parent = p.resolve().parent
         if not parent.is_dir():
             raise StoreError(f"output folder {parent} does not exist", str(p))
         if not os.access(parent, os.W_OK):
             raise StoreError(f"output folder {parent} is not writable", str(p))
+        _remove_stale_temporaries(p)
+        tmp = _temporary_path(p)
         try:
-            conn = sqlite3.connect(str(p), check_same_thread=False)
-            conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
-            conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
-            conn.execute("PRAGMA journal_mode = WAL")
-            with conn:
-                conn.executescript(_SCHEMA)
-                full = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "complete": False, **meta}
-                conn.executemany(
-                    "INSERT INTO meta(key, value) VALUES (?, ?)",
-                    [(k, json.dumps(v, sort_keys=True)) for k, v in full.items()],
-                )
-        except sqlite3.Error as exc:
+            conn = sqlite3.connect(str(tmp))
+            try:
+                conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
+                conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
+                with conn:
+                    conn.executescript(_SCHEMA)
+                    full = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "complete": False, **meta}
+                    conn.executemany(
+                        "INSERT INTO meta(key, value) VALUES (?, ?)",
+                        [(k, json.dumps(v, sort_keys=True)) for k, v in full.items()],
+                    )
+                    seal_meta(conn)
+            finally:
+                conn.close()
+            _link_into_place(tmp, p)
+        except (sqlite3.Error, OSError) as exc:
+            tmp.unlink(missing_ok=True)
+            if isinstance(exc, StoreError):
+                raise
             raise StoreError(f"cannot write ({exc})", str(p)) from exc
-        return cls(p, conn, True)
+        return cls.open(p, writable=True)
 
     def _read_meta(self) -> dict[str, Any]:
         try:
@@ -310,16 +517,22 @@ class TileStore:
         except sqlite3.DatabaseError as exc:
             raise CorruptStoreError(f"not a terralod store ({exc})", str(self.path)) from exc
         meta = {k: json.loads(v) for k, v in rows}
-        if meta.get("format") != FORMAT_NAME:
-            raise CorruptStoreError("not a terralod store (no format marker)", str(self.path))
-        if meta.get("version") != FORMAT_VERSION:
-            raise CorruptStoreError(
-                f"store format version {meta.get('version')}, this terralod reads {FORMAT_VERSION}",
-                str(self.path),
-            )
+        verify_meta(self._conn, meta, self.path)
+        tables = {r[0] for r in self._conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+        missing = [t for t in REQUIRED_TABLES if t not in tables]
+        if missing:
+            raise CorruptStoreError(f"corrupted store (no {', '.join(missing)} table)", str(self.path))
         return meta
 
     def close(self) -> None:
+        """Close; a writer folds its WAL back into the file and leaves rollback mode, so no ``-wal`` /
+        ``-shm`` stays beside a closed store (skipped while other connections hold it)."""
+        if self.writable:
+            try:
+                self._conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+                self._conn.execute("PRAGMA journal_mode = DELETE")
+            except sqlite3.Error:
+                pass  # busy (a reader holds it) or read-only file system: the WAL stays, still consistent
         self._conn.close()
 
     def __enter__(self) -> TileStore:
@@ -353,12 +566,26 @@ class TileStore:
         return float(self.transform.a), float(-self.transform.e)
 
     def set_meta(self, key: str, value: Any) -> None:
-        with self._conn:
-            self._conn.execute(
-                "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
-                (key, json.dumps(value, sort_keys=True)),
-            )
-        self.meta[key] = value
+        """Set one meta value and re-seal the metadata checksum, in one transaction."""
+        self.set_metas({key: value})
+
+    def set_metas(self, values: dict[str, Any]) -> None:
+        """Set several meta values and re-seal the metadata checksum, in one transaction."""
+        if not self.writable:
+            raise StoreError("store opened read-only", str(self.path))
+        if META_CHECKSUM_KEY in values:
+            raise ValueError(f"{META_CHECKSUM_KEY} is computed, not set")
+        try:
+            with self._conn:
+                self._conn.executemany(
+                    "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+                    [(k, json.dumps(v, sort_keys=True)) for k, v in values.items()],
+                )
+                seal_meta(self._conn)
+        except sqlite3.Error as exc:
+            raise StoreError(f"cannot write metadata ({exc})", str(self.path)) from exc
+        self.meta.update(values)
+        self.meta[META_CHECKSUM_KEY] = _meta_value(self._conn, META_CHECKSUM_KEY)
 
     # -- tiles -----------------------------------------------------------------------------------------
     def tile_codes(self, level: int | None = None) -> list[TileCode]:
@@ -412,12 +639,21 @@ class TileStore:
 
     def raw_tile(self, level: int, x: int, y: int) -> EncodedTile:
         """The stored row of a tile, checksum verified."""
-        r = self._conn.execute("SELECT * FROM tiles WHERE level=? AND x=? AND y=?", (level, x, y)).fetchone()
+        try:
+            r = self._conn.execute(
+                "SELECT * FROM tiles WHERE level=? AND x=? AND y=?", (level, x, y)
+            ).fetchone()
+        except sqlite3.DatabaseError as exc:
+            raise CorruptStoreError(f"tile {(level, x, y)} cannot be read ({exc})", str(self.path)) from exc
         if r is None:
             raise KeyError(f"tile {(level, x, y)} is not in {self.path}")
-        (k, tx, ty, e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, vb, tb, ck) = r
-        t = EncodedTile((k, tx, ty), e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, bytes(vb), bytes(tb))
-        if t.checksum != ck:
+        try:
+            (k, tx, ty, e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, vb, tb, ck) = r
+            t = EncodedTile((k, tx, ty), e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, bytes(vb), bytes(tb))
+            ok = t.checksum == ck
+        except (ValueError, TypeError, struct.error) as exc:
+            raise CorruptStoreError(f"tile {(level, x, y)} has a malformed row ({exc})", str(self.path)) from exc
+        if not ok:
             raise CorruptStoreError(f"tile {(level, x, y)} fails its checksum", str(self.path))
         return t
 
@@ -427,11 +663,13 @@ class TileStore:
         try:
             q = decode_vertices(t.vertices, t.n_vertices)
             tris = decode_triangles(t.triangles, t.n_triangles)
-        except (zlib.error, ValueError) as exc:
+            if tris.size and int(tris.max()) >= t.n_vertices:
+                raise ValueError(f"triangle index {int(tris.max())} beyond {t.n_vertices} vertices")
+            rows, cols, z = self.dequantise(t.code, q, t.z0_index)
+        except (zlib.error, ValueError, KeyError, OverflowError) as exc:
             raise CorruptStoreError(
                 f"tile {(level, x, y)} cannot be decoded ({exc})", str(self.path)
             ) from exc
-        rows, cols, z = self.dequantise(t.code, q, t.z0_index)
         x0, y0 = self.transform.c + 0.5 * self.transform.a, self.transform.f + 0.5 * self.transform.e
         verts = np.empty((t.n_vertices, 3), np.float64)
         verts[:, 0] = x0 + cols * self.transform.a
@@ -515,8 +753,10 @@ def write_tin_store(
     parent = p.resolve().parent
     if not parent.is_dir():
         raise StoreError(f"output folder {parent} does not exist", str(p))
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.unlink(missing_ok=True)
+    if p.is_dir():
+        raise StoreError("is a directory, not a store", str(p))
+    _remove_stale_temporaries(p)
+    tmp = _temporary_path(p)
     full = {"format": FORMAT_NAME, "version": FORMAT_VERSION, **meta, "method": TIN_METHOD, "complete": True}
     try:
         conn = sqlite3.connect(str(tmp))
@@ -533,14 +773,18 @@ def write_tin_store(
                     "INSERT INTO tin_model(name, model, sha256) VALUES ('model', ?, ?)",
                     (model, hashlib.sha256(model).hexdigest()),
                 )
+                seal_meta(conn)
         finally:
             conn.close()
-        os.replace(tmp, p)
+        if p.exists():
+            install_store(tmp, p)
+        else:
+            _link_into_place(tmp, p)
     except (sqlite3.Error, OSError) as exc:
-        tmp.unlink(missing_ok=True)
-        raise StoreError(f"cannot write ({exc})", str(p)) from exc
-    for side in (Path(f"{p}-wal"), Path(f"{p}-shm")):  # left by a tile store this file replaced
-        side.unlink(missing_ok=True)
+        remove_store_files(tmp)
+        if isinstance(exc, StoreError):
+            raise
+        raise StoreError(f"cannot write ({exc.strerror if isinstance(exc, OSError) else exc})", str(p)) from exc
     return p.stat().st_size
 
 
@@ -570,6 +814,7 @@ def read_tin_store(path: str | os.PathLike[str]) -> tuple[dict[str, Any], bytes]
         conn = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
         try:
             meta = {k: json.loads(v) for k, v in conn.execute("SELECT key, value FROM meta")}
+            verify_meta(conn, meta, p)
             if meta.get("method") != TIN_METHOD:
                 raise CorruptStoreError("holds tiles, not a TIN model", str(p))
             row = conn.execute("SELECT model, sha256 FROM tin_model WHERE name = 'model'").fetchone()
