@@ -33,6 +33,9 @@ from terralod.store import (
     TileStore,
     encode_triangles,
     encode_vertices,
+    install_store,
+    remove_store_files,
+    replacement_path,
 )
 from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size
 
@@ -163,6 +166,14 @@ def _quantise(
     return np.stack([u, v, qz], axis=1).astype(np.uint16), z0
 
 
+def same_file(a: str | os.PathLike[str], b: str | os.PathLike[str] | None) -> bool:
+    """True when ``a`` and ``b`` name one existing file (same path, hard link or symlink)."""
+    try:
+        return b is not None and os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
 def build_tile(
     hf: Heightfield,
     pyramid: TilePyramid,
@@ -242,30 +253,39 @@ def build_store(
     if method not in METHODS:
         raise ValueError(f"Expected a method in {sorted(METHODS)}, got {method!r}")
     p = Path(path)
+    if same_file(p, hf.source):
+        raise StoreError("is the input DEM of this build; choose another output", str(p))
     t_start = time.perf_counter()
     pyramid = TilePyramid(hf.width, hf.height, tile_size)
     quant = plan_quantisation(hf, pyramid, grid_vertices=(method == "chunked"))
     meta = _store_meta(hf, pyramid, method, quant)
 
+    target = p  # where tiles go: p itself, or (--overwrite) a temporary renamed over p once complete
     if p.exists() and resume:
+        with TileStore.open(p) as old:  # read-only first: a complete store needs no write access
+            for key in ("source_digest", "build_options", "quantisation", "width", "height", "tile_size"):
+                if old.meta.get(key) != meta[key]:
+                    raise BuildMismatchError(
+                        f"cannot resume: the store's {key} differs from this build (other source or "
+                        "options); use --overwrite to rebuild",
+                        str(p),
+                    )
+            n_done, n_total = len(old.tile_codes()), len(pyramid.all_codes())
+            if old.complete and n_done == n_total:
+                log.info("%s is complete; nothing to resume", p)
+                return BuildReport(p, n_total, 0, n_done, time.perf_counter() - t_start, hf.width * hf.height)
         store = TileStore.open(p, writable=True)
-        for key in ("source_digest", "build_options", "quantisation", "width", "height", "tile_size"):
-            if store.meta.get(key) != meta[key]:
-                store.close()
-                raise BuildMismatchError(
-                    f"cannot resume: the store's {key} differs from this build (other source or options); "
-                    "use --overwrite to rebuild",
-                    str(p),
-                )
     else:
-        if p.exists():
+        if p.exists() or p.is_symlink():
             if not overwrite:
                 raise StoreError(
                     "already exists; use --resume to finish it or --overwrite to replace it", str(p)
                 )
-            for suffix in ("", "-wal", "-shm"):
-                Path(f"{p}{suffix}").unlink(missing_ok=True)
-        store = TileStore.create(p, meta)
+            if p.is_dir():
+                raise StoreError("is a directory, not a tile store", str(p))
+            target = replacement_path(p)  # the old store stays whole until the new one is complete
+            remove_store_files(target)
+        store = TileStore.create(target, meta)
 
     codes = pyramid.all_codes(finest_first=True)
     try:
@@ -313,8 +333,17 @@ def build_store(
                     break
         if n_skipped + built == total:
             store.set_meta("complete", True)
-    finally:
+    except BaseException:
         store.close()
+        if target != p:
+            remove_store_files(target)
+        raise
+    store.close()
+    if target != p:
+        if n_skipped + built == total:
+            install_store(target, p)
+        else:
+            remove_store_files(target)  # stopped early (stop_after): the old store stays as it was
     seconds = time.perf_counter() - t_start
     log.info("built %d tiles (%d already present) in %.2f s", built, n_skipped, seconds)
     return BuildReport(p, total, built, n_skipped, seconds, hf.width * hf.height)
