@@ -48,6 +48,9 @@ FORMAT_NAME = "terralod-store"
 #: Bumped by every change of the store format. 2: the metadata carries a checksum (``meta_sha256``) and a
 #: closed store is left in rollback-journal mode (no ``-wal``/``-shm`` beside it).
 FORMAT_VERSION = 2
+#: Versions opened as they are (each has the metadata checksum); a later format that still reads an
+#: older layout lists it here.
+READABLE_VERSIONS = (FORMAT_VERSION,)
 #: Older versions :func:`upgrade_store` (``terralod check --upgrade``) brings to ``FORMAT_VERSION``.
 UPGRADABLE_VERSIONS = (1,)
 #: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
@@ -81,7 +84,7 @@ def verify_meta(conn: sqlite3.Connection, meta: dict[str, Any], path: Path) -> N
     if meta.get("format") != FORMAT_NAME:
         raise CorruptStoreError("not a terralod store (no format marker)", str(path))
     version = meta.get("version")
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         if version in UPGRADABLE_VERSIONS:
             raise StoreError(
                 f"store format version {version}, this terralod reads {FORMAT_VERSION}; upgrade it with "
@@ -208,8 +211,8 @@ def upgrade_store(path: str | os.PathLike[str]) -> str:
         raise StoreError(f"cannot open ({exc})", str(p)) from exc
     try:
         version = _meta_value(conn, "version")
-        if version == FORMAT_VERSION:
-            return f"{p}: already format version {FORMAT_VERSION}, nothing to do"
+        if version in READABLE_VERSIONS:
+            return f"{p}: format version {version} is current, nothing to do"
         if version not in UPGRADABLE_VERSIONS:
             raise CorruptStoreError(f"store format version {version!r} cannot be upgraded; rebuild it", str(p))
         with conn:
