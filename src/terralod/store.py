@@ -42,6 +42,7 @@ from affine import Affine
 
 from terralod.errors import CorruptStoreError, StoreError
 from terralod.kernels.codec import undo_zigzag_delta
+from terralod.store_epochs import EpochTables
 from terralod.tiles import TileCode, TilePyramid
 
 FORMAT_NAME = "terralod-store"
@@ -413,10 +414,12 @@ class LevelQuantisation:
 
 
 # -- the store -----------------------------------------------------------------------------------------
-class TileStore:
+class TileStore(EpochTables):
     """A ``.terra`` file. Open with :func:`open_store` (read) or :meth:`TileStore.create` (build)."""
 
-    def __init__(self, path: str | os.PathLike[str], conn: sqlite3.Connection, writable: bool) -> None:
+    def __init__(
+        self, path: str | os.PathLike[str], conn: sqlite3.Connection, writable: bool, epoch: str | None = None
+    ) -> None:
         self.path = Path(path)
         self._conn = conn
         self.writable = writable
@@ -430,10 +433,13 @@ class TileStore:
             int(k): LevelQuantisation(int(v["xy_frac_bits"]), float(v["z_step_m"]))
             for k, v in self.meta["quantisation"].items()
         }
+        self._init_epochs(epoch)  # which epoch's tiles this store reads (terralod.store_epochs)
 
     # -- opening ---------------------------------------------------------------------------------------
     @classmethod
-    def open(cls, path: str | os.PathLike[str], *, writable: bool = False) -> TileStore:
+    def open(
+        cls, path: str | os.PathLike[str], *, writable: bool = False, epoch: str | None = None
+    ) -> TileStore:
         p = Path(path)
         if not p.exists():
             raise StoreError("store not found", str(p))
@@ -458,7 +464,7 @@ class TileStore:
             conn.close()
             raise StoreError("holds a TIN detail-increment model (paper 003), not tiles", str(p))
         try:
-            store = cls(p, conn, writable)
+            store = cls(p, conn, writable, epoch)
         except (KeyError, ValueError, TypeError, AttributeError, IndexError, sqlite3.DatabaseError) as exc:
             conn.close()
             raise CorruptStoreError(f"corrupted store metadata ({type(exc).__name__}: {exc})", str(p)) from exc
@@ -593,7 +599,7 @@ class TileStore:
     # -- tiles -----------------------------------------------------------------------------------------
     def tile_codes(self, level: int | None = None) -> list[TileCode]:
         """Codes of the stored tiles (of one level, or all), sorted by (level, y, x)."""
-        q = "SELECT level, x, y FROM tiles"
+        q = f"SELECT level, x, y FROM {self._tiles_src}"
         args: tuple[int, ...] = ()
         if level is not None:
             q += " WHERE level = ?"
@@ -606,12 +612,13 @@ class TileStore:
     def __contains__(self, code: object) -> bool:
         if not (isinstance(code, tuple) and len(code) == 3):
             return False
-        r = self._conn.execute("SELECT 1 FROM tiles WHERE level=? AND x=? AND y=?", code).fetchone()
+        q = f"SELECT 1 FROM {self._tiles_src} WHERE level=? AND x=? AND y=?"
+        r = self._conn.execute(q, code).fetchone()
         return r is not None
 
     def tile_errors(self) -> dict[TileCode, tuple[float, float]]:
         """{code: (error_m, vertical_error_m)} of every stored tile (cheap: no geometry)."""
-        rows = self._conn.execute("SELECT level, x, y, error_m, vertical_error_m FROM tiles")
+        rows = self._conn.execute(f"SELECT level, x, y, error_m, vertical_error_m FROM {self._tiles_src}")
         return {(k, x, y): (e, v) for k, x, y, e, v in rows}
 
     def tile_summaries(self) -> list[dict[str, Any]]:
@@ -622,7 +629,8 @@ class TileStore:
         )
         names = [c.strip() for c in cols.split(",")]
         names[-1] = "bytes"
-        return [dict(zip(names, r, strict=True)) for r in self._conn.execute(f"SELECT {cols} FROM tiles")]
+        rows = self._conn.execute(f"SELECT {cols} FROM {self._tiles_src}")
+        return [dict(zip(names, r, strict=True)) for r in rows]
 
     def write_tiles(self, tiles: list[EncodedTile]) -> None:
         """Insert finished tiles in one transaction."""
@@ -634,18 +642,14 @@ class TileStore:
         ]
         try:
             with self._conn:
-                self._conn.executemany(
-                    "INSERT OR REPLACE INTO tiles VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)", rows
-                )
+                self._insert_tile_rows(rows)  # table tiles, or an epoch's revision (terralod.store_epochs)
         except sqlite3.Error as exc:
             raise StoreError(f"cannot write tiles ({exc})", str(self.path)) from exc
 
     def raw_tile(self, level: int, x: int, y: int) -> EncodedTile:
         """The stored row of a tile, checksum verified."""
         try:
-            r = self._conn.execute(
-                "SELECT * FROM tiles WHERE level=? AND x=? AND y=?", (level, x, y)
-            ).fetchone()
+            r = self._tile_row(level, x, y)  # of the selected epoch
         except sqlite3.DatabaseError as exc:
             raise CorruptStoreError(f"tile {(level, x, y)} cannot be read ({exc})", str(self.path)) from exc
         if r is None:
@@ -713,13 +717,13 @@ class TileStore:
         return sum(os.path.getsize(p) for p in (self.path, Path(f"{self.path}-wal")) if os.path.exists(p))
 
 
-def open_store(path: str | os.PathLike[str]) -> TileStore:
+def open_store(path: str | os.PathLike[str], epoch: str | None = None) -> TileStore:
     """Open a ``.terra`` store read-only; use as a context manager.
 
     >>> with open_store("dem.terra") as s:  # doctest: +SKIP
     ...     t = s.tile(0, 0, 0); t.vertices.shape, t.error_m
     """
-    return TileStore.open(path, writable=False)
+    return TileStore.open(path, writable=False, epoch=epoch)
 
 
 # -- TIN detail-increment models (paper 003) ------------------------------------------------------------

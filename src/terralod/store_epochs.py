@@ -1,0 +1,384 @@
+"""Epochs of one terrain in one ``.terra`` store: the tables and the SQL of :class:`terralod.store.TileStore`.
+
+Layout (tables added to a tile store when it gets epochs: ``build --epoch`` or a first ``update``; a store
+without them reads as one unnamed epoch, exactly as before)
+---------------------------------------------------------------------------------------------------------
+``tiles``          unchanged: the tiles the store was first built with ("rev 0").
+``tile_revs``      tiles rebuilt by a later epoch: the tile columns plus ``rev``, the id of that epoch;
+                   primary key (level, x, y, rev).
+``epochs``         ``id`` (creation order, never reused), ``name`` (e.g. an ISO date), ``state``
+                   (``building`` | ``complete``) and ``info`` (JSON: source, digest, fill, what was rebuilt).
+``epoch_tiles``    (epoch, level, x, y) -> rev: the tiles of an epoch. An epoch shares every tile it did
+                   not rebuild with the epoch before it by pointing at that tile's row (no copy).
+``source_blocks``  content-addressed (sha256) zlib blocks of 64 x 64 source samples (float32 elevation
+                   + packed validity), so an epoch's elevation grid is kept exactly as built, and
+``epoch_source``   (epoch, block) -> digest: unchanged blocks are shared between epochs like tiles.
+
+Transactions: a first build writes each batch of tiles and their ``epoch_tiles`` rows together (a killed
+build opens with its committed tiles, as before). An update writes its rebuilt tiles under its own rev —
+invisible to every reader, who reads tiles through ``epoch_tiles`` of a *complete* epoch — and then commits
+the new epoch's whole ``epoch_tiles`` map and ``state = complete`` in one transaction: a reader sees the old
+epoch or the new one, never a mix, and a killed update leaves every earlier epoch's rows untouched.
+Deleting an epoch removes its map, then every tile row and source block no epoch refers to any more.
+
+The store never imports the builder; this module imports nothing of terralod but its errors.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sqlite3
+import zlib
+from typing import Any
+
+import numpy as np
+
+#: The tile columns in table order (what :meth:`TileStore.raw_tile` reads).
+TILE_COLUMNS = (
+    "level, x, y, error_m, vertical_error_m, measured_error_m, measured_vertical_error_m, rms_error_m, "
+    "n_samples, z_min_m, z_max_m, n_vertices, n_triangles, z0_index, vertices, triangles, checksum"
+)
+
+EPOCH_SCHEMA = """
+CREATE TABLE IF NOT EXISTS tile_revs (
+    level INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL,
+    error_m REAL NOT NULL, vertical_error_m REAL NOT NULL,
+    measured_error_m REAL NOT NULL, measured_vertical_error_m REAL NOT NULL,
+    rms_error_m REAL NOT NULL, n_samples INTEGER NOT NULL,
+    z_min_m REAL NOT NULL, z_max_m REAL NOT NULL,
+    n_vertices INTEGER NOT NULL, n_triangles INTEGER NOT NULL, z0_index INTEGER NOT NULL,
+    vertices BLOB NOT NULL, triangles BLOB NOT NULL, checksum INTEGER NOT NULL, rev INTEGER NOT NULL,
+    PRIMARY KEY (level, x, y, rev)
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS epochs (
+    id INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL UNIQUE, state TEXT NOT NULL, info TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS epoch_tiles (
+    epoch INTEGER NOT NULL, level INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL,
+    rev INTEGER NOT NULL, PRIMARY KEY (epoch, level, x, y)
+) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS epoch_tiles_rev ON epoch_tiles (level, x, y, rev);
+CREATE TABLE IF NOT EXISTS source_blocks (digest TEXT PRIMARY KEY, data BLOB NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS epoch_source (
+    epoch INTEGER NOT NULL, block INTEGER NOT NULL, digest TEXT NOT NULL, PRIMARY KEY (epoch, block)
+) WITHOUT ROWID;
+"""
+
+#: Name given to the tiles of a store built without ``--epoch`` when it gets a second epoch.
+DEFAULT_EPOCH = "base"
+#: Side of a source block, samples.
+SOURCE_BLOCK = 64
+_COLS = [c.strip() for c in TILE_COLUMNS.split(",")]
+
+
+def _has_table(conn: sqlite3.Connection, name: str) -> bool:
+    r = conn.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name=?", (name,)).fetchone()
+    return r is not None
+
+
+def _epoch_src(eid: int) -> str:
+    """SQL of the tile rows of epoch ``eid`` (TILE_COLUMNS), through its map."""
+    cols = ", ".join(f"t.{c}" for c in _COLS)
+    on = "t.level = e.level AND t.x = e.x AND t.y = e.y"
+    return (
+        f"(SELECT {cols} FROM epoch_tiles e JOIN tiles t ON {on} WHERE e.epoch = {eid} AND e.rev = 0 "
+        f"UNION ALL SELECT {cols} FROM epoch_tiles e JOIN tile_revs t ON {on} AND t.rev = e.rev "
+        f"WHERE e.epoch = {eid} AND e.rev > 0)"
+    )
+
+
+class EpochTables:
+    """The epoch half of :class:`terralod.store.TileStore` (mixed in; uses its ``_conn``, ``path``, ``meta``).
+
+    After :meth:`_init_epochs` a store reads the tiles of one epoch (``epoch``): the one asked for, else
+    the latest complete one (else, for a first build still running, that build's).
+    """
+
+    _conn: sqlite3.Connection
+    writable: bool
+    meta: dict[str, Any]
+    path: Any
+
+    # -- selection -----------------------------------------------------------------------------------
+    def _init_epochs(self, epoch: str | None) -> None:
+        from terralod.errors import StoreError
+
+        self.has_epochs = _has_table(self._conn, "epochs")
+        self.epoch: str | None = None
+        self.epoch_id: int | None = None
+        self.write_rev = 0  # rev of the rows written now: 0 = table tiles
+        self._write_epoch: int | None = None  # epoch whose map grows with the rows written (first build)
+        self._tiles_src = "tiles"
+        if not self.has_epochs:
+            if epoch is not None:
+                raise StoreError(f"has no epochs; cannot select epoch {epoch!r}", str(self.path))
+            return
+        rows = self.epoch_rows()
+        done = [r for r in rows if r["state"] == "complete"]
+        if epoch is not None:
+            pick = next((r for r in done if r["name"] == str(epoch)), None)
+            if pick is None:
+                names = ", ".join(r["name"] for r in done) or "none"
+                raise StoreError(f"has no epoch {epoch!r} (epochs: {names})", str(self.path))
+        elif done:
+            pick = done[-1]
+        else:
+            pick = rows[0] if rows else None  # a first build in progress: its own tiles
+            if pick is not None:
+                self._write_epoch = int(pick["id"])
+        self._select(pick)
+
+    def _select(self, row: dict[str, Any] | None) -> None:
+        if row is None:
+            self.epoch, self.epoch_id = None, None
+            self._tiles_src = f"(SELECT {TILE_COLUMNS} FROM tiles WHERE 0)"
+            return
+        self.epoch, self.epoch_id = str(row["name"]), int(row["id"])
+        self._tiles_src = _epoch_src(self.epoch_id)
+
+    def _tile_row(self, level: int, x: int, y: int) -> tuple[Any, ...] | None:
+        """The stored row (TILE_COLUMNS) of a tile of the selected epoch, None when absent."""
+        if self.has_epochs:
+            r = self._conn.execute(
+                "SELECT rev FROM epoch_tiles WHERE epoch = ? AND level = ? AND x = ? AND y = ?",
+                (self.epoch_id if self.epoch_id is not None else -1, level, x, y),
+            ).fetchone()
+            if r is None:
+                return None
+            if int(r[0]) > 0:
+                return self._conn.execute(
+                    f"SELECT {TILE_COLUMNS} FROM tile_revs WHERE level=? AND x=? AND y=? AND rev=?",
+                    (level, x, y, int(r[0])),
+                ).fetchone()
+        return self._conn.execute(
+            f"SELECT {TILE_COLUMNS} FROM tiles WHERE level=? AND x=? AND y=?", (level, x, y)
+        ).fetchone()
+
+    def epoch_rows(self) -> list[dict[str, Any]]:
+        """Every epoch row (complete and building), in creation order: id, name, state, info."""
+        if not getattr(self, "has_epochs", False):
+            return []
+        out = []
+        for i, name, state, info in self._conn.execute(
+            "SELECT id, name, state, info FROM epochs ORDER BY id"
+        ):
+            out.append({"id": int(i), "name": str(name), "state": str(state), "info": json.loads(info)})
+        return out
+
+    @property
+    def epochs(self) -> list[str]:
+        """Names of the complete epochs, in the order they were added (the last is the default)."""
+        return [r["name"] for r in self.epoch_rows() if r["state"] == "complete"]
+
+    def epoch_info(self, name: str | None = None) -> dict[str, Any]:
+        """The info of epoch ``name`` (default: the selected one) with its id, name and state."""
+        name = self.epoch if name is None else name
+        for r in self.epoch_rows():
+            if r["name"] == name:
+                return dict(r["info"], id=r["id"], state=r["state"], name=r["name"])
+        raise KeyError(name)
+
+    # -- writing ---------------------------------------------------------------------------------------
+    def _insert_tile_rows(self, rows: list[tuple[Any, ...]]) -> None:
+        """Insert tile rows (TILE_COLUMNS order) under this store's write rev; call inside a transaction."""
+        if self.write_rev == 0:
+            self._conn.executemany(
+                f"INSERT OR REPLACE INTO tiles ({TILE_COLUMNS}) VALUES ({','.join('?' * 17)})", rows
+            )
+        else:
+            self._conn.executemany(
+                f"INSERT OR REPLACE INTO tile_revs ({TILE_COLUMNS}, rev) VALUES ({','.join('?' * 18)})",
+                [(*r, self.write_rev) for r in rows],
+            )
+        if self._write_epoch is not None:
+            self._conn.executemany(
+                "INSERT OR REPLACE INTO epoch_tiles VALUES (?, ?, ?, ?, ?)",
+                [(self._write_epoch, r[0], r[1], r[2], self.write_rev) for r in rows],
+            )
+
+    def add_epoch_tables(self) -> None:
+        """Create the epoch tables (idempotent)."""
+        with self._conn:
+            self._conn.executescript(EPOCH_SCHEMA)
+        self.has_epochs = True
+
+    def adopt_tiles_as_epoch(self, name: str, info: dict[str, Any]) -> int:
+        """A store without epochs: its tiles become complete epoch ``name`` (one transaction)."""
+        self.add_epoch_tables()
+        with self._conn:
+            cur = self._conn.execute(
+                "INSERT INTO epochs (name, state, info) VALUES (?, 'complete', ?)",
+                (str(name), json.dumps(info, sort_keys=True)),
+            )
+            eid = int(cur.lastrowid or 0)
+            self._conn.execute(f"INSERT INTO epoch_tiles SELECT {eid}, level, x, y, 0 FROM tiles")
+        self._select({"id": eid, "name": str(name)})
+        return eid
+
+    def begin_epoch(self, name: str, info: dict[str, Any]) -> int:
+        """Add epoch ``name`` in state ``building`` and write new tiles under it; returns its id. The first
+        epoch of a store maps its tiles as they are written (into table ``tiles``); a later one writes
+        ``tile_revs`` and maps its tiles only at :meth:`commit_epoch`."""
+        self.add_epoch_tables()
+        first = not self.epoch_rows()
+        with self._conn:
+            cur = self._conn.execute(
+                "INSERT INTO epochs (name, state, info) VALUES (?, 'building', ?)",
+                (str(name), json.dumps(info, sort_keys=True)),
+            )
+        eid = int(cur.lastrowid or 0)
+        if first:
+            self.write_rev, self._write_epoch = 0, eid
+            self._select({"id": eid, "name": str(name)})
+        else:
+            self.write_rev, self._write_epoch = eid, None
+        return eid
+
+    def resume_epoch(self, eid: int) -> None:
+        """Write new tiles under the building (not first) epoch ``eid`` again (a resumed update)."""
+        self.write_rev, self._write_epoch = int(eid), None
+
+    def epoch_tile_revs(self, eid: int) -> dict[tuple[int, int, int], int]:
+        """{code: rev} of epoch ``eid``'s map."""
+        q = "SELECT level, x, y, rev FROM epoch_tiles WHERE epoch = ?"
+        return {(int(k), int(x), int(y)): int(r) for k, x, y, r in self._conn.execute(q, (int(eid),))}
+
+    def rev_tile_errors(self, rev: int) -> dict[tuple[int, int, int], tuple[float, float]]:
+        """{code: (error_m, vertical_error_m)} of the rows written under ``rev`` > 0 (a resumed update's work)."""
+        q = "SELECT level, x, y, error_m, vertical_error_m FROM tile_revs WHERE rev = ?"
+        return {
+            (int(k), int(x), int(y)): (float(e), float(v)) for k, x, y, e, v in self._conn.execute(q, (rev,))
+        }
+
+    def rev_tile_row(self, code: tuple[int, int, int], rev: int) -> tuple[Any, ...] | None:
+        """The row (TILE_COLUMNS) of tile ``code`` under ``rev`` (0: table tiles)."""
+        if rev == 0:
+            q, args = f"SELECT {TILE_COLUMNS} FROM tiles WHERE level=? AND x=? AND y=?", code
+        else:
+            q, args = (
+                f"SELECT {TILE_COLUMNS} FROM tile_revs WHERE level=? AND x=? AND y=? AND rev=?",
+                (*code, rev),
+            )
+        return self._conn.execute(q, args).fetchone()
+
+    def commit_epoch(self, eid: int, revs: dict[tuple[int, int, int], int], info: dict[str, Any]) -> None:
+        """Make epoch ``eid`` visible: its whole tile map and ``state = complete`` in one transaction."""
+        with self._conn:
+            self._conn.execute("DELETE FROM epoch_tiles WHERE epoch = ?", (int(eid),))
+            self._conn.executemany(
+                "INSERT INTO epoch_tiles VALUES (?, ?, ?, ?, ?)",
+                [(int(eid), k, x, y, int(r)) for (k, x, y), r in sorted(revs.items())],
+            )
+            self._conn.execute(
+                "UPDATE epochs SET state = 'complete', info = ? WHERE id = ?",
+                (json.dumps(info, sort_keys=True), int(eid)),
+            )
+
+    def complete_first_epoch(self) -> None:
+        """Mark the epoch of a first build complete (its map was written with its tiles)."""
+        if self.has_epochs and self._write_epoch is not None:
+            with self._conn:
+                self._conn.execute("UPDATE epochs SET state = 'complete' WHERE id = ?", (self._write_epoch,))
+
+    def delete_epoch(self, name: str) -> None:
+        """Remove epoch ``name`` (complete, or an interrupted update), then every tile row and source block
+        no epoch refers to, in one transaction. The only complete epoch cannot be deleted."""
+        from terralod.errors import StoreError
+
+        rows = self.epoch_rows()
+        row = next((r for r in rows if r["name"] == name), None)
+        if row is None:
+            names = ", ".join(r["name"] for r in rows) or "none"
+            raise StoreError(f"has no epoch {name!r} (epochs: {names})", str(self.path))
+        done = [r for r in rows if r["state"] == "complete"]
+        if row["state"] == "complete" and len(done) == 1:
+            raise StoreError(
+                f"epoch {name!r} is the store's only epoch; delete the file instead", str(self.path)
+            )
+        building = [r["id"] for r in rows if r["state"] == "building" and r["id"] != row["id"]]
+        keep = ",".join(str(i) for i in building) or "-1"
+        ref = "SELECT 1 FROM epoch_tiles e WHERE e.level = {t}.level AND e.x = {t}.x AND e.y = {t}.y AND e.rev = {r}"
+        with self._conn:
+            self._conn.execute("DELETE FROM epoch_tiles WHERE epoch = ?", (row["id"],))
+            self._conn.execute("DELETE FROM epoch_source WHERE epoch = ?", (row["id"],))
+            self._conn.execute("DELETE FROM epochs WHERE id = ?", (row["id"],))
+            self._conn.execute(
+                f"DELETE FROM tile_revs WHERE rev NOT IN ({keep}) AND NOT EXISTS "
+                f"({ref.format(t='tile_revs', r='tile_revs.rev')})"
+            )
+            self._conn.execute(f"DELETE FROM tiles WHERE NOT EXISTS ({ref.format(t='tiles', r='0')})")
+            self._conn.execute(
+                "DELETE FROM source_blocks WHERE NOT EXISTS "
+                "(SELECT 1 FROM epoch_source s WHERE s.digest = source_blocks.digest)"
+            )
+        if self.epoch == name:
+            self._init_epochs(None)
+
+    def vacuum(self) -> None:
+        """Give the pages of deleted rows back to the file system."""
+        self._conn.execute("VACUUM")
+
+    # -- source samples --------------------------------------------------------------------------------
+    def put_epoch_source(self, eid: int, elevation_m: np.ndarray, valid: np.ndarray) -> None:
+        """Keep epoch ``eid``'s elevation grid (float32, exactly) and validity mask, in shared blocks."""
+        z = np.ascontiguousarray(elevation_m, np.float32)
+        v = np.ascontiguousarray(valid, bool)
+        h, w = z.shape
+        b = SOURCE_BLOCK
+        nbx = -(-w // b)
+        blocks, maps = {}, []
+        for by in range(-(-h // b)):
+            for bx in range(nbx):
+                zz = z[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
+                vv = v[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
+                raw = zz.astype("<f4").tobytes() + np.packbits(vv).tobytes()
+                d = hashlib.sha256(raw).hexdigest()
+                blocks[d] = raw
+                maps.append((int(eid), by * nbx + bx, d))
+        with self._conn:
+            have = {r[0] for r in self._conn.execute("SELECT digest FROM source_blocks")}
+            self._conn.executemany(
+                "INSERT INTO source_blocks VALUES (?, ?)",
+                [(d, zlib.compress(raw, 6)) for d, raw in blocks.items() if d not in have],
+            )
+            self._conn.execute("DELETE FROM epoch_source WHERE epoch = ?", (int(eid),))
+            self._conn.executemany("INSERT INTO epoch_source VALUES (?, ?, ?)", maps)
+
+    def epoch_source(self, name: str | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """(elevation_m float32 (H, W), valid bool) of epoch ``name`` (default: the selected one) exactly as
+        built, or None when the store does not keep that epoch's samples."""
+        from terralod.errors import CorruptStoreError
+
+        if not self.has_epochs or (name is None and self.epoch is None):
+            return None
+        info = self.epoch_info(name)
+        rows = self._conn.execute(
+            "SELECT s.block, b.data, s.digest FROM epoch_source s JOIN source_blocks b ON b.digest = s.digest "
+            "WHERE s.epoch = ? ORDER BY s.block",
+            (info["id"],),
+        ).fetchall()
+        if not rows:
+            return None
+        w, h = int(self.meta["width"]), int(self.meta["height"])
+        b = SOURCE_BLOCK
+        nbx, nby = -(-w // b), -(-h // b)
+        if len(rows) != nbx * nby:
+            raise CorruptStoreError(f"epoch {info['name']!r}: source blocks missing", str(self.path))
+        z = np.empty((h, w), np.float32)
+        v = np.empty((h, w), bool)
+        for blk, data, digest in rows:
+            raw = zlib.decompress(data)
+            if hashlib.sha256(raw).hexdigest() != digest:
+                raise CorruptStoreError(
+                    f"epoch {info['name']!r}: a source block fails its checksum", str(self.path)
+                )
+            by, bx = divmod(int(blk), nbx)
+            r0, c0 = by * b, bx * b
+            bh, bw = min(b, h - r0), min(b, w - c0)
+            n = bh * bw
+            z[r0 : r0 + bh, c0 : c0 + bw] = np.frombuffer(raw[: 4 * n], "<f4").reshape(bh, bw)
+            v[r0 : r0 + bh, c0 : c0 + bw] = np.unpackbits(np.frombuffer(raw[4 * n :], np.uint8))[:n].reshape(
+                bh, bw
+            )
+        return z, v
