@@ -1,0 +1,455 @@
+"""Volumes of change with their uncertainty, areas beyond the level of detection, extremes, zone budgets
+and a series' volume against time; :func:`measure_change` runs the whole chain on two heightfields.
+
+Uncertainty (what a geoscientist signs)
+---------------------------------------
+- σ, the vertical uncertainty of one DoD cell: the NMAD of the co-registered DoD on stable ground
+  (:func:`terralod.change.coregister.stable_ground`), or the given ``sigma_m`` (``--sigma-m``). The given
+  value wins when there is one; without it, too little stable ground (< 100 cells) or an NMAD of exactly 0
+  (stable ground copied from one DEM into the other, as in the St Helens epochs) leaves σ unknown, and a
+  stated default (:data:`ASSUMED_SIGMA_M`) is used with a warning. ``sigma_source`` says which.
+- Level of detection: LoD = t·σ with t the two-sided normal quantile of the confidence (1.96 at 95 %),
+  the minimum level of detection of GCD (Wheaton et al. 2010, ESPL 35).
+- Volume uncertainty, spatially correlated errors (Rolstad, Haug and Denby 2009, J. Glaciol. 55(192),
+  eq. 8 and the nugget term of Hugonnet et al. 2022): the DoD error is modelled as a nugget ``c0`` plus
+  a spherical variogram of sill ``c1`` and range ``L`` (``c0 + c1 = σ²``), fitted to the empirical
+  semivariogram of the stable DoD along rows and columns (:func:`correlation_model`). The standard error of
+  the mean over an area A is
+
+      σ_mean² = c0 · a / A + c1 · min(1, π L² / (5 A)),     a = one cell's area,
+
+  and of the volume σ_V = A · σ_mean; the ± figures are t · σ_V (95 %). Without stable ground to fit on,
+  ``L`` is the given ``corr_range_m`` or :data:`ASSUMED_RANGE_M`, all of σ² in the spherical part. Each
+  volume takes the area it sums over: every valid cell for ``net_m3``, the gain (loss) cells for
+  ``gain_m3`` (``loss_m3``), the cells beyond the LoD for the ``_above_lod`` figures. Not propagated:
+  the interpolation error of resampling and the uncertainty of the co-registration itself (both small
+  against σ after a fit; the co-registration's NMAD before and after is reported).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from terralod.change.coregister import Coregistration, coregister, nmad, stable_ground
+from terralod.change.difference import AlignedPair, align, crs_label, dem_of_difference
+from terralod.errors import InputError
+from terralod.heightfield import Heightfield
+
+log = logging.getLogger(__name__)
+
+#: σ used (with a warning) when neither stable ground nor ``sigma_m`` gives one, metres.
+ASSUMED_SIGMA_M = 1.0
+#: Correlation range used when the stable ground cannot be fitted and none is given, metres.
+ASSUMED_RANGE_M = 500.0
+#: Fewest stable cells σ is estimated from.
+MIN_STABLE_CELLS = 100
+#: Volume keys of every budget (summary and zones).
+VOLUME_KEYS = (
+    "gain_m3", "loss_m3", "net_m3", "gain_m3_above_lod", "loss_m3_above_lod", "net_m3_above_lod",
+    "net_uncertainty_m3", "gain_uncertainty_m3", "loss_uncertainty_m3", "net_above_lod_uncertainty_m3",
+    "gain_above_lod_uncertainty_m3", "loss_above_lod_uncertainty_m3", "area_gain_m2", "area_loss_m2",
+    "area_m2", "max_rise_m", "max_drop_m",
+)  # fmt: skip
+
+
+@dataclass
+class Uncertainty:
+    """The error model of one DoD."""
+
+    sigma_m: float
+    sigma_source: str
+    confidence: float
+    t: float
+    nugget_m2: float
+    sill_m2: float
+    range_m: float
+    range_source: str
+    stable_cells: int
+    stable_nmad_m: float | None
+    cell_area_m2: float
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def level_of_detection_m(self) -> float:
+        return self.t * self.sigma_m
+
+    def volume_sigma_m3(self, area_m2: float) -> float:
+        """1-σ uncertainty of a volume summed over ``area_m2`` (Rolstad et al. 2009 + nugget)."""
+        if area_m2 <= 0:
+            return 0.0
+        corr = min(1.0, math.pi * self.range_m**2 / (5.0 * area_m2)) if self.range_m > 0 else 0.0
+        var_mean = self.nugget_m2 * min(1.0, self.cell_area_m2 / area_m2) + self.sill_m2 * corr
+        return float(area_m2 * math.sqrt(max(var_mean, 0.0)))
+
+    def volume_uncertainty_m3(self, area_m2: float) -> float:
+        """± at the confidence level (t · σ_V)."""
+        return self.t * self.volume_sigma_m3(area_m2)
+
+    def as_dict(self) -> dict:
+        return {
+            "sigma_m": self.sigma_m,
+            "sigma_source": self.sigma_source,
+            "confidence": self.confidence,
+            "t": self.t,
+            "level_of_detection_m": self.level_of_detection_m,
+            "stable_cells": self.stable_cells,
+            "stable_nmad_m": self.stable_nmad_m,
+            "variogram": {
+                "nugget_m2": self.nugget_m2,
+                "spherical_sill_m2": self.sill_m2,
+                "range_m": self.range_m,
+                "range_source": self.range_source,
+            },
+            "propagation": "Rolstad et al. 2009 spherical-correlation area average plus nugget; "
+            "sigma_V = A * sqrt(c0 * a / A + c1 * min(1, pi L^2 / (5 A))), +- = t * sigma_V",
+            "warnings": list(self.warnings),
+        }
+
+
+def z_quantile(confidence: float) -> float:
+    """Two-sided normal quantile: 1.96 for 0.95."""
+    from scipy.stats import norm
+
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"Expected a confidence in (0, 1), got {confidence}")
+    return float(norm.ppf(0.5 + confidence / 2.0))
+
+
+def correlation_model(
+    dod: np.ndarray, stable: np.ndarray, spacing_m: tuple[float, float], max_lag_cells: int = 64
+) -> tuple[float, float, float] | None:
+    """(nugget m², spherical sill m², range m) fitted to the empirical semivariogram of ``dod`` on
+    ``stable`` cells, lags along rows and columns; None when there are too few pairs."""
+    from scipy.optimize import curve_fit
+
+    d = np.where(stable & np.isfinite(dod), dod, np.nan)
+    h, w = d.shape
+    step = float(np.mean(spacing_m))
+    lags = sorted(
+        {int(v) for v in np.unique(np.round(np.geomspace(1, max(1, min(max_lag_cells, h // 3, w // 3)), 14)))}
+    )
+    hs, gs = [], []
+    for k in lags:
+        parts = [(d[:, k:] - d[:, :-k]).ravel(), (d[k:, :] - d[:-k, :]).ravel()]
+        v = np.concatenate(parts)
+        v = v[np.isfinite(v)]
+        if v.size < 50:
+            continue
+        hs.append(k * step)
+        gs.append(0.5 * float(np.mean(v**2)))
+    if len(hs) < 4:
+        return None
+    hs_a, gs_a = np.asarray(hs), np.asarray(gs)
+    var = float(np.nanvar(d))
+
+    def spherical(x, c0, c1, a):
+        r = np.clip(x / a, 0, 1)
+        return c0 + c1 * (1.5 * r - 0.5 * r**3)
+
+    try:
+        (c0, c1, a), _ = curve_fit(
+            spherical, hs_a, gs_a, p0=(0.1 * var, 0.9 * var, hs_a[len(hs_a) // 2]),
+            bounds=([0, 0, step], [np.inf, np.inf, 100.0 * hs_a[-1]]), maxfev=5000,
+        )  # fmt: skip
+    except (RuntimeError, ValueError):
+        return None
+    return float(c0), float(c1), float(a)
+
+
+def estimate_uncertainty(
+    dod: np.ndarray,
+    stable: np.ndarray,
+    cell_area_m2: float,
+    spacing_m: tuple[float, float],
+    *,
+    sigma_m: float | None = None,
+    corr_range_m: float | None = None,
+    confidence: float = 0.95,
+) -> Uncertainty:
+    """σ, LoD and the correlation model of a co-registered DoD (module docstring)."""
+    t = z_quantile(confidence)
+    ok = stable & np.isfinite(dod)
+    n = int(ok.sum())
+    s_nmad = nmad(dod[ok]) if n else float("nan")
+    warns: list[str] = []
+    if sigma_m is not None:
+        if not (math.isfinite(sigma_m) and sigma_m >= 0):
+            raise ValueError(f"Expected sigma_m >= 0, got {sigma_m}")
+        sigma, source = float(sigma_m), "given (--sigma-m)"
+    elif n >= MIN_STABLE_CELLS and s_nmad > 0:
+        sigma, source = s_nmad, f"NMAD of the difference on {n:,} stable cells"
+    else:
+        why = (
+            f"only {n} stable cells" if n < MIN_STABLE_CELLS
+            else f"the difference on its {n:,} stable cells is exactly 0 (copied, not surveyed twice)"
+        )  # fmt: skip
+        sigma, source = ASSUMED_SIGMA_M, f"assumed {ASSUMED_SIGMA_M:g} m: {why}; give --sigma-m"
+        warns.append(f"sigma cannot be measured ({why}); assumed {ASSUMED_SIGMA_M:g} m, give --sigma-m")
+    model = correlation_model(dod, ok, spacing_m) if (n >= MIN_STABLE_CELLS and s_nmad > 0) else None
+    if corr_range_m is not None:
+        rng, rsrc = float(corr_range_m), "given (--corr-range-m)"
+        c0, c1 = 0.0, sigma**2
+    elif model is not None:
+        c0m, c1m, rng = model
+        frac = c0m / max(c0m + c1m, 1e-30)
+        c0, c1 = frac * sigma**2, (1 - frac) * sigma**2
+        rsrc = "spherical variogram fitted on stable ground"
+    else:
+        rng, rsrc = ASSUMED_RANGE_M, f"assumed {ASSUMED_RANGE_M:g} m (no stable ground to fit)"
+        c0, c1 = 0.0, sigma**2
+    return Uncertainty(
+        sigma_m=sigma, sigma_source=source, confidence=confidence, t=t, nugget_m2=c0, sill_m2=c1, range_m=rng,
+        range_source=rsrc, stable_cells=n, stable_nmad_m=None if not math.isfinite(s_nmad) else s_nmad,
+        cell_area_m2=cell_area_m2, warnings=warns,
+    )  # fmt: skip
+
+
+def budget(dod: np.ndarray, unc: Uncertainty, mask: np.ndarray | None = None) -> dict:
+    """Gain/loss/net volumes (all cells, and beyond the LoD) with ± uncertainty, areas beyond the LoD, the
+    largest rise and drop, over the finite cells of ``dod`` (inside ``mask`` when given)."""
+    a = unc.cell_area_m2
+    ok = np.isfinite(dod) if mask is None else (np.isfinite(dod) & mask)
+    d = dod[ok]
+    lod = unc.level_of_detection_m
+    pos, neg = d > 0, d < 0
+    up, down = d > lod, d < -lod
+    vol = lambda sel: float(np.sum(d[sel], dtype=np.float64) * a)  # noqa: E731
+    area = lambda sel: float(np.count_nonzero(sel) * a)  # noqa: E731
+    out = {
+        "gain_m3": vol(pos),
+        "loss_m3": -vol(neg),
+        "net_m3": vol(np.ones_like(pos)),
+        "gain_m3_above_lod": vol(up),
+        "loss_m3_above_lod": -vol(down),
+        "net_m3_above_lod": vol(up | down),
+        "net_uncertainty_m3": unc.volume_uncertainty_m3(area(np.ones_like(pos))),
+        "gain_uncertainty_m3": unc.volume_uncertainty_m3(area(pos)),
+        "loss_uncertainty_m3": unc.volume_uncertainty_m3(area(neg)),
+        "net_above_lod_uncertainty_m3": unc.volume_uncertainty_m3(area(up | down)),
+        "gain_above_lod_uncertainty_m3": unc.volume_uncertainty_m3(area(up)),
+        "loss_above_lod_uncertainty_m3": unc.volume_uncertainty_m3(area(down)),
+        "area_gain_m2": area(up),
+        "area_loss_m2": area(down),
+        "area_m2": area(np.ones_like(pos)),
+        "max_rise_m": max(0.0, float(d.max())) if d.size else 0.0,
+        "max_drop_m": max(0.0, float(-d.min())) if d.size else 0.0,
+    }
+    return out
+
+
+def extremes(dod: np.ndarray, hf: Heightfield) -> dict:
+    """Position (x, y in the grid CRS, lon/lat, row/col) and value of the largest rise and drop."""
+    out = {}
+    for key, fn in (("max_rise", np.nanargmax), ("max_drop", np.nanargmin)):
+        if not np.isfinite(dod).any():
+            out[key] = None
+            continue
+        r, c = np.unravel_index(int(fn(dod)), dod.shape)
+        x, y = hf.world_xy(r, c)
+        item = {"value_m": float(dod[r, c]), "row": int(r), "col": int(c), "x_m": float(x), "y_m": float(y)}
+        item.update(_lonlat(hf.crs, float(x), float(y)))
+        out[key] = item
+    return out
+
+
+def _lonlat(crs: str | None, x: float, y: float) -> dict:
+    if not crs:
+        return {}
+    try:
+        from pyproj import Transformer
+
+        lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+        return {"lon_deg": float(lon), "lat_deg": float(lat)}
+    except Exception:  # noqa: BLE001 - positions in the grid CRS are given anyway
+        return {}
+
+
+# -- zones ---------------------------------------------------------------------------------------------
+def read_zones(path: str | Path, hf: Heightfield) -> list[tuple[str, np.ndarray, float, dict]]:
+    """Polygons of a GeoJSON file as masks on ``hf``'s grid: (name, mask, fraction of the polygon's area on
+    the terrain, geometry in the grid CRS). Coordinates are in the CRS named by the file's ``crs`` member,
+    else lon/lat (RFC 7946).
+
+    Raises
+    ------
+    InputError : unreadable file, no polygon, a CRS that cannot be used, a polygon outside the terrain.
+    """
+    from rasterio.features import rasterize
+    from shapely.geometry import box, mapping, shape
+    from shapely.ops import transform as shp_transform
+
+    p = Path(path)
+    src = str(p)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        from terralod.errors import InputNotFoundError
+
+        raise InputNotFoundError("file not found", src) from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"is not GeoJSON ({exc})", src) from None
+    crs_name = None
+    if isinstance(data, dict) and isinstance(data.get("crs"), dict):
+        crs_name = (data["crs"].get("properties") or {}).get("name")
+    feats = _features(data, src)
+    if crs_name is None:
+        crs_name = "EPSG:4326"
+    if hf.crs is None:
+        raise InputError("the terrain has no CRS, so GeoJSON coordinates cannot be placed on it", src)
+    try:
+        from pyproj import CRS, Transformer
+
+        tr = Transformer.from_crs(CRS.from_user_input(crs_name), CRS.from_user_input(hf.crs), always_xy=True)
+    except Exception as exc:  # noqa: BLE001 - pyproj raises its own CRSError
+        raise InputError(f"crs {crs_name!r} cannot be used ({exc})", src) from None
+    terrain_box = box(*hf.bounds_m)
+    out = []
+    for i, (props, geom) in enumerate(feats):
+        name = str(props.get("name", f"zone {i + 1}"))
+        try:
+            g = shp_transform(lambda x, y, z=None: tr.transform(x, y), shape(geom))
+        except Exception as exc:  # noqa: BLE001 - shapely's errors for broken rings
+            raise InputError(f"polygon {name!r} is not a valid geometry ({exc})", src) from None
+        if g.is_empty or g.area <= 0:
+            raise InputError(f"polygon {name!r} has no area", src)
+        inside = g.intersection(terrain_box)
+        frac = float(inside.area / g.area)
+        mask = (
+            rasterize([(mapping(g), 1)], out_shape=hf.shape, transform=hf.transform, fill=0, dtype="uint8")
+            .astype(bool)
+        )  # fmt: skip
+        if frac <= 0 or not (mask & hf.valid).any():
+            b = ", ".join(f"{v:.1f}" for v in g.bounds)
+            raise InputError(
+                f"polygon {name!r} lies outside the terrain: its bounds ({b}) vs the terrain's "
+                f"({', '.join(f'{v:.1f}' for v in hf.bounds_m)}) in {crs_label(hf.crs)}",
+                src,
+            )
+        out.append((name, mask, frac, mapping(g)))
+    return out
+
+
+def _features(data, src: str) -> list[tuple[dict, dict]]:
+    if not isinstance(data, dict):
+        raise InputError("is not a GeoJSON object", src)
+    kind = data.get("type")
+    if kind == "FeatureCollection":
+        items = [(f.get("properties") or {}, f.get("geometry")) for f in data.get("features") or []]
+    elif kind == "Feature":
+        items = [(data.get("properties") or {}, data.get("geometry"))]
+    else:
+        items = [({}, data)]
+    polys = [(p, g) for p, g in items if isinstance(g, dict) and g.get("type") in ("Polygon", "MultiPolygon")]
+    if not polys:
+        raise InputError("holds no Polygon or MultiPolygon", src)
+    return polys
+
+
+# -- the whole chain -----------------------------------------------------------------------------------
+@dataclass
+class ChangeResult:
+    """Everything a change summary and report are made of."""
+
+    pair: AlignedPair
+    coreg: Coregistration
+    dod: np.ndarray
+    stable: np.ndarray
+    uncertainty: Uncertainty
+    summary: dict
+    zone_masks: list = field(default_factory=list)
+
+
+def measure_change(
+    before: Heightfield,
+    after: Heightfield,
+    *,
+    stable: np.ndarray | None = None,
+    coregistration: bool = True,
+    method: str = "xdem",
+    sigma_m: float | None = None,
+    corr_range_m: float | None = None,
+    confidence: float = 0.95,
+    zones: str | Path | None = None,
+    dates: tuple[str | None, str | None] = (None, None),
+    pair: AlignedPair | None = None,
+) -> ChangeResult:
+    """Align, co-register (unless ``coregistration`` is False), difference and budget two DEMs.
+
+    ``stable`` is a mask on BEFORE's grid (True = stable ground) or None ("outside the change").
+    The result's ``summary`` holds the contract keys of ``terralod change`` (see :mod:`terralod.cli.change`).
+    """
+    pair = pair or align(before, after)
+    if coregistration:
+        co = coregister(pair, stable=stable, method=method)
+        co.applied = co.method != "none"
+    else:
+        co = Coregistration(method="none", notes=["co-registration skipped (--no-coregister)"])
+    dod = dem_of_difference(pair, co.shift_m if co.applied else (0.0, 0.0, 0.0))
+    st = stable_ground(dod, stable)
+    unc = estimate_uncertainty(
+        dod, st, pair.cell_area_m2, before.spacing_m, sigma_m=sigma_m, corr_range_m=corr_range_m,
+        confidence=confidence,
+    )  # fmt: skip
+    summary: dict = dict(budget(dod, unc))
+    summary.update(
+        {
+            "sigma_m": unc.sigma_m,
+            "sigma_source": unc.sigma_source,
+            "level_of_detection_m": unc.level_of_detection_m,
+            "confidence": confidence,
+            "shift_m": [float(v) for v in (co.shift_m if co.applied else (0.0, 0.0, 0.0))],
+            "before": {"source": before.source, "date": dates[0]},
+            "after": {"source": after.source, "date": dates[1]},
+            "grid": {
+                "crs": crs_label(before.crs),
+                "shape": list(before.shape),
+                "spacing_m": list(before.spacing_m),
+                "bounds_m": list(before.bounds_m),
+                "cell_area_m2": pair.cell_area_m2,
+                "valid_cells": int(np.isfinite(dod).sum()),
+                "resampled": not (pair.same_grid and pair.after is after),
+            },
+            "alignment_notes": list(pair.notes),
+            "coregistration": co.as_dict(),
+            "uncertainty": unc.as_dict(),
+            "extremes": extremes(dod, before),
+        }
+    )
+    zone_masks = read_zones(zones, before) if zones is not None else []
+    summary["zones"] = []
+    for name, mask, frac, _geom in zone_masks:
+        z = {"name": name, **budget(dod, unc, mask), "fraction_on_terrain": frac}
+        if frac < 0.999:
+            z["note"] = f"{100 * (1 - frac):.1f} % of the polygon lies outside the terrain and is not counted"
+        summary["zones"].append(z)
+    return ChangeResult(pair, co, dod, st, unc, summary, zone_masks)
+
+
+def series_volumes(
+    epochs: list[Heightfield], dates: list[str], *, sigma_m: float | None = None,
+    corr_range_m: float | None = None, confidence: float = 0.95, coregistration: bool = False,
+    method: str = "xdem",
+) -> list[dict]:  # fmt: skip
+    """Volume against time: the budget of each epoch against the first (cumulative change), on the first
+    epoch's grid. Returns one dict per epoch (the first has zero change) with ``date`` and the budget keys."""
+    base = epochs[0]
+    rows = []
+    for hf, date in zip(epochs, dates, strict=True):
+        if hf is base:
+            rows.append(
+                {**{k: 0.0 for k in VOLUME_KEYS}, "date": date, "sigma_m": sigma_m, "shift_m": [0.0] * 3}
+            )
+            continue
+        r = measure_change(base, hf, coregistration=coregistration, method=method, sigma_m=sigma_m,
+                           corr_range_m=corr_range_m, confidence=confidence)  # fmt: skip
+        row = {k: r.summary[k] for k in VOLUME_KEYS}
+        row.update({"date": date, "sigma_m": r.summary["sigma_m"], "sigma_source": r.summary["sigma_source"],
+                    "shift_m": r.summary["shift_m"]})  # fmt: skip
+        rows.append(row)
+    return rows
