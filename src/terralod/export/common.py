@@ -1,0 +1,102 @@
+"""What both web exports share: the source samples behind a store, atomic output folders, the epoch choice.
+
+An export is written into a temporary folder beside the output and renamed into place at the end, so an
+interrupted export leaves nothing half-written under the output name (a leftover ``.DIR.tmp-*`` folder is
+removed by the next export). An output folder that exists and is not empty needs ``overwrite``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from terralod.errors import InputError, StoreError
+
+__all__ = ["atomic_folder", "check_exportable", "source_heightfield", "valid_at"]
+
+
+def check_exportable(terrain: Any, epoch: str | None = None) -> None:
+    """Refuse a terrain the exports cannot write: no tiles, a store still being written, a missing epoch."""
+    where = str(terrain.path) if terrain.path is not None else None
+    meta = getattr(terrain, "meta", {}) or {}
+    if meta.get("complete") is False:
+        raise StoreError("is incomplete (being written or interrupted); finish the build first", where)
+    if not terrain.lod_tree():
+        raise StoreError("has no tiles", where)
+    if epoch is not None:
+        if not terrain.epochs:
+            raise InputError(f"has no epochs (asked for --epoch {epoch})", where)
+        if epoch not in terrain.epochs:
+            raise InputError(f"has no epoch {epoch} (it has {', '.join(terrain.epochs)})", where)
+        if not hasattr(terrain, "at_epoch"):
+            raise InputError("epoch selection is not available for this kind of store", where)
+
+
+def source_heightfield(terrain: Any) -> Any:
+    """The source DEM of a grid store when it can be read again and is the one the store was built from
+    (same digest); None otherwise (TIN stores, moved or changed sources)."""
+    meta = getattr(terrain, "meta", {}) or {}
+    src, digest = meta.get("source"), meta.get("source_digest")
+    if not src or not digest:
+        return None
+    try:
+        from terralod.io.reader import SAMPLE_SOURCE, read_heightfield, sample_heightfield
+
+        if src == SAMPLE_SOURCE:
+            hf = sample_heightfield()
+        elif Path(src).is_file():
+            hf = read_heightfield(src)
+        else:
+            return None
+    except Exception:  # noqa: BLE001 - a source that no longer reads is simply not used
+        return None
+    return hf if hf.digest() == digest else None
+
+
+def valid_at(hf: Any, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Validity of the source sample nearest to each CRS point (False outside the grid)."""
+    inv = ~hf.transform
+    col, row = inv * (np.asarray(x, np.float64), np.asarray(y, np.float64))
+    c = np.floor(col).astype(np.int64)
+    r = np.floor(row).astype(np.int64)
+    inside = (r >= 0) & (c >= 0) & (r < hf.height) & (c < hf.width)
+    out = np.zeros(np.shape(x), bool)
+    out[inside] = hf.valid[r[inside], c[inside]]
+    return out
+
+
+@contextmanager
+def atomic_folder(out: str | os.PathLike[str], overwrite: bool) -> Iterator[Path]:
+    """Yield a temporary folder that becomes ``out`` when the block ends without error."""
+    dst = Path(out)
+    if dst.exists() and not dst.is_dir():
+        raise InputError("exists and is not a folder", str(dst))
+    if dst.is_dir() and any(dst.iterdir()) and not overwrite:
+        raise InputError("output folder is not empty (pass --overwrite to replace it)", str(dst))
+    parent = dst.resolve().parent
+    if not parent.is_dir():
+        raise InputError(f"output folder {parent} does not exist", str(dst))
+    if not os.access(parent, os.W_OK):
+        raise InputError(f"output folder {parent} is not writable", str(dst))
+    for stale in parent.glob(f".{dst.name}.tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=parent))
+    try:
+        yield tmp
+        if dst.exists():
+            old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-old-", dir=parent))
+            os.replace(dst, old / "x")
+            os.replace(tmp, dst)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, dst)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise

@@ -1,0 +1,97 @@
+"""Geodesy at the export boundary: the store's CRS → WGS 84 longitude/latitude and ECEF, through pyproj.
+
+Heights are the DEM's heights in metres as read: they are used as heights above the WGS 84 ellipsoid
+(no geoid change), which is what both web formats expect of a height and what the issue's contract asks.
+The horizontal coordinates go through pyproj (datum shifts included where the CRS has them); ECEF is
+pyproj's EPSG:4979 → EPSG:4978 conversion (exact, double precision).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from terralod.errors import InputError
+
+__all__ = ["Geodesy", "enu_frame", "wgs84_radius_m"]
+
+#: WGS 84 semi-major axis, metres.
+WGS84_A_M = 6378137.0
+
+
+def wgs84_radius_m() -> float:
+    return WGS84_A_M
+
+
+class Geodesy:
+    """Transforms of one store's CRS (WKT or any pyproj input). Raises InputError on an unknown CRS."""
+
+    def __init__(self, crs: str | None, where: str | None = None) -> None:
+        from pyproj import CRS, Transformer
+        from pyproj.exceptions import CRSError
+
+        if not crs:
+            raise InputError(
+                "has no CRS (a local metric frame); the web exports need a georeferenced store", where
+            )
+        try:
+            self.crs = CRS.from_user_input(crs)
+        except CRSError as exc:
+            raise InputError(f"unknown CRS ({str(exc)[:80]})", where) from exc
+        if self.crs.is_geographic:
+            raise InputError("has a geographic CRS; expected a projected (metric) CRS", where)
+        try:
+            self._to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
+            self._from_ll = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True)
+            self._ecef = Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
+        except Exception as exc:  # noqa: BLE001 - pyproj raises several kinds
+            raise InputError(f"CRS cannot be transformed to WGS 84 ({str(exc)[:80]})", where) from exc
+        probe = self._to_ll.transform(0.0, 0.0)
+        if not all(math.isfinite(v) for v in probe) and False:  # pragma: no cover - kept for clarity
+            raise InputError("CRS cannot be transformed to WGS 84", where)
+
+    def lonlat(self, x: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
+        """CRS metres → (longitude, latitude) degrees."""
+        lon, lat = self._to_ll.transform(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        return np.asarray(lon, np.float64), np.asarray(lat, np.float64)
+
+    def xy(self, lon: Any, lat: Any) -> tuple[np.ndarray, np.ndarray]:
+        """(longitude, latitude) degrees → CRS metres."""
+        x, y = self._from_ll.transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64))
+        return np.asarray(x, np.float64), np.asarray(y, np.float64)
+
+    def ecef_lonlat(self, lon: Any, lat: Any, h: Any) -> np.ndarray:
+        """(N,) degrees, degrees, ellipsoidal metres → (N, 3) ECEF metres."""
+        x, y, z = self._ecef.transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
+                                       np.asarray(h, np.float64))  # fmt: skip
+        return np.stack([np.asarray(x), np.asarray(y), np.asarray(z)], axis=-1).astype(np.float64)
+
+    def ecef(self, vertices_m: np.ndarray) -> np.ndarray:
+        """(N, 3) CRS metres with heights as read → (N, 3) ECEF metres."""
+        v = np.asarray(vertices_m, np.float64)
+        lon, lat = self.lonlat(v[:, 0], v[:, 1])
+        return self.ecef_lonlat(lon, lat, v[:, 2])
+
+    def region(self, box_m: tuple[float, ...], drop_m: float = 0.0, n: int = 9) -> list[float]:
+        """3D Tiles ``region`` (west, south, east, north radians, min, max height) around a CRS box
+        (w, s, zmin, e, n, zmax), its edges sampled at ``n`` points each (a projected box is curved)."""
+        w, s, zmin, e, nn, zmax = box_m
+        t = np.linspace(0.0, 1.0, n)
+        xs = np.concatenate([w + (e - w) * t, np.full(n, e), w + (e - w) * t, np.full(n, w)])
+        ys = np.concatenate([np.full(n, s), s + (nn - s) * t, np.full(n, nn), s + (nn - s) * t])
+        lon, lat = self.lonlat(xs, ys)
+        r = np.radians
+        return [float(r(lon.min())), float(r(lat.min())), float(r(lon.max())), float(r(lat.max())),
+                float(zmin - drop_m), float(zmax)]  # fmt: skip
+
+
+def enu_frame(lon_deg: np.ndarray, lat_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(east, north, up) unit vectors (N, 3) in ECEF at geodetic (lon, lat)."""
+    lo, la = np.radians(lon_deg), np.radians(lat_deg)
+    so, co, sa, ca = np.sin(lo), np.cos(lo), np.sin(la), np.cos(la)
+    east = np.stack([-so, co, np.zeros_like(lo)], axis=-1)
+    north = np.stack([-sa * co, -sa * so, ca], axis=-1)
+    up = np.stack([ca * co, ca * so, sa], axis=-1)
+    return east, north, up
