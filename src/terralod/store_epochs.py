@@ -4,7 +4,7 @@ Layout (tables added to a tile store when it gets epochs: ``build --epoch`` or a
 without them reads as one unnamed epoch, exactly as before)
 ---------------------------------------------------------------------------------------------------------
 ``tiles``          unchanged: the tiles the store was first built with ("rev 0").
-``tile_revs``      tiles rebuilt by a later epoch: the tile columns plus ``rev``, the id of that epoch;
+``tile_revs``      tiles rebuilt by a later epoch: the tile columns with ``rev``, the id of that epoch;
                    primary key (level, x, y, rev).
 ``epochs``         ``id`` (creation order, never reused), ``name`` (e.g. an ISO date), ``state``
                    (``building`` | ``complete``) and ``info`` (JSON: source, digest, fill, what was rebuilt).
@@ -42,13 +42,13 @@ TILE_COLUMNS = (
 
 EPOCH_SCHEMA = """
 CREATE TABLE IF NOT EXISTS tile_revs (
-    level INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL,
+    level INTEGER NOT NULL, x INTEGER NOT NULL, y INTEGER NOT NULL, rev INTEGER NOT NULL,
     error_m REAL NOT NULL, vertical_error_m REAL NOT NULL,
     measured_error_m REAL NOT NULL, measured_vertical_error_m REAL NOT NULL,
     rms_error_m REAL NOT NULL, n_samples INTEGER NOT NULL,
     z_min_m REAL NOT NULL, z_max_m REAL NOT NULL,
     n_vertices INTEGER NOT NULL, n_triangles INTEGER NOT NULL, z0_index INTEGER NOT NULL,
-    vertices BLOB NOT NULL, triangles BLOB NOT NULL, checksum INTEGER NOT NULL, rev INTEGER NOT NULL,
+    vertices BLOB NOT NULL, triangles BLOB NOT NULL, checksum INTEGER NOT NULL,
     PRIMARY KEY (level, x, y, rev)
 ) WITHOUT ROWID;
 CREATE TABLE IF NOT EXISTS epochs (
@@ -86,6 +86,21 @@ def _epoch_src(eid: int) -> str:
         f"UNION ALL SELECT {cols} FROM epoch_tiles e JOIN tile_revs t ON {on} AND t.rev = e.rev "
         f"WHERE e.epoch = {eid} AND e.rev > 0)"
     )
+
+
+def epoch_record(hf: Any, kind: str, **extra: Any) -> dict[str, Any]:
+    """The info kept with an epoch built from heightfield ``hf`` (``kind``: build, update or edit)."""
+    import datetime
+
+    return {
+        "kind": kind,
+        "source": str(hf.source),
+        "source_digest": hf.digest(),
+        "fill_method": hf.fill_method,
+        "notes": list(hf.notes),
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        **extra,
+    }
 
 
 class EpochTables:
@@ -233,6 +248,28 @@ class EpochTables:
             self._select({"id": eid, "name": str(name)})
         else:
             self.write_rev, self._write_epoch = eid, None
+        return eid
+
+    def start_first_epoch(self, name: str, hf: Any) -> int:
+        """A build with ``--epoch``: begin (or, resumed, find) the store's first epoch ``name`` and keep
+        the heightfield ``hf``'s samples with it. Tiles already in table ``tiles`` join its map."""
+        from terralod.errors import BuildMismatchError
+
+        rows = self.epoch_rows()
+        if not rows:
+            eid = self.begin_epoch(name, epoch_record(hf, "build"))
+            with self._conn:
+                self._conn.execute(
+                    f"INSERT OR REPLACE INTO epoch_tiles SELECT {eid}, level, x, y, 0 FROM tiles"
+                )
+        elif rows[0]["name"] != name:
+            raise BuildMismatchError(
+                f"cannot resume: the store's first epoch is {rows[0]['name']!r}, not {name!r}", str(self.path)
+            )
+        else:
+            eid = int(rows[0]["id"])
+        if self.epoch_source(name) is None:
+            self.put_epoch_source(eid, hf.elevation_m, hf.valid)
         return eid
 
     def resume_epoch(self, eid: int) -> None:

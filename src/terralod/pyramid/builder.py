@@ -46,10 +46,17 @@ MeshFn = Callable[
     [np.ndarray, np.ndarray, TilePyramid, TileCode], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 ]
 #: A mesher with a true ``needs_spacing`` attribute is also given ``spacing_m=(dx, dy)`` (metres).
-METHODS: dict[str, MeshFn] = {"chunked": chunked.mesh_tile, "cohesion": cohesion.mesh_tile}
+METHODS: dict[str, MeshFn] = {
+    "chunked": chunked.mesh_tile,
+    "cohesion": cohesion.mesh_tile,
+    "adaptive": adaptive.mesh_tile,
+}
 # The vertex cohesion map (paper 000) is the default: at the same measured screen error it draws 0.40-0.49x
 # Chunked LOD's triangles on mountainous DEMs (benchmarks/results/cohesion_vs_chunked.md).
 DEFAULT_METHOD = "cohesion"
+
+#: Extra relief (metres) the fixed quantisation of a store of epochs leaves at least (plan_quantisation).
+EPOCH_HEADROOM_M = 500.0
 
 #: Tiles committed per SQLite transaction (bounded by time as well, see ``_COMMIT_SECONDS``).
 _BATCH_TILES = 64
@@ -109,19 +116,23 @@ def _level_max_range(z, s, m, step):
 
 
 def plan_quantisation(
-    hf: Heightfield, pyramid: TilePyramid, *, grid_vertices: bool = True
+    hf: Heightfield, pyramid: TilePyramid, *, grid_vertices: bool = True, headroom: bool = False
 ) -> dict[int, LevelQuantisation]:
     """Per-level 16-bit lattices: horizontal fractional bits and a vertical step that fits every tile.
 
     The vertical step is the largest vertex-height range of any tile of the level over 65534 steps, so
     ``z0_index + q`` never overflows 16 bits and every tile of a level shares one lattice. With
     ``grid_vertices`` (meshers whose vertices are the level's grid, e.g. Chunked LOD) the range is taken
-    over the grid vertices; otherwise over every source sample of the tile window.
+    over the grid vertices; otherwise over every source sample of the tile window. With ``headroom`` (a
+    store of epochs, whose lattice is fixed once for all of them) the range planned is
+    ``max(2 r, r + 500 m)`` for a measured range r, so later epochs may grow its relief that much.
     """
     out = {}
     for k in pyramid.levels:
         stride = pyramid.stride(k)
         rng = _level_max_range(hf.elevation_m, stride, pyramid.tile_size, stride if grid_vertices else 1)
+        if headroom:
+            rng = max(2.0 * rng, rng + EPOCH_HEADROOM_M)
         step = max(float(rng) / 65534.0, 1e-6)
         out[k] = LevelQuantisation(pyramid.xy_frac_bits(k), step)
     return out
@@ -141,7 +152,12 @@ def _store_meta(
         "tile_size": pyramid.tile_size,
         "max_level": pyramid.max_level,
         "method": method,
-        "build_options": {"method": method, "tile_size": pyramid.tile_size},
+        # a mesher with a ``build_meta(pyramid)`` states its own options (e.g. the adaptive error ladder)
+        "build_options": {
+            "method": method,
+            "tile_size": pyramid.tile_size,
+            **getattr(METHODS[method], "build_meta", lambda _p: {})(pyramid),
+        },
         "fill_method": hf.fill_method,
         "notes": list(hf.notes),
         "nodata_fraction": hf.nodata_fraction,
@@ -233,6 +249,8 @@ def build_store(
     overwrite: bool = False,
     progress: Callable[[int, int], None] | None = None,
     stop_after: int | None = None,
+    quantisation: dict[int, LevelQuantisation] | None = None,
+    epoch: str | None = None,
 ) -> BuildReport:
     """Build the LOD tile store of ``hf`` at ``path``.
 
@@ -247,6 +265,10 @@ def build_store(
     overwrite : replace an existing file at ``path``.
     progress : called as ``progress(done, total)`` after each committed batch.
     stop_after : build at most this many new tiles, then return (tests of interrupted builds).
+    quantisation : per-level lattices to use instead of planning them (e.g. a store of epochs' own, to
+        compare an update with a fresh build of the same epoch).
+    epoch : name of the store's first epoch (e.g. "2000-09-25"): the store keeps the source samples and
+        plans its quantisation with headroom, so ``terralod update`` can add epochs (terralod.pyramid.update).
     """
     if not is_valid_tile_size(tile_size):
         raise ValueError(f"Expected a tile size 2^n + 1 (e.g. 33, 65, 129), got {tile_size}")
@@ -257,7 +279,9 @@ def build_store(
         raise StoreError("is the input DEM of this build; choose another output", str(p))
     t_start = time.perf_counter()
     pyramid = TilePyramid(hf.width, hf.height, tile_size)
-    quant = plan_quantisation(hf, pyramid, grid_vertices=(method == "chunked"))
+    quant = quantisation or plan_quantisation(
+        hf, pyramid, grid_vertices=(method == "chunked"), headroom=epoch is not None
+    )
     meta = _store_meta(hf, pyramid, method, quant)
 
     target = p  # where tiles go: p itself, or (--overwrite) a temporary renamed over p once complete
@@ -286,6 +310,8 @@ def build_store(
             target = replacement_path(p)  # the old store stays whole until the new one is complete
             remove_store_files(target)
         store = TileStore.create(target, meta)
+    if epoch is not None:  # the first epoch of a store of epochs: its map and source samples
+        store.start_first_epoch(str(epoch), hf)
 
     codes = pyramid.all_codes(finest_first=True)
     try:
@@ -332,6 +358,7 @@ def build_store(
                 if stop_after is not None and built >= stop_after:
                     break
         if n_skipped + built == total:
+            store.complete_first_epoch()
             store.set_meta("complete", True)
     except BaseException:
         store.close()

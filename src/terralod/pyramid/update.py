@@ -1,0 +1,354 @@
+"""Add an epoch to a store: rebuild only the tiles whose source windows changed (issue 15, item 1).
+
+A tile's *source window* is every sample its mesher reads: the tile's own samples ``[r0, r0 + span]`` x
+``[c0, c0 + span]`` (clipped to the data, whose last row and column stand in for the padding), widened by
+the mesher's margin — 0 for Chunked LOD, ``2 * stride`` for the vertex cohesion map (paper 000), whose LoG
+roughness of sigma = stride / 2 is taken over 4 sigma around the window (``cohesion._window_roughness``);
+other meshers get ``4 * stride`` unless they declare ``window_margin(stride)``. A tile is *dirty* when
+any sample of its window differs (bit for bit, elevation or validity) between the base epoch and the new
+one. A parent's window holds its children's, so every ancestor of a dirty tile is dirty too and is
+re-meshed and re-measured, and a clean tile's children are clean: its bytes, including its monotone error,
+are those of the base epoch, so it is shared (the new epoch's map points at the base's row).
+
+The quantisation is the store's, fixed at its first build (with headroom, ``plan_quantisation``); an
+epoch whose relief leaves it is refused before anything is written. With the same quantisation every tile
+of the new epoch is byte-identical to a fresh ``build_store(new, quantisation=store.quantisation)``:
+``build_tile`` is deterministic and gets the same heightfield, lattice and children's errors.
+
+Transactions: rebuilt tiles are committed in batches under the new epoch's rev (invisible to readers);
+the epoch's map and ``complete`` state in one last transaction (:mod:`terralod.store_epochs`). A killed
+update leaves the earlier epochs untouched; ``resume=True`` skips the tiles already written.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from affine import Affine
+
+from terralod.errors import InputError, StoreError
+from terralod.heightfield import Heightfield
+from terralod.pyramid.builder import METHODS, _level_max_range, build_tile
+from terralod.store import EncodedTile, TileStore
+from terralod.store_epochs import DEFAULT_EPOCH, epoch_record
+from terralod.tiles import TileCode, TilePyramid
+
+log = logging.getLogger(__name__)
+
+_BATCH_TILES = 16
+
+
+def window_margin(method: str, stride: int) -> int:
+    """Samples beyond a tile's own window that mesher ``method`` reads at ``stride`` (see the module doc)."""
+    fn = METHODS.get(method)
+    own = getattr(fn, "window_margin", None)
+    if callable(own):
+        return int(own(stride))
+    if method == "chunked":
+        return 0
+    if method == "cohesion":
+        return 2 * stride
+    return 4 * stride
+
+
+def changed_samples(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(H, W) bool: where elevation (bit for bit, as float32) or validity differ between two epochs."""
+    za = np.ascontiguousarray(a[0], np.float32).view(np.uint32)
+    zb = np.ascontiguousarray(b[0], np.float32).view(np.uint32)
+    return (za != zb) | (np.asarray(a[1], bool) != np.asarray(b[1], bool))
+
+
+def dirty_tiles(pyramid: TilePyramid, changed: np.ndarray, method: str) -> set[TileCode]:
+    """Tiles whose source window (with the mesher's margin, plus one sample) holds a changed sample."""
+    h, w = changed.shape
+    sat = np.zeros((h + 1, w + 1), np.int64)
+    sat[1:, 1:] = np.cumsum(np.cumsum(changed, axis=0, dtype=np.int64), axis=1)
+    if sat[-1, -1] == 0:
+        return set()
+    out = set()
+    for code in pyramid.all_codes():
+        s = pyramid.stride(code[0])
+        m = window_margin(method, s) + 1
+        r0, c0 = pyramid.origin_rc(code)
+        span = pyramid.span(code[0])
+        ra, rb = max(r0 - m, 0), min(r0 + span + m, h - 1) + 1
+        ca, cb = max(c0 - m, 0), min(c0 + span + m, w - 1) + 1
+        if sat[rb, cb] - sat[ra, cb] - sat[rb, ca] + sat[ra, ca] > 0:
+            out.add(code)
+    return out
+
+
+def check_same_grid(store: TileStore, hf: Heightfield, where: str) -> None:
+    """Refuse (one line naming ``where``) a heightfield on another grid or CRS than the store's."""
+    if (hf.width, hf.height) != (int(store.meta["width"]), int(store.meta["height"])):
+        raise InputError(
+            f"is {hf.width} x {hf.height} samples, the store {store.path.name} holds "
+            f"{store.meta['width']} x {store.meta['height']}: an epoch must share the store's grid",
+            where,
+        )
+    t = tuple(hf.transform)[:6]
+    if not np.allclose(t, store.meta["transform"][:6], rtol=0, atol=1e-6):
+        raise InputError(
+            f"lies on another grid (transform {t}) than the store {store.path.name} "
+            f"({tuple(store.meta['transform'][:6])}): an epoch must share the store's grid",
+            where,
+        )
+    if not _same_crs(hf.crs, store.crs):
+        raise InputError(f"has another CRS than the store {store.path.name}: an epoch must share it", where)
+
+
+def _same_crs(a: str | None, b: str | None) -> bool:
+    if not a or not b:
+        return not a and not b
+    if a == b:
+        return True
+    try:
+        from rasterio.crs import CRS
+
+        return bool(CRS.from_user_input(a) == CRS.from_user_input(b))
+    except Exception:  # noqa: BLE001 - unparsable CRS text: compare the text
+        return False
+
+
+def check_quantisation(store: TileStore, hf: Heightfield, where: str) -> None:
+    """Refuse an epoch whose relief leaves the store's fixed 16-bit vertical lattice at some level."""
+    method = str(store.meta.get("method"))
+    p = store.pyramid
+    for k in p.levels:
+        s = p.stride(k)
+        rng = float(_level_max_range(hf.elevation_m, s, p.tile_size, s if method == "chunked" else 1))
+        cap = 65534.0 * store.quantisation[k].z_step_m
+        if rng > cap:
+            raise InputError(
+                f"relief {rng:.1f} m within one tile of level {k} exceeds the {cap:.1f} m the store "
+                f"{store.path.name} quantises (fixed at its first build); rebuild the store from its "
+                "epochs with `terralod build ... --epoch`",
+                where,
+            )
+
+
+def stored_heightfield(store: TileStore, epoch: str | None = None) -> Heightfield:
+    """The elevation grid of ``epoch`` (default: the store's selected epoch) exactly as it was built: from
+    the samples the store keeps, else (a store built without ``--epoch``) re-read from the source file it
+    names, when that still has the digest the store recorded."""
+    t = Affine(*store.meta["transform"][:6])
+    name = epoch if epoch is not None else store.epoch
+    info = store.epoch_info(name) if (store.has_epochs and name is not None) else dict(store.meta)
+    kept = store.epoch_source(name) if store.has_epochs and name is not None else None
+    if kept is not None:
+        z, v = kept
+        return Heightfield(z, v, t, store.crs, str(info.get("source", "")), str(info.get("fill_method", "")),
+                           tuple(info.get("notes", ())))  # fmt: skip
+    src = str(info.get("source") or store.meta.get("source") or "")
+    digest = info.get("source_digest") or store.meta.get("source_digest")
+    from terralod.io.reader import SAMPLE_SOURCE, read_heightfield, sample_heightfield
+
+    if src == SAMPLE_SOURCE:
+        hf = sample_heightfield()
+    elif src and Path(src).exists():
+        hf = read_heightfield(src)
+    else:
+        raise StoreError(
+            f"keeps no source samples for epoch {name!r} and its source {src!r} is gone; "
+            "rebuild the store with `terralod build SOURCE -o STORE --epoch DATE`",
+            str(store.path),
+        )
+    if hf.digest() != digest:
+        raise StoreError(
+            f"keeps no source samples for epoch {name!r} and {src} no longer reads as the DEM it was built "
+            "from; rebuild the store with `terralod build SOURCE -o STORE --epoch DATE`",
+            str(store.path),
+        )
+    return hf
+
+
+@dataclass
+class UpdateReport:
+    """What an update did. ``tiles_dirty`` = tiles of the new epoch rebuilt (now or before a resume);
+    ``tiles_shared`` = tiles taken unchanged from the base epoch."""
+
+    path: Path
+    epoch: str
+    base_epoch: str
+    tiles_total: int
+    tiles_dirty: int
+    tiles_built: int
+    tiles_skipped: int
+    changed_samples: int
+    seconds: float
+    build_seconds: float
+    complete: bool
+
+    @property
+    def tiles_shared(self) -> int:
+        return self.tiles_total - self.tiles_dirty
+
+    @property
+    def ms_per_tile(self) -> float:
+        return 1e3 * self.build_seconds / self.tiles_built if self.tiles_built else 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        d = dict(vars(self))
+        d["path"] = str(self.path)
+        d["tiles_shared"] = self.tiles_shared
+        d["ms_per_tile"] = self.ms_per_tile
+        return d
+
+
+def validate_epoch_name(name: str, where: str) -> str:
+    name = str(name).strip()
+    if not name or len(name) > 64 or any(c in name for c in "\n\r\t/\\"):
+        raise InputError(f"expected an epoch name such as 2007-07-05, got {name!r}", where)
+    return name
+
+
+def update_store(
+    hf: Heightfield,
+    path: str | os.PathLike[str],
+    epoch: str,
+    *,
+    base: str | None = None,
+    resume: bool = False,
+    workers: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    stop_after: int | None = None,
+    kind: str = "update",
+    info: dict[str, Any] | None = None,
+    base_name: str = DEFAULT_EPOCH,
+) -> UpdateReport:
+    """Add epoch ``epoch`` (the heightfield ``hf``, on the store's grid) to the store at ``path``.
+
+    Parameters
+    ----------
+    base : the epoch whose tiles are shared where nothing changed (default: the latest).
+    resume : finish an interrupted update of the same epoch and source.
+    progress : ``progress(done, total_dirty)`` after each committed batch.
+    stop_after : rebuild at most this many tiles, then return without committing (tests).
+    kind, info : recorded with the epoch ("update", "edit" and what the edit was).
+    base_name : name given to the tiles of a store built without ``--epoch``, which become its first epoch.
+    """
+    p = Path(path)
+    t_start = time.perf_counter()
+    epoch = validate_epoch_name(epoch, str(p))
+    store = TileStore.open(p, writable=True, epoch=base)
+    try:
+        if not store.complete:
+            raise StoreError(
+                "is an incomplete build; finish it with `terralod build ... --resume` first", str(p)
+            )
+        rows = store.epoch_rows()
+        same = next((r for r in rows if r["name"] == epoch), None)
+        pending = [r for r in rows if r["state"] == "building"]
+        if same is not None and same["state"] == "complete":
+            raise InputError(f"epoch {epoch!r} exists already (epochs: {', '.join(store.epochs)})", str(p))
+        if same is not None and not resume:
+            raise StoreError(
+                f"an update to epoch {epoch!r} was interrupted; finish it with --resume or remove it with "
+                f"`terralod epochs {p} --delete {epoch}`",
+                str(p),
+            )
+        others = [r for r in pending if r["name"] != epoch]
+        if others:
+            raise StoreError(
+                f"an update to epoch {others[0]['name']!r} was interrupted; finish it with --resume or remove "
+                f"it with `terralod epochs {p} --delete {others[0]['name']}`",
+                str(p),
+            )
+        if same is not None and same["info"].get("source_digest") != hf.digest():
+            raise StoreError(
+                f"cannot resume epoch {epoch!r}: it was started from other data ({same['info'].get('source')})",
+                str(p),
+            )
+        check_same_grid(store, hf, hf.source)
+        check_quantisation(store, hf, hf.source)
+        method = str(store.meta["method"])
+        if method not in METHODS:
+            raise StoreError(f"was built with mesher {method!r}, which this terralod does not have", str(p))
+        old = stored_heightfield(store)
+        if not store.has_epochs:
+            store.adopt_tiles_as_epoch(base_name, {**epoch_record(old, "build"), "created": None})
+        base_epoch = str(store.epoch)
+        base_id = int(store.epoch_id or 0)
+        changed = changed_samples((old.elevation_m, old.valid), (hf.elevation_m, hf.valid))
+        pyramid = store.pyramid
+        dirty = dirty_tiles(pyramid, changed, method)
+        record = epoch_record(hf, kind, base=base_epoch, **(info or {}))
+        if same is None:
+            eid = store.begin_epoch(epoch, record)
+        else:
+            eid = int(same["id"])
+            store.resume_epoch(eid)
+        store.put_epoch_source(eid, hf.elevation_m, hf.valid)
+        errors = store.tile_errors()  # the base epoch's
+        done = store.rev_tile_errors(eid)
+        errors.update(done)
+        todo = [c for c in pyramid.all_codes(finest_first=True) if c in dirty and c not in done]
+        n_skipped = len(dirty) - len(todo)
+        if stop_after is not None:
+            todo = todo[: max(0, stop_after)]
+        built, t_build = _rebuild(
+            store, hf, pyramid, method, todo, errors, workers, progress, n_skipped, len(dirty)
+        )
+        complete = n_skipped + built == len(dirty)
+        if complete:
+            revs = store.epoch_tile_revs(base_id)
+            for c in dirty:
+                revs[c] = eid
+            record.update(tiles_rebuilt=len(dirty), tiles_shared=len(revs) - len(dirty),
+                          changed_samples=int(changed.sum()))  # fmt: skip
+            store.commit_epoch(eid, revs, record)
+    finally:
+        store.close()
+    seconds = time.perf_counter() - t_start
+    log.info("epoch %s: %d dirty tiles, %d rebuilt now, in %.2f s", epoch, len(dirty), built, seconds)
+    return UpdateReport(p, epoch, base_epoch, len(pyramid.all_codes()), len(dirty), built, n_skipped,
+                        int(changed.sum()), seconds, t_build, complete)  # fmt: skip
+
+
+def _rebuild(
+    store: TileStore, hf: Heightfield, pyramid: TilePyramid, method: str, todo: list[TileCode],
+    errors: dict[TileCode, tuple[float, float]], workers: int | None,
+    progress: Callable[[int, int], None] | None, n_skipped: int, total: int,
+) -> tuple[int, float]:  # fmt: skip
+    """Mesh and measure ``todo`` (finest first) level by level, committing batches; (tiles built, seconds)."""
+    mesh_fn = METHODS[method]
+    quant = store.quantisation
+    n_workers = max(1, workers or os.cpu_count() or 1)
+    built = 0
+    t0 = time.perf_counter()
+    if progress:
+        progress(n_skipped, total)
+    with ThreadPoolExecutor(max_workers=n_workers) as pool:
+        for level in reversed(pyramid.levels):
+            codes = [c for c in todo if c[0] == level]
+            if not codes:
+                continue
+
+            def one(code: TileCode, _lvl: int = level) -> EncodedTile:
+                kids = [errors[c] for c in pyramid.children(code)]
+                return build_tile(hf, pyramid, code, quant[_lvl], mesh_fn, kids)
+
+            batch: list[EncodedTile] = []
+            for enc in pool.map(one, codes):
+                batch.append(enc)
+                errors[enc.code] = (enc.error_m, enc.vertical_error_m)
+                if len(batch) >= _BATCH_TILES:
+                    store.write_tiles(batch)
+                    built += len(batch)
+                    batch = []
+                    if progress:
+                        progress(n_skipped + built, total)
+            if batch:
+                store.write_tiles(batch)
+                built += len(batch)
+                if progress:
+                    progress(n_skipped + built, total)
+    return built, time.perf_counter() - t0
