@@ -46,11 +46,7 @@ MeshFn = Callable[
     [np.ndarray, np.ndarray, TilePyramid, TileCode], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 ]
 #: A mesher with a true ``needs_spacing`` attribute is also given ``spacing_m=(dx, dy)`` (metres).
-METHODS: dict[str, MeshFn] = {
-    "chunked": chunked.mesh_tile,
-    "cohesion": cohesion.mesh_tile,
-    "adaptive": adaptive.mesh_tile,
-}
+METHODS: dict[str, MeshFn] = {"chunked": chunked.mesh_tile, "cohesion": cohesion.mesh_tile}
 # The vertex cohesion map (paper 000) is the default: at the same measured screen error it draws 0.40-0.49x
 # Chunked LOD's triangles on mountainous DEMs (benchmarks/results/cohesion_vs_chunked.md).
 DEFAULT_METHOD = "cohesion"
@@ -152,12 +148,7 @@ def _store_meta(
         "tile_size": pyramid.tile_size,
         "max_level": pyramid.max_level,
         "method": method,
-        # a mesher with a ``build_meta(pyramid)`` states its own options (e.g. the adaptive error ladder)
-        "build_options": {
-            "method": method,
-            "tile_size": pyramid.tile_size,
-            **getattr(METHODS[method], "build_meta", lambda _p: {})(pyramid),
-        },
+        "build_options": {"method": method, "tile_size": pyramid.tile_size},
         "fill_method": hf.fill_method,
         "notes": list(hf.notes),
         "nodata_fraction": hf.nodata_fraction,
