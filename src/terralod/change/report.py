@@ -229,7 +229,7 @@ def figure_map(result: ChangeResult, line=None) -> bytes:
 
     handles = [Patch(facecolor="0.75", edgecolor="0.5", label=f"within ±{lod:.1f} m: no measurable change")]
     ext_d = result.summary["extremes"]
-    for key, mark, col, label in (("max_rise", "^", GAIN_COLOUR, "largest rise"),
+    for key, mark, _col, label in (("max_rise", "^", GAIN_COLOUR, "largest rise"),
                                   ("max_drop", "v", LOSS_COLOUR, "largest drop")):  # fmt: skip
         e = ext_d.get(key)
         if e and abs(e["value_m"]) > 0:
