@@ -182,6 +182,8 @@ class GridTerrain(_TerrainBase):
     Parameters
     ----------
     store : an open :class:`terralod.store.TileStore`
+    epoch : the epoch to read (a name of ``epochs``; default: the store's, i.e. the latest). Another epoch
+        than the store's opens the file again at that epoch (closed with the terrain).
     source : what the engine selects from: the store itself (default) or a
         :class:`terralod.runtime.fractal_source.FractalSource` over it (paper 001)
     own : close the store with the terrain
@@ -189,8 +191,16 @@ class GridTerrain(_TerrainBase):
 
     kind = "grid"
 
-    def __init__(self, store: Any, source: Any = None, *, own: bool = False) -> None:
+    def __init__(
+        self, store: Any, source: Any = None, *, own: bool = False, epoch: str | None = None
+    ) -> None:
         super().__init__()
+        if epoch is not None and getattr(store, "epoch", None) != epoch:
+            from terralod.store import open_store
+
+            if own:
+                store.close()
+            store, source, own = open_store(store.path, epoch=epoch), None, True
         self.store = store
         self.source = store if source is None else source
         self.path = Path(store.path) if getattr(store, "path", None) is not None else None
@@ -224,8 +234,26 @@ class GridTerrain(_TerrainBase):
 
     @property
     def epochs(self) -> list[str]:
-        ep = self.store.meta.get("epochs")
-        return [str(e) for e in ep] if isinstance(ep, list) else []
+        """Names of the store's epochs, in the order they were added ([] for a store without epochs)."""
+        return list(getattr(self.store, "epochs", []))
+
+    @property
+    def epoch(self) -> str | None:
+        """The epoch whose tiles this terrain reads (None for a store without epochs)."""
+        return getattr(self.store, "epoch", None)
+
+    def with_epoch(self, epoch: str) -> GridTerrain:
+        """The same store at another epoch (a new terrain that owns its own connection)."""
+        from terralod.store import open_store
+
+        return GridTerrain(open_store(self.store.path, epoch=epoch), own=True)
+
+    def heightfield(self, epoch: str | None = None) -> Any:
+        """The source elevation grid of ``epoch`` (default: this terrain's) exactly as built
+        (:func:`terralod.pyramid.update.stored_heightfield`)."""
+        from terralod.pyramid.update import stored_heightfield
+
+        return stored_heightfield(self.store, epoch if epoch is not None else self.epoch)
 
     def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = ()) -> Any:
         from terralod.runtime import Engine
@@ -386,8 +414,9 @@ def _is_sqlite(p: Path) -> bool:
         return False
 
 
-def open_terrain(path: str | os.PathLike[str]) -> GridTerrain | TinTerrain:
-    """Open any ``.terra`` store as a :class:`Terrain` (read-only): a grid tile store or a TIN store.
+def open_terrain(path: str | os.PathLike[str], epoch: str | None = None) -> GridTerrain | TinTerrain:
+    """Open any ``.terra`` store as a :class:`Terrain` (read-only): a grid tile store or a TIN store;
+    ``epoch`` selects one epoch of a store of epochs (default: the latest).
 
     Raises
     ------
@@ -408,7 +437,7 @@ def open_terrain(path: str | os.PathLike[str]) -> GridTerrain | TinTerrain:
 
         model, meta = load_model_from_store(p)
         return TinTerrain(model, meta, p)
-    return GridTerrain(open_store(p), own=True)
+    return GridTerrain(open_store(p, epoch=epoch), own=True)
 
 
 def overview_distance_m(terrain: Terrain) -> float:

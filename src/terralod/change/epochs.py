@@ -1,0 +1,256 @@
+"""Epochs of a ``.terra`` store for the change analysis, and edits that write a new epoch (issue 15).
+
+- :func:`epoch_heightfield` — the elevation grid of one epoch, exactly as it was built (the samples the
+  store keeps with each epoch; see :mod:`terralod.store_epochs`).
+- :func:`epoch_names` — the epochs of a store, oldest first (in the order they were added).
+- :func:`difference` — ``after - before`` of two epochs on the store's grid (metres), for overlays.
+- Edits, each a new epoch through :func:`terralod.pyramid.update.update_store` (only the dirty tiles are
+  rebuilt): :func:`excavate` (a polygon lowered by ``depth_m``; a negative depth raises it: a dam, a fill)
+  and :func:`apply_patch` (a raster pasted over the terrain: a landslide, a surveyed pit), both also as
+  :func:`edit_store`.
+
+Polygons: a GeoJSON file (Feature, FeatureCollection or a bare geometry; Polygon / MultiPolygon) in the CRS
+its ``crs`` member names, else lon/lat (RFC 7946); a store without a CRS takes the coordinates as its own
+metres. A cell is inside when its centre is (rasterio's ``geometry_mask``), so the volume of an edit is
+``depth_m`` x the area of the cells inside: the polygon's area within about half a cell along its outline.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from terralod.errors import InputError, InputNotFoundError
+from terralod.heightfield import Heightfield
+
+__all__ = [
+    "EditResult",
+    "apply_patch",
+    "difference",
+    "edit_store",
+    "epoch_heightfield",
+    "epoch_names",
+    "excavate",
+    "polygon_mask",
+    "read_polygons",
+]
+
+
+def epoch_heightfield(store_path: str | os.PathLike[str], date: str | None = None) -> Heightfield:
+    """The elevation grid of epoch ``date`` (default: the latest) of the store at ``store_path``, exactly as
+    it was built (float32 elevation, validity mask, the store's transform and CRS).
+
+    Raises StoreError (one line naming the store) when the epoch does not exist.
+    """
+    from terralod.pyramid.update import stored_heightfield
+    from terralod.store import open_store
+
+    with open_store(store_path, epoch=date) as s:
+        return stored_heightfield(s)
+
+
+def epoch_names(store_path: str | os.PathLike[str]) -> list[str]:
+    """Names of the complete epochs of a store, in the order they were added ([] for a store without)."""
+    from terralod.store import open_store
+
+    with open_store(store_path) as s:
+        return s.epochs
+
+
+def difference(store_path: str | os.PathLike[str], before: str, after: str) -> np.ndarray:
+    """(H, W) float32 ``after - before`` in metres on the store's grid (NaN where either is invalid)."""
+    a = epoch_heightfield(store_path, before)
+    b = epoch_heightfield(store_path, after)
+    d = b.elevation_m.astype(np.float32) - a.elevation_m.astype(np.float32)
+    d[~(a.valid & b.valid)] = np.nan
+    return d
+
+
+# -- polygons ------------------------------------------------------------------------------------------
+def read_polygons(path: str | os.PathLike[str], crs: str | None) -> list[dict[str, Any]]:
+    """The Polygon / MultiPolygon geometries of a GeoJSON file, in ``crs`` (the store's), each as a GeoJSON
+    geometry dict with a ``name`` (its feature's ``name`` property, else ``polygon N``)."""
+    p = Path(path)
+    if not p.exists():
+        raise InputNotFoundError("no such file", str(p))
+    try:
+        doc = json.loads(p.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"is not GeoJSON ({exc})", str(p)) from None
+    if not isinstance(doc, dict):
+        raise InputError("is not GeoJSON (expected an object)", str(p))
+    feats = doc.get("features") if doc.get("type") == "FeatureCollection" else [doc]
+    out = []
+    for i, f in enumerate(feats or []):
+        geom = f.get("geometry") if isinstance(f, dict) and f.get("type") == "Feature" else f
+        if not isinstance(geom, dict) or geom.get("type") not in ("Polygon", "MultiPolygon"):
+            continue
+        props = f.get("properties") or {} if isinstance(f, dict) else {}
+        out.append({"type": geom["type"], "coordinates": geom.get("coordinates"),
+                    "name": str(props.get("name", f"polygon {i + 1}"))})  # fmt: skip
+    if not out:
+        raise InputError("holds no Polygon or MultiPolygon", str(p))
+    src_crs = _geojson_crs(doc)
+    if crs and src_crs != "local":
+        from rasterio.warp import transform_geom
+
+        try:
+            out = [dict(transform_geom(src_crs, crs, {k: g[k] for k in ("type", "coordinates")}),
+                        name=g["name"]) for g in out]  # fmt: skip
+        except Exception as exc:  # noqa: BLE001 - any projection failure is the file's problem
+            raise InputError(f"cannot transform its polygons to the terrain's CRS ({exc})", str(p)) from None
+    return out
+
+
+def _geojson_crs(doc: dict[str, Any]) -> str:
+    c = doc.get("crs")
+    if isinstance(c, dict):
+        name = (c.get("properties") or {}).get("name")
+        if name:
+            return "local" if str(name).lower() == "local" else str(name)
+    if isinstance(c, str):
+        return c
+    return "EPSG:4326"
+
+
+def polygon_mask(polygons: list[dict[str, Any]], hf: Heightfield) -> np.ndarray:
+    """(H, W) bool: cells of ``hf`` whose centre lies inside any of ``polygons`` (in hf's CRS)."""
+    from rasterio.features import geometry_mask
+
+    geoms = [{k: g[k] for k in ("type", "coordinates")} for g in polygons]
+    return ~geometry_mask(geoms, out_shape=hf.shape, transform=hf.transform, all_touched=False)
+
+
+def polygon_area_m2(polygons: list[dict[str, Any]]) -> float:
+    """Planar area of the polygons (holes subtracted), square metres of their CRS."""
+
+    def ring(r: Any) -> float:
+        a = np.asarray(r, np.float64)[:, :2]
+        x, y = a[:, 0], a[:, 1]
+        return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+    total = 0.0
+    for g in polygons:
+        polys = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]
+        for poly in polys:
+            total += ring(poly[0]) - sum(ring(h) for h in poly[1:])
+    return total
+
+
+# -- edits ---------------------------------------------------------------------------------------------
+@dataclass
+class EditResult:
+    """What an edit changed: the heightfield of the new epoch, the cells changed, the volume (m³, positive
+    = material added), and a description kept with the epoch."""
+
+    heightfield: Heightfield
+    changed: np.ndarray
+    volume_m3: float
+    description: dict[str, Any]
+
+
+def _replace(hf: Heightfield, z: np.ndarray, valid: np.ndarray, source: str) -> Heightfield:
+    return Heightfield(z.astype(np.float32), valid, hf.transform, hf.crs, source, hf.fill_method, hf.notes)
+
+
+def excavate(hf: Heightfield, polygons: list[dict[str, Any]], depth_m: float, where: str) -> EditResult:
+    """Lower the cells inside ``polygons`` by ``depth_m`` (negative: raise them — a dam, a fill)."""
+    if not np.isfinite(depth_m) or depth_m == 0:
+        raise InputError(f"expected a non-zero depth in metres, got {depth_m}", where)
+    mask = polygon_mask(polygons, hf)
+    if not mask.any():
+        raise InputError("polygon lies outside the terrain (no cell centre inside it)", where)
+    z = hf.elevation_m.astype(np.float32).copy()
+    z[mask] = z[mask] - np.float32(depth_m)
+    dz = z.astype(np.float64) - hf.elevation_m.astype(np.float64)
+    dx, dy = hf.spacing_m
+    vol = float(dz[mask].sum()) * dx * dy
+    desc = {"edit": "excavation" if depth_m > 0 else "fill", "depth_m": float(depth_m),
+            "polygons": [g["name"] for g in polygons], "cells": int(mask.sum()), "volume_m3": vol,
+            "polygon_area_m2": polygon_area_m2(polygons)}  # fmt: skip
+    return EditResult(_replace(hf, z, hf.valid, f"{hf.source} + edit {Path(where).name}"), mask, vol, desc)
+
+
+def apply_patch(hf: Heightfield, patch: Heightfield, where: str) -> EditResult:
+    """Paste the valid samples of ``patch`` over ``hf`` (resampled bilinearly onto hf's grid when the
+    grids differ; same CRS or reprojected by rasterio)."""
+    from rasterio.warp import Resampling, reproject
+
+    src = np.where(patch.valid, patch.elevation_m, np.nan).astype(np.float32)
+    dst = np.full(hf.shape, np.nan, np.float32)
+    if hf.crs is None or patch.crs is None:
+        if (hf.crs is None) != (patch.crs is None):
+            raise InputError("has a CRS and the terrain has none (or the other way round)", where)
+        crs_a = crs_b = "EPSG:3857"  # both local metric frames: any metric CRS maps them one to one
+    else:
+        crs_a, crs_b = patch.crs, hf.crs
+    reproject(src, dst, src_transform=patch.transform, src_crs=crs_a, dst_transform=hf.transform, dst_crs=crs_b,
+              src_nodata=np.nan, dst_nodata=np.nan, resampling=Resampling.bilinear)  # fmt: skip
+    mask = np.isfinite(dst)
+    if not mask.any():
+        raise InputError("patch lies outside the terrain", where)
+    z = hf.elevation_m.astype(np.float32).copy()
+    z[mask] = dst[mask]
+    mask &= z != hf.elevation_m
+    dz = z.astype(np.float64) - hf.elevation_m.astype(np.float64)
+    dx, dy = hf.spacing_m
+    vol = float(dz.sum()) * dx * dy
+    valid = hf.valid | np.isfinite(dst)
+    desc = {"edit": "patch", "patch": str(patch.source), "cells": int(mask.sum()), "volume_m3": vol}
+    return EditResult(_replace(hf, z, valid, f"{hf.source} + patch {Path(where).name}"), mask, vol, desc)
+
+
+def default_edit_name(existing: list[str]) -> str:
+    """``edit-N``: the first N not taken."""
+    n = 1
+    while f"edit-{n}" in existing:
+        n += 1
+    return f"edit-{n}"
+
+
+def edit_store(
+    store_path: str | os.PathLike[str],
+    *,
+    polygon: str | os.PathLike[str] | None = None,
+    depth_m: float | None = None,
+    patch: str | os.PathLike[str] | None = None,
+    epoch: str | None = None,
+    base: str | None = None,
+    resume: bool = False,
+    workers: int | None = None,
+    progress: Any = None,
+    stop_after: int | None = None,
+) -> tuple[EditResult, Any]:
+    """Edit epoch ``base`` (default: the latest) of a store and write the result as new epoch ``epoch``
+    (default ``edit-N``), rebuilding only the tiles the edit touches. Returns (the edit, the UpdateReport).
+    """
+    from terralod.io.reader import read_heightfield
+    from terralod.pyramid.update import update_store
+    from terralod.store import open_store
+
+    if (polygon is None) == (patch is None):
+        raise InputError("give --polygon with --depth-m, or --patch", str(store_path))
+    with open_store(store_path, epoch=base) as s:
+        from terralod.pyramid.update import stored_heightfield
+
+        hf = stored_heightfield(s)
+        crs = s.crs
+        existing = s.epochs
+        base_name = s.epoch
+    if polygon is not None:
+        if depth_m is None:
+            raise InputError("--polygon needs --depth-m (metres down; negative for a fill)", str(polygon))
+        res = excavate(hf, read_polygons(polygon, crs), float(depth_m), str(polygon))
+    else:
+        res = apply_patch(hf, read_heightfield(patch), str(patch))
+    name = epoch or default_edit_name(existing)
+    info = {"edit": res.description, "edited": datetime.date.today().isoformat()}
+    rep = update_store(res.heightfield, store_path, name, base=base_name, resume=resume, workers=workers,
+                       progress=progress, stop_after=stop_after, kind="edit", info=info)  # fmt: skip
+    return res, rep
