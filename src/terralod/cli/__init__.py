@@ -26,6 +26,7 @@ COMMANDS = [
     ("view", "view"),
     ("demo", "demo"),
     ("bench", "bench"),
+    ("change", "change"),
 ]
 
 

@@ -1,0 +1,636 @@
+"""Out-of-core and Dask-distributed builds: tiles as work units that read their own windows.
+
+:func:`build_store_windowed` builds the same store as :func:`terralod.pyramid.builder.build_store`
+from a :class:`terralod.io.windowed.WindowSource` (a COG, a GeoTIFF, a VRT mosaic, or an in-memory
+Heightfield behind the same interface) without ever holding the whole DEM:
+
+1. **Plan, streamed** (:func:`scan_source`): one pass over the source in full-width strips of one tile
+   row of some level (at most ``SCAN_STRIP_SAMPLES`` samples) computes the store's source digest
+   (sha256 of the elevations, then of the packed mask: :meth:`Heightfield.digest`'s bytes, fed strip by
+   strip; the mask bits wait in a temporary file) and every level's quantisation lattice: each strip
+   gives the per-tile (min, max) of its finest tiles on every level's vertex lattice, merged up the
+   quadtree, so the vertical steps are :func:`~terralod.pyramid.builder.plan_quantisation`'s exactly.
+2. **Work units**: a level's tiles are grouped into g x g blocks (g * span about ``UNIT_SPAN_SAMPLES``);
+   a unit reads its window (the tiles' samples, plus the halo a mesher declares, clipped to the data) and
+   builds each tile with the builder's own :func:`~terralod.pyramid.builder.build_tile` on a window
+   Heightfield, through a pyramid whose origins are shifted to the window (:class:`WindowPyramid`). The
+   meshers only ever see the samples of ``[r0, min(r0 + span, H - 1)]`` and decide clipping from the
+   window's shape, which ends where the data ends, so every tile is the in-memory build's byte for byte
+   (tested on GeoTIFFs, both methods).
+3. **Coarse tiles**: a tile whose window exceeds ``max_window_samples`` is meshed from a decimated copy
+   (every f-th sample, f a power of two <= its stride, plus the data's last row and column, read in
+   strips) through a pyramid whose strides are divided by f, and its error is then measured against
+   *every* full-resolution sample it covers, streamed in strips of rows (``MEASURE_STRIP_SAMPLES``) with a
+   margin of one quad of triangles above and below each strip (a sample's distance is taken to the
+   triangles within that margin: an upper bound of the exact distance, equal to it unless the nearest
+   surface point is over a quad away). Such tiles are not the in-memory build's (deviation, below);
+   ``max_window_samples=None`` never decimates and gives the in-memory tiles at every level, with peak
+   memory bounded by the root's window: about 13 bytes a sample of ``(span_0 + 1)^2`` for cohesion,
+   whose coarse levels refine on the full-resolution source.
+4. **One writer**: results stream back (threads or Dask futures, as they complete) to the caller's
+   process, which commits them in transactions of at most ``_BATCH_TILES`` tiles or
+   ``_COMMIT_SECONDS`` (the builder's policy). Levels run finest first with a barrier between levels
+   (a parent needs its children's errors for the monotone error); ``resume=True`` skips committed tiles.
+
+Dask (:func:`dask_client`): ``"local"`` starts a LocalCluster of worker processes (``threads`` each), an
+address ``tcp://HOST:PORT`` connects to a running scheduler (refused in one line, before anything is
+written, when it cannot be reached). The source is scattered to every worker once (a
+:class:`~terralod.io.windowed.RasterSource` pickles as its paths: each worker opens the file itself; an
+in-memory source ships its arrays), each unit is a task with ``retries``, and a worker that dies has its
+units rebuilt elsewhere by the scheduler; a client that dies leaves a store that ``resume=True`` finishes.
+Meshers are looked up by name on the workers (:data:`~terralod.pyramid.builder.METHODS` as imported there).
+
+Beyond one SQLite writer. SQLite takes one writer; the writer's ceiling (tiles/s, measured by
+``benchmarks/scale.py``) bounds a build once the workers outpace it. Two ways further: (a) a shared file
+system (NFS, Lustre, an object-store mount) that every worker reads the source from and writes
+*per-worker shard stores* to (``TileStore.create`` on ``big.terra.shard-<worker>``, same meta, tiles of
+disjoint quadtree blocks), merged at the end by one process with ``INSERT INTO tiles SELECT * FROM
+shard.tiles`` per attached shard, a bulk copy of a few hundred MB/s, not a per-tile commit; the coarse
+levels, which need the children's errors, then run after the merge (they are a 1/3 of a percent of the
+tiles); (b) per-worker shards kept as they are and a store that opens a set of shard files by quadtree
+prefix (a directory of stores, like a COG's overviews split across files), which needs no merge at all.
+Either keeps the format: each shard is an ordinary store.
+
+Deviation: coarse tiles (window over ``max_window_samples``) are meshed from a decimated copy, so they
+are not the in-memory build's tiles; their errors are measured on every full-resolution sample, so the
+selection's guarantee holds. With cohesion a relocated vertex of such a tile at the data's last row or
+column, where that row falls between two decimated rows, sits on the decimated lattice row after it
+(at most f - 1 samples past the data's edge); its height is the last row's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import tempfile
+import time
+from collections.abc import Callable, Iterable
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from affine import Affine
+
+from terralod.error import measure_error_window
+from terralod.errors import BuildMismatchError, InputError, StoreError
+from terralod.heightfield import Heightfield
+from terralod.io.windowed import ArraySource, WindowSource
+from terralod.kernels import jit
+from terralod.pyramid import builder
+from terralod.store import EncodedTile, LevelQuantisation, TileStore, encode_triangles, encode_vertices
+from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size
+
+log = logging.getLogger(__name__)
+
+__all__ = ["StreamPlan", "WindowPyramid", "build_store_windowed", "build_unit", "dask_client", "scan_source"]
+
+#: Samples of one full-width strip of the planning scan (float32 + bool: 5 bytes a sample).
+SCAN_STRIP_SAMPLES = 1 << 25
+#: A work unit groups g x g tiles of a level so that g * span is about this many samples.
+UNIT_SPAN_SAMPLES = 512
+#: Largest tile window (samples) read whole; larger (coarse) tiles are meshed from a decimated copy.
+MAX_WINDOW_SAMPLES = 4097 * 4097
+#: Samples per strip when a coarse tile streams its full-resolution window.
+MEASURE_STRIP_SAMPLES = 1 << 22
+
+
+# -- the streamed plan ---------------------------------------------------------------------------------
+@jit
+def _kmin(i, n, levels):
+    """Coarsest level whose vertex lattice holds sample row (or column) i of n: level k's lattice is the
+    multiples of its stride 2^(L - k) and the data's last sample n - 1."""
+    if i == 0 or i == n - 1:
+        return 0
+    tz = 0
+    while (i & 1) == 0 and tz < levels:
+        i >>= 1
+        tz += 1
+    return levels - tz
+
+
+@jit
+def _finest_tile_ranges(z, row0, h, w, levels, span, lo, hi):
+    """Per finest tile (rows of tiles of the strip starting at data row ``row0``): the min and max of its
+    window's samples on each level's lattice. lo, hi: (ty, tx, L + 1), filled here."""
+    nty, ntx = lo.shape[0], lo.shape[1]
+    sh = z.shape[0]
+    for ty in range(nty):
+        r0 = ty * span
+        r1 = min(r0 + span, h - 1 - row0, sh - 1)
+        for tx in range(ntx):
+            c0 = tx * span
+            c1 = min(c0 + span, w - 1)
+            for k in range(levels + 1):
+                lo[ty, tx, k] = np.inf
+                hi[ty, tx, k] = -np.inf
+            for r in range(r0, r1 + 1):
+                kr = _kmin(row0 + r, h, levels)
+                for c in range(c0, c1 + 1):
+                    k = max(kr, _kmin(c, w, levels))
+                    v = z[r, c]
+                    if v < lo[ty, tx, k]:
+                        lo[ty, tx, k] = v
+                    if v > hi[ty, tx, k]:
+                        hi[ty, tx, k] = v
+            for k in range(1, levels + 1):  # a coarser lattice is part of every finer one
+                lo[ty, tx, k] = min(lo[ty, tx, k], lo[ty, tx, k - 1])
+                hi[ty, tx, k] = max(hi[ty, tx, k], hi[ty, tx, k - 1])
+
+
+def _merge_up(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of the 2 x 2 children of each parent tile (missing children ignored)."""
+    ny, nx, k = lo.shape
+    py, px = -(-ny // 2), -(-nx // 2)
+    plo = np.full((2 * py, 2 * px, k), np.inf)
+    phi = np.full((2 * py, 2 * px, k), -np.inf)
+    plo[:ny, :nx], phi[:ny, :nx] = lo, hi
+    plo = plo.reshape(py, 2, px, 2, k).min(axis=(1, 3))
+    phi = phi.reshape(py, 2, px, 2, k).max(axis=(1, 3))
+    return plo, phi
+
+
+@dataclass(frozen=True)
+class StreamPlan:
+    """What one streamed pass over a source finds: the store's digest and quantisation, nodata count.
+
+    Attributes
+    ----------
+    digest : :meth:`Heightfield.digest` of the source as read (filled elevations, mask, frame).
+    quant_grid, quant_all : per level, the builder's lattice for grid-vertex meshers (Chunked LOD) and
+        for meshers whose vertices may sit on any sample (cohesion).
+    n_invalid : nodata samples.
+    """
+
+    digest: str
+    quant_grid: dict[int, LevelQuantisation]
+    quant_all: dict[int, LevelQuantisation]
+    n_invalid: int
+    n_samples: int
+
+    def quant(self, grid_vertices: bool) -> dict[int, LevelQuantisation]:
+        return self.quant_grid if grid_vertices else self.quant_all
+
+
+def scan_source(
+    src: WindowSource, pyramid: TilePyramid, *, strip_samples: int = SCAN_STRIP_SAMPLES
+) -> StreamPlan:
+    """Stream ``src`` once in full-width strips: digest, per-level lattices, nodata count (see module doc)."""
+    h, w = src.height, src.width
+    levels = pyramid.max_level
+    span_f = pyramid.span(levels)
+    # strip = one tile row of level kb: the coarsest level whose strip fits (the finest level always)
+    kb = levels
+    while kb > 0 and (pyramid.span(kb - 1) + 1) * w <= strip_samples:
+        kb -= 1
+    strip = pyramid.span(kb)
+    per = strip // span_f  # finest tile rows per strip
+    ntx = pyramid.grid_count(levels)[0]
+    rng_grid = np.zeros(levels + 1)
+    rng_all = np.zeros(levels + 1)
+    coarse_lo: list[np.ndarray] = []
+    coarse_hi: list[np.ndarray] = []
+    hz = hashlib.sha256()
+    n_invalid = 0
+    carry = np.zeros(0, bool)
+    zmin, zmax = math.inf, -math.inf
+    with tempfile.TemporaryFile() as bits:
+        for row0 in range(0, h - 1, strip):
+            r1 = min(row0 + strip, h - 1)
+            z, ok = src.read(row0, 0, r1 + 1, w)
+            z = np.ascontiguousarray(z, dtype=np.float32)
+            own = z.shape[0] if r1 == h - 1 else strip  # rows this strip owns (the last row is the next's)
+            hz.update(z[:own].tobytes())
+            flat = np.concatenate([carry, ok[:own].ravel()])
+            cut = flat.size - flat.size % 8
+            bits.write(np.packbits(flat[:cut]).tobytes())
+            carry = flat[cut:]
+            n_invalid += int(own * w - np.count_nonzero(ok[:own]))
+            if np.any(ok[:own]):
+                zv = z[:own][ok[:own]]
+                zmin, zmax = min(zmin, float(zv.min())), max(zmax, float(zv.max()))
+            nty = min(per, -(-(h - 1 - row0) // span_f))
+            lo = np.empty((nty, ntx, levels + 1))
+            hi = np.empty((nty, ntx, levels + 1))
+            _finest_tile_ranges(z, row0, h, w, levels, span_f, lo, hi)
+            for k in range(levels, kb - 1, -1):
+                rng_grid[k] = max(rng_grid[k], float((hi[..., k] - lo[..., k]).max()))
+                rng_all[k] = max(rng_all[k], float((hi[..., levels] - lo[..., levels]).max()))
+                if k > kb:
+                    lo, hi = _merge_up(lo, hi)
+            coarse_lo.append(lo)
+            coarse_hi.append(hi)
+        if carry.size:
+            bits.write(np.packbits(carry).tobytes())
+        hz.update(_file_bytes(bits))
+    if n_invalid == h * w:
+        raise InputError("band has no valid samples (all nodata)", src.source)
+    if max(abs(zmin), abs(zmax)) > 1e5:
+        raise InputError(f"elevations reach {zmin:.6g}..{zmax:.6g} m, beyond any terrain; check the vertical "
+                         "scale or nodata value", src.source)  # fmt: skip
+    lo, hi = np.concatenate(coarse_lo, axis=0), np.concatenate(coarse_hi, axis=0)
+    for k in range(kb - 1, -1, -1):
+        lo, hi = _merge_up(lo, hi)
+        rng_grid[k] = float((hi[..., k] - lo[..., k]).max())
+        rng_all[k] = float((hi[..., levels] - lo[..., levels]).max())
+    hz.update(repr(tuple(src.transform)[:6]).encode())
+    hz.update((src.crs or "").encode())
+
+    def lattices(rng: np.ndarray) -> dict[int, LevelQuantisation]:
+        return {
+            k: LevelQuantisation(pyramid.xy_frac_bits(k), max(float(rng[k]) / 65534.0, 1e-6))
+            for k in pyramid.levels
+        }
+
+    return StreamPlan(hz.hexdigest(), lattices(rng_grid), lattices(rng_all), n_invalid, h * w)
+
+
+def _file_bytes(f) -> bytes:
+    f.seek(0)
+    return f.read()
+
+
+class _FrameMeta:
+    """The frame attributes :func:`terralod.pyramid.builder._store_meta` reads, for a streamed source."""
+
+    def __init__(self, src: WindowSource, plan: StreamPlan) -> None:
+        from terralod.io.windowed import FILL_BLOCK, FILL_HALO
+
+        self.source, self.crs, self.transform = src.source, src.crs, src.transform
+        self.spacing_m, self.width, self.height = src.spacing_m, src.width, src.height
+        self.notes = tuple(src.notes)
+        self.nodata_fraction = plan.n_invalid / plan.n_samples
+        self.fill_method = src.fill_method
+        if plan.n_invalid and not isinstance(src, ArraySource):
+            self.fill_method = (
+                f"{plan.n_invalid} nodata cells ({100.0 * plan.n_invalid / plan.n_samples:.2f} %) filled per "
+                f"{FILL_BLOCK}-sample block (halo {FILL_HALO}) with the nearest valid sample, then relaxed"
+            )
+        self._digest = plan.digest
+        # a mesher's ``build_meta(z, valid, pyramid)`` gets no arrays here: the DEM is never held whole
+        self.elevation_m = self.valid = None
+
+    def digest(self) -> str:
+        return self._digest
+
+
+# -- work units ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class WindowPyramid(TilePyramid):
+    """The terrain's pyramid seen from a window: origins shifted by (row_offset, col_offset) and, for a
+    decimated window, divided by ``decimation`` with the strides (the tile codes stay the terrain's)."""
+
+    row_offset: int = 0
+    col_offset: int = 0
+    decimation: int = 1
+
+    def stride(self, level: int) -> int:
+        return (1 << (self.max_level - level)) // self.decimation
+
+    def origin_rc(self, code: TileCode) -> tuple[int, int]:
+        level, x, y = code
+        s = self.cells * (1 << (self.max_level - level))
+        return (y * s - self.row_offset) // self.decimation, (x * s - self.col_offset) // self.decimation
+
+
+def _halo(mesh_fn: Callable, stride: int) -> int:
+    """Samples a mesher reads beyond its tile window: a ``window_halo(stride)`` it declares; cohesion with
+    LoG attraction smooths over 2 strides; 0 otherwise."""
+    if hasattr(mesh_fn, "window_halo"):
+        return int(mesh_fn.window_halo(stride))
+    opt = getattr(mesh_fn, "options", None)
+    if opt is not None and getattr(opt, "attraction", "") == "log":
+        return int(math.ceil(2.0 * stride)) + 1
+    return 0
+
+
+def _units(
+    pyramid: TilePyramid, level: int, codes: Iterable[TileCode], unit_span: int
+) -> list[list[TileCode]]:
+    """Tiles of a level grouped into g x g blocks (g a power of two, g * span about ``unit_span``)."""
+    span = pyramid.span(level)
+    g = 1
+    while 2 * g * span <= unit_span:
+        g *= 2
+    groups: dict[tuple[int, int], list[TileCode]] = {}
+    for c in codes:
+        groups.setdefault((c[2] // g, c[1] // g), []).append(c)
+    return [groups[k] for k in sorted(groups)]
+
+
+def build_unit(
+    src: WindowSource,
+    tile_size: int,
+    method: str,
+    codes: list[TileCode],
+    quant: LevelQuantisation,
+    child_errors: dict[TileCode, list[tuple[float, float]]],
+    max_window_samples: int | None = MAX_WINDOW_SAMPLES,
+) -> list[EncodedTile]:
+    """Build the tiles ``codes`` (one level, one block) from their window of ``src``: the work unit of
+    threads and Dask workers alike (module-level, picklable arguments)."""
+    pyramid = TilePyramid(src.width, src.height, tile_size)
+    mesh_fn = builder.METHODS[method]
+    level = codes[0][0]
+    span = pyramid.span(level)
+    h, w = src.height, src.width
+    if max_window_samples is not None and (span + 1) ** 2 > max_window_samples and pyramid.stride(level) > 1:
+        return [
+            _build_decimated(src, pyramid, c, quant, mesh_fn, child_errors[c], max_window_samples)
+            for c in codes
+        ]
+    pad = _halo(mesh_fn, pyramid.stride(level))
+    rs = [pyramid.origin_rc(c) for c in codes]
+    ra = max(min(r for r, _ in rs) - pad, 0)
+    ca = max(min(c for _, c in rs) - pad, 0)
+    rb = min(max(r for r, _ in rs) + span + pad, h - 1)
+    cb = min(max(c for _, c in rs) + span + pad, w - 1)
+    hf = src.window_heightfield(ra, ca, rb + 1, cb + 1)
+    wp = WindowPyramid(w, h, tile_size, ra, ca)
+    return [builder.build_tile(hf, wp, c, quant, mesh_fn, child_errors[c]) for c in codes]
+
+
+def _decimated_window(src: WindowSource, r0: int, c0: int, r1: int, c1: int, f: int, strip_samples: int):
+    """Rows r0, r0 + f, ... <= r1 and columns likewise of [r0, r1] x [c0, c1] (inclusive), plus the last
+    row and column when they fall between, marked invalid (the mesher reads them as the edge); read in
+    strips of rows."""
+    rows = np.arange(r0, r1 + 1, f)
+    cols = np.arange(c0, c1 + 1, f)
+    rows_ok = np.ones(len(rows), bool)
+    cols_ok = np.ones(len(cols), bool)
+    if rows[-1] != r1:
+        rows, rows_ok = np.append(rows, r1), np.append(rows_ok, False)
+    if cols[-1] != c1:
+        cols, cols_ok = np.append(cols, c1), np.append(cols_ok, False)
+    z = np.empty((len(rows), len(cols)), np.float32)
+    ok = np.empty((len(rows), len(cols)), bool)
+    step = max(1, strip_samples // ((c1 - c0 + 1) * f)) * f  # rows per strip, a multiple of f
+    for a in range(r0, r1 + 1, step):
+        b = min(a + step, r1 + 1)
+        zs, vs = src.read(a, c0, b, c1 + 1)
+        sel = (rows >= a) & (rows < b)
+        z[sel] = zs[rows[sel] - a][:, cols - c0]
+        ok[sel] = vs[rows[sel] - a][:, cols - c0]
+    ok &= rows_ok[:, None] & cols_ok[None, :]
+    return z, ok
+
+
+def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_window_samples):
+    """A coarse tile meshed from a decimated copy of its window, measured on every full-resolution sample
+    (streamed in strips); quantised and encoded as :func:`~terralod.pyramid.builder.build_tile` does."""
+    level = code[0]
+    s = pyramid.stride(level)
+    span = pyramid.span(level)
+    f = 1
+    while f < s and (span // f + 1) ** 2 > max_window_samples:
+        f *= 2
+    r0, c0 = pyramid.origin_rc(code)
+    r1, c1 = min(r0 + span, src.height - 1), min(c0 + span, src.width - 1)
+    dx, dy = src.spacing_m
+    zd, vd = _decimated_window(src, r0, c0, r1, c1, f, MEASURE_STRIP_SAMPLES)
+    hf = Heightfield(zd, vd, src.transform * Affine.scale(f), crs=src.crs)
+    wp = WindowPyramid(src.width, src.height, pyramid.tile_size, r0, c0, f)
+    if getattr(mesh_fn, "needs_spacing", False):
+        rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, wp, code, spacing_m=hf.spacing_m)
+    else:
+        rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, wp, code)
+    qv, z0 = builder._quantise(rows * f, cols * f, hz, 0, 0, quant)
+    scale = 1.0 / (1 << quant.xy_frac_bits)
+    u = qv[:, 0] * scale
+    v = qv[:, 1] * scale
+    zq = (z0 + qv[:, 2].astype(np.int64)) * quant.z_step_m
+    rep = _measure_streamed(src, u, v, zq, tris, r0, c0, r1, c1, s, dx, dy)
+    max_v, sumsq, n, hd = rep
+    err = max([hd] + [e for e, _ in child_errors])
+    verr = max([max_v] + [x for _, x in child_errors])
+    return EncodedTile(
+        code=code, error_m=float(err), vertical_error_m=float(verr), measured_error_m=float(hd),
+        measured_vertical_error_m=float(max_v), rms_error_m=float(math.sqrt(sumsq / n) if n else 0.0),
+        n_samples=int(n), z_min_m=float(zq.min()), z_max_m=float(zq.max()), n_vertices=int(qv.shape[0]),
+        n_triangles=int(tris.shape[0]), z0_index=z0, vertices=encode_vertices(qv), triangles=encode_triangles(tris),
+    )  # fmt: skip
+
+
+def _measure_streamed(src, u, v, zq, tris, r0, c0, r1, c1, margin, dx, dy):
+    """(max vertical, sum of squares, samples, Hausdorff) of a tile mesh (vertex (u, v) in samples from
+    the tile's origin, heights zq) over rows [r0, r1] x cols [c0, c1] of ``src``, in strips of rows; each
+    strip is measured with the triangles that reach it or come within ``margin`` rows of it."""
+    width = c1 - c0 + 1
+    step = max(1, MEASURE_STRIP_SAMPLES // width)
+    tv = v[tris]
+    tlo, thi = tv.min(axis=1), tv.max(axis=1)
+    max_v = hd = sumsq = 0.0
+    n = 0
+    for a in range(0, r1 - r0 + 1, step):
+        b = min(a + step, r1 - r0 + 1)  # strip rows [a, b) of the tile window
+        pa, pb = max(a - 1, 0), min(b + 1, r1 - r0 + 1)  # one row of samples either side, not measured
+        sel = (thi >= a - margin) & (tlo <= b - 1 + margin)
+        if not sel.any():
+            continue
+        t = tris[sel]
+        used, inv = np.unique(t, return_inverse=True)
+        local = np.stack([u[used] * dx, (v[used] - pa) * dy, zq[used]], axis=1)
+        zs, vs = src.read(r0 + pa, c0, r0 + pb, c1 + 1)
+        vs = vs.copy()
+        vs[: a - pa] = False
+        vs[b - pa :] = False
+        rep = measure_error_window(local, inv.reshape(-1, 3), zs, vs, dx, dy)
+        max_v, hd = max(max_v, rep.max_vertical_m), max(hd, rep.hausdorff_m)
+        sumsq += rep.rms_vertical_m**2 * rep.n_samples
+        n += rep.n_samples
+    return max_v, sumsq, n, hd
+
+
+# -- executors -----------------------------------------------------------------------------------------
+def dask_client(
+    address: str, *, n_workers: int | None = None, threads: int | None = None, timeout_s: float = 10.0
+):
+    """A dask.distributed Client: ``"local"`` starts a LocalCluster of ``n_workers`` processes with
+    ``threads`` threads each; else ``address`` is a scheduler (``tcp://HOST:PORT``). Raises
+    :class:`InputError` naming the address when the scheduler cannot be reached."""
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError(
+            "dask[distributed] is not installed (pip install 'dask[distributed]')", address
+        ) from None
+    if address == "local":
+        cluster = LocalCluster(n_workers=n_workers or 2, threads_per_worker=threads or 1, processes=True,
+                               dashboard_address=None, silence_logs=logging.ERROR)  # fmt: skip
+        return Client(cluster)
+    try:
+        return Client(address, timeout=timeout_s)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(
+            f"cannot reach the Dask scheduler ({str(exc).splitlines()[0][:160]})", address
+        ) from None
+
+
+class _ThreadRunner:
+    """Units on a thread pool of this process (the numba kernels release the GIL)."""
+
+    def __init__(self, threads: int) -> None:
+        self.pool = ThreadPoolExecutor(max_workers=threads)
+
+    def share(self, src):
+        return src
+
+    def submit(self, *args):
+        return self.pool.submit(build_unit, *args)
+
+    def completed(self, futures):
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in done:
+                yield fut.result()
+
+    def close(self) -> None:
+        self.pool.shutdown()
+
+
+class _DaskRunner:
+    """Units as Dask tasks (retried on another worker when one dies), results as they complete."""
+
+    def __init__(self, client, retries: int) -> None:
+        self.client, self.retries = client, retries
+
+    def share(self, src):
+        return self.client.scatter(src, broadcast=True, hash=False)
+
+    def submit(self, *args):
+        return self.client.submit(build_unit, *args, retries=self.retries, pure=False)
+
+    def completed(self, futures):
+        from dask.distributed import as_completed
+
+        for fut in as_completed(futures):
+            yield fut.result()
+            fut.release()
+
+    def close(self) -> None:
+        pass
+
+
+# -- the driver ----------------------------------------------------------------------------------------
+def build_store_windowed(
+    src: WindowSource | Heightfield,
+    path: str | os.PathLike[str],
+    *,
+    tile_size: int = 65,
+    method: str = builder.DEFAULT_METHOD,
+    workers: int | None = None,
+    client: Any = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    stop_after: int | None = None,
+    max_window_samples: int | None = MAX_WINDOW_SAMPLES,
+    unit_span_samples: int = UNIT_SPAN_SAMPLES,
+    retries: int = 3,
+) -> builder.BuildReport:
+    """Build the tile store of a window source at ``path``, out of core (see the module docstring).
+
+    Parameters
+    ----------
+    src : a :class:`~terralod.io.windowed.WindowSource` (or a Heightfield, wrapped in an ArraySource).
+    path, tile_size, method, resume, overwrite, progress, stop_after : as
+        :func:`terralod.pyramid.builder.build_store`.
+    workers : threads of this process (without ``client``), default all cores.
+    client : a ``dask.distributed.Client`` (:func:`dask_client`); units then run on its workers.
+    max_window_samples : tiles with larger windows are meshed from a decimated copy (None: never).
+    unit_span_samples : samples a side of a work unit's window (tiles grouped to about this).
+    retries : Dask retries of a unit whose worker died.
+    """
+    if isinstance(src, Heightfield):
+        src = ArraySource(src)
+    if not is_valid_tile_size(tile_size):
+        raise ValueError(f"Expected a tile size 2^n + 1 (e.g. 33, 65, 129), got {tile_size}")
+    if method not in builder.METHODS:
+        raise ValueError(f"Expected a method in {sorted(builder.METHODS)}, got {method!r}")
+    p = Path(path)
+    t_start = time.perf_counter()
+    pyramid = TilePyramid(src.width, src.height, tile_size)
+    plan = scan_source(src, pyramid)
+    quant = plan.quant(grid_vertices=(method == "chunked"))
+    meta = builder._store_meta(_FrameMeta(src, plan), pyramid, method, quant)  # type: ignore[arg-type]
+    store = _open_or_create(p, meta, resume, overwrite)
+    runner = (
+        _DaskRunner(client, retries)
+        if client is not None
+        else _ThreadRunner(max(1, workers or os.cpu_count() or 1))
+    )
+    codes = pyramid.all_codes(finest_first=True)
+    built = 0
+    try:
+        errors = store.tile_errors()
+        total = len(codes)
+        todo = [c for c in codes if c not in errors]
+        n_skipped = total - len(todo)
+        if progress:
+            progress(n_skipped, total)
+        shared = runner.share(src)
+        for level in reversed(pyramid.levels):
+            level_codes = [c for c in todo if c[0] == level]
+            if stop_after is not None:
+                level_codes = level_codes[: max(0, stop_after - built)]
+            if not level_codes:
+                continue
+            futures = []
+            for unit in _units(pyramid, level, level_codes, unit_span_samples):
+                kids = {c: [errors[k] for k in pyramid.children(c)] for c in unit}
+                futures.append(
+                    runner.submit(shared, tile_size, method, unit, quant[level], kids, max_window_samples)
+                )
+            batch: list[EncodedTile] = []
+            last = time.perf_counter()
+            for tiles in runner.completed(futures):
+                for enc in tiles:
+                    errors[enc.code] = (enc.error_m, enc.vertical_error_m)
+                batch.extend(tiles)
+                now = time.perf_counter()
+                if len(batch) >= builder._BATCH_TILES or now - last > builder._COMMIT_SECONDS:
+                    store.write_tiles(batch)
+                    built += len(batch)
+                    batch, last = [], now
+                    if progress:
+                        progress(n_skipped + built, total)
+            if batch:
+                store.write_tiles(batch)
+                built += len(batch)
+                if progress:
+                    progress(n_skipped + built, total)
+            if stop_after is not None and built >= stop_after:
+                break
+        if n_skipped + built == total:
+            store.set_meta("complete", True)
+    finally:
+        runner.close()
+        store.close()
+    seconds = time.perf_counter() - t_start
+    log.info("built %d tiles (%d already present) in %.2f s, out of core", built, n_skipped, seconds)
+    return builder.BuildReport(p, total, built, n_skipped, seconds, src.width * src.height)
+
+
+def _open_or_create(p: Path, meta: dict, resume: bool, overwrite: bool) -> TileStore:
+    """The store to write: resumed (its meta must match this build's), or created (atomically)."""
+    if p.exists() and resume:
+        store = TileStore.open(p, writable=True)
+        for key in ("source_digest", "build_options", "quantisation", "width", "height", "tile_size"):
+            if store.meta.get(key) != meta[key]:
+                store.close()
+                raise BuildMismatchError(
+                    f"cannot resume: the store's {key} differs from this build (other source or options); "
+                    "use --overwrite to rebuild",
+                    str(p),
+                )
+        return store
+    if p.exists():
+        if not overwrite:
+            raise StoreError("already exists; use --resume to finish it or --overwrite to replace it", str(p))
+        for suffix in ("", "-wal", "-shm"):
+            Path(f"{p}{suffix}").unlink(missing_ok=True)
+    return TileStore.create(p, meta)
