@@ -14,7 +14,7 @@ import sys
 
 import click
 
-from terralod.cli._common import VERBOSE, run_main
+from terralod.cli._common import VERBOSE, quiet_libraries, run_main
 
 #: (module, command name) of every command, in ``--help`` order.
 COMMANDS = [
@@ -27,6 +27,7 @@ COMMANDS = [
     ("demo", "demo"),
     ("bench", "bench"),
     ("change", "change"),
+    ("check", "check"),
 ]
 
 
@@ -37,6 +38,7 @@ def cli(verbose: bool) -> None:
     """terralod: terrain level of detail with measured geometric error."""
     VERBOSE["on"] = verbose
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(name)s: %(message)s")
+    quiet_libraries(verbose)
 
 
 for _module, _name in COMMANDS:

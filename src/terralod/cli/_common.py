@@ -8,6 +8,7 @@ from the library; :mod:`terralod.cli` registers it.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -31,6 +32,58 @@ def is_store(path: Path) -> bool:
             return fh.read(16) == b"SQLite format 3\x00"
     except OSError:
         return False
+
+
+def same_file(a: str | Path, b: str | Path) -> bool:
+    """True when ``a`` and ``b`` are one existing file or folder (same path, hard link or symlink)."""
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
+def check_output(
+    output: str | Path,
+    inputs: tuple[str | Path, ...] | list[str | Path] = (),
+    *,
+    overwrite: bool = False,
+    resume: bool = False,
+    suffixes: tuple[str, ...] = (),
+    what: str = "output",
+) -> Path:
+    """The one ``-o`` / ``--overwrite`` rule of every command, for file and folder outputs alike.
+
+    - never onto an input: refused when ``output`` is one of ``inputs`` or their sidecars ``<stem>.json``
+      (same path, hard link or symlink: compared by inode, ``os.path.samefile``), even with --overwrite;
+    - an existing output needs ``--overwrite`` (or ``--resume`` where the command resumes);
+    - ``suffixes``: the accepted name endings (e.g. ``(".png",)``), refused otherwise;
+    - the folder the output goes into must exist.
+
+    Raises :class:`terralod.errors.InputError` (one line, exit 2). Commands that write the store they are
+    given by design (``check --repair``, ``update``) do not call this.
+    """
+    from terralod.errors import InputError
+
+    out = Path(output)
+    name = str(out)
+    if suffixes and out.suffix.lower() not in suffixes:
+        got = f"'{out.suffix}'" if out.suffix else "no extension"
+        raise InputError(f"{what} must end in {' or '.join(suffixes)} (got {got})", name)
+    for src in inputs:
+        for cand in (Path(src), Path(src).with_suffix(".json")):
+            if (out.exists() or out.is_symlink()) and same_file(out, cand):
+                kind = "input" if cand == Path(src) else "input's sidecar"
+                raise InputError(
+                    f"is the {kind} {cand}; writing there would destroy it; choose another {what}", name
+                )
+            if not out.exists() and out.resolve() == cand.resolve():
+                raise InputError(f"is the {what} and an input at once; choose another {what}", name)
+    if out.exists() or out.is_symlink():
+        if not (overwrite or resume):
+            raise InputError("already exists; pass --overwrite to replace it", name)
+    elif not out.resolve().parent.is_dir():
+        raise InputError(f"output folder {out.resolve().parent} does not exist", name)
+    return out
 
 
 def parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
@@ -137,8 +190,9 @@ def progress(label: str) -> Progress:
     )  # fmt: skip
 
 
-def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None, resume: bool, overwrite: bool):
-    """:func:`terralod.pyramid.builder.build_store` with a progress bar."""
+def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None, resume: bool, overwrite: bool,
+              **extra: Any):  # fmt: skip
+    """:func:`terralod.pyramid.builder.build_store` with a progress bar (``extra``: more of its options)."""
     from terralod.pyramid.builder import build_store
 
     with progress("building") as prog:
@@ -148,7 +202,7 @@ def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None,
             prog.update(task, completed=done, total=total)
 
         return build_store(hf, out, tile_size=tile_size, method=method, workers=workers, resume=resume,
-                           overwrite=overwrite, progress=cb)  # fmt: skip
+                           overwrite=overwrite, progress=cb, **extra)  # fmt: skip
 
 
 def open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path:
@@ -293,37 +347,60 @@ def print_tin_summary(d: dict[str, Any]) -> None:
         console.print(f"  note         {n}")
 
 
+def one_line(text: object, limit: int = 300) -> str:
+    """``text`` on one line (multi-line PROJJSON, GDAL messages), at most ``limit`` characters."""
+    t = " ".join(str(text).split())
+    return t if len(t) <= limit else t[: limit - 3] + "..."
+
+
+#: Loggers of the libraries whose warnings (GDAL through rasterio, laspy, Python warnings) would print
+#: before the ``terralod:`` line; they are shown with ``-v`` only.
+LIBRARY_LOGGERS = ("rasterio", "fiona", "laspy", "py.warnings", "PIL", "numba", "imageio")
+
+
+def quiet_libraries(verbose: bool) -> None:
+    """Route library warnings to logging and show them only with ``-v`` (INFO level and up)."""
+    logging.captureWarnings(True)
+    for name in LIBRARY_LOGGERS:
+        logging.getLogger(name).setLevel(logging.INFO if verbose else logging.CRITICAL)
+
+
+def _fail(message: str) -> None:
+    """Print the one line (after the traceback with -v) and exit 2."""
+    if VERBOSE["on"]:
+        import traceback
+
+        traceback.print_exc(file=sys.stderr)
+    click.echo(f"terralod: {one_line(message)}", err=True)
+    sys.exit(2)
+
+
 def run_main(group: click.Group, argv: list[str] | None) -> None:
-    """Run ``group``, turning terralod errors into one line ``terralod: <file>: <problem>`` and exit code 2."""
+    """Run ``group``, turning every failure into one line ``terralod: <file>: <problem>`` and exit code 2;
+    ``-v`` prints the traceback before that line and keeps exit code 2."""
     from terralod.errors import TerralodError
 
     try:
         group.main(args=argv, prog_name="terralod", standalone_mode=False)
     except click.exceptions.Abort:
-        err_console.print("terralod: aborted")
+        err_console.print("terralod: aborted; a build finishes with the same command and --resume")
         sys.exit(130)
+    except click.exceptions.Exit as exc:
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()
-        sys.exit(2)
-    except RuntimeError as exc:  # no GPU context / no window
-        if VERBOSE["on"]:
-            raise
-        click.echo(f"terralod: {exc}", err=True)
         sys.exit(2)
     except KeyboardInterrupt:
         err_console.print("terralod: interrupted; finished tiles are saved, finish with --resume")
         sys.exit(130)
     except TerralodError as exc:
-        if VERBOSE["on"]:
-            raise
-        click.echo(f"terralod: {exc}", err=True)
-        sys.exit(2)
-    except OSError as exc:
-        if VERBOSE["on"]:
-            raise
-        name = getattr(exc, "filename", None)
-        click.echo(f"terralod: {name + ': ' if name else ''}{exc.strerror or exc}", err=True)
-        sys.exit(2)
+        _fail(str(exc))
     except MemoryError:
-        click.echo("terralod: out of memory; split the input or use a smaller --tile-size", err=True)
-        sys.exit(2)
+        _fail("out of memory; split the input or use a smaller --tile-size")
+    except OSError as exc:
+        name = getattr(exc, "filename", None)
+        _fail(f"{str(name) + ': ' if name else ''}{exc.strerror or exc}")
+    except RuntimeError as exc:  # no GPU context / no window
+        _fail(str(exc))
+    except Exception as exc:  # a bug: still one line (the traceback with -v), never a crash dump
+        _fail(f"internal error ({type(exc).__name__}: {exc}); run with -v for the traceback and report it")

@@ -6,7 +6,7 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import console, load, read_options
+from terralod.cli._common import check_output, console, load, read_options
 
 
 @click.command()
@@ -16,10 +16,15 @@ from terralod.cli._common import console, load, read_options
 @click.option("--seed", default=0, show_default=True, help="Seed of the world-position hash.")
 @click.option("--hurst", type=float, default=None, help="Hurst exponent H (default: estimated per region).")
 @click.option("--sigma", type=float, default=None, help="fBm sigma, metres (default: estimated per region).")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output file.")
 @read_options
-def amplify(input_path: str, output: str, factor: int, seed: int, hurst, sigma, **read: Any) -> None:
+def amplify(
+    input_path: str, output: str, factor: int, seed: int, hurst, sigma, overwrite: bool, **read: Any
+) -> None:
     """Add fractal (fBm) detail below the DEM's resolution (paper 001); every DEM sample is kept exactly."""
     from terralod.fractal import amplify_command
+
+    check_output(output, [input_path], overwrite=overwrite, suffixes=(".tif", ".tiff"), what="output GeoTIFF")
 
     hf = load(input_path, **read)
     summary = amplify_command(hf, output, factor=factor, seed=seed, hurst=hurst, sigma=sigma)

@@ -10,6 +10,7 @@ from typing import Any
 import click
 
 from terralod.cli._common import (
+    check_output,
     console,
     load,
     print_store_summary,
@@ -40,16 +41,24 @@ from terralod.cli._common import (
     help="Fractal levels below the DEM that view/render/flythrough add by default (paper 001; generated "
     "on demand from the source DEM, never stored).",
 )  # fmt: skip
+@click.option(
+    "--epoch", default=None,
+    help="Name of the terrain's first epoch (e.g. the survey date 2000-09-25): the store keeps its samples, "
+    "so `terralod update` / `terralod edit` can add later epochs.",
+)  # fmt: skip
 @read_options
 def build(
     input_path: str, output: str, tile_size: int, method: str, sub_blocks: str, base_fraction: float, workers,
-    resume, overwrite, fractal_levels, **read: Any,
+    resume, overwrite, fractal_levels, epoch, **read: Any,
 ) -> None:  # fmt: skip
     """Build the level-of-detail tile store of a DEM, or the detail-increment TIN of a LAS/LAZ cloud."""
     from terralod.pyramid.builder import METHODS, store_summary
     from terralod.store import TileStore, open_store
     from terralod.tiles import is_valid_tile_size
 
+    if resume and overwrite:
+        raise click.BadParameter("give --resume or --overwrite, not both", param_hint="--resume")
+    check_output(output, [input_path], overwrite=overwrite, resume=resume, what="output store")
     if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
         build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read)
         return
@@ -62,9 +71,14 @@ def build(
     if workers is not None and workers < 1:
         raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
     hf = load(input_path, **read)
+    if epoch is not None:
+        from terralod.pyramid.update import validate_epoch_name
+
+        epoch = validate_epoch_name(epoch, output)
     rep = run_build(
-        hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite
-    )
+        hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite,
+        **({"epoch": epoch} if epoch is not None else {}),
+    )  # fmt: skip
     console.print(
         f"built {rep.tiles_built} tiles ({rep.tiles_skipped} already done) in {rep.seconds:.2f} s, "
         f"{rep.samples_per_second / 1e6:.2f} M source samples/s"

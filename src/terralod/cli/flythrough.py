@@ -7,7 +7,10 @@ from typing import Any
 import click
 import numpy as np
 
-from terralod.cli._common import console, open_terrain_arg, read_options, size, view_options
+from terralod.cli._common import check_output, console, open_terrain_arg, read_options, size, view_options
+
+#: Video files ``flythrough -o`` writes (H.264 through ffmpeg).
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov")
 
 
 def render_flythrough(terrain, output: str, *, cam_path: str = "auto", frames: int = 120, fps: int = 24,
@@ -60,12 +63,15 @@ def flythrough_table(summary: dict[str, Any]) -> None:
 @click.option("--fps", default=24, show_default=True)
 @click.option("--size", "size_text", default="1280x720", show_default=True, help="WIDTHxHEIGHT pixels.")
 @click.option("--threshold-px", default=2.0, show_default=True)
+@click.option("--overwrite", is_flag=True, help="Replace an existing video.")
 @view_options
 @read_options
 def flythrough(
-    path, output, cam_path, frames, fps, size_text, threshold_px, fractal_levels, cull, **read: Any
+    path, output, cam_path, frames, fps, size_text, threshold_px, overwrite, fractal_levels, cull, **read: Any
 ) -> None:
     """Render a fly-through video of a store (or a DEM, built first), headless."""
+    inputs = [path] + ([cam_path] if cam_path != "auto" else [])
+    check_output(output, inputs, overwrite=overwrite, suffixes=VIDEO_SUFFIXES, what="video")
     w, h = size(size_text)
     with open_terrain_arg(path, read, fractal_levels) as terrain:
         summary = render_flythrough(terrain, output, cam_path=cam_path, frames=frames, fps=fps, size=(w, h),

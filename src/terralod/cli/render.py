@@ -8,6 +8,7 @@ from typing import Any
 import click
 
 from terralod.cli._common import (
+    check_output,
     console,
     frame_table,
     open_terrain_arg,
@@ -17,6 +18,9 @@ from terralod.cli._common import (
     triple,
     view_options,
 )
+
+#: Image files ``render -o`` writes (Pillow picks the format by suffix).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".bmp")
 
 
 def describe_frame(output: str, stats: dict[str, Any]) -> None:
@@ -41,15 +45,17 @@ def describe_frame(output: str, stats: dict[str, Any]) -> None:
     "--mode", type=click.Choice(["elevation", "lod", "error"]), default="elevation", show_default=True
 )
 @click.option("--wireframe", is_flag=True)
+@click.option("--overwrite", is_flag=True, help="Replace an existing image.")
 @view_options
 @read_options
 def render(
-    path, output, eye, target, size_text, threshold_px, background, mode, wireframe, fractal_levels, cull,
-    **read: Any,
+    path, output, eye, target, size_text, threshold_px, background, mode, wireframe, overwrite, fractal_levels,
+    cull, **read: Any,
 ) -> None:  # fmt: skip
     """Render one frame of a store (or a DEM, built first) to a PNG, headless (EGL)."""
     from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png
 
+    check_output(output, [path], overwrite=overwrite, suffixes=IMAGE_SUFFIXES, what="image")
     w, h = size(size_text)
     if eye and not target or target and not eye:
         raise click.BadParameter("give both --eye and --target", param_hint="--eye")
