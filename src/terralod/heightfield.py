@@ -39,6 +39,9 @@ class Heightfield:
         How nodata cells were filled, one line (empty when nothing was filled).
     notes : tuple of str
         Conversions applied on reading (reprojection, unit scaling), for ``terralod info``.
+    source_nodata_fraction, margin_fraction : float
+        After a reprojection: nodata of the source itself, and cells outside the source's footprint;
+        ``nodata_fraction`` counts both.
     """
 
     elevation_m: np.ndarray
@@ -48,6 +51,11 @@ class Heightfield:
     source: str = "<array>"
     fill_method: str = ""
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: nodata fraction of the source's own samples (set by a reader that resampled it; None: same as
+    #: :attr:`nodata_fraction`)
+    source_nodata_fraction: float | None = None
+    #: fraction of this grid's cells outside the source's footprint (the margin a reprojection leaves)
+    margin_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         z = np.ascontiguousarray(self.elevation_m, dtype=np.float32)

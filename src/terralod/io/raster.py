@@ -299,8 +299,9 @@ def georeferenced_heightfield(
     values, valid, t, flips = north_up(values, valid, t, source)
     notes = (*notes, *flips)
     if crs.is_geographic or _is_mercator(crs):
-        values, valid, t, crs, note = reproject_to_utm(values, valid, t, crs, source)
-        return _metric(values, valid, t, crs, source, (*notes, note))
+        values, valid, t, crs, note, src_nodata, margin = reproject_to_utm(values, valid, t, crs, source)
+        hf = _metric(values, valid, t, crs, source, (*notes, note))
+        return replace(hf, source_nodata_fraction=src_nodata, margin_fraction=margin)
     crs, t, unit_notes = _metric_units(crs, t, source)
     notes = (*notes, *unit_notes, *_scale_note(t, crs, values.shape))
     return _metric(values, valid, t, crs, source, notes)
@@ -412,7 +413,8 @@ def reproject_to_utm(
 
     Square pixels of the ground spacing at the centre (min of dx, dy, millimetre-rounded), grid snapped to
     multiples of it; elevations bilinear, the valid mask nearest-neighbour; cells outside the source
-    footprint are invalid. Returns (values, valid, transform, crs, note).
+    footprint are invalid. Returns (values, valid, transform, crs, note, the source's own nodata
+    fraction, the fraction of output cells outside the source's footprint).
     """
     from rasterio.warp import Resampling, reproject, transform_bounds
     from rasterio.warp import transform as warp_points
@@ -458,11 +460,16 @@ def reproject_to_utm(
     reproject(np.ascontiguousarray(valid, dtype=np.uint8), mask, resampling=Resampling.nearest,
               src_nodata=None, dst_nodata=0, **kw)  # fmt: skip
     ok = (mask > 0) & np.isfinite(out)
+    inside = np.zeros((height, width), np.uint8)
+    reproject(np.ones(valid.shape, np.uint8), inside, resampling=Resampling.nearest,
+              src_nodata=None, dst_nodata=0, **kw)  # fmt: skip
+    src_nodata = float(1.0 - valid.mean()) if valid.size else 1.0
+    margin = float((inside == 0).mean())
     note = (
         f"reprojected from {_crs_name(crs)} to {_crs_name(dst_crs)} ({label}) at {res:g} m, {_RESAMPLING} "
         f"(ground spacing at the centre {dx_m:.1f} x {dy_m:.1f} m)"
     )
-    return out, ok, dst_t, dst_crs, note
+    return out, ok, dst_t, dst_crs, note, src_nodata, margin
 
 
 def _metric_units(crs: Any, t: Affine, source: str) -> tuple[Any, Affine, tuple[str, ...]]:

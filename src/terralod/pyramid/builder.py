@@ -26,6 +26,7 @@ from terralod.errors import BuildMismatchError, StoreError
 from terralod.heightfield import Heightfield
 from terralod.kernels import jit
 from terralod.pyramid import chunked, cohesion
+from terralod.pyramid.footprint import drop_nodata
 from terralod.store import (
     FORMAT_VERSION,
     EncodedTile,
@@ -195,13 +196,24 @@ def build_tile(
         rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code, spacing_m=hf.spacing_m)
     else:
         rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code)
+    span = pyramid.span(code[0])
+    r1 = min(r0 + span, hf.height - 1)
+    c1 = min(c0 + span, hf.width - 1)
+    # The fill is for meshing only: triangles over nodata are not stored (terralod.pyramid.footprint).
+    rows, cols, hz, tris = drop_nodata(rows, cols, hz, tris, hf.valid, hf.valid[r0 : r1 + 1, c0 : c1 + 1])
+    if rows.shape[0] == 0:  # the tile lies wholly in nodata: stored empty, its error its children's
+        err = max([0.0] + [e for e, _ in child_errors])
+        verr = max([0.0] + [v for _, v in child_errors])
+        zc = float(hf.elevation_m[r0, c0])
+        return EncodedTile(code=code, error_m=float(err), vertical_error_m=float(verr), measured_error_m=0.0,
+                           measured_vertical_error_m=0.0, rms_error_m=0.0, n_samples=0, z_min_m=zc, z_max_m=zc,
+                           n_vertices=0, n_triangles=0, z0_index=0,
+                           vertices=encode_vertices(np.zeros((0, 3), np.uint16)),
+                           triangles=encode_triangles(np.zeros((0, 3), np.int32)))  # fmt: skip
     qv, z0 = _quantise(rows, cols, hz, r0, c0, quant)
     # Measure on the geometry exactly as stored.
     scale = 1.0 / (1 << quant.xy_frac_bits)
     dx, dy = hf.spacing_m
-    span = pyramid.span(code[0])
-    r1 = min(r0 + span, hf.height - 1)
-    c1 = min(c0 + span, hf.width - 1)
     local = np.empty((qv.shape[0], 3), np.float64)
     local[:, 0] = qv[:, 0] * scale * dx
     local[:, 1] = qv[:, 1] * scale * dy

@@ -471,7 +471,7 @@ class TerrainRenderer:
         st = settings or RenderSettings()
         eye = np.asarray(eye, np.float64)
         target = np.asarray(target, np.float64)
-        meshes = list(meshes)
+        meshes = [m for m in meshes if len(m[2])]  # tiles wholly over nodata store no triangle
         codes = [m[0] for m in meshes]
         self._frame = set(codes)
         zlo, zhi = math.inf, -math.inf

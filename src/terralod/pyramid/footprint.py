@@ -1,0 +1,90 @@
+"""The drawn footprint of a tile: triangles over nodata are not stored.
+
+Nodata (the source's own holes and the margin a reprojection leaves around a geographic tile) is filled
+before meshing (:mod:`terralod.fill`) so that every mesher sees a continuous surface; the fill is for
+meshing only, never for display. After a tile is meshed, :func:`footprint_mask` keeps a triangle when at
+least half of the source samples its closed XY projection covers are valid (a triangle covering no sample,
+a sliver between samples, takes the sample nearest its centroid). At the finest level (stride 1) a
+triangle covers its three vertex samples, so a triangle with two nodata corners is dropped; at a coarse
+level the drawn footprint follows the valid region to within a triangle's size. :func:`drop_nodata`
+removes the dropped triangles and the vertices no kept triangle uses, in order, so a tile that lies
+wholly in nodata is stored with no vertex and no triangle.
+
+Same-level neighbours still share bit-identical boundary vertices where both keep triangles; where one
+side dropped its triangles the stitcher (paper 002) sees a partial side, as at the data edge.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from terralod.kernels import jit
+
+
+@jit
+def footprint_mask(rows, cols, tris, valid):
+    """(K,) bool: True for triangles whose covered samples are at least half valid.
+
+    rows, cols : (N,) float64 source sample coordinates of the vertices (row south, col east)
+    tris : (K, 3) integer vertex indices
+    valid : (H, W) bool over the whole source (samples outside it are not counted)
+    """
+    h, w = valid.shape
+    k = tris.shape[0]
+    keep = np.zeros(k, np.bool_)
+    eps = 1e-9
+    for t in range(k):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ra, rb, rc = rows[a], rows[b], rows[c]
+        ca, cb, cc = cols[a], cols[b], cols[c]
+        area = (cb - ca) * (rc - ra) - (rb - ra) * (cc - ca)
+        sgn = 1.0 if area >= 0.0 else -1.0
+        tol = eps * max(abs(area), 1.0)
+        r_lo = max(0, int(math.ceil(min(ra, rb, rc) - eps)))
+        r_hi = min(h - 1, int(math.floor(max(ra, rb, rc) + eps)))
+        c_lo = max(0, int(math.ceil(min(ca, cb, cc) - eps)))
+        c_hi = min(w - 1, int(math.floor(max(ca, cb, cc) + eps)))
+        n = 0
+        nv = 0
+        for r in range(r_lo, r_hi + 1):
+            for col in range(c_lo, c_hi + 1):
+                e0 = sgn * ((cb - ca) * (r - ra) - (rb - ra) * (col - ca))
+                e1 = sgn * ((cc - cb) * (r - rb) - (rc - rb) * (col - cb))
+                e2 = sgn * ((ca - cc) * (r - rc) - (ra - rc) * (col - cc))
+                if e0 >= -tol and e1 >= -tol and e2 >= -tol:
+                    n += 1
+                    if valid[r, col]:
+                        nv += 1
+        if n == 0:
+            r = min(max(int(round((ra + rb + rc) / 3.0)), 0), h - 1)
+            col = min(max(int(round((ca + cb + cc) / 3.0)), 0), w - 1)
+            keep[t] = valid[r, col]
+        else:
+            keep[t] = 2 * nv >= n
+    return keep
+
+
+def drop_nodata(
+    rows: np.ndarray, cols: np.ndarray, heights_m: np.ndarray, tris: np.ndarray, valid: np.ndarray,
+    window_valid: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """A mesher's tile without the triangles over nodata and the vertices left unused (order kept).
+
+    ``window_valid`` is the source's mask over the tile's window: when it is all True nothing can be
+    dropped and the arrays are returned as they are (the tile is bit-identical to an unfiltered build).
+    """
+    if window_valid.all() or tris.shape[0] == 0:
+        return rows, cols, heights_m, tris
+    keep = footprint_mask(
+        np.ascontiguousarray(rows, np.float64), np.ascontiguousarray(cols, np.float64),
+        np.ascontiguousarray(tris, np.int64), np.ascontiguousarray(valid, np.bool_),
+    )  # fmt: skip
+    if keep.all():
+        return rows, cols, heights_m, tris
+    kept = tris[keep]
+    used = np.zeros(rows.shape[0], bool)
+    used[kept.ravel()] = True
+    remap = np.cumsum(used) - 1
+    return rows[used], cols[used], heights_m[used], remap[kept].astype(tris.dtype)

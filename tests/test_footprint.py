@@ -1,0 +1,119 @@
+"""Footprints: triangles over nodata are not stored (every method), the fill stays for meshing only, errors
+are measured over valid samples, and frames show the sky where the data has none."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from terralod import Heightfield, build_store, open_store
+from terralod.pyramid.builder import METHODS
+from terralod.pyramid.footprint import footprint_mask
+
+from conftest import fractal_terrain
+
+
+def _covered(rows, cols, tri, shape):
+    """Samples inside the closed triangle (numpy reference of the kernel's count)."""
+    h, w = shape
+    r = np.arange(h)[:, None]
+    c = np.arange(w)[None, :]
+    (ra, rb, rc), (ca, cb, cc) = rows[tri], cols[tri]
+    area = (cb - ca) * (rc - ra) - (rb - ra) * (cc - ca)
+    s = 1.0 if area >= 0 else -1.0
+    e0 = s * ((cb - ca) * (r - ra) - (rb - ra) * (c - ca))
+    e1 = s * ((cc - cb) * (r - rb) - (rc - rb) * (c - cb))
+    e2 = s * ((ca - cc) * (r - rc) - (ra - rc) * (c - cc))
+    tol = 1e-9 * max(abs(area), 1.0)
+    return (e0 >= -tol) & (e1 >= -tol) & (e2 >= -tol)
+
+
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 12))
+@settings(max_examples=25, deadline=None)
+def test_footprint_mask_is_the_majority_of_covered_samples(seed: int, n: int) -> None:
+    rng = np.random.default_rng(seed)
+    shape = (12, 14)
+    valid = rng.random(shape) > rng.random()
+    rows = rng.uniform(-1, 13, 3 * n)
+    cols = rng.uniform(-1, 15, 3 * n)
+    tris = np.arange(3 * n).reshape(n, 3)
+    keep = footprint_mask(rows, cols, tris, valid)
+    for k in range(n):
+        cov = _covered(rows, cols, tris[k], shape)
+        if cov.any():
+            assert keep[k] == (2 * valid[cov].sum() >= cov.sum())
+
+
+def _holed(seed: int) -> Heightfield:
+    z = fractal_terrain(97, 113, seed, relief_m=600.0)
+    r, c = np.mgrid[0:97, 0:113]
+    valid = (r + c > 25) & ~((r > 30) & (r < 70) & (c > 40) & (c < 90))  # a wedge and a lake of nodata
+    return Heightfield.from_array(z, 30.0, origin_m=(500000.0, 4100000.0), valid=valid)
+
+
+@pytest.mark.parametrize("method", sorted(METHODS))
+def test_no_stored_triangle_lies_over_nodata(tmp_path: Path, method: str) -> None:
+    hf = _holed(3)
+    out = tmp_path / f"{method}.terra"
+    build_store(hf, out, tile_size=17, method=method, workers=2)
+    with open_store(out) as s:
+        assert s.complete
+        finest = max(s.levels)
+        covered = np.zeros(hf.shape, bool)
+        for code in s.tile_codes():
+            t = s.tile(*code)
+            if t.triangles.shape[0] == 0:
+                assert t.vertices.shape[0] == 0 and t.error_m >= 0.0
+                continue
+            assert len(np.unique(t.triangles)) == len(t.vertices)  # no vertex left over
+            rows, cols = t.grid_rc[:, 0], t.grid_rc[:, 1]
+            keep = footprint_mask(rows, cols, t.triangles.astype(np.int64), hf.valid)
+            assert keep.all(), f"{code}: {int((~keep).sum())} triangles over nodata"
+            if code[0] == finest:
+                for tri in t.triangles:
+                    covered |= _covered(rows, cols, tri, hf.shape)
+        # the finest level still covers every valid sample away from the nodata's edge
+        inner = hf.valid.copy()
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                inner &= np.roll(np.roll(hf.valid, dr, 0), dc, 1)
+        inner[[0, -1], :] = inner[:, [0, -1]] = False
+        assert covered[inner].all()
+        assert not covered[40:60, 50:80].any()  # the lake's interior is sky
+
+
+def test_fully_valid_tiles_are_untouched(tmp_path: Path) -> None:
+    z = fractal_terrain(65, 65, 5, relief_m=300.0)
+    a = Heightfield.from_array(z, 30.0)
+    valid = np.ones(z.shape, bool)
+    valid[60:, 60:] = False  # one corner tile of the finest level has nodata
+    b = Heightfield.from_array(z, 30.0, valid=valid)
+    build_store(a, tmp_path / "a.terra", tile_size=17, method="chunked")
+    build_store(b, tmp_path / "b.terra", tile_size=17, method="chunked")
+    with open_store(tmp_path / "a.terra") as sa, open_store(tmp_path / "b.terra") as sb:
+        ta, tb = sa.tile(2, 0, 0), sb.tile(2, 0, 0)  # north-west: all valid, identical
+        assert np.array_equal(ta.vertices, tb.vertices) and np.array_equal(ta.triangles, tb.triangles)
+        assert sb.tile(2, 3, 3).triangles.shape[0] < sa.tile(2, 3, 3).triangles.shape[0]
+
+
+def test_frame_shows_sky_over_nodata(tmp_path: Path) -> None:
+    from terralod.render.offscreen import CameraPose, FrameRenderer
+    from terralod.terrain import open_terrain
+
+    hf = _holed(3)
+    out = tmp_path / "h.terra"
+    build_store(hf, out, tile_size=17, workers=2)
+    x, y = hf.world_xy(50.0, 65.0)  # the middle of the lake
+    pose = CameraPose((float(x), float(y) - 1.0, 6000.0), (float(x), float(y), 0.0))
+    with open_terrain(out) as t:
+        fr = FrameRenderer(t, 64, 64, settings=None)
+        fr.settings.background = (1.0, 0.0, 1.0)
+        fr.settings.fog = False
+        img = fr.frame(pose)
+        fr.close()
+    mid = img[28:36, 28:36].reshape(-1, 3)
+    assert (mid == (255, 0, 255)).all(), "terrain drawn over the nodata lake"
