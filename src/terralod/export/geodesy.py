@@ -8,14 +8,13 @@ pyproj's EPSG:4979 → EPSG:4978 conversion (exact, double precision).
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
 from terralod.errors import InputError
 
-__all__ = ["Geodesy", "enu_frame", "wgs84_radius_m"]
+__all__ = ["Geodesy", "ecef_lonlat", "enu_frame", "wgs84_radius_m"]
 
 #: WGS 84 semi-major axis, metres.
 WGS84_A_M = 6378137.0
@@ -23,6 +22,20 @@ WGS84_A_M = 6378137.0
 
 def wgs84_radius_m() -> float:
     return WGS84_A_M
+
+
+_ECEF: list[Any] = []
+
+
+def ecef_lonlat(lon: Any, lat: Any, h: Any) -> np.ndarray:
+    """(N,) degrees, degrees, ellipsoidal metres → (N, 3) ECEF metres (pyproj EPSG:4979 → EPSG:4978)."""
+    if not _ECEF:
+        from pyproj import Transformer
+
+        _ECEF.append(Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True))
+    x, y, z = _ECEF[0].transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
+                                 np.asarray(h, np.float64))  # fmt: skip
+    return np.stack([np.asarray(x), np.asarray(y), np.asarray(z)], axis=-1).astype(np.float64)
 
 
 class Geodesy:
@@ -45,12 +58,8 @@ class Geodesy:
         try:
             self._to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
             self._from_ll = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True)
-            self._ecef = Transformer.from_crs("EPSG:4979", "EPSG:4978", always_xy=True)
         except Exception as exc:  # noqa: BLE001 - pyproj raises several kinds
             raise InputError(f"CRS cannot be transformed to WGS 84 ({str(exc)[:80]})", where) from exc
-        probe = self._to_ll.transform(0.0, 0.0)
-        if not all(math.isfinite(v) for v in probe) and False:  # pragma: no cover - kept for clarity
-            raise InputError("CRS cannot be transformed to WGS 84", where)
 
     def lonlat(self, x: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
         """CRS metres → (longitude, latitude) degrees."""
@@ -64,9 +73,7 @@ class Geodesy:
 
     def ecef_lonlat(self, lon: Any, lat: Any, h: Any) -> np.ndarray:
         """(N,) degrees, degrees, ellipsoidal metres → (N, 3) ECEF metres."""
-        x, y, z = self._ecef.transform(np.asarray(lon, np.float64), np.asarray(lat, np.float64),
-                                       np.asarray(h, np.float64))  # fmt: skip
-        return np.stack([np.asarray(x), np.asarray(y), np.asarray(z)], axis=-1).astype(np.float64)
+        return ecef_lonlat(lon, lat, h)
 
     def ecef(self, vertices_m: np.ndarray) -> np.ndarray:
         """(N, 3) CRS metres with heights as read → (N, 3) ECEF metres."""

@@ -1,0 +1,563 @@
+"""Cesium quantized-mesh 1.0 export of any terrain: ``layer.json`` + gzip'd ``Z/X/Y.terrain`` tiles.
+
+The tiling. Quantized-mesh lives on Cesium's *geographic* tiling scheme (EPSG:4326, two 180° roots at
+level 0, 2^(z+1) x 2^z tiles at level z, TMS rows: y grows north). That is a second tiling beside the
+store's own quadtree, and it exists only here at the export boundary: each tile's rectangle is converted
+to the store's CRS with pyproj and the terrain is re-tiled into it from the *source samples* (the store's
+source DEM when it can be read again and has the store's digest; otherwise the store's finest meshes, i.e.
+the full-resolution TIN of a TIN store or the finest tiles of a grid store, interpolated on their own
+triangles). Levels run from 0 to the first level whose tiles, sampled at 257², are as fine as the source.
+
+The meshing is adaptive greedy insertion (pydelatin, Garland & Heckbert's scheme as in Delatin) on the
+257² samples of each tile with a target error of a quarter of CesiumJS's level maximum geometric error
+(the error CesiumJS assumes for the level when it computes screen-space error); the error written with
+each tile is then *measured*: max vertical distance between the tile surface and every source sample inside
+the tile (metadata extension ``terralod.error_m``, and ``error_m`` per level in ``layer.json``). The store's
+own cohesion mesher needs the store's quantised lattice, which does not exist in the geographic tiling;
+greedy insertion is the closest method that meshes an arbitrary sample grid to an error target (deviation
+from the issue's "store's own method", and why).
+
+Nodata: outside the source footprint the tile has height 0 (the ellipsoid); inside, nodata samples keep
+the store's fill. Both are marked: the water-mask extension (255 = nodata) and ``terralod.nodata_fraction``
+in the metadata extension. Normals (oct-encoded extension) are the normals of the continuous sampled
+surface at each vertex (central differences on the samples, ENU → ECEF), so the tiles of one level have
+identical normals at their shared borders. CesiumJS adds its own skirts from the edge indices.
+
+The binary is written by :func:`encode_tile` following the format's specification (header, zig-zag delta
+u/v/h, high-water-mark indices, edge lists, extensions), with the horizon-occlusion point computed as CesiumJS's ellipsoidal occluder describes it.
+quantized-mesh-encoder (the peer of ``benchmarks/web.py``) is not used for the tiles: its ``encode`` casts longitudes to float32 (0.7 m steps at 85°W, coarser than the
+u/v lattice of deep tiles), so the vertex data is written here in double precision.
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import math
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from terralod.export.common import atomic_folder, check_exportable, source_heightfield
+from terralod.export.geodesy import WGS84_A_M, Geodesy, ecef_lonlat, enu_frame
+from terralod.export.tiles3d import ExportReport
+
+__all__ = [
+    "QuantizedMesh",
+    "decode_tile",
+    "encode_tile",
+    "export_quantized_mesh",
+    "level_max_error_m",
+    "tile_rectangle",
+]
+
+#: Samples per tile side of the re-tiling (the water mask is 256², so this is one more).
+SAMPLES = 257
+#: Target error of the greedy insertion, as a fraction of CesiumJS's level maximum geometric error.
+TARGET_FRACTION = 0.25
+#: Extension ids of the format.
+EXT_NORMALS, EXT_WATERMASK, EXT_METADATA = 1, 2, 4
+
+
+def level_max_error_m(z: int) -> float:
+    """CesiumJS's level maximum geometric error of the geographic scheme (a 65² heightmap's, 0.25 quality)."""
+    return WGS84_A_M * 2.0 * math.pi * 0.25 / (65 * 2) / (1 << z)
+
+
+def tile_rectangle(z: int, x: int, y: int) -> tuple[float, float, float, float]:
+    """(west, south, east, north) degrees of geographic-scheme tile z/x/y (TMS: y = 0 at the south pole)."""
+    d = 180.0 / (1 << z)
+    return (-180.0 + x * d, -90.0 + y * d, -180.0 + (x + 1) * d, -90.0 + (y + 1) * d)
+
+
+# -- the binary format ---------------------------------------------------------------------------------
+def _zigzag_delta(a: np.ndarray) -> np.ndarray:
+    d = np.diff(a.astype(np.int64), prepend=np.int64(0))
+    return ((d << 1) ^ (d >> 63)).astype(np.uint16)
+
+
+def _unzigzag_delta(z: np.ndarray) -> np.ndarray:
+    z = z.astype(np.int64)
+    return np.cumsum((z >> 1) ^ -(z & 1)).astype(np.int64)
+
+
+def _hwm_encode(idx: np.ndarray) -> np.ndarray:
+    """High-water-mark coding: each index as (highest + 1 so far) - index; needs first-use order."""
+    flat = idx.astype(np.int64).ravel()
+    hw = np.maximum.accumulate(np.concatenate([[-1], flat[:-1]])) + 1
+    return hw - flat
+
+
+def _hwm_decode(code: np.ndarray) -> np.ndarray:
+    out = np.empty(code.size, np.int64)
+    highest = 0
+    for i, c in enumerate(code.astype(np.int64)):
+        out[i] = highest - c
+        if c == 0:
+            highest += 1
+    return out
+
+
+def oct_encode(n: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vectors → (N, 2) uint8 oct encoding (the format's normal extension)."""
+    n = np.asarray(n, np.float64)
+    p = n[:, :2] / np.maximum(np.abs(n).sum(axis=1, keepdims=True), 1e-30)
+    neg = n[:, 2] < 0
+    q = p.copy()
+    q[neg] = (1.0 - np.abs(p[neg][:, ::-1])) * np.where(p[neg] >= 0, 1.0, -1.0)
+    return np.rint((np.clip(q, -1, 1) * 0.5 + 0.5) * 255).astype(np.uint8)
+
+
+def oct_decode(e: np.ndarray) -> np.ndarray:
+    f = e.astype(np.float64) / 255.0 * 2.0 - 1.0
+    z = 1.0 - np.abs(f).sum(axis=1)
+    xy = f.copy()
+    neg = z < 0
+    xy[neg] = (1.0 - np.abs(f[neg][:, ::-1])) * np.where(f[neg] >= 0, 1.0, -1.0)
+    v = np.column_stack([xy, z])
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def _reorder(uvh: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices renumbered in first-use order of the triangles (what high-water-mark coding wants)."""
+    flat = tris.ravel()
+    _, first = np.unique(flat, return_index=True)
+    order = flat[np.sort(first)]
+    unused = np.setdiff1d(np.arange(len(uvh)), order)
+    order = np.concatenate([order, unused])
+    remap = np.empty(len(uvh), np.int64)
+    remap[order] = np.arange(len(uvh))
+    return order, remap[tris]
+
+
+#: WGS 84 radii (a, a, b), metres: the ellipsoid's scaled space of the horizon-occlusion point.
+_RADII_M = np.array([6378137.0, 6378137.0, 6356752.314245179])
+
+
+def horizon_occlusion_point(ecef: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The format's horizon-occlusion point (ellipsoid-scaled space): along the scaled direction of
+    ``centre``, far enough that it is above the horizon whenever any vertex is. A tile that spans a
+    quarter of the globe or more has no such point; it gets one far out along that direction (seen from
+    the whole hemisphere around it, so the tile is never wrongly culled where it can be seen)."""
+    p = ecef / _RADII_M
+    d = centre / _RADII_M
+    d = d / np.linalg.norm(d)
+    m2 = np.maximum((p * p).sum(axis=1), 1.0)
+    m = np.sqrt(m2)
+    u = p / np.linalg.norm(p, axis=1, keepdims=True)
+    cos_a = u @ d
+    sin_a = np.linalg.norm(np.cross(u, d), axis=1)
+    cos_b = 1.0 / m
+    sin_b = np.sqrt(m2 - 1.0) * cos_b
+    den = cos_a * cos_b - sin_a * sin_b
+    if np.any(den <= 1e-9):
+        return d * 1e3
+    return d * float((1.0 / den).max())
+
+
+def encode_tile(
+    lon: np.ndarray, lat: np.ndarray, h: np.ndarray, tris: np.ndarray, rect: tuple[float, float, float, float],
+    *, normals: np.ndarray | None = None, watermask: np.ndarray | int | None = None,
+    metadata: dict[str, Any] | None = None,
+) -> bytes:  # fmt: skip
+    """One quantized-mesh 1.0 tile (uncompressed bytes) of a mesh in degrees / ellipsoidal metres.
+
+    ``tris`` counter-clockwise seen from above; ``normals`` (N, 3) ECEF unit vectors; ``watermask`` a
+    256² uint8 grid (north row first) or one byte; ``metadata`` a JSON object.
+    """
+    w, s, e, n = rect
+    u = np.rint(np.clip((lon - w) / (e - w), 0, 1) * 32767).astype(np.int64)
+    v = np.rint(np.clip((lat - s) / (n - s), 0, 1) * 32767).astype(np.int64)
+    hmin, hmax = float(h.min()), float(h.max())
+    hq = np.rint((h - hmin) / max(hmax - hmin, 1e-9) * 32767).astype(np.int64) if hmax > hmin else 0 * u
+    order, t = _reorder(np.column_stack([u, v]), np.asarray(tris, np.int64))
+    u, v, hq = u[order], v[order], hq[order]
+    ecef = ecef_lonlat(np.asarray(lon)[order], np.asarray(lat)[order], np.asarray(h)[order])
+    lo, hi = ecef.min(axis=0), ecef.max(axis=0)
+    centre = 0.5 * (lo + hi)
+    sc = centre  # the box centre and the farthest vertex (a tight enough sphere, in double precision)
+    radius = float(np.sqrt(((ecef - sc) ** 2).sum(axis=1).max()))
+    occ = horizon_occlusion_point(ecef, sc)
+    out = io.BytesIO()
+    out.write(struct.pack("<3d2f4d3d", *centre, hmin, hmax, *sc, radius, *occ))
+    nv = len(u)
+    out.write(struct.pack("<I", nv))
+    for a in (u, v, hq):
+        out.write(_zigzag_delta(a).astype("<u2").tobytes())
+    wide = nv > 65536
+    if wide and out.tell() % 4:
+        out.write(b"\x00" * (4 - out.tell() % 4))
+    dt = "<u4" if wide else "<u2"
+    out.write(struct.pack("<I", len(t)))
+    out.write(_hwm_encode(t).astype(dt).tobytes())
+    for side in (u == 0, v == 0, u == 32767, v == 32767):  # west, south, east, north
+        ids = np.flatnonzero(side)
+        out.write(struct.pack("<I", ids.size))
+        out.write(ids.astype(dt).tobytes())
+    if normals is not None:
+        enc = oct_encode(np.asarray(normals)[order]).tobytes()
+        out.write(struct.pack("<BI", EXT_NORMALS, len(enc)) + enc)
+    if watermask is not None:
+        wm = np.asarray(watermask, np.uint8).tobytes()
+        out.write(struct.pack("<BI", EXT_WATERMASK, len(wm)) + wm)
+    if metadata is not None:
+        js = json.dumps(metadata, separators=(",", ":")).encode()
+        out.write(struct.pack("<BII", EXT_METADATA, len(js) + 4, len(js)) + js)
+    return out.getvalue()
+
+
+def decode_tile(data: bytes, rect: tuple[float, float, float, float] | None = None) -> dict[str, Any]:
+    """Parse a quantized-mesh tile (gzip'd or not): header, u/v/h, triangles, edges, extensions; with
+    ``rect`` also lon/lat/height of the vertices."""
+    if data[:2] == b"\x1f\x8b":
+        data = gzip.decompress(data)
+    head = struct.unpack_from("<3d2f4d3d", data, 0)
+    pos = 88
+    (nv,) = struct.unpack_from("<I", data, pos)
+    pos += 4
+    uvh = [_unzigzag_delta(np.frombuffer(data, "<u2", nv, pos + 2 * k * nv)) for k in range(3)]
+    pos += 6 * nv
+    wide = nv > 65536
+    if wide and pos % 4:
+        pos += 4 - pos % 4
+    dt, sz = ("<u4", 4) if wide else ("<u2", 2)
+    (nt,) = struct.unpack_from("<I", data, pos)
+    pos += 4
+    tris = _hwm_decode(np.frombuffer(data, dt, 3 * nt, pos)).reshape(-1, 3)
+    pos += sz * 3 * nt
+    edges = []
+    for _ in range(4):
+        (ne,) = struct.unpack_from("<I", data, pos)
+        pos += 4
+        edges.append(np.frombuffer(data, dt, ne, pos).astype(np.int64))
+        pos += sz * ne
+    ext: dict[int, bytes] = {}
+    while pos < len(data):
+        eid, ln = struct.unpack_from("<BI", data, pos)
+        ext[eid] = data[pos + 5 : pos + 5 + ln]
+        pos += 5 + ln
+    out: dict[str, Any] = {
+        "center": head[0:3], "min_height": head[3], "max_height": head[4], "sphere": head[5:9],
+        "occlusion": head[9:12], "u": uvh[0], "v": uvh[1], "hq": uvh[2], "triangles": tris,
+        "west": edges[0], "south": edges[1], "east": edges[2], "north": edges[3],
+    }  # fmt: skip
+    out["height"] = head[3] + uvh[2] / 32767.0 * (head[4] - head[3])
+    if EXT_NORMALS in ext:
+        out["normals"] = oct_decode(np.frombuffer(ext[EXT_NORMALS], np.uint8).reshape(-1, 2))
+    if EXT_WATERMASK in ext:
+        wm = np.frombuffer(ext[EXT_WATERMASK], np.uint8)
+        out["watermask"] = wm.reshape(256, 256) if wm.size == 65536 else int(wm[0])
+    if EXT_METADATA in ext:
+        (ln,) = struct.unpack_from("<I", ext[EXT_METADATA], 0)
+        out["metadata"] = json.loads(ext[EXT_METADATA][4 : 4 + ln])
+    if rect is not None:
+        w, s, e, n = rect
+        out["lon"] = w + uvh[0] / 32767.0 * (e - w)
+        out["lat"] = s + uvh[1] / 32767.0 * (n - s)
+    return out
+
+
+# -- the reference surface -----------------------------------------------------------------------------
+class _Reference:
+    """The source samples (x, y, z in the CRS, valid) and the surface through them (``height_at``)."""
+
+    def __init__(self, terrain: Any, geo: Geodesy) -> None:
+        self.hf = source_heightfield(terrain)
+        if self.hf is not None:
+            hf = self.hf
+            rows, cols = np.mgrid[0 : hf.height, 0 : hf.width]
+            x, y = hf.transform * (cols.ravel() + 0.5, rows.ravel() + 0.5)
+            self.xyz = np.column_stack([x, y, np.asarray(hf.elevation_m, np.float64).ravel()])
+            self.valid = np.asarray(hf.valid).ravel()
+            self.spacing_m = float(min(abs(hf.transform.a), abs(hf.transform.e)))
+            self._inv = ~hf.transform
+            self._z = np.asarray(hf.elevation_m, np.float64)
+        else:
+            import matplotlib.tri as mtri
+
+            tree = terrain.lod_tree()
+            parents = {n.parent for n in tree}
+            vs, ts, base = [], [], 0
+            for n in tree:
+                if n.code in parents:
+                    continue
+                v, t = terrain.lod_mesh(n.code)
+                used = np.unique(t)
+                remap = np.full(len(v), -1, np.int64)
+                remap[used] = np.arange(used.size)
+                vs.append(np.asarray(v, np.float64)[used])
+                ts.append(remap[t] + base)
+                base += used.size
+            allv = np.concatenate(vs)
+            key, first, inv = np.unique(
+                np.round(allv[:, :2], 4), axis=0, return_index=True, return_inverse=True
+            )
+            self.xyz = allv[first]
+            tri = inv.reshape(-1)[np.concatenate(ts)]
+            self._tri = mtri.LinearTriInterpolator(mtri.Triangulation(self.xyz[:, 0], self.xyz[:, 1], tri),
+                                                   self.xyz[:, 2])  # fmt: skip
+            self.valid = np.ones(len(self.xyz), bool)
+            w, s, e, n = terrain.bounds_m
+            self.spacing_m = float(math.sqrt((e - w) * (n - s) / max(len(self.xyz), 1)))
+        lon, lat = geo.lonlat(self.xyz[:, 0], self.xyz[:, 1])
+        self.lon, self.lat = lon, lat
+
+    def height_at(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(heights, valid) at CRS points: bilinear on the filled source, its edges extended outside it (valid
+        False there)."""
+        if self.hf is not None:
+            col, row = self._inv * (x, y)
+            col, row = np.asarray(col) - 0.5, np.asarray(row) - 0.5
+            hgt, wid = self._z.shape
+            inside = (col >= -0.5) & (row >= -0.5) & (col <= wid - 0.5) & (row <= hgt - 0.5)
+            c = np.clip(col, 0, wid - 1)
+            r = np.clip(row, 0, hgt - 1)
+            c0 = np.minimum(np.floor(c).astype(np.int64), wid - 2 if wid > 1 else 0)
+            r0 = np.minimum(np.floor(r).astype(np.int64), hgt - 2 if hgt > 1 else 0)
+            fc, fr = c - c0, r - r0
+            z = self._z
+            c1, r1 = np.minimum(c0 + 1, wid - 1), np.minimum(r0 + 1, hgt - 1)
+            out = (z[r0, c0] * (1 - fc) * (1 - fr) + z[r0, c1] * fc * (1 - fr) + z[r1, c0] * (1 - fc) * fr
+                   + z[r1, c1] * fc * fr)  # fmt: skip
+            ok = np.zeros(out.shape, bool)
+            ri, ci = np.rint(r).astype(np.int64), np.rint(c).astype(np.int64)
+            ok[inside] = self.hf.valid[ri[inside], ci[inside]]
+            return out, ok
+        z = np.asarray(self._tri(x, y).filled(np.nan), np.float64)
+        ok = np.isfinite(z)
+        if not ok.all():
+            from scipy.spatial import cKDTree
+
+            if not hasattr(self, "_kd"):
+                self._kd = cKDTree(self.xyz[:, :2])
+            _, j = self._kd.query(np.column_stack([x[~ok], y[~ok]]))
+            z[~ok] = self.xyz[j, 2]
+        return z, ok
+
+
+# -- the tiles -----------------------------------------------------------------------------------------
+@dataclass
+class QmTile:
+    data: bytes
+    error_m: float
+    triangles: int
+    vertices: int
+    nodata_fraction: float
+
+
+class QuantizedMesh:
+    """The quantized-mesh view of one terrain: :meth:`layer` (layer.json dict) and :meth:`tile` (bytes)."""
+
+    def __init__(self, terrain: Any, *, target_fraction: float = TARGET_FRACTION) -> None:
+        self.terrain = terrain
+        where = str(terrain.path) if terrain.path is not None else None
+        self.geo = Geodesy(terrain.crs, where)
+        self.ref = _Reference(terrain, self.geo)
+        self.target_fraction = target_fraction
+        ok = self.ref.valid
+        self.bbox = (float(self.ref.lon[ok].min()), float(self.ref.lat[ok].min()),
+                     float(self.ref.lon[ok].max()), float(self.ref.lat[ok].max()))  # fmt: skip
+        deg_per_m = 1.0 / 111320.0
+        spacing_deg = self.ref.spacing_m * deg_per_m
+        self.max_zoom = 0
+        while 180.0 / (1 << self.max_zoom) / (SAMPLES - 1) > spacing_deg and self.max_zoom < 22:
+            self.max_zoom += 1
+        self._errors: dict[tuple[int, int, int], float] = {}
+
+    def target_error_m(self, z: int) -> float:
+        """Greedy-insertion target of level z: a fraction of CesiumJS's level error; 8x finer at the last
+        level (nothing refines it, so it carries the detail of the source)."""
+        f = self.target_fraction / (8.0 if z >= self.max_zoom else 1.0)
+        return f * level_max_error_m(z)
+
+    def level_range(self, z: int) -> tuple[int, int, int, int]:
+        """(x0, y0, x1, y1) inclusive of the tiles of level z that meet the terrain (both roots at 0)."""
+        if z == 0:
+            return (0, 0, 1, 0)
+        d = 180.0 / (1 << z)
+        w, s, e, n = self.bbox
+        x0, x1 = int((w + 180.0) // d), int((e + 180.0) // d)
+        y0, y1 = int((s + 90.0) // d), int((n + 90.0) // d)
+        return (x0, y0, min(x1, (2 << z) - 1), min(y1, (1 << z) - 1))
+
+    def available(self, z: int, x: int, y: int) -> bool:
+        if not 0 <= z <= self.max_zoom:
+            return False
+        x0, y0, x1, y1 = self.level_range(z)
+        return x0 <= x <= x1 and y0 <= y <= y1
+
+    def tile_codes(self) -> list[tuple[int, int, int]]:
+        out = []
+        for z in range(self.max_zoom + 1):
+            x0, y0, x1, y1 = self.level_range(z)
+            out += [(z, x, y) for y in range(y0, y1 + 1) for x in range(x0, x1 + 1)]
+        return out
+
+    def layer(self) -> dict[str, Any]:
+        return {
+            "tilejson": "2.1.0",
+            "name": Path(str(self.terrain.path)).stem if self.terrain.path is not None else "terrain",
+            "description": "terralod export: measured error per tile (metadata extension terralod.error_m)",
+            "version": "1.0.0",
+            "format": "quantized-mesh-1.0",
+            "scheme": "tms",
+            "projection": "EPSG:4326",
+            "tiles": ["{z}/{x}/{y}.terrain?v={version}"],
+            "bounds": list(self.bbox),
+            "minzoom": 0,
+            "maxzoom": self.max_zoom,
+            "extensions": ["octvertexnormals", "watermask", "metadata"],
+            "available": [[dict(zip(("startX", "startY", "endX", "endY"), self.level_range(z), strict=True))]
+                          for z in range(self.max_zoom + 1)],
+            "terralod": {"heights": "as read (no geoid change)", "nodata": "height 0 outside the source, fill "
+                         "inside; watermask 255 and metadata nodata_fraction mark both",
+                         "target_error_m": [round(self.target_error_m(z), 4) for z in range(self.max_zoom + 1)]},
+        }  # fmt: skip
+
+    def samples(self, z: int, x: int, y: int, n: int = SAMPLES) -> tuple[np.ndarray, ...]:
+        """(lon, lat, heights, valid) on the tile's n² lattice plus a one-sample margin ((n+2)², north row first)."""
+        w, s, e, nn = tile_rectangle(z, x, y)
+        du, dv = (e - w) / (n - 1), (nn - s) / (n - 1)
+        lon = w + du * np.arange(-1, n + 1)
+        lat = nn - dv * np.arange(-1, n + 1)
+        LON, LAT = np.meshgrid(lon, lat)
+        lat_c = np.clip(LAT, -89.9, 89.9)
+        # the source's edges extend 2 lattice cells beyond its footprint (no cliff next to a source sample)
+        inb = (LON >= self.bbox[0] - 2 * du) & (LON <= self.bbox[2] + 2 * du) & \
+              (lat_c >= self.bbox[1] - 2 * dv) & (lat_c <= self.bbox[3] + 2 * dv)  # fmt: skip
+        hgt = np.full(LON.shape, np.nan)
+        ok = np.zeros(LON.shape, bool)
+        if inb.any():
+            px, py = self.geo.xy(LON[inb], lat_c[inb])
+            hv, okv = self.ref.height_at(px, py)
+            hgt[inb], ok[inb] = hv, okv
+        return LON, LAT, hgt, ok
+
+    def tile(self, z: int, x: int, y: int, *, regular: int | None = None) -> QmTile:
+        """Tile z/x/y: greedy-insertion mesh (or, with ``regular=k``, the k² regular grid), error measured."""
+        from pydelatin import Delatin
+
+        rect = tile_rectangle(z, x, y)
+        LON, LAT, hgt, ok = self.samples(z, x, y)
+        known = np.isfinite(hgt)
+        nodata = float(1.0 - (ok[1:-1, 1:-1]).mean())
+        filled = np.where(known, hgt, 0.0)
+        core = filled[1:-1, 1:-1]
+        target = self.target_error_m(z)
+        n = SAMPLES
+        if regular:
+            step = (n - 1) // (regular - 1)
+            ii = np.arange(0, n, step)
+            C, R = np.meshgrid(ii, ii)
+            cols, rows = C.ravel(), R.ravel()
+            k = len(ii)
+            a = (np.arange(k - 1)[None, :] + k * np.arange(k - 1)[:, None]).ravel()
+            tris = np.concatenate([np.stack([a, a + k, a + 1], 1), np.stack([a + 1, a + k, a + k + 1], 1)])
+        else:
+            d = Delatin(core.astype(np.float32), width=n, height=n, max_error=target)
+            cols = np.rint(d.vertices[:, 0]).astype(np.int64)
+            rows = (n - 1) - np.rint(d.vertices[:, 1]).astype(np.int64)  # Delatin's y grows north
+            tris = np.asarray(d.triangles, np.int64)
+        hv = core[rows, cols]
+        w, s, e, nn = rect
+        lon = w + cols * (e - w) / (n - 1)
+        lat = nn - rows * (nn - s) / (n - 1)
+        # counter-clockwise seen from above (east, north)
+        p = np.column_stack([lon, lat])
+        cr = np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]])
+        tris[cr < 0] = tris[cr < 0][:, ::-1]
+        err = self.measure(rect, lon, lat, hv, tris)
+        normals = self._normals(filled, rows, cols, rect, lon, lat)
+        mask = ~ok[1:-1, 1:-1]
+        if mask.all():
+            wm: np.ndarray | int = 255
+        elif not mask.any():
+            wm = 0
+        else:
+            wm = (mask[:256, :256] * 255).astype(np.uint8)
+        meta = {"terralod": {"error_m": round(err, 4), "nodata_fraction": round(nodata, 4),
+                             "target_error_m": round(target, 4)}}  # fmt: skip
+        raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm, metadata=meta)
+        self._errors[(z, x, y)] = err
+        return QmTile(gzip.compress(raw, 6, mtime=0), err, len(tris), len(lon), nodata)
+
+    def measure(self, rect: tuple[float, ...], lon: np.ndarray, lat: np.ndarray, h: np.ndarray,
+                tris: np.ndarray) -> float:  # fmt: skip
+        """Max vertical distance (m) from the valid source samples inside ``rect`` to the tile surface."""
+        import matplotlib.tri as mtri
+
+        w, s, e, n = rect
+        r = self.ref
+        sel = r.valid & (r.lon >= w) & (r.lon <= e) & (r.lat >= s) & (r.lat <= n)
+        if not sel.any():
+            return 0.0
+        su, sv = (lon - w) / (e - w), (lat - s) / (n - s)
+        interp = mtri.LinearTriInterpolator(mtri.Triangulation(su, sv, tris), h)
+        zt = np.asarray(interp((r.lon[sel] - w) / (e - w), (r.lat[sel] - s) / (n - s)).filled(np.nan))
+        d = np.abs(zt - r.xyz[sel, 2])
+        return float(np.nanmax(d)) if np.isfinite(d).any() else 0.0
+
+    def _normals(self, filled: np.ndarray, rows: np.ndarray, cols: np.ndarray, rect: tuple[float, ...],
+                 lon: np.ndarray, lat: np.ndarray) -> np.ndarray:  # fmt: skip
+        """ECEF unit normals of the sampled surface at the vertices (central differences, metres)."""
+        w, s, e, n = rect
+        du_m = (e - w) / (SAMPLES - 1) * 111320.0 * np.cos(np.radians(np.clip(lat, -89.9, 89.9)))
+        dv_m = (n - s) / (SAMPLES - 1) * 111320.0
+        r, c = rows + 1, cols + 1
+        dzdx = (filled[r, c + 1] - filled[r, c - 1]) / (2 * np.maximum(du_m, 1e-6))
+        dzdy = (filled[r - 1, c] - filled[r + 1, c]) / (2 * dv_m)
+        enu = np.column_stack([-dzdx, -dzdy, np.ones_like(dzdx)])
+        enu /= np.linalg.norm(enu, axis=1, keepdims=True)
+        ea, no, up = enu_frame(lon, lat)
+        out = ea * enu[:, :1] + no * enu[:, 1:2] + up * enu[:, 2:3]
+        return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def export_quantized_mesh(
+    terrain: Any,
+    out: str | Path,
+    *,
+    epoch: str | None = None,
+    overwrite: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> ExportReport:
+    """Write ``out/layer.json`` and the gzip'd ``out/Z/X/Y.terrain`` tiles (serve them with
+    ``Content-Encoding: gzip``, as ``terralod serve`` does)."""
+    t0 = time.perf_counter()
+    check_exportable(terrain, epoch)
+    if epoch is not None:
+        terrain = terrain.at_epoch(epoch)
+    qm = QuantizedMesh(terrain)
+    rep = ExportReport(Path(out))
+    per_level: dict[int, float] = {}
+    with atomic_folder(out, overwrite) as tmp:
+        codes = qm.tile_codes()
+        for i, (z, x, y) in enumerate(codes):
+            t = qm.tile(z, x, y)
+            f = tmp / str(z) / str(x) / f"{y}.terrain"
+            f.parent.mkdir(parents=True, exist_ok=True)
+            f.write_bytes(t.data)
+            rep.tiles += 1
+            rep.bytes += len(t.data)
+            rep.triangles += t.triangles
+            per_level[z] = max(per_level.get(z, 0.0), t.error_m)
+            if progress is not None:
+                progress(i + 1, len(codes))
+        layer = qm.layer()
+        layer["terralod"]["error_m"] = [round(per_level.get(z, 0.0), 4) for z in range(qm.max_zoom + 1)]
+        js = json.dumps(layer, indent=1)
+        (tmp / "layer.json").write_text(js)
+        rep.bytes += len(js)
+    rep.seconds = time.perf_counter() - t0
+    rep.extra = {
+        "format": "quantized-mesh",
+        "max_zoom": qm.max_zoom,
+        "error_m_per_level": layer["terralod"]["error_m"],
+    }
+    return rep
