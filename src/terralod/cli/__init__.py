@@ -26,6 +26,9 @@ COMMANDS = [
     ("view", "view"),
     ("demo", "demo"),
     ("bench", "bench"),
+    ("update", "update"),
+    ("epochs", "epochs"),
+    ("edit", "edit"),
     ("change", "change"),
     ("check", "check"),
 ]

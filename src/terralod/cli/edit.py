@@ -1,0 +1,48 @@
+"""``terralod edit STORE --polygon cut.geojson --depth-m 12`` (or ``--patch slide.tif``): an excavation, a
+fill (negative depth) or a pasted raster as a new epoch, rebuilding only the tiles it touches (issue 15)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from terralod.cli._common import console, progress
+
+
+@click.command()
+@click.argument("store")
+@click.option(
+    "--polygon", default=None, help="GeoJSON polygon(s) to dig (CRS from its crs member, else lon/lat)."
+)
+@click.option(
+    "--depth-m", type=float, default=None, help="Metres to lower the polygon by (negative: fill/dam)."
+)
+@click.option("--patch", default=None, help="Raster pasted over the terrain (a landslide, a surveyed pit).")
+@click.option("--epoch", default=None, help="Name of the new epoch (default: edit-N).")
+@click.option("--from", "base", default=None, help="Epoch to edit (default: the latest).")
+@click.option("--resume", is_flag=True, help="Finish an interrupted edit of the same epoch.")
+@click.option("--workers", type=click.IntRange(1, 256), default=None, help="Threads (default: all cores).")
+def edit(store: str, polygon, depth_m, patch, epoch, base, resume: bool, workers) -> None:
+    """Dig, fill or patch the terrain of STORE and keep the result as a new epoch."""
+    from terralod.change.epochs import edit_store
+    from terralod.cli.update import print_update
+
+    if (polygon is None) == (patch is None):
+        raise click.UsageError("give --polygon with --depth-m, or --patch")
+    if polygon is not None and depth_m is None:
+        raise click.BadParameter(
+            "--polygon needs --depth-m (metres down; negative for a fill)", param_hint="--depth-m"
+        )
+    with progress("editing") as prog:
+        task = prog.add_task(Path(store).name, total=None)
+
+        def cb(done: int, total: int) -> None:
+            prog.update(task, completed=done, total=total)
+
+        res, rep = edit_store(store, polygon=polygon, depth_m=depth_m, patch=patch, epoch=epoch, base=base,
+                              resume=resume, workers=workers, progress=cb)  # fmt: skip
+    d = res.description
+    what = {"excavation": "removed", "fill": "added", "patch": "changed (net)"}[d["edit"]]
+    console.print(f"{d['edit']}: {abs(res.volume_m3):,.0f} m³ {what} over {d['cells']:,} cells")
+    print_update(rep)

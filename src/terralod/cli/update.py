@@ -1,0 +1,60 @@
+"""``terralod update STORE DEM --epoch DATE``: add an epoch of the same terrain to a store, rebuilding only
+the tiles whose source windows changed (issue 15; :mod:`terralod.pyramid.update`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import click
+
+from terralod.cli._common import console, load, progress, read_options
+
+
+def print_update(rep: Any) -> None:
+    """One summary of an :class:`terralod.pyramid.update.UpdateReport`."""
+    if not rep.complete:
+        console.print(
+            f"{rep.path}: epoch {rep.epoch} INCOMPLETE: {rep.tiles_skipped + rep.tiles_built} of "
+            f"{rep.tiles_dirty} tiles rebuilt (finish with --resume)"
+        )
+        return
+    console.print(
+        f"{rep.path}: epoch {rep.epoch} added (from {rep.base_epoch}): {rep.changed_samples:,} samples changed, "
+        f"{rep.tiles_dirty} of {rep.tiles_total} tiles rebuilt ({rep.tiles_built} now), {rep.tiles_shared} "
+        f"shared, in {rep.seconds:.2f} s ({rep.ms_per_tile:.1f} ms per rebuilt tile)"
+    )
+
+
+def run_update(hf, store: str, epoch: str, **kw: Any):
+    """:func:`terralod.pyramid.update.update_store` with a progress bar."""
+    from pathlib import Path
+
+    from terralod.pyramid.update import update_store
+
+    with progress("updating") as prog:
+        task = prog.add_task(Path(store).name, total=None)
+
+        def cb(done: int, total: int) -> None:
+            prog.update(task, completed=done, total=total)
+
+        return update_store(hf, store, epoch, progress=cb, **kw)
+
+
+@click.command()
+@click.argument("store")
+@click.argument("dem")
+@click.option("--epoch", required=True, help="Name of the new epoch, e.g. the survey date 2007-07-05.")
+@click.option(
+    "--from", "base", default=None, help="Epoch to share unchanged tiles with (default: the latest)."
+)
+@click.option("--resume", is_flag=True, help="Finish an interrupted update of the same epoch and DEM.")
+@click.option("--workers", type=click.IntRange(1, 256), default=None, help="Threads (default: all cores).")
+@read_options
+def update(store: str, dem: str, epoch: str, base, resume: bool, workers, **read: Any) -> None:
+    """Add DEM as epoch EPOCH of STORE (same grid and CRS), rebuilding only the tiles that changed."""
+    from terralod.store import open_store
+
+    with open_store(store):  # a missing or foreign store is named before the DEM is read
+        pass
+    hf = load(dem, **read)
+    print_update(run_update(hf, store, epoch, base=base, resume=resume, workers=workers))
