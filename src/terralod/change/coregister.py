@@ -228,3 +228,46 @@ def _fit_terralod(
 
 def _num(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
+
+
+def read_stable_mask(path, hf) -> np.ndarray:
+    """A stable-ground mask on ``hf``'s grid from a raster (non-zero, finite = stable; nearest-neighbour
+    onto the grid, in its own CRS) or from GeoJSON polygons (inside = stable; see
+    :func:`terralod.change.volumes.read_zones` for their CRS)."""
+    from pathlib import Path
+
+    from terralod.errors import InputError, InputNotFoundError
+
+    p = Path(path)
+    if not p.exists():
+        raise InputNotFoundError("file not found", str(p))
+    if p.suffix.lower() in (".geojson", ".json"):
+        from terralod.change.volumes import read_zones
+
+        masks = [m for _, m, _, _ in read_zones(p, hf)]
+        return np.logical_or.reduce(masks)
+    import rasterio
+    from rasterio.warp import Resampling, reproject
+
+    try:
+        with rasterio.open(p) as ds:
+            src = ds.read(1).astype(np.float32)
+            if ds.nodata is not None:
+                src[src == ds.nodata] = 0
+            out = np.zeros(hf.shape, np.float32)
+            crs = ds.crs or hf.crs
+            if crs is None or hf.crs is None:
+                if src.shape != hf.shape:
+                    raise InputError(
+                        f"has no CRS and its shape {src.shape} is not the DEM's {hf.shape}", str(p)
+                    )
+                out = src
+            else:
+                reproject(src, out, src_transform=ds.transform, src_crs=crs, dst_transform=hf.transform,
+                          dst_crs=hf.crs, resampling=Resampling.nearest)  # fmt: skip
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(f"is not a raster mask or GeoJSON ({exc})", str(p)) from None
+    mask = np.isfinite(out) & (out != 0)
+    if not mask.any():
+        raise InputError("marks no stable cell on the terrain", str(p))
+    return mask

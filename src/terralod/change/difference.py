@@ -18,13 +18,11 @@ Every step is recorded in :attr:`AlignedPair.notes`, which the summary and the r
 from __future__ import annotations
 
 import json
-import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from affine import Affine
 
 from terralod.errors import InputError
 from terralod.heightfield import Heightfield
@@ -263,9 +261,21 @@ def _bounds(b) -> str:
     return "(" + ", ".join(f"{v:.1f}" for v in b) + ")"
 
 
-def grid_transform(hf: Heightfield) -> Affine:
-    return hf.transform
+def write_dod(path: str | Path, dod: np.ndarray, hf: Heightfield, tags: dict | None = None) -> None:
+    """The DoD as a float32 GeoTIFF on ``hf``'s grid (NaN = no data, unit metres, deflate)."""
+    import rasterio
 
-
-def is_finite_number(v: float) -> bool:
-    return isinstance(v, int | float) and math.isfinite(v)
+    profile = {
+        "driver": "GTiff", "width": hf.width, "height": hf.height, "count": 1, "dtype": "float32",
+        "transform": hf.transform, "nodata": float("nan"), "compress": "deflate",
+    }  # fmt: skip
+    if hf.crs:
+        profile["crs"] = hf.crs
+    if hf.width >= 256 and hf.height >= 256:
+        profile.update(tiled=True, blockxsize=256, blockysize=256)
+    with rasterio.open(path, "w", **profile) as ds:
+        ds.write(dod.astype(np.float32), 1)
+        ds.set_band_description(1, "elevation change after - before (m)")
+        ds.set_band_unit(1, "metre")
+        if tags:
+            ds.update_tags(**{k: str(v) for k, v in tags.items()})

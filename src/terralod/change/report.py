@@ -352,7 +352,7 @@ def figure_series(series: list[dict]) -> bytes:
 
 def render_views(result: ChangeResult, width_px: int = 560, height_px: int = 380) -> list[tuple[str, bytes]]:
     """Before/after 3D views of small tile stores built from the two DEMs (AFTER co-registered, on BEFORE's
-    grid), one camera aimed at the largest change. Empty list when no OpenGL context can be made."""
+    grid), one camera aimed at the largest change. Raises when no OpenGL context can be made."""
     from PIL import Image
 
     import terralod
@@ -377,14 +377,12 @@ def render_views(result: ChangeResult, width_px: int = 560, height_px: int = 380
             try:
                 fr = FrameRenderer(ter, width_px, height_px, threshold_px=1.0,
                                    settings=RenderSettings(height_range_m=(zlo, zhi), fog=False))  # fmt: skip
-            except Exception as exc:  # noqa: BLE001 - no EGL/OpenGL here: the report goes on without views
-                log.warning("3D views skipped: %s", exc)
-                ter.close() if hasattr(ter, "close") else None
-                return []
+            except BaseException:
+                ter.close()
+                raise
             img = fr.frame(pose)
             fr.close()
-            if hasattr(ter, "close"):
-                ter.close()
+            ter.close()
             buf = io.BytesIO()
             Image.fromarray(img).save(buf, format="PNG")
             out.append((label, buf.getvalue()))
@@ -427,8 +425,13 @@ def figures(result: ChangeResult, series: list[dict] | None = None, views: bool 
     if series:
         out["series"] = figure_series(series)
     if views:
-        for label, png in render_views(result):
-            out[f"view_{label}"] = png
+        try:
+            for label, png in render_views(result):
+                out[f"view_{label}"] = png
+        except Exception as exc:  # noqa: BLE001 - no OpenGL context here: the report goes on without views
+            note = f"3D views left out: {type(exc).__name__}: {exc}"
+            log.warning(note)
+            result.summary.setdefault("report_notes", []).append(note)
     return out
 
 
@@ -550,6 +553,7 @@ def _tech_table(result: ChangeResult) -> str:
     items += [("alignment", n) for n in s["alignment_notes"]]
     items += [("co-registration note", n) for n in c["notes"]]
     items += [("warning", w) for w in u["warnings"]]
+    items += [("report note", n) for n in s.get("report_notes", [])]
     rows = "".join(
         f"<tr><td>{html.escape(k)}</td><td style='text-align:left'>{_fmt(v)}</td></tr>" for k, v in items
     )

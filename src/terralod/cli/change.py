@@ -1,0 +1,223 @@
+"""``terralod change BEFORE AFTER -o OUT``: the co-registered difference of two DEMs, its volumes with
+their uncertainty, and a report for non-experts.
+
+Input forms:
+
+- ``BEFORE AFTER`` — two DEMs in any format and CRS the readers take;
+- ``BEFORE AFTER1 AFTER2 ...`` — a series: the summary is BEFORE → the last, plus the volume of each
+  epoch against BEFORE (``series`` in the summary, the volume-against-time figure in the report);
+- ``SERIES.npz`` with arrays ``base``, ``delta`` (epoch i = base + delta[i]), ``dates`` and the
+  georeferencing (``../shared/data/change/``'s layout) — a series of all its epochs;
+- ``SITE.terra --from DATE --to DATE`` — two epochs of one store (``terralod.change.epochs``).
+
+Contract (scripts rely on it): ``OUT/summary.json`` with ``gain_m3``, ``loss_m3``, ``net_m3`` (every valid
+cell, no threshold; gain and loss positive), the same with ``_above_lod``, ``net_uncertainty_m3`` (95 %),
+``area_gain_m2``, ``area_loss_m2`` (beyond the level of detection), ``sigma_m``, ``level_of_detection_m``,
+``max_rise_m``, ``max_drop_m`` (positive), ``shift_m`` ([dx, dy, dz] metres applied to AFTER to align it
+with BEFORE) and ``zones`` (one object per polygon of ``--zones``, empty without); ``OUT/dod.tif``;
+``OUT/report.html`` (plus the report's PNGs in ``OUT/figures/``). Exit 0, or 2 on bad input with one line
+naming the file. OUT is written to a temporary folder beside it and renamed into place at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+from pathlib import Path
+from typing import Any
+
+import click
+
+from terralod.cli._common import console, is_store, load, read_options
+
+_DATE = re.compile(r"(\d{4}-\d{2}-\d{2})")
+
+
+def _date_of(path: str) -> str | None:
+    m = _DATE.search(Path(path).name)
+    return m.group(1) if m else None
+
+
+def _check_out(out: Path, inputs: list[str], overwrite: bool) -> None:
+    from terralod.errors import InputError
+
+    o = out.resolve()
+    for src in inputs:
+        s = Path(src).resolve()
+        if s == o or o in s.parents:
+            raise InputError(f"is (or holds) the input {src}; writing there would destroy it", str(out))
+    if out.exists() and not out.is_dir():
+        raise InputError("exists and is not a folder; the change output is a folder", str(out))
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise InputError("already exists; pass --overwrite to replace it", str(out))
+    if not o.parent.is_dir():
+        raise InputError(f"output folder {o.parent} does not exist", str(out))
+
+
+def _read_npz_series(path: str):
+    """Epochs of a base + delta series file as Heightfields, with their dates."""
+    import numpy as np
+    from affine import Affine
+
+    from terralod.errors import InputError
+    from terralod.io.raster import georeferenced_heightfield
+
+    with np.load(path, allow_pickle=False) as z:
+        if "base" not in z or "delta" not in z:
+            return None
+        base = np.asarray(z["base"], np.float32)
+        delta = np.asarray(z["delta"], np.float32)
+        dates = [str(d) for d in z["dates"]] if "dates" in z else [f"epoch {i}" for i in range(len(delta))]
+        gt = [float(v) for v in z["transform"]] if "transform" in z else None
+        crs = str(z["crs"]) if "crs" in z else None
+    if gt is None or crs is None:
+        raise InputError("a series .npz needs 'transform' (GDAL geotransform) and 'crs'", path)
+    t = Affine.from_gdal(*gt)
+    out = []
+    for i in range(delta.shape[0]):
+        e = base + delta[i]
+        ok = np.isfinite(e)
+        out.append(georeferenced_heightfield(np.where(ok, e, np.nan), ok, t, crs, f"{path}[{dates[i]}]"))
+    return out, dates
+
+
+def _epoch(store: str, date: str):
+    from terralod.errors import InputError
+
+    try:
+        from terralod.change.epochs import epoch_heightfield
+    except ImportError:
+        raise InputError(
+            "this terralod has no epoch stores (terralod.change.epochs); give two DEMs", store
+        ) from None
+    return epoch_heightfield(store, date)
+
+
+@click.command()
+@click.argument("inputs", nargs=-1, required=True)
+@click.option("-o", "--output", required=True, help="Folder to write (summary.json, dod.tif, report.html).")
+@click.option("--zones", help="GeoJSON polygons: a budget per polygon (its 'name' property).")
+@click.option("--stable", help="Stable ground: a raster mask (non-zero = stable) or GeoJSON polygons.")
+@click.option("--no-coregister", is_flag=True, help="Skip the co-registration (no shift applied).")
+@click.option("--coreg", "coreg_method", type=click.Choice(["xdem", "terralod"]), default="xdem",
+              show_default=True, help="Nuth & Kääb estimator: xdem's or terralod's own.")  # fmt: skip
+@click.option(
+    "--sigma-m", type=float, help="Vertical uncertainty of the difference, metres (overrides the NMAD)."
+)
+@click.option("--corr-range-m", type=float, help="Correlation range of the errors, metres (default: fitted).")
+@click.option("--confidence", type=click.FloatRange(0.5, 0.9999), default=0.95, show_default=True)
+@click.option("--from", "date_from", help="Epoch date of BEFORE (a .terra store).")
+@click.option("--to", "date_to", help="Epoch date of AFTER (a .terra store).")
+@click.option("--dates", help="Comma-separated ISO dates of the inputs (default: from the file names).")
+@click.option("--no-views", is_flag=True, help="Leave the 3D before/after views out of the report.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
+@read_options
+def change(
+    inputs, output, zones, stable, no_coregister, coreg_method, sigma_m, corr_range_m, confidence, date_from,
+    date_to, dates, no_views, overwrite, **read: Any,
+) -> None:  # fmt: skip
+    """Difference, volumes ± uncertainty and a report of the change between DEMs (BEFORE AFTER...)."""
+    from terralod.change.coregister import read_stable_mask
+    from terralod.change.difference import check_vertical_units, write_dod
+    from terralod.change.report import plain_summary, write_report
+    from terralod.change.volumes import measure_change, series_volumes
+    from terralod.errors import InputError
+
+    out = Path(output)
+    _check_out(out, [*inputs, *(p for p in (zones, stable) if p)], overwrite)
+    first = inputs[0]
+    notes: list[str] = []
+    series_hf = None
+    if len(inputs) == 1 and Path(first).is_file() and is_store(Path(first)):
+        if not (date_from and date_to):
+            raise InputError("a .terra store needs --from DATE and --to DATE", first)
+        hfs, ds = [_epoch(first, date_from), _epoch(first, date_to)], [date_from, date_to]
+    elif len(inputs) == 1 and first.lower().endswith(".npz") and (got := _read_npz_series(first)):
+        series_hf, ds = got
+        hfs = [series_hf[0], series_hf[-1]]
+        ds = list(ds)
+        if len(series_hf) < 2:
+            raise InputError("a series needs at least two epochs", first)
+    elif len(inputs) == 1:
+        raise InputError("needs a second DEM to compare with (BEFORE AFTER)", first)
+    else:
+        hfs = [load(p, **read) for p in inputs]
+        ds = [_date_of(p) for p in inputs]
+        for p in inputs[1:]:
+            notes += check_vertical_units(inputs[0], p)
+        if len(inputs) > 2:
+            series_hf = hfs
+    if dates:
+        given = [d.strip() for d in dates.split(",")]
+        n = len(series_hf) if series_hf else 2
+        if len(given) != n:
+            raise click.BadParameter(f"expected {n} dates, got {len(given)}", param_hint="--dates")
+        ds = given
+    pair_dates = (ds[0], ds[-1])
+    before, after = hfs[0], hfs[-1]
+    mask = read_stable_mask(stable, before) if stable else None
+    result = measure_change(
+        before, after, stable=mask, coregistration=not no_coregister, method=coreg_method, sigma_m=sigma_m,
+        corr_range_m=corr_range_m, confidence=confidence, zones=zones, dates=pair_dates,
+    )  # fmt: skip
+    result.summary["alignment_notes"] = notes + result.summary["alignment_notes"]
+    series = None
+    if series_hf is not None:
+        series = series_volumes(series_hf, list(ds), sigma_m=sigma_m, corr_range_m=corr_range_m,
+                                confidence=confidence, coregistration=not no_coregister, method=coreg_method)  # fmt: skip
+        result.summary["series"] = series
+
+    tmp = out.resolve().parent / f".{out.name}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir()
+    try:
+        s = result.summary
+        write_dod(tmp / "dod.tif", result.dod, before, {
+            "sigma_m": s["sigma_m"], "level_of_detection_m": s["level_of_detection_m"],
+            "shift_m": s["shift_m"], "before": s["before"]["source"], "after": s["after"]["source"],
+        })  # fmt: skip
+        write_report(
+            result, tmp / "report.html", series=series, views=not no_views, figures_dir=tmp / "figures"
+        )
+        (tmp / "summary.json").write_text(json.dumps(_jsonable(s), indent=2) + "\n")
+        old = None
+        if out.exists():
+            old = out.resolve().parent / f".{out.name}.old-{os.getpid()}"
+            os.replace(out, old)
+        os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    for w in [*result.uncertainty.warnings, *result.summary.get("report_notes", [])]:
+        click.echo(f"terralod: warning: {w}", err=True)
+    for line in plain_summary(result, pair_dates):
+        console.print(line)
+    s = result.summary
+    console.print(
+        f"{out}: net {s['net_m3']:,.0f} ± {s['net_uncertainty_m3']:,.0f} m³, gain {s['gain_m3']:,.0f} m³, loss "
+        f"{s['loss_m3']:,.0f} m³; beyond the LoD ({s['level_of_detection_m']:.2f} m) gain "
+        f"{s['gain_m3_above_lod']:,.0f} m³ over {s['area_gain_m2']:,.0f} m², loss {s['loss_m3_above_lod']:,.0f} m³ "
+        f"over {s['area_loss_m2']:,.0f} m²; σ {s['sigma_m']:.3f} m ({s['sigma_source']}); shift "
+        + ", ".join(f"{v:.3f}" for v in s["shift_m"]) + " m"
+    )  # fmt: skip
+    for n in s["alignment_notes"]:
+        console.print(f"  {n}")
+
+
+def _jsonable(v):
+    import numpy as np
+
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, np.generic):
+        v = v.item()
+    if isinstance(v, float) and not np.isfinite(v):
+        return None
+    return v
