@@ -134,6 +134,8 @@ class RenderSettings:
     height_range_m: tuple[float, float] | None = None
     #: skip triangles seen from behind (terrain is seen from above; counter-clockwise from above is front)
     cull_back_faces: bool = True
+    #: a :class:`terralod.render.overlay.ChangeOverlay` coloured over the terrain (gain / loss), or None
+    overlay: object = None
 
 
 class _Arena:
@@ -510,6 +512,9 @@ class TerrainRenderer:
         self.prog["u_mode"].value = {"elevation": 0, "lod": 1, "error": 2, "facing": 3}[st.mode]
         self.ramp.use(0)
         self.prog["u_ramp"].value = 0
+        self.prog["u_overlay"].value = 0 if st.overlay is None else 1
+        if st.overlay is not None:
+            self._bind_change(st.overlay, eye)
         n = len(codes)
         inst = np.empty((n, 7), np.float32)
         for i, c in enumerate(codes):
@@ -548,6 +553,37 @@ class TerrainRenderer:
         raw = fbo.read(components=3, alignment=1)
         img = np.frombuffer(raw, np.uint8).reshape(self.height_px, self.width_px, 3)
         return img[::-1].copy()
+
+    def _bind_change(self, ov, eye: np.ndarray) -> None:
+        """Upload (once per overlay) the change grid as an RG float texture and set its uniforms."""
+        import moderngl
+
+        from terralod.render import overlay as ovm
+
+        if getattr(self, "_change_key", None) != ov.key:
+            d = np.asarray(ov.change_m, np.float32)
+            rg = np.empty(d.shape + (2,), np.float32)
+            rg[..., 0] = np.nan_to_num(d, nan=0.0)
+            rg[..., 1] = np.isfinite(d)
+            old = getattr(self, "_change_tex", None)
+            if old is not None:
+                old.release()
+            self._change_tex = self.ctx.texture((d.shape[1], d.shape[0]), 2, rg.tobytes(), dtype="f4")
+            self._change_tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
+            self._change_tex.repeat_x = self._change_tex.repeat_y = False
+            self._change_key = ov.key
+        t = ov.transform
+        h, w = ov.change_m.shape
+        self._change_tex.use(1)
+        p = self.prog
+        p["u_change"].value = 1
+        p["u_change_origin"].value = (float(t.c - eye[0]), float(t.f - eye[1]))
+        p["u_change_scale"].value = (1.0 / (w * t.a), 1.0 / (h * t.e))
+        p["u_change_lod"].value = float(ov.lod_m)
+        p["u_change_max"].value = float(ov.max_m)
+        for name, rgb in (("u_gain_light", ovm.GAIN_LIGHT), ("u_gain_dark", ovm.GAIN_DARK),
+                          ("u_loss_light", ovm.LOSS_LIGHT), ("u_loss_dark", ovm.LOSS_DARK)):  # fmt: skip
+            p[name].value = tuple(float(c) for c in rgb)
 
     @property
     def tiles_resident(self) -> int:

@@ -9,6 +9,17 @@ uniform float u_fog_distance;    // metres at which fog reaches ~63 %
 uniform int u_mode;
 flat in vec3 v_tile_colour;  // per-tile colour (LoD / error modes)
 uniform sampler2D u_ramp;
+// change overlay (render/overlay.py): change metres (r) and validity (g) on the store's grid
+uniform int u_overlay;           // 1: colour gain / loss over the terrain
+uniform sampler2D u_change;
+uniform vec2 u_change_origin;    // grid's north-west corner - eye, metres
+uniform vec2 u_change_scale;     // (1 / width, -1 / height) of the grid, 1/metres
+uniform float u_change_lod;      // |change| below it: greyed out
+uniform float u_change_max;      // |change| where the colours saturate
+uniform vec3 u_gain_light;
+uniform vec3 u_gain_dark;
+uniform vec3 u_loss_light;
+uniform vec3 u_loss_dark;
 in vec3 v_normal;
 in vec3 v_rel;
 in float v_height;
@@ -22,6 +33,20 @@ void main() {
     if (!gl_FrontFacing) n = -n;
     float t = clamp((v_height - u_height_range.x) / max(u_height_range.y - u_height_range.x, 1e-3), 0.0, 1.0);
     vec3 base = (u_mode == 0) ? texture(u_ramp, vec2(t, 0.5)).rgb : v_tile_colour;
+    if (u_overlay == 1) {
+        vec2 uv = (v_rel.xy - u_change_origin) * u_change_scale;
+        vec2 cv = texture(u_change, uv).rg;
+        bool inside = all(greaterThanEqual(uv, vec2(0.0))) && all(lessThanEqual(uv, vec2(1.0)));
+        if (inside && cv.g > 0.5) {
+            float ad = abs(cv.r);
+            if (ad < u_change_lod) {
+                base = vec3(0.12 + 0.8 * dot(base, vec3(0.299, 0.587, 0.114)));
+            } else {
+                float k = clamp((ad - u_change_lod) / max(u_change_max - u_change_lod, 1e-6), 0.0, 1.0);
+                base = cv.r >= 0.0 ? mix(u_gain_light, u_gain_dark, k) : mix(u_loss_light, u_loss_dark, k);
+            }
+        }
+    }
     float diffuse = max(dot(n, u_light_dir), 0.0);
     float shade = 0.35 + 0.65 * diffuse;
     vec3 c = base * shade;
