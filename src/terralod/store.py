@@ -107,8 +107,17 @@ def verify_meta(conn: sqlite3.Connection, meta: dict[str, Any], path: Path) -> N
 
 def _check_header(p: Path) -> None:
     """Refuse, with one line naming the file, anything that is not an SQLite database of terralod's."""
-    with open(p, "rb") as fh:
-        head = fh.read(100)
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(100)
+    except OSError as exc:
+        raise StoreError(f"cannot read ({exc.strerror or exc})", str(p)) from exc
+    if not head:
+        raise CorruptStoreError(
+            "empty file (0 bytes), not a terralod store; rebuild it with `terralod build SOURCE -o STORE "
+            "--overwrite`",
+            str(p),
+        )
     if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
         raise CorruptStoreError("not a terralod store (not an SQLite database)", str(p))
     if int.from_bytes(head[68:72], "big") != APPLICATION_ID:

@@ -26,7 +26,10 @@ log = logging.getLogger("terralod.cli")
 
 
 def is_store(path: Path) -> bool:
-    """True when ``path`` is an SQLite file (a ``.terra`` store or something claiming to be one)."""
+    """True when ``path`` is an SQLite file or a ``.terra`` file (a store or something claiming to be one;
+    opening it then says what is wrong)."""
+    if Path(path).suffix.lower() == ".terra" and Path(path).is_file():
+        return True
     try:
         with open(path, "rb") as fh:
             return fh.read(16) == b"SQLite format 3\x00"

@@ -57,6 +57,23 @@ def info(path: str, as_json: bool, **read: Any) -> None:
             console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs']}")
             print_store_summary(d)
         return
+    if p.suffix.lower() in (".las", ".laz"):
+        from terralod.tin.pointcloud import describe_las
+
+        d = describe_las(p)
+        if as_json:
+            click.echo(json.dumps(d, indent=2))
+            return
+        console.print(f"[bold]{d['source']}[/bold]")
+        console.print(f"  kind         LAS {d['las_version']} point cloud, point format {d['point_format']}")
+        console.print(f"  points       {d['points']:,} (header)")
+        w, s, e, n = d["bounds"]
+        console.print(f"  bounds       {w:.2f}, {s:.2f} .. {e:.2f}, {n:.2f} (file units)")
+        console.print(f"  z            {d['z_range'][0]:.2f} .. {d['z_range'][1]:.2f}")
+        console.print(f"  CRS          {crs_name(d['crs'])}")
+        for note in d["notes"]:
+            console.print(f"  note         {note}")
+        return
     hf = load(path, **read)
     d = heightfield_info(hf)
     if as_json:

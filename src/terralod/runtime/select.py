@@ -556,8 +556,12 @@ class Engine:
         self.index = QuadIndex(store.pyramid)
         self.table = TileTable(store, self.index)
         if not self.table.avail[0]:
-            raise ValueError(
-                f"Expected a store with its root tile (0, 0, 0), got none in {getattr(store, 'path', store)}"
+            from terralod.errors import CorruptStoreError
+
+            raise CorruptStoreError(
+                "has no root tile (0, 0, 0); `terralod check --repair` then `terralod build SOURCE -o STORE "
+                "--resume` rebuilds what is missing",
+                str(getattr(store, "path", store)),
             )
         self.adjacency = Adjacency(self.index)
         self.cache = TileCache(store, max_tiles=cache_tiles, max_bytes=cache_bytes)

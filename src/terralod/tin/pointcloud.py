@@ -25,6 +25,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -176,6 +177,55 @@ def _units_from_geokeys(header) -> tuple[str, float, float | None, str | None] |
     return None
 
 
+def _records_in_file(p: Path, header) -> int | None:
+    """Point records an uncompressed LAS file holds by its size (None for LAZ or when unknown)."""
+    try:
+        if p.suffix.lower() == ".laz" or header.are_points_compressed:
+            return None
+        size = int(header.point_format.size)
+        evlr = int(getattr(header, "start_of_first_evlr", 0) or 0)
+        end = evlr if evlr > 0 else p.stat().st_size
+        return max(0, (end - int(header.offset_to_point_data)) // size) if size > 0 else None
+    except Exception:  # noqa: BLE001 - a size estimate is a courtesy
+        return None
+
+
+def describe_las(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """What ``terralod info`` says about a LAS/LAZ cloud, from its header (points are not read):
+    version, point format, header point count, records in the file, bounds and CRS."""
+    import laspy
+
+    p = Path(path)
+    src = str(p)
+    if not p.exists():
+        raise InputNotFoundError("file not found", src)
+    try:
+        with laspy.open(src) as f:
+            h = f.header
+            d: dict[str, Any] = {
+                "kind": "point cloud",
+                "source": src,
+                "las_version": f"{h.version.major}.{h.version.minor}",
+                "point_format": int(h.point_format.id),
+                "points": int(h.point_count),
+                "bounds": [float(h.mins[0]), float(h.mins[1]), float(h.maxs[0]), float(h.maxs[1])],
+                "z_range": [float(h.mins[2]), float(h.maxs[2])],
+                "compressed": bool(h.are_points_compressed),
+            }
+            wkt = _wkt_of(h)
+    except Exception as exc:  # laspy raises its own and OSError/ValueError subclasses
+        raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from None
+    d["crs"] = wkt
+    n_file = _records_in_file(p, h)
+    d["records_in_file"] = n_file
+    d["notes"] = (
+        [f"header point count {d['points']} disagrees with the {n_file} records in the file"]
+        if n_file is not None and n_file != d["points"]
+        else []
+    )
+    return d
+
+
 def _wkt_of(header) -> str | None:
     for vlr in header.vlrs:
         if type(vlr).__name__ == "WktCoordinateSystemVlr":
@@ -220,8 +270,15 @@ def read_las(
     except Exception as exc:  # laspy raises its own and OSError/ValueError subclasses
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
     header = las.header
-    n_read = int(header.point_count)
+    n_read = len(las.points)
     notes: list[str] = []
+    n_file = _records_in_file(p, header)
+    if n_read != int(header.point_count) or (n_file is not None and n_file != n_read):
+        held = f"the file holds {n_file}" if n_file is not None else f"{n_read} could be read"
+        notes.append(f"header point count {int(header.point_count)} disagrees with the records ({held}); read {n_read}")
+        log.warning("%s: %s", src, notes[-1])
+    if n_read == 0:
+        raise InputError("the file has no point records", src)
 
     # Units: explicit, WKT, GeoTIFF keys, else metres.
     wkt = _wkt_of(header)
