@@ -116,8 +116,8 @@ class Terrain(Protocol):
     @property
     def epochs(self) -> list[str]: ...
 
-    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = ()
-               ) -> TerrainEngine: ...  # fmt: skip
+    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = (),
+               async_loads: bool = False) -> TerrainEngine: ...  # fmt: skip
 
     def select(self, camera: Any) -> Frame: ...
 
@@ -161,7 +161,8 @@ class _TerrainBase:
         frame: Frame = self._engine.update(camera)
         return frame
 
-    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = ()) -> Any:
+    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = (),
+               async_loads: bool = False) -> Any:  # fmt: skip
         raise NotImplementedError
 
     def close(self) -> None:
@@ -255,11 +256,14 @@ class GridTerrain(_TerrainBase):
 
         return stored_heightfield(self.store, epoch if epoch is not None else self.epoch)
 
-    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = ()) -> Any:
+    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = (),
+               async_loads: bool = False) -> Any:  # fmt: skip
+        """The runtime :class:`terralod.runtime.Engine` over this store; ``async_loads`` reads tiles on a
+        worker thread (interactive viewers), never on the frame path."""
         from terralod.runtime import Engine
 
         opts = _cull_options(cull)
-        return Engine(self.source, threshold_px=threshold_px, background=background,
+        return Engine(self.source, threshold_px=threshold_px, background=background, async_loads=async_loads,
                       cull_backfacing=opts["cull_backfacing"], cull_region=opts["cull_region"])  # fmt: skip
 
     def lod_tree(self) -> list[LodNode]:
@@ -335,7 +339,9 @@ class TinTerrain(_TerrainBase):
     def epochs(self) -> list[str]:
         return []
 
-    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = ()) -> Any:
+    def engine(self, *, threshold_px: float = 2.0, background: bool = False, cull: Sequence[str] = (),
+               async_loads: bool = False) -> Any:  # fmt: skip
+        """A :class:`terralod.runtime.tin.TinEngine` (the model is in memory: nothing to load)."""
         from terralod.runtime.tin import TinEngine
 
         return TinEngine(self.model, threshold_px=threshold_px)

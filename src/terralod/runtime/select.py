@@ -42,6 +42,7 @@ import numpy as np
 from terralod.kernels import jit
 from terralod.runtime.adjacency import CULLED, VISIBLE, Adjacency, QuadIndex, _parent, _slot
 from terralod.runtime.camera import Camera, _box_distance, _box_visible
+from terralod.runtime.loader import TileLoader
 from terralod.runtime.stitch import Stitcher, TileCache, TileSource
 from terralod.tiles import TileCode
 
@@ -452,6 +453,8 @@ class FrameStats:
     backface_culled: int = 0
     region_culled: int = 0
     levels: dict[int, int] = field(default_factory=dict)
+    #: tiles still queued for the loader thread (``Engine(async_loads=True)``; 0 otherwise)
+    pending_loads: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -522,6 +525,11 @@ class Engine:
         design: a peak rising above that plane from outside the region is dropped although the 3-D
         frustum test (always on) would keep it; it exists to compare with the paper.
 
+    async_loads : read and decode tiles on a worker thread, never on the frame path
+        (:mod:`terralod.runtime.loader`): a tile is refined only once all its children are decoded, the
+        resident tiles are drawn meanwhile, and the frame reports ``pending_loads``; when the loads settle
+        the selection is the synchronous one. ``wait_loads()`` blocks until they have.
+
     Culling only removes leaves from drawing: the partition, adjacency and stitching are unchanged, so
     the drawn surface stays watertight wherever two drawn tiles meet.
     """
@@ -539,6 +547,7 @@ class Engine:
         cache_bytes: int = 256 << 20,
         cull_backfacing: bool = False,
         cull_region: bool = False,
+        async_loads: bool = False,
     ) -> None:
         if not (isinstance(threshold_px, (int, float)) and threshold_px > 0 and math.isfinite(threshold_px)):
             raise ValueError(f"Expected threshold_px > 0, got {threshold_px!r}")
@@ -566,6 +575,18 @@ class Engine:
         self.adjacency = Adjacency(self.index)
         self.cache = TileCache(store, max_tiles=cache_tiles, max_bytes=cache_bytes)
         self.stitcher = Stitcher(self.index, self.adjacency, self.cache)
+        # resident (decoded) tiles, for asynchronous loads: selection refines only into them
+        self.async_loads = bool(async_loads)
+        self._resident = np.zeros(self.index.n, bool)
+        self._generation = 0  # bumped by every finished asynchronous load
+        self._last_generation = -1
+        self._loader: TileLoader | None = None
+        if self.async_loads:
+            self.cache.on_put = self._on_put
+            self.cache.on_evict = self._on_evict
+            self._levels = self._level_parents()
+            self.cache.load([(0, 0, 0)])  # the root, before the first frame
+            self._loader = TileLoader(self.cache, self.cache.io_lock, self._on_loaded)
         n = self.index.n
         self._memo = np.zeros(n, np.int64)
         self._memo_val = np.zeros(n, np.int8)
@@ -591,13 +612,71 @@ class Engine:
             self._thread = threading.Thread(target=self._run, name="terralod-select", daemon=True)
             self._thread.start()
 
+    # -- asynchronous loads ----------------------------------------------------------------------------
+    def _level_parents(self) -> list[tuple[int, np.ndarray, np.ndarray, np.ndarray]]:
+        """Per level >= 1: (parent slot offset, child slots, their parent slots, children per parent)."""
+        ix = self.index
+        out = []
+        for lev in range(1, ix.max_level + 1):
+            ch = np.arange(ix.off[lev], ix.off[lev] + ix.nx[lev] * ix.ny[lev])
+            ch = ch[self.table.avail[ch]]
+            par = ix.off[lev - 1] + (ix.ty[ch] >> 1) * ix.nx[lev - 1] + (ix.tx[ch] >> 1)
+            m = ix.nx[lev - 1] * ix.ny[lev - 1]
+            out.append((int(ix.off[lev - 1]), ch, par, np.bincount(par - ix.off[lev - 1], minlength=m)))
+        return out
+
+    def _kids_resident(self) -> np.ndarray:
+        """``kids_ok`` restricted to tiles whose children are all decoded (refinable without a read)."""
+        kids = self.table.kids_ok.copy()
+        res = self._resident
+        for off, ch, par, n_kids in self._levels:
+            n_res = np.bincount(par[res[ch]] - off, minlength=n_kids.size)
+            kids[off : off + n_kids.size] &= n_res == n_kids
+        return kids
+
+    def _on_put(self, code: TileCode) -> None:
+        self._resident[self.index.slot(code)] = True
+
+    def _on_evict(self, code: TileCode) -> None:
+        self._resident[self.index.slot(code)] = False
+
+    def _on_loaded(self, codes: list[TileCode]) -> None:
+        self._generation += 1
+
+    def wait_loads(self, timeout: float | None = None) -> bool:
+        """Block until the asynchronous loads asked for so far are done; True when idle (or synchronous)."""
+        return True if self._loader is None else self._loader.wait(timeout)
+
+    @property
+    def pending_loads(self) -> int:
+        """Tiles queued or being read by the loader thread (0 for synchronous loads)."""
+        return 0 if self._loader is None else self._loader.pending
+
+    def _request_children(self, vis: np.ndarray, rho: np.ndarray, kids: np.ndarray) -> int:
+        """Ask the loader for the children of drawn tiles that would refine if their children were decoded,
+        largest projected error first."""
+        assert self._loader is not None
+        if self._loader.error is not None:
+            raise RuntimeError("terralod: tile loading failed") from self._loader.error
+        want = (rho > self.threshold_px) & self.table.kids_ok[vis] & ~kids[vis]
+        if not want.any():
+            return self._loader.pending
+        codes: list[TileCode] = []
+        prio: list[float] = []
+        for s, r in zip(vis[want].tolist(), rho[want].tolist(), strict=True):
+            for c in self.index.pyramid.children(self.index.code(s)):
+                codes.append(c)
+                prio.append(r)
+        return self._loader.request(codes, prio)
+
     # -- synchronous -----------------------------------------------------------------------------------
     def update(self, camera: Camera) -> Selection:
         """Select, stitch and light the tiles for ``camera``; returns the frame's :class:`Selection`."""
         if not isinstance(camera, Camera):
             raise TypeError(f"Expected a terralod.runtime.Camera, got {type(camera).__name__}")
         with self._lock:
-            if self._last is not None and camera.key == self._last_key:
+            if (self._last is not None and camera.key == self._last_key
+                    and self._generation == self._last_generation):  # fmt: skip
                 return self._last  # camera still: no traversal at all (paper 000's parser)
             return self._update(camera)
 
@@ -609,11 +688,13 @@ class Engine:
         eye = camera.eye_array
         k_px = camera.screen_factor_px
         tau = self.threshold_px
+        generation = self._generation
+        kids_ok = self._kids_resident() if self.async_loads else tb.kids_ok
         if self.triangle_budget is not None:
             leaves, states = _select_budget(
                 tb.boxes,
                 tb.error_m,
-                tb.kids_ok,
+                kids_ok,
                 tb.triangles,
                 planes,
                 eye,
@@ -625,11 +706,11 @@ class Engine:
         elif self.incremental and self._stage1 is not None:
             self._stamp += 1
             leaves, states = _select_incremental(
-                self._stage1, tb.boxes, tb.error_m, tb.kids_ok, planes, eye, k_px, tau, *ia,
+                self._stage1, tb.boxes, tb.error_m, kids_ok, planes, eye, k_px, tau, *ia,
                 self._memo, self._memo_val, self._emitted, self._stamp,
             )  # fmt: skip
         else:
-            leaves, states = _select_full(tb.boxes, tb.error_m, tb.kids_ok, planes, eye, k_px, tau, *ia)
+            leaves, states = _select_full(tb.boxes, tb.error_m, kids_ok, planes, eye, k_px, tau, *ia)
         order = np.argsort(leaves, kind="stable")
         leaves, states = leaves[order], states[order]
         self._stage1 = leaves
@@ -671,6 +752,7 @@ class Engine:
 
         errs = np.where(fb[vis_mask], tb.measured_error_m[vis], tb.error_m[vis])
         rho = _screen_errors(vis, tb.boxes, errs, eye, k_px)
+        pending = self._request_children(vis, rho, kids_ok) if self.async_loads else 0
         meshes = self._meshes
         culled_codes = self.index.codes(leaves[states == CULLED])
         n_back = n_region = 0
@@ -701,11 +783,12 @@ class Engine:
             backface_culled=n_back,
             region_culled=n_region,
             levels={int(k): int(c) for k, c in zip(*np.unique(lv, return_counts=True), strict=True)},
+            pending_loads=pending,
         )
         sel = Selection(
             camera, codes, rho, set(self.index.codes(leaves[fb])), culled_codes, meshes, stats,
         )  # fmt: skip
-        self._last, self._last_key = sel, camera.key
+        self._last, self._last_key, self._last_generation = sel, camera.key, generation
         log.debug("frame: %s", stats)
         return sel
 
@@ -780,7 +863,12 @@ class Engine:
                     self._cv.notify_all()
 
     def close(self) -> None:
-        """Stop the worker thread (background mode); the engine can still ``update()`` synchronously."""
+        """Stop the worker threads (background selection, asynchronous loads); the engine can still
+        ``update()`` synchronously."""
+        if self._loader is not None:
+            self._loader.close()
+            self._loader = None
+            self.async_loads = False
         with self._cv:
             self._closed = True
             self._cv.notify_all()

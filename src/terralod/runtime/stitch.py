@@ -36,8 +36,9 @@ Culled leaves are treated as absent: a visible tile is never bent to fit a tile 
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -236,6 +237,13 @@ class TileCache:
         #: tiles always kept whatever the byte bound (the engine sets it to its working set, the drawn
         #: tiles and their neighbours, so a view needing more than the bounds never thrashes the cache)
         self.floor_tiles = 0
+        #: guards the dict against a loader thread inserting (:class:`terralod.runtime.loader.TileLoader`)
+        self.lock = threading.RLock()
+        #: serialises reads of the source between the frame thread and a loader thread
+        self.io_lock = threading.Lock()
+        #: called with a code put in / evicted (the engine keeps its resident-tile mask with them)
+        self.on_put: Callable[[TileCode], None] | None = None
+        self.on_evict: Callable[[TileCode], None] | None = None
 
     def __len__(self) -> int:
         return len(self._items)
@@ -244,38 +252,54 @@ class TileCache:
         return code in self._items
 
     def get(self, code: TileCode) -> TilePrep:
-        p = self._items.get(code)
-        if p is not None:
-            self.hits += 1
-            self._items.move_to_end(code)
-            return p
-        self.misses += 1
-        return self.put(code, self.source.tile(*code))
+        with self.lock:
+            p = self._items.get(code)
+            if p is not None:
+                self.hits += 1
+                self._items.move_to_end(code)
+                return p
+            self.misses += 1
+        with self.io_lock:
+            tile = self.source.tile(*code)
+        return self.put(code, tile)
 
     def load(self, codes: list[TileCode]) -> int:
         """Decode the tiles of ``codes`` not cached yet; returns how many. A source with a ``tiles(codes)``
         method (e.g. :class:`terralod.runtime.FractalSource`, which generates them on threads) is asked for
         all of them at once."""
-        missing = [c for c in dict.fromkeys(codes) if c not in self._items]
+        with self.lock:
+            missing = [c for c in dict.fromkeys(codes) if c not in self._items]
         if not missing:
             return 0
         self.misses += len(missing)
         many = getattr(self.source, "tiles", None)
-        tiles = many(missing) if many is not None else [self.source.tile(*c) for c in missing]
+        with self.io_lock:
+            tiles = many(missing) if many is not None else [self.source.tile(*c) for c in missing]
         for code, t in zip(missing, tiles, strict=True):
             self.put(code, t)
         return len(missing)
 
     def put(self, code: TileCode, tile: Any) -> TilePrep:
         """Cache the source tile ``tile`` of ``code`` (evicting least recently used ones); its TilePrep."""
-        p = TilePrep.from_tile(tile, self.source.pyramid)
-        self._items[code] = p
-        self.nbytes += p.nbytes
-        while len(self._items) > max(1, self.floor_tiles) and (
-            len(self._items) > self.max_tiles or self.nbytes > self.max_bytes
-        ):
-            _, old = self._items.popitem(last=False)
-            self.nbytes -= old.nbytes
+        return self.insert(code, TilePrep.from_tile(tile, self.source.pyramid))
+
+    def insert(self, code: TileCode, p: TilePrep) -> TilePrep:
+        """Cache a prepared tile (e.g. prepared on a loader thread), evicting least recently used ones."""
+        with self.lock:
+            old_p = self._items.pop(code, None)
+            if old_p is not None:
+                self.nbytes -= old_p.nbytes
+            self._items[code] = p
+            self.nbytes += p.nbytes
+            if self.on_put is not None:
+                self.on_put(code)
+            while len(self._items) > max(1, self.floor_tiles) and (
+                len(self._items) > self.max_tiles or self.nbytes > self.max_bytes
+            ):
+                gone, old = self._items.popitem(last=False)
+                self.nbytes -= old.nbytes
+                if self.on_evict is not None:
+                    self.on_evict(gone)
         return p
 
 
