@@ -22,6 +22,9 @@ MAX_SIDE = 262_145
 MAX_SAMPLES = 2_000_000_000
 #: Smallest raster that spans a surface.
 MIN_SIDE = 2
+#: Smallest fraction of valid samples accepted: below it the raster is mostly fill, and its mesh would be
+#: invented surface (e.g. 1 valid sample in 10,000); crop it to the data or check the nodata value.
+MIN_VALID_FRACTION = 0.001
 #: Jacobi iterations that smooth the nearest-sample fill of holes.
 FILL_SMOOTH_ITERATIONS = 32
 
@@ -64,6 +67,13 @@ def prepare_elevation(
         if not np.isfinite(z).any():
             raise InputError("every sample is NaN or infinite", source)
         raise InputError("band 1 has no valid samples (all nodata)", source)
+    n_ok = int(ok.sum())
+    if n_ok < MIN_VALID_FRACTION * ok.size:
+        raise InputError(
+            f"only {n_ok} of {ok.size} samples are valid ({100.0 * n_ok / ok.size:.3g} %, below the "
+            f"{100 * MIN_VALID_FRACTION:g} % terralod meshes); crop it to the data or check the nodata value",
+            source,
+        )
     zv = z[ok]
     if np.abs(zv).max() > 1e5:
         raise InputError(

@@ -837,8 +837,11 @@ def write_geotiff(detail: FractalDetail, output: str | os.PathLike[str], factor:
                 z[~ok] = NODATA
                 dst.write(z, 1, window=Window(0, r0, nc, n))
         os.replace(tmp, out)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, Exception) and not isinstance(exc, InputError):  # full disk, I/O: name the file
+            text = " ".join(str(getattr(exc, "strerror", None) or exc).split())[:200]
+            raise OSError(getattr(exc, "errno", None), f"cannot write ({text})", str(out)) from exc
         raise
     return {"rows": nr, "cols": nc, "invalid": invalid}
 

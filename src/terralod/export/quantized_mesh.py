@@ -371,9 +371,9 @@ class QuantizedMesh:
         self._errors: dict[tuple[int, int, int], float] = {}
 
     def target_error_m(self, z: int) -> float:
-        """Greedy-insertion target of level z: a fraction of CesiumJS's level error; 8x finer at the last
+        """Greedy-insertion target of level z: a fraction of CesiumJS's level error; 2x finer at the last
         level (nothing refines it, so it carries the detail of the source)."""
-        f = self.target_fraction / (8.0 if z >= self.max_zoom else 1.0)
+        f = self.target_fraction / (2.0 if z >= self.max_zoom else 1.0)
         return f * level_max_error_m(z)
 
     def level_range(self, z: int) -> tuple[int, int, int, int]:

@@ -8,7 +8,7 @@ content-less root above them. Bounding volumes are ``region``s of the stored nod
 sampled through pyproj, the skirt depth below ``z_min``).
 
 Each glb (written with pygltflib) holds one triangle mesh: positions relative to the tile centre (the
-centre's ECEF is the tile's ``transform``), converted exactly from the store's CRS with pyproj; heights are
+centre's ECEF is the tile's ``transform`` composed with its ancestors', as 3D Tiles composes them), converted exactly from the store's CRS with pyproj; heights are
 the DEM's as read, used as ellipsoidal heights (no geoid change). glTF is y-up: positions are stored as
 (x, z, -y) of ECEF so that the 3D Tiles y-up → z-up rotation gives ECEF back. Indices are UNSIGNED_BYTE,
 UNSIGNED_SHORT or UNSIGNED_INT, the smallest that holds the vertex count.
@@ -118,18 +118,21 @@ class Tiles3D:
         return max(float(n.vertical_error_m) + float(up), MIN_SKIRT_M)
 
     # -- tileset -----------------------------------------------------------------------------------------
-    def _tile_json(self, code: Any) -> dict[str, Any]:
+    def _tile_json(self, code: Any, above: np.ndarray) -> dict[str, Any]:
+        """A tile and its subtree; ``above`` is the ECEF translation its parent's transform already
+        applies (3D Tiles transforms compose down the tree)."""
         n = self.nodes[code]
+        c = self._centre(n)
         tile: dict[str, Any] = {
             "boundingVolume": {"region": self.geo.region(n.box_m, self.skirt_m(code))},
             "geometricError": self.error_m(code),
-            "transform": self._transform(self._centre(n)),
+            "transform": self._transform(c - above),
         }
         if self.has_content(code):
             tile["content"] = {"uri": node_uri(code)}
         kids = self.children.get(code, [])
         if kids:
-            tile["children"] = [self._tile_json(c) for c in kids]
+            tile["children"] = [self._tile_json(k, c) for k in kids]
         return tile
 
     def _centre(self, n: Any) -> np.ndarray:
@@ -145,9 +148,9 @@ class Tiles3D:
         roots = self.children.get(None, [])
         top = max(self.error_m(c) for c in roots)
         if len(roots) == 1:
-            root = self._tile_json(roots[0])
+            root = self._tile_json(roots[0], np.zeros(3))
         else:
-            kids = [self._tile_json(c) for c in roots]
+            kids = [self._tile_json(c, np.zeros(3)) for c in roots]
             reg = np.array([k["boundingVolume"]["region"] for k in kids])
             root = {
                 "boundingVolume": {"region": [float(reg[:, 0].min()), float(reg[:, 1].min()),

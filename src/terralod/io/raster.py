@@ -46,6 +46,9 @@ EARTH_CIRCUMFERENCE_M = 40075016.686
 #: WGS84 semi-major axis (m) and first eccentricity squared, for ground spacings on the ellipsoid.
 WGS84_A_M = 6378137.0
 WGS84_E2 = 0.00669437999014
+#: Largest growth of the sample count the one reprojection to UTM may cause (square pixels of the smaller
+#: ground spacing): beyond it the raster is refused (e.g. 50x50 degrees-pixels at 89.5 N became 23 M).
+MAX_REPROJECT_GROWTH = 16.0
 #: Widest raster (degrees of longitude) reprojected into a single UTM zone.
 MAX_UTM_SPAN_DEG = 20.0
 #: A projected CRS whose grid metres differ from ground metres by more than this gets a note.
@@ -135,6 +138,11 @@ def read_raster(
         if max(bands) > ds.count or min(bands) < 1:
             want = "3 bands (R, G, B) for an encoded raster" if encoding else f"band {band}"
             raise InputError(f"has {ds.count} band(s); {want} requested", src)
+        kind = np.dtype(ds.dtypes[bands[0] - 1]).kind
+        if kind not in "iuf":
+            raise InputError(
+                f"band {bands[0]} holds {ds.dtypes[bands[0] - 1]} values; elevations must be real numbers", src
+            )
         file_nodata = ds.nodatavals[bands[0] - 1]
         scale_tag = (ds.scales or (1.0,) * ds.count)[bands[0] - 1]
         offset_tag = (ds.offsets or (0.0,) * ds.count)[bands[0] - 1]
@@ -177,7 +185,16 @@ def read_raster(
 
 
 def error_line(exc: BaseException) -> str:
-    """First line of an exception's message (at most 160 characters), for wrapping library errors."""
+    """First line of an exception's message (at most 160 characters), for wrapping library errors.
+
+    rasterio's "Read failed. See previous exception for details." carries the real cause (GDAL's message)
+    as ``__cause__``/``__context__``: that one is given instead."""
+    seen = 0
+    while "previous exception" in str(exc) and seen < 8:
+        nxt = exc.__cause__ or exc.__context__
+        if nxt is None:
+            break
+        exc, seen = nxt, seen + 1
     text = str(exc).strip().splitlines()
     return (text[0] if text else type(exc).__name__)[:160]
 
@@ -450,6 +467,15 @@ def reproject_to_utm(
     bx0, by1 = math.floor(bx0 / res) * res, math.ceil(by1 / res) * res
     width = max(2, math.ceil((bx1 - bx0) / res - 1e-9))
     height = max(2, math.ceil((by1 - by0) / res - 1e-9))
+    growth = (width * height) / float(w * h)
+    if growth > MAX_REPROJECT_GROWTH:
+        raise InputError(
+            f"reprojecting to {label} at the {res:g} m ground spacing of its centre would turn {w}x{h} samples "
+            f"into {width}x{height} ({growth:,.0f}x, beyond {MAX_REPROJECT_GROWTH:g}x): its pixels are "
+            f"{dx_m:.1f} x {dy_m:.1f} m on the ground (near a pole?); reproject it first with a suitable "
+            "CRS and resolution (gdalwarp -t_srs ... -tr ...)",
+            source,
+        )
     check_dimensions(height, width, source)
     dst_t = Affine(res, 0.0, bx0, 0.0, -res, by1)
     out = np.full((height, width), np.nan, np.float64)

@@ -130,9 +130,23 @@ class FrameRenderer:
 
 
 def save_png(img: np.ndarray, path: str | Path) -> None:
+    """Write an image (format by suffix) atomically: to a temporary beside it, then renamed, so a full disk
+    or a kill leaves no truncated file; errors name the file."""
+    import os
+
     from PIL import Image
 
-    Image.fromarray(img).save(path)
+    out = Path(path)
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        Image.fromarray(img).save(tmp, format=Image.registered_extensions().get(out.suffix.lower(), "PNG"))
+        os.replace(tmp, out)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from exc
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def write_video(frames, path: str | Path, fps: int = 24) -> int:

@@ -1,0 +1,43 @@
+"""``terralod serve STORE [--host H] [--port P]``: 3D Tiles, quantized-mesh and a CesiumJS viewer page."""
+
+from __future__ import annotations
+
+import click
+
+from terralod.cli._common import console, err_console
+
+
+@click.command()
+@click.argument("store")
+@click.option(
+    "--host",
+    default="127.0.0.1",
+    show_default=True,
+    help="Address to bind (anything but loopback exposes the store to the network).",
+)
+@click.option(
+    "--port", type=click.IntRange(0, 65535), default=8000, show_default=True, help="TCP port (0: any)."
+)
+def serve(store: str, host: str, port: int) -> None:
+    """Serve a .terra store to the browser: viewer at /, tiles under /3dtiles/ and /terrain/ (read-only)."""
+    from terralod.serve import CESIUM_HINT, make_server
+    from terralod.terrain import open_terrain
+
+    if host not in ("127.0.0.1", "localhost", "::1"):
+        err_console.print(f"terralod: warning: serving on {host}: anyone who can reach it can read the store")
+    with open_terrain(store) as terrain:
+        try:
+            server, service = make_server(terrain, host, port)
+        except OSError as exc:
+            raise click.ClickException(f"cannot listen on {host}:{port} ({exc.strerror or exc})") from None
+        if service.cesium is None:
+            err_console.print(f"terralod: {CESIUM_HINT}; serving the tiles only")
+        h, p = server.server_address[:2]
+        console.print(f"serving {store} on http://{h}:{p}/ (3D Tiles /3dtiles/tileset.json, quantized-mesh "
+                      f"/terrain/layer.json); Ctrl-C stops", highlight=False)  # fmt: skip
+        try:
+            server.serve_forever()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            server.server_close()

@@ -1,0 +1,280 @@
+"""``terralod serve``: both web formats straight from a store, and a CesiumJS viewer page, over HTTP.
+
+Routes (GET and HEAD; everything else is 405; any other path is 404, never a file from elsewhere):
+
+- ``/`` the viewer page, ``/static/NAME`` its files (a fixed set, package data of this module);
+- ``/cesium/...`` CesiumJS's built files from ``node_modules/cesium/Build/Cesium`` (resolved paths must
+  stay inside that folder);
+- ``/3dtiles/tileset.json``, ``/3dtiles/tiles/L/X_Y.glb`` (:class:`terralod.export.tiles3d.Tiles3D`);
+- ``/terrain/layer.json``, ``/terrain/Z/X/Y.terrain`` (:class:`terralod.export.quantized_mesh.QuantizedMesh`,
+  always gzip'd, as the format's clients expect);
+- ``/info.json`` the terrain's bounds (degrees), heights, epochs and node counts for the page.
+
+Tiles are encoded on the first request and kept in a byte-bounded LRU cache; every response carries a
+strong ``ETag`` (``If-None-Match`` → 304) and is gzip'd when the client accepts it. The store is opened
+read-only; the encoders (which share one SQLite connection and, for TINs, one model whose scale state
+``lod_mesh`` changes) run one at a time behind a lock, cache hits do not wait for it.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import logging
+import mimetypes
+import os
+import re
+import threading
+from collections import OrderedDict
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from pathlib import Path
+from typing import Any
+from urllib.parse import unquote, urlsplit
+
+log = logging.getLogger("terralod.serve")
+
+__all__ = ["TileService", "cesium_dir", "make_server"]
+
+#: Files of the viewer page (package data); only these names are served under /static/.
+STATIC_FILES = ("index.html", "viewer.js", "viewer.css")
+_GLB = re.compile(r"^/3dtiles/tiles/(\d{1,3})/(\d{1,9})_(\d{1,9})\.glb$")
+_TERRAIN = re.compile(r"^/terrain/(\d{1,2})/(\d{1,9})/(\d{1,9})\.terrain$")
+CESIUM_HINT = (
+    "CesiumJS not found (node_modules/cesium): run `npm ci` in the repository (bash scripts/install.sh does)"
+)
+
+
+def cesium_dir() -> Path | None:
+    """CesiumJS's ``Build/Cesium`` folder: $TERRALOD_CESIUM_DIR, ./node_modules, or the repository's."""
+    cands = []
+    if os.environ.get("TERRALOD_CESIUM_DIR"):
+        cands.append(Path(os.environ["TERRALOD_CESIUM_DIR"]))
+    cands.append(Path.cwd() / "node_modules" / "cesium" / "Build" / "Cesium")
+    cands.append(Path(__file__).resolve().parents[3] / "node_modules" / "cesium" / "Build" / "Cesium")
+    for c in cands:
+        if (c / "Cesium.js").is_file():
+            return c.resolve()
+    return None
+
+
+class _LRU:
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self.size = 0
+        self.items: OrderedDict[str, tuple[bytes, str, str, bool]] = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, key: str) -> tuple[bytes, str, str, bool] | None:
+        with self.lock:
+            v = self.items.get(key)
+            if v is not None:
+                self.items.move_to_end(key)
+            return v
+
+    def put(self, key: str, value: tuple[bytes, str, str, bool]) -> None:
+        with self.lock:
+            if key in self.items:
+                return
+            self.items[key] = value
+            self.size += len(value[0])
+            while self.size > self.max_bytes and len(self.items) > 1:
+                _, old = self.items.popitem(last=False)
+                self.size -= len(old[0])
+
+
+class TileService:
+    """What the handler asks for: bytes by URL path (None = 404), encoded once and cached."""
+
+    def __init__(self, terrain: Any, *, cache_bytes: int = 256 << 20) -> None:
+        from terralod.export.common import check_exportable
+        from terralod.export.geodesy import Geodesy
+
+        check_exportable(terrain)
+        self.terrain = terrain
+        Geodesy(terrain.crs, str(terrain.path) if terrain.path is not None else None)  # fail early on the CRS
+        self.cache = _LRU(cache_bytes)
+        self.lock = threading.Lock()
+        self._tiles3d: Any = None
+        self._qm: Any = None
+        self.cesium = cesium_dir()
+        self.stats = {"requests": 0, "encoded": 0, "hits": 0}
+
+    # lazily built views (their set-up reads the whole LOD tree / the source)
+    def tiles3d(self) -> Any:
+        if self._tiles3d is None:
+            from terralod.export.tiles3d import Tiles3D
+
+            self._tiles3d = Tiles3D(self.terrain)
+        return self._tiles3d
+
+    def qm(self) -> Any:
+        if self._qm is None:
+            from terralod.export.quantized_mesh import QuantizedMesh
+
+            self._qm = QuantizedMesh(self.terrain)
+        return self._qm
+
+    def info(self) -> dict[str, Any]:
+        qm = self.qm()
+        lo, hi = self.terrain.elevation_range_m
+        tree = self.terrain.lod_tree()
+        return {"name": Path(str(self.terrain.path)).name if self.terrain.path else "terrain",
+                "kind": self.terrain.kind, "bounds_deg": list(qm.bbox), "elevation_range_m": [lo, hi],
+                "epochs": list(self.terrain.epochs), "nodes": len(tree), "max_zoom": qm.max_zoom,
+                "cesium": self.cesium is not None}  # fmt: skip
+
+    def _encode(self, path: str) -> tuple[bytes, str, bool] | None:
+        """(body, content type, already gzip'd) of a dynamic path, or None when it is not in the tile set."""
+        if path == "/info.json":
+            return json.dumps(self.info()).encode(), "application/json", False
+        if path == "/3dtiles/tileset.json":
+            return (
+                json.dumps(self.tiles3d().tileset(), separators=(",", ":")).encode(),
+                "application/json",
+                False,
+            )
+        m = _GLB.match(path)
+        if m:
+            code = tuple(int(a) for a in m.groups())
+            view = self.tiles3d()
+            if code not in view.nodes or not view.has_content(code):
+                return None
+            return view.glb(code), "model/gltf-binary", False
+        if path == "/terrain/layer.json":
+            return json.dumps(self.qm().layer()).encode(), "application/json", False
+        m = _TERRAIN.match(path)
+        if m:
+            z, x, y = (int(a) for a in m.groups())
+            if not self.qm().available(z, x, y):
+                return None
+            return self.qm().tile(z, x, y).data, "application/vnd.quantized-mesh", True
+        return None
+
+    def get(self, path: str) -> tuple[bytes, str, str, bool] | None:
+        """(body, content type, etag, gzip'd) for a URL path, None for 404."""
+        self.stats["requests"] += 1
+        hit = self.cache.get(path)
+        if hit is not None:
+            self.stats["hits"] += 1
+            return hit
+        static = self._static(path)
+        if static is not None:
+            return static
+        with self.lock:
+            hit = self.cache.get(path)
+            if hit is not None:
+                return hit
+            got = self._encode(path)
+            if got is None:
+                return None
+            self.stats["encoded"] += 1
+        body, ctype, gz = got
+        if not gz and len(body) > 1024:
+            body, gz = gzip.compress(body, 6, mtime=0), True
+        value = (body, ctype, '"' + hashlib.sha1(body).hexdigest() + '"', gz)
+        self.cache.put(path, value)
+        return value
+
+    def _static(self, path: str) -> tuple[bytes, str, str, bool] | None:
+        if path in ("/", "/index.html"):
+            name = "index.html"
+        elif path.startswith("/static/") and path[len("/static/") :] in STATIC_FILES:
+            name = path[len("/static/") :]
+        elif path.startswith("/cesium/") and self.cesium is not None:
+            rel = path[len("/cesium/") :]
+            f = (self.cesium / rel).resolve()
+            if not f.is_relative_to(self.cesium) or not f.is_file():
+                return None
+            body = f.read_bytes()
+            ctype = mimetypes.guess_type(f.name)[0] or "application/octet-stream"
+            value = (body, ctype, '"' + hashlib.sha1(body).hexdigest() + '"', False)
+            if len(body) < (8 << 20):
+                self.cache.put(path, value)
+            return value
+        else:
+            return None
+        body = resources.files("terralod.serve").joinpath("static", name).read_bytes()
+        ctype = mimetypes.guess_type(name)[0] or "application/octet-stream"
+        return (body, ctype, '"' + hashlib.sha1(body).hexdigest() + '"', False)
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server_version = "terralod"
+    service: TileService
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base class's name
+        log.debug("%s " + format, self.address_string(), *args)
+
+    def _send(self, code: int, body: bytes = b"", ctype: str = "text/plain; charset=utf-8",
+              headers: dict[str, str] | None = None, head: bool = False) -> None:  # fmt: skip
+        self.send_response(code)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Access-Control-Allow-Origin", "*")
+        for k, v in (headers or {}).items():
+            self.send_header(k, v)
+        self.end_headers()
+        if not head and body:
+            self.wfile.write(body)
+
+    def _serve(self, head: bool) -> None:
+        try:
+            raw = urlsplit(self.path).path
+            path = unquote(raw)
+            if "\x00" in path or "\\" in path or "/../" in path + "/" or not path.startswith("/"):
+                self._send(404, b"not found\n", head=head)
+                return
+            if path == "/favicon.ico":
+                self._send(204, head=head)
+                return
+            got = self.service.get(path)
+        except Exception as exc:  # noqa: BLE001 - one failed tile must not stop the server
+            log.warning("%s: %s", self.path, exc)
+            self._send(500, f"error: {type(exc).__name__}\n".encode(), head=head)
+            return
+        if got is None:
+            self._send(404, b"not found\n", head=head)
+            return
+        body, ctype, etag, gz = got
+        headers = {"ETag": etag, "Cache-Control": "no-cache"}
+        if self.headers.get("If-None-Match") == etag:
+            self.send_response(304)
+            self.send_header("ETag", etag)
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+            return
+        if gz:
+            if "gzip" in (self.headers.get("Accept-Encoding") or ""):
+                headers["Content-Encoding"] = "gzip"
+            else:
+                body = gzip.decompress(body)
+        headers["Vary"] = "Accept-Encoding"
+        self._send(200, body, ctype, headers, head)
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server's names
+        self._serve(False)
+
+    def do_HEAD(self) -> None:  # noqa: N802
+        self._serve(True)
+
+    def _refuse(self) -> None:
+        self._send(405, b"read-only: GET and HEAD only\n", headers={"Allow": "GET, HEAD"})
+
+    do_POST = do_PUT = do_DELETE = do_PATCH = _refuse  # noqa: N815
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    request_queue_size = 1024
+
+
+def make_server(
+    terrain: Any, host: str = "127.0.0.1", port: int = 8000
+) -> tuple[ThreadingHTTPServer, TileService]:
+    """A server (not started: call ``serve_forever``) and its service for ``terrain``."""
+    service = TileService(terrain)
+    handler = type("Handler", (_Handler,), {"service": service})
+    return _Server((host, port), handler), service

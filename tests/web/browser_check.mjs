@@ -1,0 +1,49 @@
+// Drive Debian's headless Chromium (software WebGL) through puppeteer-core against a running
+// `terralod serve`: load the viewer in one format, wait for every tile, sample heights, take a screenshot.
+// usage: node browser_check.mjs URL FORMAT POINTS_JSON SCREENSHOT_PNG [TIMEOUT_MS]  → one JSON line on stdout
+import puppeteer from "puppeteer-core";
+
+const [url, format, pointsJson, shot, timeoutArg] = process.argv.slice(2);
+const timeout = Number(timeoutArg || 40000);
+const points = JSON.parse(pointsJson);
+const out = { format, errors: [], failedRequests: [], blocked: [], tileResponses: 0, badTileResponses: [] };
+const browser = await puppeteer.launch({
+  executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
+  headless: "new",
+  args: ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync", "--window-size=800,600"],
+});
+try {
+  const page = await browser.newPage();
+  await page.setViewport({ width: 800, height: 600 });
+  await page.setRequestInterception(true);
+  const origin = new URL(url).origin;
+  page.on("request", (r) => {
+    const u = r.url();
+    if (u.startsWith(origin) || u.startsWith("data:") || u.startsWith("blob:")) r.continue();
+    else { out.blocked.push(u); r.abort(); }
+  });
+  page.on("requestfailed", (r) => out.failedRequests.push(r.url() + " " + (r.failure() || {}).errorText));
+  page.on("response", (r) => {
+    const u = r.url();
+    if (/\.(terrain|glb)(\?|$)/.test(u)) { out.tileResponses++; if (r.status() !== 200) out.badTileResponses.push(r.status() + " " + u); }
+  });
+  page.on("pageerror", (e) => out.errors.push("pageerror: " + e.message));
+  page.on("console", (m) => { if (m.type() === "error") out.errors.push("console: " + m.text()); });
+  const t0 = Date.now();
+  await page.goto(`${url}?format=${format}`, { waitUntil: "load", timeout });
+  await page.waitForFunction(() => window.terralod && (window.terralod.loaded || window.terralod.errors.length), { timeout, polling: 200 });
+  out.loadMs = Date.now() - t0;
+  const state = await page.evaluate(() => ({ loaded: terralod.loaded, errors: terralod.errors, tiles: terralod.tiles,
+    triangles: terralod.triangles, firstFrameMs: terralod.firstFrameMs, loadedMs: terralod.loadedMs }));
+  Object.assign(out, state, { errors: out.errors.concat(state.errors) });
+  out.heights = await page.evaluate(async (pts) => await terralod.sample(pts), points);
+  await new Promise((r) => setTimeout(r, 300));
+  await page.screenshot({ path: shot });
+  out.hud = await page.evaluate(() => document.getElementById("hud").innerText);
+} catch (e) {
+  out.errors.push("driver: " + e.message);
+} finally {
+  await browser.close();
+}
+console.log(JSON.stringify(out));
