@@ -25,7 +25,7 @@ from terralod.error import measure_error_window
 from terralod.errors import BuildMismatchError, StoreError
 from terralod.heightfield import Heightfield
 from terralod.kernels import jit
-from terralod.pyramid import chunked, cohesion
+from terralod.pyramid import adaptive, chunked, cohesion
 from terralod.pyramid.footprint import drop_nodata
 from terralod.store import (
     FORMAT_VERSION,
@@ -47,7 +47,11 @@ MeshFn = Callable[
     [np.ndarray, np.ndarray, TilePyramid, TileCode], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 ]
 #: A mesher with a true ``needs_spacing`` attribute is also given ``spacing_m=(dx, dy)`` (metres).
-METHODS: dict[str, MeshFn] = {"chunked": chunked.mesh_tile, "cohesion": cohesion.mesh_tile}
+METHODS: dict[str, MeshFn] = {
+    "chunked": chunked.mesh_tile,
+    "cohesion": cohesion.mesh_tile,
+    "adaptive": adaptive.mesh_tile,
+}
 # The vertex cohesion map (paper 000) is the default: at the same measured screen error it draws 0.40-0.49x
 # Chunked LOD's triangles on mountainous DEMs (benchmarks/results/cohesion_vs_chunked.md).
 DEFAULT_METHOD = "cohesion"
@@ -149,7 +153,12 @@ def _store_meta(
         "tile_size": pyramid.tile_size,
         "max_level": pyramid.max_level,
         "method": method,
-        "build_options": {"method": method, "tile_size": pyramid.tile_size},
+        # a mesher with ``build_meta(z, valid, pyramid)`` states its options (the adaptive error ladder)
+        "build_options": {
+            "method": method,
+            "tile_size": pyramid.tile_size,
+            **getattr(METHODS[method], "build_meta", lambda *_: {})(hf.elevation_m, hf.valid, pyramid),
+        },
         "fill_method": hf.fill_method,
         "notes": list(hf.notes),
         "nodata_fraction": hf.nodata_fraction,

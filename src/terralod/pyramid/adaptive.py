@@ -1,0 +1,200 @@
+"""Adaptive tiles: every tile of the pyramid is an adaptive TIN refined down to its level's target error.
+
+The mesher is greedy insertion of the worst sample into a Delaunay triangulation (Garland & Heckbert 1995,
+algorithm III, as mapbox/delatin implements it; no paper of ``../shared/papers`` — the papers' tiles are
+regular grids, paper 000 §2 surveys TINs as the alternative it does not take): the kernels are in
+:mod:`terralod.kernels.adaptive`. What the pyramid adds:
+
+- the error ladder: level k is refined to ``target_m[k] = root_error_m / 2^k`` of vertical error over every
+  source sample of the tile (its window of the full-resolution source, not the level's grid), stated in
+  the store's metadata (``build_options.target_error_m``). By default ``root_error_m`` is the error the
+  greedy insertion reaches on the whole terrain with as many vertices as a regular tile has (M^2), so the
+  root weighs about what a regular root weighs, and each level below about the same per tile wherever the
+  terrain's roughness is alike across scales (a flat plain costs 2 triangles a tile). The finest level is
+  then not lossless, as a regular grid's is: it is within ``root_error_m / 2^L``, stated and measured
+  (``finest_error_m`` sets the ladder from that end instead). The stored errors are measured on the stored
+  (quantised) geometry by the builder, as for every method, so a tile may measure a few millimetres above
+  its target (the vertical quantisation step);
+- shared borders: the four sides of a tile are fixed before its interior, each by a 1-D simplification of
+  the side's own line of source samples to the level's target (split at the worst sample until every
+  segment is within it), so the two tiles sharing a side compute the same vertices from the same samples,
+  bit for bit; across levels the runtime's stitcher (paper 002 §3.3) fits the finer side onto the coarser
+  polyline and fan-splits where needed, as it does for the cohesion tiles' relocated sides;
+- partial tiles at the data's edge end at the last sample (no padding apron, no replicated heights): every
+  level ends at the same place.
+
+Deviations from Delatin: border fixed first (above), invalid samples never inserted nor measured, and
+triangles within the target never queued (see the kernel module).
+"""
+
+from __future__ import annotations
+
+import threading
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from terralod.kernels.adaptive import simplify_line, tin_window
+from terralod.tiles import TileCode, TilePyramid
+
+__all__ = ["AdaptiveOptions", "make_mesher", "mesh_tile", "target_ladder"]
+
+
+@dataclass(frozen=True)
+class AdaptiveOptions:
+    """Settings of the adaptive mesher (keyword-only in :func:`make_mesher`).
+
+    Attributes
+    ----------
+    root_error_m : target max vertical error of the root tile, metres (level k: root_error_m / 2^k);
+        None: from ``finest_error_m`` if given, else from ``root_vertices``
+    finest_error_m : target of the finest level (root_error_m = finest_error_m * 2^L), metres
+    root_vertices : with neither error given, root_error_m is the max vertical error of the greedy TIN of
+        the whole terrain with this many vertices (None: M^2, a regular tile's count)
+    max_vertices_factor : a tile stops refining at this many vertices per source sample of its window
+        (1: no cap; every sample may become a vertex)
+    """
+
+    root_error_m: float | None = None
+    finest_error_m: float | None = None
+    root_vertices: int | None = None
+    max_vertices_factor: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.root_error_m is not None and not self.root_error_m > 0:
+            raise ValueError(f"Expected root_error_m > 0, got {self.root_error_m}")
+        if self.finest_error_m is not None and not self.finest_error_m > 0:
+            raise ValueError(f"Expected finest_error_m > 0, got {self.finest_error_m}")
+        if self.root_vertices is not None and self.root_vertices < 4:
+            raise ValueError(f"Expected root_vertices >= 4, got {self.root_vertices}")
+        if not 0 < self.max_vertices_factor <= 1:
+            raise ValueError(f"Expected max_vertices_factor in (0, 1], got {self.max_vertices_factor}")
+
+
+#: Ladders computed from the data (root_vertices), per (array id, shape, pyramid, options), with a weak
+#: reference that proves the array is still the same one.
+_LADDERS: dict[tuple, tuple[weakref.ref, list[float]]] = {}
+_LADDERS_LOCK = threading.Lock()
+
+
+def target_ladder(
+    pyramid: TilePyramid, opt: AdaptiveOptions, z: np.ndarray | None = None, valid: np.ndarray | None = None
+) -> list[float]:
+    """Target max vertical error per level, metres, coarsest first: root_error_m / 2^k (z and valid are
+    needed when the root error comes from ``root_vertices``)."""
+    top = pyramid.max_level
+    if opt.root_error_m is not None:
+        root = opt.root_error_m
+    elif opt.finest_error_m is not None:
+        root = opt.finest_error_m * 2.0**top
+    else:
+        if z is None or valid is None:
+            raise ValueError("Expected the terrain (z, valid) for a ladder from root_vertices")
+        key = (id(z), z.shape, pyramid, opt)
+        with _LADDERS_LOCK:
+            hit = _LADDERS.get(key)
+            if hit is not None and hit[0]() is z:
+                return list(hit[1])
+            root = _budget_error(z, valid, pyramid, opt.root_vertices or pyramid.tile_size**2)
+            ladder = [root / 2.0**k for k in range(top + 1)]
+            _LADDERS[key] = (weakref.ref(z), ladder)
+            return list(ladder)
+    return [root / 2.0**k for k in range(top + 1)]
+
+
+def _budget_error(z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, n_vertices: int) -> float:
+    """Max vertical error of the greedy TIN of the whole source (the root's window) with ``n_vertices``
+    vertices, metres (at least 1 mm, so that the ladder is never 0)."""
+    h, w = z.shape
+    zw = np.ascontiguousarray(z[: min(h, pyramid.span(0) + 1), : min(w, pyramid.span(0) + 1)])
+    vw = np.ascontiguousarray(valid[: zw.shape[0], : zw.shape[1]])
+    empty = np.zeros(0, np.int64)
+    _, _, _, worst = tin_window(zw, vw, empty, empty, 0.0, int(n_vertices))
+    return max(float(worst), 1e-3)
+
+
+def _side(z: np.ndarray, valid: np.ndarray, target: float) -> np.ndarray:
+    """Kept indices (ascending, ends included) of one side's line of samples."""
+    return simplify_line(np.ascontiguousarray(z), np.ascontiguousarray(valid), float(target))
+
+
+def mesh_tile_with(
+    z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, code: TileCode, opt: AdaptiveOptions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Adaptive TIN of tile ``code`` with settings ``opt`` (see :func:`mesh_tile`)."""
+    level = code[0]
+    target = target_ladder(pyramid, opt, z, valid)[level]
+    h, w = z.shape
+    r0, c0 = pyramid.origin_rc(code)
+    span = pyramid.span(level)
+    r1 = min(r0 + span, h - 1)
+    c1 = min(c0 + span, w - 1)
+    zw = np.ascontiguousarray(z[r0 : r1 + 1, c0 : c1 + 1])
+    vw = np.ascontiguousarray(valid[r0 : r1 + 1, c0 : c1 + 1])
+    hh, ww = zw.shape
+    # the four sides, each from its own line of samples (what the neighbour across it computes too)
+    north = _side(zw[0], vw[0], target)[1:-1]
+    south = _side(zw[-1], vw[-1], target)[1:-1]
+    west = _side(zw[:, 0], vw[:, 0], target)[1:-1]
+    east = _side(zw[:, -1], vw[:, -1], target)[1:-1]
+    bx = np.concatenate([north, np.full(east.size, ww - 1), south, np.zeros(west.size, np.int64)])
+    by = np.concatenate([np.zeros(north.size, np.int64), east, np.full(south.size, hh - 1), west])
+    cap = max(4 + bx.size, int(opt.max_vertices_factor * hh * ww))
+    px, py, tris, _ = tin_window(zw, vw, bx.astype(np.int64), by.astype(np.int64), float(target), cap)
+    # raster order of the vertices (coherent deltas for the store's coding), triangles renumbered and
+    # flipped to counter-clockwise seen from above (y north: rows grow south)
+    order = np.lexsort((px, py))
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    t = rank[tris.astype(np.int64)]
+    t = t[:, [0, 2, 1]]
+    t = t[np.lexsort((t[:, 2], t[:, 1], t[:, 0]))].astype(np.int32)
+    rows = (r0 + py[order]).astype(np.float64)
+    cols = (c0 + px[order]).astype(np.float64)
+    hz = zw[py[order], px[order]].astype(np.float64)
+    return rows, cols, hz, t
+
+
+def make_mesher(**options):
+    """A tile mesher (for :func:`terralod.pyramid.builder.register_method`) with :class:`AdaptiveOptions`."""
+    opt = AdaptiveOptions(**options)
+
+    def mesher(z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, code: TileCode):
+        return mesh_tile_with(z, valid, pyramid, code, opt)
+
+    mesher.options = opt  # type: ignore[attr-defined]
+    mesher.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, opt)  # type: ignore[attr-defined]
+    return mesher
+
+
+def _build_meta(z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, opt: AdaptiveOptions) -> dict:
+    """What the store states about an adaptive build: the options and the ladder (metres, level 0 first)."""
+    return {
+        "root_error_m": opt.root_error_m,
+        "finest_error_m": opt.finest_error_m,
+        "root_vertices": opt.root_vertices,
+        "max_vertices_factor": opt.max_vertices_factor,
+        "target_error_m": target_ladder(pyramid, opt, z, valid),
+    }
+
+
+_DEFAULT = AdaptiveOptions()
+
+
+def mesh_tile(
+    z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, code: TileCode
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Adaptive TIN of tile ``code`` with the default :class:`AdaptiveOptions`.
+
+    Returns
+    -------
+    rows, cols : (N,) float64 source sample coordinates (row south, col east) of the vertices (integers)
+    heights_m : (N,) float64 elevation, metres (the samples' own)
+    triangles : (K, 3) int32, counter-clockwise seen from above
+    """
+    return mesh_tile_with(z, valid, pyramid, code, _DEFAULT)
+
+
+mesh_tile.options = _DEFAULT  # type: ignore[attr-defined]
+mesh_tile.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, _DEFAULT)  # type: ignore[attr-defined]
