@@ -21,7 +21,7 @@ from terralod.cli._common import (
 
 
 @click.command()
-@click.argument("input_path", metavar="INPUT")
+@click.argument("input_paths", metavar="INPUT...", nargs=-1, required=True)
 @click.option("-o", "--output", required=True, help="Output .terra store.")
 @click.option("--tile-size", default=65, show_default=True, help="Vertices per tile side (2^n + 1).")
 @click.option(
@@ -46,19 +46,24 @@ from terralod.cli._common import (
     help="Name of the terrain's first epoch (e.g. the survey date 2000-09-25): the store keeps its samples, "
     "so `terralod update` / `terralod edit` can add later epochs.",
 )  # fmt: skip
+@click.option("--dask", "dask_address", default=None,
+              help="Build on Dask: local (a LocalCluster of worker processes) or tcp://HOST:PORT (a scheduler).")
+@click.option("--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2).")
 @read_options
 def build(
-    input_path: str, output: str, tile_size: int, method: str, sub_blocks: str, base_fraction: float, workers,
-    resume, overwrite, fractal_levels, epoch, **read: Any,
+    input_paths: tuple[str, ...], output: str, tile_size: int, method: str, sub_blocks: str, base_fraction: float,
+    workers, resume, overwrite, fractal_levels, epoch, dask_address, dask_workers, **read: Any,
 ) -> None:  # fmt: skip
-    """Build the level-of-detail tile store of a DEM, or the detail-increment TIN of a LAS/LAZ cloud."""
+    """Build the level-of-detail tile store of a DEM (or of a mosaic of DEM tiles on one grid), or the
+    detail-increment TIN of a LAS/LAZ cloud. Mosaics, --dask and rasters over 2^28 samples build out of core."""
+    input_path = input_paths[0]
     from terralod.pyramid.builder import METHODS, store_summary
     from terralod.store import TileStore, open_store
     from terralod.tiles import is_valid_tile_size
 
     if resume and overwrite:
         raise click.BadParameter("give --resume or --overwrite, not both", param_hint="--resume")
-    check_output(output, [input_path], overwrite=overwrite, resume=resume, what="output store")
+    check_output(output, list(input_paths), overwrite=overwrite, resume=resume, what="output store")
     if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
         build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read)
         return
@@ -70,15 +75,22 @@ def build(
         )
     if workers is not None and workers < 1:
         raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
-    hf = load(input_path, **read)
-    if epoch is not None:
-        from terralod.pyramid.update import validate_epoch_name
+    if windowed_build(input_paths, dask_address, epoch):
+        from terralod.cli._windowed import run_windowed_build
 
-        epoch = validate_epoch_name(epoch, output)
-    rep = run_build(
-        hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite,
-        **({"epoch": epoch} if epoch is not None else {}),
-    )  # fmt: skip
+        rep = run_windowed_build(input_paths, output, tile_size=tile_size, method=method, workers=workers,
+                                 resume=resume, overwrite=overwrite, dask_address=dask_address,
+                                 dask_workers=dask_workers, read=read)  # fmt: skip
+    else:
+        hf = load(input_path, **read)
+        if epoch is not None:
+            from terralod.pyramid.update import validate_epoch_name
+
+            epoch = validate_epoch_name(epoch, output)
+        rep = run_build(
+            hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite,
+            **({"epoch": epoch} if epoch is not None else {}),
+        )  # fmt: skip
     console.print(
         f"built {rep.tiles_built} tiles ({rep.tiles_skipped} already done) in {rep.seconds:.2f} s, "
         f"{rep.samples_per_second / 1e6:.2f} M source samples/s"
@@ -89,6 +101,18 @@ def build(
         console.print(f"fractal: {fractal_levels} levels below the DEM when viewed (from {input_path})")
     with open_store(output) as s:
         print_store_summary(store_summary(s))
+
+
+def windowed_build(input_paths: tuple[str, ...], dask_address: str | None, epoch: str | None) -> bool:
+    """True when the build reads windows (:mod:`terralod.pyramid.distributed`): a mosaic, --dask, or one
+    GDAL raster of over 2^28 samples; --epoch keeps the samples in the store and builds in memory."""
+    from terralod.cli._windowed import is_large_raster
+
+    if len(input_paths) > 1 or dask_address:
+        if epoch is not None:
+            raise click.BadParameter("--epoch builds in memory; not with a mosaic or --dask", param_hint="--epoch")
+        return True
+    return epoch is None and is_large_raster(input_paths[0])
 
 
 def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: float, overwrite: bool,

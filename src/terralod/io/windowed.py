@@ -89,7 +89,7 @@ class WindowSource:
     def window_heightfield(self, r0: int, c0: int, r1: int, c1: int) -> Heightfield:
         """The window as a Heightfield whose transform places it in the full terrain's frame."""
         z, ok = self.read(r0, c0, r1, c1)
-        t = self.transform * Affine.translation(c0, r0)
+        t = self.transform @ Affine.translation(c0, r0)
         return Heightfield(z, ok, t, crs=self.crs, source=self.source)
 
     def _check_window(self, r0: int, c0: int, r1: int, c1: int) -> None:

@@ -391,7 +391,7 @@ def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_windo
     r1, c1 = min(r0 + span, src.height - 1), min(c0 + span, src.width - 1)
     dx, dy = src.spacing_m
     zd, vd = _decimated_window(src, r0, c0, r1, c1, f, MEASURE_STRIP_SAMPLES)
-    hf = Heightfield(zd, vd, src.transform * Affine.scale(f), crs=src.crs)
+    hf = Heightfield(zd, vd, src.transform @ Affine.scale(f), crs=src.crs)
     wp = WindowPyramid(src.width, src.height, pyramid.tile_size, r0, c0, f)
     if getattr(mesh_fn, "needs_spacing", False):
         rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, wp, code, spacing_m=hf.spacing_m)

@@ -1,0 +1,65 @@
+"""``terralod build`` out of core: a mosaic, ``--dask local|tcp://HOST:PORT``, or a raster too large to
+hold, built by :func:`terralod.pyramid.distributed.build_store_windowed` with a progress bar."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from terralod.cli._common import parse_pair, progress
+
+#: A single GDAL raster of more samples than this builds out of core without being asked.
+OUT_OF_CORE_SAMPLES = 1 << 28
+_GDAL_SUFFIXES = (".tif", ".tiff", ".vrt", ".img", ".hgt")
+
+
+def is_large_raster(path: str) -> bool:
+    """True for a GDAL raster of over :data:`OUT_OF_CORE_SAMPLES` samples (its header only is read)."""
+    if Path(path).suffix.lower() not in _GDAL_SUFFIXES or not Path(path).is_file():
+        return False
+    try:
+        import rasterio
+
+        with rasterio.open(path) as ds:
+            return ds.width * ds.height > OUT_OF_CORE_SAMPLES
+    except Exception:
+        return False  # the in-memory reader reports what is wrong with it
+
+
+def run_windowed_build(
+    input_paths: tuple[str, ...], output: str, *, tile_size: int, method: str, workers: int | None, resume: bool,
+    overwrite: bool, dask_address: str | None, dask_workers: int | None, read: dict[str, Any],
+):  # fmt: skip
+    """Open the window source, connect to Dask (before anything is written), build, close the cluster."""
+    from terralod.errors import InputError
+    from terralod.io.windowed import open_source
+    from terralod.pyramid.distributed import build_store_windowed, dask_client
+
+    if read.get("encoding") or read.get("tile_zxy"):
+        raise InputError(
+            "--encoding and --tile need an in-memory build (one file, no --dask)", input_paths[0]
+        )
+    src = open_source(
+        list(input_paths),
+        spacing_m=parse_pair(read.get("spacing"), "--spacing"),
+        vertical_scale=read.get("vertical_scale"),
+        vertical_offset=read.get("vertical_offset"),
+    )
+    client = None
+    if dask_address:
+        client = dask_client(dask_address, n_workers=dask_workers, threads=workers)
+    try:
+        with progress("building") as prog:
+            task = prog.add_task(Path(output).name, total=None)
+
+            def cb(done: int, total: int) -> None:
+                prog.update(task, completed=done, total=total)
+
+            return build_store_windowed(src, output, tile_size=tile_size, method=method, workers=workers,
+                                        client=client, resume=resume, overwrite=overwrite, progress=cb)  # fmt: skip
+    finally:
+        if client is not None:
+            cluster = client.cluster if dask_address == "local" else None
+            client.close()
+            if cluster is not None:
+                cluster.close()

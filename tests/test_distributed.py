@@ -1,0 +1,182 @@
+"""Out-of-core and Dask builds (terralod.io.windowed, terralod.pyramid.distributed): the same tiles as the
+in-memory build, a streamed plan equal to the in-memory one, coarse tiles measured on every sample."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from terralod.error import measure_error_window
+from terralod.errors import InputError
+from terralod.heightfield import Heightfield
+from terralod.io.reader import read_heightfield
+from terralod.io.windowed import FILL_BLOCK, ArraySource, RasterSource
+from terralod.pyramid.builder import build_store, plan_quantisation
+from terralod.pyramid.distributed import build_store_windowed, dask_client, scan_source
+from terralod.store import TileStore
+from terralod.tiles import TilePyramid
+
+from conftest import fractal_terrain
+
+CRS = "EPSG:32611"
+
+
+def _write_tif(path: Path, z: np.ndarray, *, x0: float = 380000.0, y0: float = 3800000.0, res: float = 30.0,
+               crs: str = CRS, nodata: float | None = None) -> Path:  # fmt: skip
+    import rasterio
+    from rasterio.transform import from_origin
+
+    h, w = z.shape
+    with rasterio.open(path, "w", driver="GTiff", width=w, height=h, count=1, dtype="float32", crs=crs,
+                       transform=from_origin(x0, y0, res, res), tiled=True, blockxsize=64, blockysize=64,
+                       nodata=nodata) as ds:  # fmt: skip
+        ds.write(z.astype(np.float32), 1)
+    return path
+
+
+def _rows(path: Path) -> list[tuple]:
+    conn = sqlite3.connect(path)
+    try:
+        return conn.execute("SELECT * FROM tiles ORDER BY level, x, y").fetchall()
+    finally:
+        conn.close()
+
+
+def _meta(path: Path) -> dict:
+    with TileStore.open(path) as s:
+        return dict(s.meta)
+
+
+@pytest.mark.parametrize("method", ["chunked", "cohesion"])
+def test_windowed_build_is_the_in_memory_build(tmp_path: Path, method: str) -> None:
+    """A 257 x 301 tiled GeoTIFF read window by window (units of 2 x 2 and more tiles, data edges that cut
+    tiles) gives the in-memory build's tiles and metadata byte for byte."""
+    tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(257, 301, seed=3, relief_m=800.0))
+    hf = read_heightfield(tif)
+    build_store(hf, tmp_path / "mem.terra", method=method, workers=1)
+    rep = build_store_windowed(RasterSource(tif), tmp_path / "win.terra", method=method, workers=2,
+                               unit_span_samples=128)  # fmt: skip
+    assert rep.tiles_built == rep.tiles_total == len(_rows(tmp_path / "mem.terra"))
+    assert _rows(tmp_path / "win.terra") == _rows(tmp_path / "mem.terra")
+    assert _meta(tmp_path / "win.terra") == _meta(tmp_path / "mem.terra")
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    h=st.integers(3, 300), w=st.integers(3, 300), m=st.sampled_from([3, 5, 17, 33]),
+    strip=st.sampled_from([64, 4096, 1 << 25]), seed=st.integers(0, 99),
+)  # fmt: skip
+def test_streamed_plan_is_the_in_memory_plan(h: int, w: int, m: int, strip: int, seed: int) -> None:
+    """The streamed scan (strips of any height, merged up the quadtree) gives plan_quantisation's lattices for
+    both kinds of mesher and Heightfield.digest's digest."""
+    z = fractal_terrain(h, w, seed=seed, relief_m=300.0)
+    hf = Heightfield.from_array(z, 10.0)
+    pyr = TilePyramid(w, h, m)
+    plan = scan_source(ArraySource(hf), pyr, strip_samples=strip)
+    assert plan.digest == hf.digest()
+    assert plan.quant_grid == plan_quantisation(hf, pyr, grid_vertices=True)
+    assert plan.quant_all == plan_quantisation(hf, pyr, grid_vertices=False)
+
+
+@pytest.mark.parametrize("method", ["chunked", "cohesion"])
+def test_decimated_coarse_tiles_are_measured_on_every_sample(tmp_path: Path, method: str) -> None:
+    """Tiles whose window exceeds the budget are meshed from a decimated copy; their stored errors are
+    those of their mesh against every full-resolution sample it covers (vertical exactly, Hausdorff an
+    upper bound), and the other tiles are the in-memory build's."""
+    hf = Heightfield.from_array(fractal_terrain(257, 257, seed=5, relief_m=600.0), 20.0)
+    build_store(hf, tmp_path / "mem.terra", method=method, workers=1)
+    build_store_windowed(hf, tmp_path / "win.terra", method=method, workers=1, max_window_samples=65 * 65)
+    dx, dy = hf.spacing_m
+    with TileStore.open(tmp_path / "win.terra") as win, TileStore.open(tmp_path / "mem.terra") as mem:
+        pyr = win.pyramid
+        assert win.complete and not win.verify()
+        for code in pyr.all_codes():
+            a, b = win.raw_tile(*code), mem.raw_tile(*code)
+            if pyr.span(code[0]) <= 64:
+                assert (a.vertices, a.triangles, a.error_m) == (b.vertices, b.triangles, b.error_m)
+                continue
+            tile = win.tile(*code)
+            r0, c0 = pyr.origin_rc(code)
+            r1, c1 = min(r0 + pyr.span(code[0]), hf.height - 1), min(c0 + pyr.span(code[0]), hf.width - 1)
+            rc = tile.grid_rc - np.array([r0, c0])
+            local = np.stack([rc[:, 1] * dx, rc[:, 0] * dy, tile.vertices[:, 2]], axis=1)
+            rep = measure_error_window(local, tile.triangles, hf.elevation_m[r0 : r1 + 1, c0 : c1 + 1],
+                                       hf.valid[r0 : r1 + 1, c0 : c1 + 1], dx, dy)  # fmt: skip
+            assert a.n_samples == rep.n_samples
+            assert a.measured_vertical_error_m == pytest.approx(rep.max_vertical_m, rel=1e-12, abs=1e-9)
+            assert rep.hausdorff_m - 1e-9 <= a.measured_error_m <= a.measured_vertical_error_m + 1e-9
+
+
+def test_mosaic_is_the_whole_raster_and_mixed_grids_are_refused(tmp_path: Path) -> None:
+    """Four GeoTIFF tiles on one grid (shared edges) read as one VRT mosaic give the whole raster's samples;
+    another CRS or pixel size is refused in one line naming the file."""
+    z = fractal_terrain(193, 161, seed=11)
+    whole = RasterSource(_write_tif(tmp_path / "whole.tif", z))
+    parts = []
+    for i, (r, c) in enumerate([(0, 0), (0, 80), (96, 0), (96, 80)]):
+        sub = z[r : r + 97, c : c + 81]
+        parts.append(_write_tif(tmp_path / f"t{i}.tif", sub, x0=380000.0 + 30.0 * c, y0=3800000.0 - 30.0 * r))
+    mosaic = RasterSource(parts)
+    assert (mosaic.width, mosaic.height) == (161, 193) and mosaic.transform == whole.transform
+    for a, b in zip(mosaic.read(0, 0, 193, 161), whole.read(0, 0, 193, 161), strict=True):
+        np.testing.assert_array_equal(a, b)
+    other_crs = _write_tif(tmp_path / "utm10.tif", z[:50, :50], crs="EPSG:32610")
+    other_res = _write_tif(tmp_path / "res.tif", z[:50, :50], res=10.0)
+    with pytest.raises(InputError, match="CRS differs") as e1:
+        RasterSource([parts[0], other_crs])
+    with pytest.raises(InputError, match="pixel size") as e2:
+        RasterSource([parts[0], other_res])
+    assert "\n" not in str(e1.value) + str(e2.value) and str(other_crs) in str(e1.value)
+
+
+def test_block_fill_is_the_same_whichever_window_reads_it(tmp_path: Path) -> None:
+    """Nodata cells are filled per fixed block: two windows that overlap read identical values there, valid
+    samples are never changed, and a build from it completes with valid errors."""
+    z = fractal_terrain(FILL_BLOCK + 90, 300, seed=2)
+    z[100:160, 40:90] = -9999.0
+    z[FILL_BLOCK - 20 : FILL_BLOCK + 30, 200:260] = -9999.0  # a hole across a block edge
+    src = RasterSource(_write_tif(tmp_path / "holes.tif", z, nodata=-9999.0))
+    a, va = src.read(0, 0, FILL_BLOCK + 90, 300)
+    b, vb = src.read(FILL_BLOCK - 60, 150, FILL_BLOCK + 50, 280)
+    np.testing.assert_array_equal(a[FILL_BLOCK - 60 : FILL_BLOCK + 50, 150:280], b)
+    np.testing.assert_array_equal(va, z != -9999.0)
+    np.testing.assert_array_equal(a[va], z[va])
+    assert np.isfinite(a).all() and a[~va].min() > 0.0
+
+
+def test_geographic_rasters_are_refused_in_one_line(tmp_path: Path) -> None:
+    tif = _write_tif(tmp_path / "geo.tif", fractal_terrain(20, 20, seed=1), x0=1.0, y0=43.0, res=0.001,
+                     crs="EPSG:4326")  # fmt: skip
+    with pytest.raises(InputError, match="gdalwarp") as exc:
+        RasterSource(tif)
+    assert "\n" not in str(exc.value)
+
+
+def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
+    """A LocalCluster of 2 worker processes builds the in-memory build's tiles; an interrupted Dask build
+    (stopped after some tiles, as a dead client leaves it) finishes with resume; an unreachable scheduler
+    is refused before anything is written."""
+    pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
+    tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(129, 193, seed=7, relief_m=400.0))
+    build_store(read_heightfield(tif), tmp_path / "mem.terra", tile_size=33, method="chunked", workers=1)
+    client = dask_client("local", n_workers=2, threads=1)
+    try:
+        out = tmp_path / "dask.terra"
+        first = build_store_windowed(RasterSource(tif), out, tile_size=33, method="chunked", client=client,
+                                     stop_after=10, unit_span_samples=64)  # fmt: skip
+        assert 0 < first.tiles_built < first.tiles_total and not TileStore.open(out).complete
+        rest = build_store_windowed(RasterSource(tif), out, tile_size=33, method="chunked", client=client,
+                                    resume=True)  # fmt: skip
+        assert rest.tiles_skipped == first.tiles_built
+    finally:
+        cluster = client.cluster
+        client.close()
+        cluster.close()
+    assert _rows(out) == _rows(tmp_path / "mem.terra")
+    with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
+        dask_client("tcp://127.0.0.1:9", timeout_s=1.0)
