@@ -34,7 +34,25 @@ def store_info(p: Path) -> dict[str, Any]:
         summary["crs"] = crs_name(s.crs)
         summary["source"] = s.meta.get("source")
         summary["method"] = s.meta.get("method")
+        summary["epochs"] = [{"name": r["name"], "state": r["state"], **r["info"]} for r in s.epoch_rows()]
+        summary["epoch"] = s.epoch
     return summary
+
+
+def print_epochs(d: dict[str, Any]) -> None:
+    """One line per epoch of a store of epochs (the tiles above are those of ``d["epoch"]``)."""
+    eps = d.get("epochs") or []
+    if not eps:
+        return
+    console.print(f"{len(eps)} epochs (tiles above: {d.get('epoch')}; the last complete one is the default):")
+    for e in eps:
+        extra = (
+            ""
+            if e.get("kind") == "build"
+            else f", {e.get('tiles_rebuilt', '?')} tiles rebuilt from {e.get('base')}"
+        )
+        state = "" if e["state"] == "complete" else " [INTERRUPTED: finish with update --resume]"
+        console.print(f"  {e['name']:<12} {e.get('kind', '')}{extra}{state}")
 
 
 @click.command()
@@ -56,6 +74,7 @@ def info(path: str, as_json: bool, **read: Any) -> None:
         else:
             console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs']}")
             print_store_summary(d)
+            print_epochs(d)
         return
     if p.suffix.lower() in (".las", ".laz"):
         from terralod.tin.pointcloud import describe_las
