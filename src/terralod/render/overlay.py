@@ -88,7 +88,9 @@ def change_overlay(terrain: Any, after: str | None = None, before: str | None = 
 
     eps = list(getattr(terrain, "epochs", []))
     if len(eps) < 1 or not hasattr(terrain, "heightfield"):
-        raise InputError("has no epochs to compare (build with --epoch, then terralod update)", str(terrain.path))
+        raise InputError(
+            "has no epochs to compare (build with --epoch, then terralod update)", str(terrain.path)
+        )
     after = after or terrain.epoch or eps[-1]
     before = before or eps[0]
     for e in (after, before):
@@ -116,7 +118,7 @@ def change_colour(d_m: np.ndarray, lod_m: float, max_m: float) -> np.ndarray:
 
 
 def format_date(name: str | None) -> str:
-    """"2000-09-25" → "25 Sep 2000"; other epoch names as they are."""
+    """ "2000-09-25" → "25 Sep 2000"; other epoch names as they are."""
     if not name:
         return ""
     try:
@@ -146,10 +148,10 @@ def legend_image(overlay: ChangeOverlay, scale: float = 1.0) -> Any:
     from PIL import Image, ImageDraw
 
     s = max(scale, 0.5)
-    w, bar_h = int(300 * s), int(14 * s)
+    w, bar_h = int(330 * s), int(14 * s)
     f = _font(int(12 * s))
     fb = _font(int(13 * s))
-    h = int(94 * s)
+    h = int(106 * s)
     img = Image.new("RGBA", (w, h), (255, 255, 255, 215))
     dr = ImageDraw.Draw(img)
     title = "Ground change" + (f" since {format_date(overlay.before)}" if overlay.before else "")
@@ -170,9 +172,16 @@ def legend_image(overlay: ChangeOverlay, scale: float = 1.0) -> Any:
         if v == 0:
             label = "0"
         tw = dr.textlength(label, font=f)
-        dr.text((min(max(x - tw / 2, 1), w - tw - 1), y0 + bar_h + int(5 * s)), label, fill=(30, 30, 30, 255), font=f)
+        dr.text(
+            (min(max(x - tw / 2, 1), w - tw - 1), y0 + bar_h + int(5 * s)),
+            label,
+            fill=(30, 30, 30, 255),
+            font=f,
+        )
     y = y0 + bar_h + int(22 * s)
-    dr.text((x0, y), "blue: ground rose / material added", fill=(*[int(255 * c) for c in GAIN_DARK], 255), font=f)
+    dr.text(
+        (x0, y), "blue: ground rose / material added", fill=(*[int(255 * c) for c in GAIN_DARK], 255), font=f
+    )
     dr.text((x0, y + int(13 * s)), "red: ground dropped / removed", fill=(*[int(255 * c) for c in LOSS_DARK], 255),
             font=f)  # fmt: skip
     dr.text((x0, y + int(26 * s)), f"grey: less than {overlay.lod_m:g} m (no clear change)", fill=(90, 90, 90, 255),
@@ -195,7 +204,9 @@ def annotate(img: np.ndarray, *, date: str | None = None, overlay: ChangeOverlay
         text = format_date(date)
         tw = dr.textlength(text, font=f)
         sub_w = dr.textlength(subtitle, font=fs) if subtitle else 0
-        box = Image.new("RGBA", (int(max(tw, sub_w) + 20 * s), int((46 + (18 if subtitle else 0)) * s)), (0, 0, 0, 140))
+        box = Image.new(
+            "RGBA", (int(max(tw, sub_w) + 20 * s), int((46 + (18 if subtitle else 0)) * s)), (0, 0, 0, 140)
+        )
         im.alpha_composite(box, (int(8 * s), int(8 * s)))
         dr = ImageDraw.Draw(im)
         dr.text((int(18 * s), int(12 * s)), text, fill=(255, 255, 255, 255), font=f)
