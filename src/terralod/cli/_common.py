@@ -184,6 +184,57 @@ def view_options(fn: Callable[..., Any]) -> Callable[..., Any]:
     )(fn)  # fmt: skip
 
 
+def aim_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """--look-at, --from and --water-level, shared by render and flythrough (and --water-level by view)."""
+    fn = click.option(
+        "--from", "from_text",
+        help="Camera AZIMUTH,ELEVATION,DISTANCE from the target: degrees clockwise from north, degrees "
+        "above the horizon, metres (default 200,35,half the terrain's diagonal).",
+    )(fn)  # fmt: skip
+    fn = click.option(
+        "--look-at", "look_at", help="Aim at LON,LAT (WGS84 degrees) on the terrain instead of its centre."
+    )(fn)
+    return water_option(fn)
+
+
+def water_option(fn: Callable[..., Any]) -> Callable[..., Any]:
+    return click.option(
+        "--water-level", "water_level", type=float, default=None,
+        help="Draw everything at or below this height (metres) as water (default: a sea the source writes "
+        "as 0 m, connected to its border).",
+    )(fn)  # fmt: skip
+
+
+def numbers(text: str | None, n: int, name: str, what: str) -> tuple[float, ...] | None:
+    """``n`` comma-separated numbers, or None."""
+    if text is None:
+        return None
+    try:
+        v = tuple(float(a) for a in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != n:
+        raise click.BadParameter(f"expected {what}, got {text!r}", param_hint=name)
+    return v
+
+
+def aimed_pose(terrain, look_at: str | None, from_text: str | None):
+    """The pose of --look-at / --from (None when neither is given)."""
+    from terralod.render.offscreen import aim_pose
+
+    ll = numbers(look_at, 2, "--look-at", "LON,LAT in degrees")
+    fr = numbers(from_text, 3, "--from", "AZIMUTH,ELEVATION,DISTANCE (degrees, degrees, metres)")
+    if ll is None and fr is None:
+        return None
+    if ll is not None and not (-180 <= ll[0] <= 360 and -90 <= ll[1] <= 90):
+        raise click.BadParameter(f"expected LON,LAT in degrees, got {look_at!r}", param_hint="--look-at")
+    if fr is not None and not (fr[2] > 0 and -90 < fr[1] <= 90):
+        raise click.BadParameter(
+            f"expected a distance > 0 and an elevation in (-90, 90], got {from_text!r}", param_hint="--from"
+        )
+    return aim_pose(terrain, ll, fr)  # type: ignore[arg-type]
+
+
 def progress(label: str) -> Progress:
     """A progress bar on stderr (off when stderr is not a terminal, unless -v)."""
     return Progress(
@@ -270,7 +321,7 @@ def open_terrain_arg(path: str, read: dict[str, Any], fractal_levels: int | None
 def render_settings(background: str | None, mode: str, wireframe: bool):
     from terralod.render import RenderSettings
 
-    st = RenderSettings(mode=mode, wireframe=wireframe)
+    st = RenderSettings(mode=mode, wireframe=wireframe, legend=mode == "elevation")
     if background:
         try:
             rgb = tuple(float(a) for a in background.split(","))

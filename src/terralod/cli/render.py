@@ -8,6 +8,8 @@ from typing import Any
 import click
 
 from terralod.cli._common import (
+    aim_options,
+    aimed_pose,
     check_output,
     console,
     frame_table,
@@ -46,25 +48,28 @@ def describe_frame(output: str, stats: dict[str, Any]) -> None:
 )
 @click.option("--wireframe", is_flag=True)
 @click.option("--overwrite", is_flag=True, help="Replace an existing image.")
+@aim_options
 @view_options
 @read_options
 def render(
-    path, output, eye, target, size_text, threshold_px, background, mode, wireframe, overwrite, fractal_levels,
-    cull, **read: Any,
+    path, output, eye, target, size_text, threshold_px, background, mode, wireframe, overwrite, look_at,
+    from_text, water_level, fractal_levels, cull, **read: Any,
 ) -> None:  # fmt: skip
     """Render one frame of a store (or a DEM, built first) to a PNG, headless (EGL)."""
-    from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png
+    from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png, terrain_colours
 
     check_output(output, [path], overwrite=overwrite, suffixes=IMAGE_SUFFIXES, what="image")
     w, h = size(size_text)
     if eye and not target or target and not eye:
         raise click.BadParameter("give both --eye and --target", param_hint="--eye")
+    if eye and (look_at or from_text):
+        raise click.BadParameter("give --eye/--target or --look-at/--from, not both", param_hint="--eye")
     with open_terrain_arg(path, read, fractal_levels) as terrain:
-        pose = overview_pose(terrain)
+        pose = aimed_pose(terrain, look_at, from_text) or overview_pose(terrain)
         if eye and target:
             pose = CameraPose(triple(eye, "--eye"), triple(target, "--target"))
-        fr = FrameRenderer(terrain, w, h, threshold_px=threshold_px,
-                           settings=render_settings(background, mode, wireframe), cull=cull)  # fmt: skip
+        st = terrain_colours(terrain, render_settings(background, mode, wireframe), water_level)
+        fr = FrameRenderer(terrain, w, h, threshold_px=threshold_px, settings=st, cull=cull)
         try:
             save_png(fr.frame(pose), output)
         finally:

@@ -8,7 +8,7 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import open_terrain_arg, read_options, size, view_options
+from terralod.cli._common import open_terrain_arg, read_options, size, view_options, water_option
 
 
 @click.command()
@@ -17,9 +17,12 @@ from terralod.cli._common import open_terrain_arg, read_options, size, view_opti
 @click.option("--threshold-px", default=2.0, show_default=True)
 @click.option("--frames", type=int, default=None, help="Close after this many frames (scripted runs).")
 @click.option("--screenshot", help="PNG written after the last frame (with --frames).")
+@water_option
 @view_options
 @read_options
-def view(path, size_text, threshold_px, frames, screenshot, fractal_levels, cull, **read: Any) -> None:
+def view(
+    path, size_text, threshold_px, frames, screenshot, water_level, fractal_levels, cull, **read: Any
+) -> None:
     """Open the real-time viewer on a store (or a DEM, built into a cache store first)."""
     from terralod.render.viewer import run_viewer
 
@@ -29,6 +32,6 @@ def view(path, size_text, threshold_px, frames, screenshot, fractal_levels, cull
             raise click.UsageError("no display (DISPLAY is unset); use `terralod render` or `terralod flythrough`")
         title = "terralod (TIN)" if terrain.kind == "tin" else "terralod"
         out = run_viewer(terrain, width_px=w, height_px=h, threshold_px=threshold_px, max_frames=frames,
-                         screenshot=screenshot, cull=cull, title=title)  # fmt: skip
+                         screenshot=screenshot, cull=cull, title=title, water_level_m=water_level)  # fmt: skip
     if frames:
         click.echo(json.dumps({"frames": out["frames"], "hud": out["hud"], "stats": out["stats"]}, default=str))

@@ -131,7 +131,14 @@ class RenderSettings:
     sun_azimuth_deg: float = 315.0
     sun_altitude_deg: float = 45.0
     fog: bool = True
+    #: heights of the colour ramp's ends, metres (None: the drawn tiles' range, which changes per frame;
+    #: the frame renderer and the viewer fix it to the terrain's range)
     height_range_m: tuple[float, float] | None = None
+    #: heights drawn as water (lo, hi), metres, or None (see terralod.render.offscreen.terrain_colours)
+    water_m: tuple[float, float] | None = None
+    water_colour: tuple[float, float, float] = (0.23, 0.42, 0.62)
+    #: a colour legend (metres) in the frame's corner (frame renderer and viewer)
+    legend: bool = False
     #: skip triangles seen from behind (terrain is seen from above; counter-clockwise from above is front)
     cull_back_faces: bool = True
     #: a :class:`terralod.render.overlay.ChangeOverlay` coloured over the terrain (gain / loss), or None
@@ -506,6 +513,8 @@ class TerrainRenderer:
         hr = st.height_range_m or ((zlo, zhi) if codes else (0.0, 1.0))
         self.prog["u_height_range"].value = (float(hr[0]), float(hr[1]))
         self.prog["u_fog_colour"].value = tuple(st.background)
+        self.prog["u_water"].value = tuple(map(float, st.water_m)) if st.water_m else (1.0, -1.0)
+        self.prog["u_water_colour"].value = tuple(map(float, st.water_colour))
         dist = float(np.linalg.norm(target - eye))
         self.prog["u_fog_distance"].value = (dist * 6.0) if st.fog else 1e12
         self.prog["u_z_exaggeration"].value = float(st.z_exaggeration)

@@ -17,7 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from terralod.render.offscreen import CameraPose, cull_options, overview_pose, store_extent
+from terralod.render.offscreen import (
+    CameraPose,
+    cull_options,
+    legend_image,
+    overview_pose,
+    store_extent,
+    terrain_colours,
+)
 from terralod.render.renderer import _SHADERS, RenderSettings, TerrainRenderer
 from terralod.terrain import as_terrain, frame_stats
 
@@ -57,12 +64,20 @@ class _Hud:
         d = ImageDraw.Draw(img)
         for i, line in enumerate(lines):
             d.text((6, 4 + 16 * i), line, fill=(255, 255, 255, 255), font=font)
-        data = np.asarray(img)[::-1].copy()
+        self.blit(np.asarray(img), 8, 8, width_px, height_px)
+
+    def blit(self, rgba: np.ndarray, x_px: int, y_px: int, width_px: int, height_px: int) -> None:
+        """Draw an (h, w, 4) uint8 image with its top-left corner ``(x_px, y_px)`` from the window's
+        top-left (alpha blended, over everything)."""
+        h, w = rgba.shape[:2]
+        data = np.ascontiguousarray(rgba[::-1])
         if self.tex is None or self.tex.size != (w, h):
+            if self.tex is not None:
+                self.tex.release()
             self.tex = self.ctx.texture((w, h), 4, data.tobytes())
         else:
             self.tex.write(data.tobytes())
-        x0, y1 = -1.0 + 8 * 2.0 / width_px, 1.0 - 8 * 2.0 / height_px
+        x0, y1 = -1.0 + x_px * 2.0 / width_px, 1.0 - y_px * 2.0 / height_px
         x1, y0 = x0 + 2.0 * w / width_px, y1 - 2.0 * h / height_px
         quad = np.array([x0, y0, 0, 0, x1, y0, 1, 0, x0, y1, 0, 1, x1, y1, 1, 1], np.float32)
         vbo = self.ctx.buffer(quad.tobytes())
@@ -81,7 +96,7 @@ class Viewer:
 
     def __init__(self, terrain, *, width_px: int = 1280, height_px: int = 720, threshold_px: float = 2.0,
                  fov_y_deg: float = 45.0, title: str = "terralod", cull: tuple[str, ...] = (),
-                 pose: CameraPose | None = None) -> None:  # fmt: skip
+                 pose: CameraPose | None = None, water_level_m: float | None = None) -> None:  # fmt: skip
         import glfw
         import moderngl
 
@@ -110,8 +125,11 @@ class Viewer:
         # the terrain's own engine (selection on a worker thread where the kind has one)
         self.engine = terrain.engine(threshold_px=threshold_px, background=True, cull=cull)
         self.renderer = TerrainRenderer(width_px, height_px, ctx=self.ctx)
-        self.settings = RenderSettings()
+        # one colour ramp (with its legend) over the terrain's range, water where the source marks it
+        self.settings = terrain_colours(terrain, RenderSettings(legend=True), water_level_m)
+        self._legend = legend_image(self.settings, height_px)
         self.hud = _Hud(self.ctx)
+        self.legend_hud = _Hud(self.ctx)
         pose = pose or overview_pose(terrain)
         self.eye = np.array(pose.eye, np.float64)
         self.target = np.array(pose.target, np.float64)
@@ -257,6 +275,10 @@ class Viewer:
             self.last_stats = stats
             self.last_hud = hud_lines(stats, fps, frame_ms, self.threshold_px, self.settings)
             self.hud.draw(self.last_hud, self.width_px, self.height_px)
+            if self.settings.legend and self.settings.mode == "elevation":
+                lh, lw = self._legend.shape[:2]
+                self.legend_hud.blit(self._legend, self.width_px - lw - 8, self.height_px - lh - 8, self.width_px,
+                              self.height_px)  # fmt: skip
             frames += 1
             if max_frames is not None and frames >= max_frames:
                 if screenshot:
@@ -275,7 +297,8 @@ class Viewer:
 
 def run_viewer(terrain, **kw) -> dict:
     """Open the window on any terrain (grid store or TIN) and run it; returns the last frame's numbers."""
-    v = Viewer(terrain, **{k: kw[k] for k in ("width_px", "height_px", "threshold_px", "cull", "title") if k in kw})
+    keys = ("width_px", "height_px", "threshold_px", "cull", "title", "pose", "water_level_m")
+    v = Viewer(terrain, **{k: kw[k] for k in keys if k in kw})
     try:
         return v.run(kw.get("max_frames"), kw.get("screenshot"))
     finally:

@@ -20,6 +20,8 @@ uniform vec3 u_gain_light;
 uniform vec3 u_gain_dark;
 uniform vec3 u_loss_light;
 uniform vec3 u_loss_dark;
+uniform vec2 u_water;            // heights drawn as water, metres (lo, hi); none when lo > hi
+uniform vec3 u_water_colour;
 in vec3 v_normal;
 in vec3 v_rel;
 in float v_height;
@@ -32,7 +34,8 @@ void main() {
     vec3 n = normalize(v_normal);
     if (!gl_FrontFacing) n = -n;
     float t = clamp((v_height - u_height_range.x) / max(u_height_range.y - u_height_range.x, 1e-3), 0.0, 1.0);
-    vec3 base = (u_mode == 0) ? texture(u_ramp, vec2(t, 0.5)).rgb : v_tile_colour;
+    // the ramp's 256 texels are addressed at their centres, so both ends are the end colours
+    vec3 base = (u_mode == 0) ? texture(u_ramp, vec2(0.5 / 256.0 + t * 255.0 / 256.0, 0.5)).rgb : v_tile_colour;
     if (u_overlay == 1) {
         vec2 uv = (v_rel.xy - u_change_origin) * u_change_scale;
         vec2 cv = texture(u_change, uv).rg;
@@ -50,6 +53,10 @@ void main() {
     float diffuse = max(dot(n, u_light_dir), 0.0);
     float shade = 0.35 + 0.65 * diffuse;
     vec3 c = base * shade;
+    if (u_mode == 0 && v_height >= u_water.x && v_height <= u_water.y) c = u_water_colour;
     float fog = 1.0 - exp(-length(v_rel) / max(u_fog_distance, 1.0));
-    f_colour = vec4(mix(c, u_fog_colour, fog * 0.85), 1.0);
+    c = mix(c, u_fog_colour, fog * 0.85);
+    // +-1/2 of an 8-bit step of noise: smooth gradients (fog, flat shading) no longer band into rings
+    float noise = fract(52.9829189 * fract(dot(gl_FragCoord.xy, vec2(0.06711056, 0.00583715))));
+    f_colour = vec4(c + (noise - 0.5) / 255.0, 1.0);
 }
