@@ -19,7 +19,7 @@ import numpy as np
 
 from terralod.errors import InputError, StoreError
 
-__all__ = ["atomic_folder", "check_exportable", "source_heightfield", "valid_at"]
+__all__ = ["apply_affine", "atomic_folder", "check_exportable", "source_heightfield", "valid_at"]
 
 
 def check_exportable(terrain: Any, epoch: str | None = None) -> None:
@@ -60,10 +60,15 @@ def source_heightfield(terrain: Any) -> Any:
     return hf if hf.digest() == digest else None
 
 
+def apply_affine(t: Any, x: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:
+    """An affine transform applied to arrays of points."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    return t.a * x + t.b * y + t.c, t.d * x + t.e * y + t.f
+
+
 def valid_at(hf: Any, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Validity of the source sample nearest to each CRS point (False outside the grid)."""
-    inv = ~hf.transform
-    col, row = inv * (np.asarray(x, np.float64), np.asarray(y, np.float64))
+    col, row = apply_affine(~hf.transform, x, y)
     c = np.floor(col).astype(np.int64)
     r = np.floor(row).astype(np.int64)
     inside = (r >= 0) & (c >= 0) & (r < hf.height) & (c < hf.width)

@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from terralod.export.common import atomic_folder, check_exportable, source_heightfield
+from terralod.export.common import apply_affine, atomic_folder, check_exportable, source_heightfield
 from terralod.export.geodesy import WGS84_A_M, Geodesy, ecef_lonlat, enu_frame
 from terralod.export.tiles3d import ExportReport
 
@@ -272,7 +272,7 @@ class _Reference:
         if self.hf is not None:
             hf = self.hf
             rows, cols = np.mgrid[0 : hf.height, 0 : hf.width]
-            x, y = hf.transform * (cols.ravel() + 0.5, rows.ravel() + 0.5)
+            x, y = apply_affine(hf.transform, cols.ravel() + 0.5, rows.ravel() + 0.5)
             self.xyz = np.column_stack([x, y, np.asarray(hf.elevation_m, np.float64).ravel()])
             self.valid = np.asarray(hf.valid).ravel()
             self.spacing_m = float(min(abs(hf.transform.a), abs(hf.transform.e)))
@@ -312,7 +312,7 @@ class _Reference:
         """(heights, valid) at CRS points: bilinear on the filled source, its edges extended outside it (valid
         False there)."""
         if self.hf is not None:
-            col, row = self._inv * (x, y)
+            col, row = apply_affine(self._inv, x, y)
             col, row = np.asarray(col) - 0.5, np.asarray(row) - 0.5
             hgt, wid = self._z.shape
             inside = (col >= -0.5) & (row >= -0.5) & (col <= wid - 0.5) & (row <= hgt - 0.5)
@@ -439,7 +439,9 @@ class QuantizedMesh:
             hgt[inb], ok[inb] = hv, okv
         return LON, LAT, hgt, ok
 
-    def tile(self, z: int, x: int, y: int, *, regular: int | None = None) -> QmTile:
+    def tile(
+        self, z: int, x: int, y: int, *, regular: int | None = None, target_m: float | None = None
+    ) -> QmTile:
         """Tile z/x/y: greedy-insertion mesh (or, with ``regular=k``, the k² regular grid), error measured."""
         from pydelatin import Delatin
 
@@ -449,7 +451,7 @@ class QuantizedMesh:
         nodata = float(1.0 - (ok[1:-1, 1:-1]).mean())
         filled = np.where(known, hgt, 0.0)
         core = filled[1:-1, 1:-1]
-        target = self.target_error_m(z)
+        target = self.target_error_m(z) if target_m is None else float(target_m)
         n = SAMPLES
         if regular:
             step = (n - 1) // (regular - 1)
@@ -469,8 +471,9 @@ class QuantizedMesh:
         lon = w + cols * (e - w) / (n - 1)
         lat = nn - rows * (nn - s) / (n - 1)
         # counter-clockwise seen from above (east, north)
-        p = np.column_stack([lon, lat])
-        cr = np.cross(p[tris[:, 1]] - p[tris[:, 0]], p[tris[:, 2]] - p[tris[:, 0]])
+        a, b = np.column_stack([lon, lat])[tris[:, 1]], np.column_stack([lon, lat])[tris[:, 2]]
+        o = np.column_stack([lon, lat])[tris[:, 0]]
+        cr = (a[:, 0] - o[:, 0]) * (b[:, 1] - o[:, 1]) - (a[:, 1] - o[:, 1]) * (b[:, 0] - o[:, 0])
         tris[cr < 0] = tris[cr < 0][:, ::-1]
         err = self.measure(rect, lon, lat, hv, tris)
         normals = self._normals(filled, rows, cols, rect, lon, lat)
@@ -484,7 +487,8 @@ class QuantizedMesh:
         meta = {"terralod": {"error_m": round(err, 4), "nodata_fraction": round(nodata, 4),
                              "target_error_m": round(target, 4)}}  # fmt: skip
         raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm, metadata=meta)
-        self._errors[(z, x, y)] = err
+        if regular is None and target_m is None:
+            self._errors[(z, x, y)] = err
         return QmTile(gzip.compress(raw, 6, mtime=0), err, len(tris), len(lon), nodata)
 
     def measure(self, rect: tuple[float, ...], lon: np.ndarray, lat: np.ndarray, h: np.ndarray,

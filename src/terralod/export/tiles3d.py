@@ -200,6 +200,8 @@ class Tiles3D:
 
     def has_content(self, code: Any) -> bool:
         """False for a node whose every triangle is nodata (it gets no content in the tileset)."""
+        if self._hf is None:
+            return True
         return bool(self.mesh(code)[1].size)
 
     def glb(self, code: Any) -> bytes:

@@ -1,0 +1,428 @@
+"""The web globe: 3D Tiles and quantized-mesh exports, ``terralod serve``, and both in a real browser.
+
+Python tests decode what the exporters wrote (glb through pygltflib, quantized-mesh through the decoder)
+and compare with the store and the source DEM; the server tests bind a loopback port. The browser test runs
+Debian's headless Chromium (software WebGL) with CesiumJS through puppeteer-core (tests/web/browser_check.mjs)
+and the Khronos glTF validator through node; it skips with the reason when chromium or node_modules are
+missing. Real data: ../shared/data/dem/srtm1_crop256_alpine.tif (skipped when absent).
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import shutil
+import subprocess
+import threading
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from terralod.cli import main
+from terralod.export.quantized_mesh import decode_tile, encode_tile, oct_decode, oct_encode, tile_rectangle
+from terralod.export.tiles3d import Tiles3D, export_3dtiles
+
+REPO = Path(__file__).resolve().parents[1]
+NODE_MODULES = REPO / "node_modules"
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+ALPINE = "dem/srtm1_crop256_alpine.tif"
+
+
+def _browser_missing() -> str | None:
+    if CHROMIUM is None:
+        return "Debian chromium not installed (bash scripts/install.sh installs it)"
+    if shutil.which("node") is None:
+        return "node not installed"
+    for pkg in ("cesium", "puppeteer-core", "gltf-validator"):
+        if not (NODE_MODULES / pkg).is_dir():
+            return f"node_modules/{pkg} missing (run `npm ci` in the repository)"
+    return None
+
+
+@pytest.fixture(scope="module")
+def alpine_store(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from terralod.io.reader import read_heightfield
+    from terralod.pyramid.builder import build_store
+
+    p = tmp_path_factory.mktemp("web") / "alpine.terra"
+    build_store(read_heightfield(shared_data / ALPINE), p, workers=2)
+    return p
+
+
+@pytest.fixture(scope="module")
+def sample_store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from terralod.io.reader import sample_heightfield
+    from terralod.pyramid.builder import build_store
+
+    p = tmp_path_factory.mktemp("web") / "sample.terra"
+    build_store(sample_heightfield(), p, workers=2)
+    return p
+
+
+# -- quantized-mesh binary ----------------------------------------------------------------------------
+@settings(max_examples=15, deadline=None)
+@given(st.integers(3, 300), st.integers(0, 2**31 - 1))
+def test_quantized_mesh_round_trip(n: int, seed: int) -> None:
+    """encode_tile → decode_tile gives back u/v/h on the 15-bit lattice, the triangles (as sets, in the
+    encoder's vertex order), the edge lists, normals to oct precision and the metadata."""
+    rng = np.random.default_rng(seed)
+    rect = tile_rectangle(12, 1325, 3114)
+    w, s, e, nn = rect
+    lon = np.concatenate([[w, e, e, w], w + (e - w) * rng.random(n)])
+    lat = np.concatenate([[s, s, nn, nn], s + (nn - s) * rng.random(n)])
+    h = rng.uniform(-50, 4000, lon.size)
+    from scipy.spatial import Delaunay
+
+    tris = Delaunay(np.column_stack([lon, lat])).simplices
+    nrm = rng.normal(size=(lon.size, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    raw = encode_tile(
+        lon, lat, h, tris, rect, normals=nrm, watermask=0, metadata={"terralod": {"error_m": 1.5}}
+    )
+    d = decode_tile(gzip.compress(raw), rect)
+    assert len(d["u"]) == lon.size and len(d["triangles"]) == len(tris)
+    step_h = (h.max() - h.min()) / 32767
+    # map decoded vertices back to the input by position
+    key_in = {(round(a, 9), round(b, 9)): i for i, (a, b) in enumerate(zip(lon, lat, strict=True))}
+    order = []
+    for a, b in zip(d["lon"], d["lat"], strict=True):
+        j = min(key_in, key=lambda k: (k[0] - a) ** 2 + (k[1] - b) ** 2)
+        order.append(key_in[j])
+    order = np.array(order)
+    assert np.allclose(d["lon"], lon[order], atol=(e - w) / 32767)
+    assert np.allclose(d["lat"], lat[order], atol=(nn - s) / 32767)
+    assert np.allclose(d["height"], h[order], atol=0.51 * step_h + 1e-6)
+    got = {tuple(sorted(order[t])) for t in d["triangles"]}
+    assert got == {tuple(sorted(t)) for t in tris}
+    assert set(d["west"]) == set(np.flatnonzero(d["u"] == 0))
+    assert set(d["north"]) == set(np.flatnonzero(d["v"] == 32767))
+    assert np.max(np.abs(d["normals"] - nrm[order])) < 0.02
+    assert d["metadata"]["terralod"]["error_m"] == 1.5 and d["watermask"] == 0
+
+
+def test_oct_encoding_of_axes() -> None:
+    axes = np.array([[0, 0, 1], [0, 0, -1], [1, 0, 0], [0, -1, 0]], float)
+    assert np.allclose(oct_decode(oct_encode(axes)), axes, atol=0.01)
+
+
+# -- 3D Tiles export ----------------------------------------------------------------------------------
+def _decode_glb(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    import pygltflib as g
+
+    gl = g.GLTF2.load_from_bytes(data)
+    blob = gl.binary_blob()
+    out = []
+    for acc_i, dt in ((0, None), (1, np.float32), (2, np.float32)):
+        acc = gl.accessors[acc_i]
+        bv = gl.bufferViews[acc.bufferView]
+        if dt is None:
+            dt = {g.UNSIGNED_BYTE: np.uint8, g.UNSIGNED_SHORT: np.uint16, g.UNSIGNED_INT: np.uint32}[
+                acc.componentType
+            ]
+        a = np.frombuffer(blob, dt, acc.count * (1 if acc.type == g.SCALAR else 3), bv.byteOffset)
+        out.append(a.reshape(-1, 1 if acc.type == g.SCALAR else 3))
+    return out[1], out[2], out[0].reshape(-1, 3)
+
+
+def test_3dtiles_export_round_trip(sample_store: Path, tmp_path: Path) -> None:
+    """tileset.json carries the stored errors, REPLACE and composed transforms; each glb's positions
+    (through the transforms and pyproj) are the stored vertices; skirts hang by the measured errors."""
+    from pyproj import Transformer
+
+    from terralod.terrain import open_terrain
+
+    out = tmp_path / "t3"
+    with open_terrain(sample_store) as t:
+        rep = export_3dtiles(t, out)
+        tree = {n.code: n for n in t.lod_tree()}
+        ts = json.loads((out / "tileset.json").read_text())
+        assert ts["asset"]["version"] == "1.1" and ts["root"]["refine"] == "REPLACE"
+        root = ts["root"]
+        assert ts["geometricError"] > root["geometricError"] == tree[(0, 0, 0)].error_m
+        to_crs = Transformer.from_crs("EPSG:4978", "EPSG:4979", always_xy=True)
+        back = Transformer.from_crs("EPSG:4326", t.crs, always_xy=True)
+        checked = 0
+
+        def walk(tile: dict, above: np.ndarray) -> None:
+            nonlocal checked
+            m = np.array(tile["transform"]).reshape(4, 4).T
+            c = above + m[:3, 3]
+            for k in tile.get("children", []):
+                walk(k, c)
+            code = tuple(int(a) for a in tile["content"]["uri"][6:-4].replace("/", "_").split("_"))
+            assert tile["geometricError"] == tree[code].error_m
+            kids = tile.get("children", [])
+            assert all(k["geometricError"] <= tile["geometricError"] for k in kids)
+            if checked >= 6:
+                return
+            pos, nrm, tri = _decode_glb((out / tile["content"]["uri"]).read_bytes())
+            ecef = np.column_stack([pos[:, 0], -pos[:, 2], pos[:, 1]]).astype(np.float64) + c
+            lon, lat, hgt = to_crs.transform(ecef[:, 0], ecef[:, 1], ecef[:, 2])
+            x, y = back.transform(lon, lat)
+            v, _ = t.lod_mesh(code)
+            n = len(v)
+            assert np.allclose(np.column_stack([x, y])[:n], v[:, :2], atol=0.05)
+            assert np.allclose(hgt[:n], v[:, 2], atol=0.05)
+            skirt = v[:, 2][np.argmin(np.abs(x[n:, None] - v[None, :, 0]) + np.abs(y[n:, None] - v[None, :, 1]),
+                                       axis=1)] - hgt[n:]  # fmt: skip
+            view_depth = Tiles3D.skirt_m(view, code)
+            assert np.allclose(skirt, view_depth, atol=0.05)
+            assert (
+                view_depth
+                <= tree[code].vertical_error_m + tree[tree[code].parent or code].vertical_error_m + 0.02
+            )
+            assert np.allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-3)
+            assert tri.max() < len(pos) and (tri.dtype == np.uint8) == (len(pos) <= 256)
+            checked += 1
+
+        view = Tiles3D(t)
+        walk(root, np.zeros(3))
+        assert checked >= 6 and rep.tiles == len(tree)
+
+
+def test_3dtiles_normals_match_across_borders(sample_store: Path) -> None:
+    """Same-level neighbours have the same normal at every shared border vertex (merged-mesh normals)."""
+    from terralod.terrain import open_terrain
+
+    with open_terrain(sample_store) as t:
+        view = Tiles3D(t)
+        level = max(c[0] for c in view.nodes)
+        a, b = (level, 1, 1), (level, 2, 1)
+        va, _, na = view.mesh(a)
+        vb, _, nb = view.mesh(b)
+        ka = {(round(x, 3), round(y, 3)): i for i, (x, y) in enumerate(va[:, :2])}
+        pairs = [
+            (ka[(round(x, 3), round(y, 3))], j)
+            for j, (x, y) in enumerate(vb[:, :2])
+            if (round(x, 3), round(y, 3)) in ka
+        ]
+        assert len(pairs) >= 10
+        i, j = np.array(pairs).T
+        assert np.allclose(na[i], nb[j], atol=1e-5)
+
+
+def test_tin_store_exports(shared_data: Path, tmp_path: Path) -> None:
+    """A detail-increment TIN store exports too: one root above the sub-blocks, ladders whose errors fall."""
+    store = tmp_path / "tin.terra"
+    main(["build", "--method", "tin", str(shared_data / "dem/srtm1_crop256_coastal_flat_nodata.tif"),
+          "-o", str(store), "--sub-blocks", "4"])  # fmt: skip
+    from terralod.terrain import open_terrain
+
+    with open_terrain(store) as t:
+        view = Tiles3D(t)
+        ts = view.tileset()
+        assert len(ts["root"]["children"]) == 4 and "content" not in ts["root"]
+        chain = ts["root"]["children"][0]
+        errs = []
+        while True:
+            errs.append(chain["geometricError"])
+            if not chain.get("children"):
+                break
+            chain = chain["children"][0]
+        assert len(errs) >= 2 and all(
+            b <= 0.5 * a + 1e-9 or b == 0 for a, b in zip(errs, errs[1:], strict=False)
+        )
+        glb = view.glb(view.tree[-1].code)
+        pos, _, tri = _decode_glb(glb)
+        assert len(tri) and len(pos) < 200_000
+
+
+# -- quantized-mesh export ----------------------------------------------------------------------------
+def test_quantized_mesh_export_against_source(alpine_store: Path, shared_data: Path, tmp_path: Path) -> None:
+    """layer.json's availability matches the files; finest tiles decode to heights within their measured
+    error of the source samples; the gzip'd greedy-insertion tile is smaller than the 65² regular grid at
+    a larger measured error."""
+    from terralod.export.quantized_mesh import QuantizedMesh, export_quantized_mesh
+    from terralod.terrain import open_terrain
+
+    out = tmp_path / "qm"
+    with open_terrain(alpine_store) as t:
+        export_quantized_mesh(t, out)
+        layer = json.loads((out / "layer.json").read_text())
+        assert layer["format"] == "quantized-mesh-1.0" and layer["scheme"] == "tms"
+        files = {
+            tuple(int(a) for a in f.relative_to(out).with_suffix("").parts) for f in out.rglob("*.terrain")
+        }
+        listed = set()
+        for z, ranges in enumerate(layer["available"]):
+            for r in ranges:
+                listed |= {
+                    (z, x, y)
+                    for x in range(r["startX"], r["endX"] + 1)
+                    for y in range(r["startY"], r["endY"] + 1)
+                }
+        assert files == listed and {(0, 0, 0), (0, 1, 0)} <= files
+        z = layer["maxzoom"]
+        qm = QuantizedMesh(t)
+        for zz, x, y in sorted(f for f in files if f[0] == z)[:2]:
+            rect = tile_rectangle(zz, x, y)
+            d = decode_tile((out / str(zz) / str(x) / f"{y}.terrain").read_bytes(), rect)
+            err = d["metadata"]["terralod"]["error_m"]
+            assert err == pytest.approx(
+                qm.measure(rect, d["lon"], d["lat"], d["height"], d["triangles"]), abs=0.3
+            )
+            assert err <= layer["terralod"]["error_m"][z]
+        # at equal measured error, fewer bytes than the regular 65² grid (an interior tile of the finest level)
+        inner = sorted(f for f in files if f[0] == z)
+        zz, x, y = inner[len(inner) // 2]
+        grid = qm.tile(zz, x, y, regular=65)
+        greedy = qm.tile(zz, x, y, target_m=grid.error_m)
+        assert greedy.error_m <= grid.error_m + 0.5 and len(greedy.data) < len(grid.data)
+
+
+# -- errors of the CLI --------------------------------------------------------------------------------
+def test_export_cli_refusals(sample_store: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    busy = tmp_path / "busy"
+    busy.mkdir()
+    (busy / "keep.txt").write_text("mine")
+    with pytest.raises(SystemExit) as exc:
+        main(["export", str(sample_store), "--format", "3dtiles", "-o", str(busy)])
+    assert exc.value.code == 2 and "--overwrite" in capsys.readouterr().err
+    assert (busy / "keep.txt").read_text() == "mine" and not list(tmp_path.glob(".busy.tmp-*"))
+
+    from affine import Affine
+
+    from terralod.heightfield import Heightfield  # a store without a CRS
+    from terralod.pyramid.builder import build_store
+
+    z = np.random.default_rng(1).random((40, 40)).astype(np.float32) * 10
+    local = tmp_path / "local.terra"
+    build_store(Heightfield(z, np.ones(z.shape, bool), Affine(10, 0, 0, 0, -10, 400)), local, workers=1)
+    for fmt in ("3dtiles", "quantized-mesh"):
+        with pytest.raises(SystemExit) as exc:
+            main(["export", str(local), "--format", fmt, "-o", str(tmp_path / fmt)])
+        err = capsys.readouterr().err.strip()
+        assert exc.value.code == 2 and "CRS" in err and len(err.splitlines()) == 1
+        assert not (tmp_path / fmt).exists()
+
+
+# -- the server ---------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def server(alpine_store: Path):
+    from terralod.serve import make_server
+    from terralod.terrain import open_terrain
+
+    t = open_terrain(alpine_store)
+    srv, service = make_server(t, "127.0.0.1", 0)
+    th = threading.Thread(target=srv.serve_forever, daemon=True)
+    th.start()
+    yield f"http://127.0.0.1:{srv.server_address[1]}", service
+    srv.shutdown()
+    srv.server_close()
+    t.close()
+
+
+def _get(url: str, headers: dict | None = None, method: str = "GET") -> tuple[int, dict, bytes]:
+    req = urllib.request.Request(url, headers=headers or {}, method=method)
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, dict(r.headers), r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, dict(e.headers), e.read()
+
+
+def test_server_binds_loopback_and_refuses_traversal(server) -> None:
+    base, service = server
+    assert base.startswith("http://127.0.0.1:")
+    for bad in (
+        "/cesium/../../../../etc/passwd",
+        "/cesium/%2e%2e/%2e%2e/package.json",
+        "/static/../server.py",
+        "/static/server.py",
+        "/../pyproject.toml",
+        "/3dtiles/tiles/9/0_0.glb",
+        "/terrain/0/5/0.terrain",
+        "/terrain/3/0/0.terrain",
+        "/3dtiles/tiles/0/0_0.glb/../../x",
+        "/etc/passwd",
+        "/terrain/..%2flayer.json",
+    ):
+        code, _, body = _get(base + bad)
+        assert code == 404, bad
+        assert b"root:" not in body
+    code, hdr, _ = _get(base + "/3dtiles/tileset.json", method="POST")
+    assert code == 405 and "GET" in hdr.get("Allow", "")
+
+
+def test_server_tiles_cache_gzip_etag(server) -> None:
+    base, service = server
+    code, hdr, body = _get(base + "/terrain/layer.json", {"Accept-Encoding": "gzip"})
+    layer = json.loads(gzip.decompress(body) if hdr.get("Content-Encoding") == "gzip" else body)
+    z = layer["maxzoom"]
+    r = layer["available"][z][0]
+    url = f"{base}/terrain/{z}/{r['startX']}/{r['startY']}.terrain?v=1.0.0"
+    code, hdr, body = _get(url, {"Accept-Encoding": "gzip"})
+    assert code == 200 and hdr["Content-Encoding"] == "gzip" and body[:2] == b"\x1f\x8b"
+    d = decode_tile(body)
+    assert len(d["triangles"]) > 0
+    before = service.stats["encoded"]
+    code, hdr2, _ = _get(url, {"If-None-Match": hdr["ETag"]})
+    assert code == 304 and service.stats["encoded"] == before
+    code, hdr, body = _get(base + "/3dtiles/tiles/0/0_0.glb")
+    assert code == 200 and body[:4] == b"glTF" and "Content-Encoding" not in hdr
+
+
+# -- the browser -------------------------------------------------------------------------------------
+def test_browser_cesium_loads_both_formats(
+    server, alpine_store: Path, shared_data: Path, tmp_path: Path
+) -> None:
+    """CesiumJS in headless Chromium loads the quantized-mesh terrain and the 3D Tiles of a real SRTM crop:
+    no tile error, heights sampled at 20 source samples within the stored errors, a frame with terrain in
+    it; the Khronos validator finds 0 errors in every glb of the 3D Tiles export."""
+    why = _browser_missing()
+    if why:
+        pytest.skip(why)
+    from terralod.io.reader import read_heightfield
+    from terralod.terrain import open_terrain
+
+    base, service = server
+    hf = read_heightfield(shared_data / ALPINE)
+    rng = np.random.default_rng(7)
+    rows = rng.integers(20, hf.height - 20, 20)
+    cols = rng.integers(20, hf.width - 20, 20)
+    tr = hf.transform
+    x, y = tr.c + (cols + 0.5) * tr.a + (rows + 0.5) * tr.b, tr.f + (cols + 0.5) * tr.d + (rows + 0.5) * tr.e
+    qm = service.qm()
+    lon, lat = qm.geo.lonlat(np.asarray(x), np.asarray(y))
+    src = np.asarray(hf.elevation_m, np.float64)[rows, cols]
+    pts = json.dumps([[float(a), float(b)] for a, b in zip(lon, lat, strict=True)])
+    script = REPO / "tests" / "web" / "browser_check.mjs"
+    results = {}
+    for fmt in ("terrain", "3dtiles"):
+        png = tmp_path / f"{fmt}.png"
+        run = subprocess.run(["node", str(script), base + "/", fmt, pts, str(png), "25000"], capture_output=True,
+                             text=True, timeout=60, cwd=REPO)  # fmt: skip
+        res = json.loads(run.stdout.strip().splitlines()[-1])
+        results[fmt] = res
+        assert res["loaded"] and not res["errors"] and not res["failedRequests"], res
+        assert res["tileResponses"] > 0 and all(b.startswith("304") for b in res["badTileResponses"])
+        assert not res["blocked"]
+        from PIL import Image
+
+        img = np.asarray(Image.open(png).convert("RGB"), np.float64)[150:, :]
+        assert img.std() > 15 and (img.sum(axis=2) > 60).mean() > 0.2  # a lit, varied terrain fills the frame
+    layer = qm.layer()
+    qm_err = max(qm._errors.get(c, 0.0) for c in qm._errors if c[0] == layer["maxzoom"])
+    h_qm = np.array(results["terrain"]["heights"], float)
+    assert np.all(np.abs(h_qm - src) <= qm_err + (hf.elevation_m.max() - hf.elevation_m.min()) / 32767 + 0.01)
+    with open_terrain(alpine_store) as t:
+        leaf_err = max(
+            n.vertical_error_m
+            for n in t.lod_tree()
+            if n.code[0] == max(c[0] for c in service.tiles3d().nodes)
+        )
+    h_3d = np.array([np.nan if v is None else v for v in results["3dtiles"]["heights"]], float)
+    assert np.isfinite(h_3d).sum() >= 18
+    assert np.nanmax(np.abs(h_3d - src)) <= leaf_err + 0.5  # picking precision of sampleHeightMostDetailed
+    out = tmp_path / "t3"
+    with open_terrain(alpine_store) as t:
+        export_3dtiles(t, out)
+    val = subprocess.run(["node", str(REPO / "tests" / "web" / "validate_glb.mjs"), str(out)], capture_output=True,
+                         text=True, timeout=60, cwd=REPO)  # fmt: skip
+    rep = json.loads(val.stdout.strip().splitlines()[-1])
+    assert rep["files"] == len(list(out.rglob("*.glb"))) > 0 and rep["errors"] == 0, rep
