@@ -114,11 +114,11 @@ class Uncertainty:
 
 def z_quantile(confidence: float) -> float:
     """Two-sided normal quantile: 1.96 for 0.95."""
-    from scipy.stats import norm
+    from statistics import NormalDist
 
     if not 0.0 < confidence < 1.0:
         raise ValueError(f"Expected a confidence in (0, 1), got {confidence}")
-    return float(norm.ppf(0.5 + confidence / 2.0))
+    return float(NormalDist().inv_cdf(0.5 + confidence / 2.0))
 
 
 def correlation_model(
