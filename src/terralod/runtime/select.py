@@ -529,6 +529,9 @@ class Engine:
         (:mod:`terralod.runtime.loader`): a tile is refined only once all its children are decoded, the
         resident tiles are drawn meanwhile, and the frame reports ``pending_loads``; when the loads settle
         the selection is the synchronous one. ``wait_loads()`` blocks until they have.
+    max_new_tiles : with ``async_loads``, the most newly decoded tiles one frame refines into (whole
+        sibling groups, largest projected error first; at least one group), which bounds a frame's
+        stitching work
 
     Culling only removes leaves from drawing: the partition, adjacency and stitching are unchanged, so
     the drawn surface stays watertight wherever two drawn tiles meet.
@@ -548,6 +551,7 @@ class Engine:
         cull_backfacing: bool = False,
         cull_region: bool = False,
         async_loads: bool = False,
+        max_new_tiles: int = 16,
     ) -> None:
         if not (isinstance(threshold_px, (int, float)) and threshold_px > 0 and math.isfinite(threshold_px)):
             raise ValueError(f"Expected threshold_px > 0, got {threshold_px!r}")
@@ -578,7 +582,12 @@ class Engine:
         # resident (decoded) tiles, for asynchronous loads: selection refines only into them
         self.async_loads = bool(async_loads)
         self._resident = np.zeros(self.index.n, bool)
+        self._admitted = np.zeros(self.index.n, bool)
+        self._waiting_groups = 0
+        self._priority = np.zeros(self.index.n)  # projected error (px) of a parent when its children were asked for
+        self.max_new_tiles = int(max_new_tiles)
         self._generation = 0  # bumped by every finished asynchronous load
+        self._gen_lock = threading.Lock()
         self._last_generation = -1
         self._loader: TileLoader | None = None
         if self.async_loads:
@@ -586,6 +595,7 @@ class Engine:
             self.cache.on_evict = self._on_evict
             self._levels = self._level_parents()
             self.cache.load([(0, 0, 0)])  # the root, before the first frame
+            self._admitted[0] = True
             self._loader = TileLoader(self.cache, self.cache.io_lock, self._on_loaded)
         n = self.index.n
         self._memo = np.zeros(n, np.int64)
@@ -626,22 +636,49 @@ class Engine:
         return out
 
     def _kids_resident(self) -> np.ndarray:
-        """``kids_ok`` restricted to tiles whose children are all decoded (refinable without a read)."""
+        """``kids_ok`` restricted to tiles whose children are all decoded and admitted (refinable without a
+        read). At most ``max_new_tiles`` newly decoded tiles are admitted per frame, whole sibling groups,
+        those asked for with the largest projected error first, so no frame stitches an unbounded number
+        of new tiles."""
         kids = self.table.kids_ok.copy()
-        res = self._resident
+        res, adm = self._resident, self._admitted
+        adm &= res
+        budget = self.max_new_tiles
+        groups: list[tuple[float, np.ndarray]] = []
         for off, ch, par, n_kids in self._levels:
-            n_res = np.bincount(par[res[ch]] - off, minlength=n_kids.size)
-            kids[off : off + n_kids.size] &= n_res == n_kids
+            new = res[ch] & ~adm[ch]
+            if new.any():
+                n_res = np.bincount(par[res[ch]] - off, minlength=n_kids.size)
+                full = np.flatnonzero((n_res == n_kids) & (n_kids > 0)) + off  # parents with every child decoded
+                has_new = np.zeros(self.index.n, bool)
+                has_new[par[new]] = True
+                for q in full[has_new[full]].tolist():
+                    groups.append((float(self._priority[q]), ch[par == q]))
+        groups.sort(key=lambda g: -g[0])
+        left = 0
+        for _, members in groups:
+            if budget <= 0:
+                left += 1
+                continue
+            budget -= int((~adm[members]).sum())
+            adm[members] = True
+        self._waiting_groups = left
+        for off, ch, par, n_kids in self._levels:
+            n_adm = np.bincount(par[adm[ch]] - off, minlength=n_kids.size)
+            kids[off : off + n_kids.size] &= n_adm == n_kids
         return kids
 
     def _on_put(self, code: TileCode) -> None:
         self._resident[self.index.slot(code)] = True
 
     def _on_evict(self, code: TileCode) -> None:
-        self._resident[self.index.slot(code)] = False
+        s = self.index.slot(code)
+        self._resident[s] = False
+        self._admitted[s] = False
 
     def _on_loaded(self, codes: list[TileCode]) -> None:
-        self._generation += 1
+        with self._gen_lock:
+            self._generation += 1
 
     def wait_loads(self, timeout: float | None = None) -> bool:
         """Block until the asynchronous loads asked for so far are done; True when idle (or synchronous)."""
@@ -664,6 +701,7 @@ class Engine:
         codes: list[TileCode] = []
         prio: list[float] = []
         for s, r in zip(vis[want].tolist(), rho[want].tolist(), strict=True):
+            self._priority[s] = r
             for c in self.index.pyramid.children(self.index.code(s)):
                 codes.append(c)
                 prio.append(r)
@@ -752,7 +790,12 @@ class Engine:
 
         errs = np.where(fb[vis_mask], tb.measured_error_m[vis], tb.error_m[vis])
         rho = _screen_errors(vis, tb.boxes, errs, eye, k_px)
-        pending = self._request_children(vis, rho, kids_ok) if self.async_loads else 0
+        pending = 0
+        if self.async_loads:
+            pending = self._request_children(vis, rho, kids_ok) + self._waiting_groups
+            if self._waiting_groups:
+                with self._gen_lock:  # decoded tiles still to admit: the same camera selects again
+                    self._generation += 1
         meshes = self._meshes
         culled_codes = self.index.codes(leaves[states == CULLED])
         n_back = n_region = 0
