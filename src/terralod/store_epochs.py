@@ -318,9 +318,8 @@ class EpochTables:
             with self._conn:
                 self._conn.execute("UPDATE epochs SET state = 'complete' WHERE id = ?", (self._write_epoch,))
 
-    def delete_epoch(self, name: str) -> None:
-        """Remove epoch ``name`` (complete, or an interrupted update), then every tile row and source block
-        no epoch refers to, in one transaction. The only complete epoch cannot be deleted."""
+    def check_delete(self, name: str) -> dict[str, Any]:
+        """The row of epoch ``name`` if it may be deleted; else StoreError (no such epoch, or the only one)."""
         from terralod.errors import StoreError
 
         rows = self.epoch_rows()
@@ -333,6 +332,13 @@ class EpochTables:
             raise StoreError(
                 f"epoch {name!r} is the store's only epoch; delete the file instead", str(self.path)
             )
+        return row
+
+    def delete_epoch(self, name: str) -> None:
+        """Remove epoch ``name`` (complete, or an interrupted update), then every tile row and source block
+        no epoch refers to, in one transaction. The only complete epoch cannot be deleted."""
+        row = self.check_delete(name)
+        rows = self.epoch_rows()
         building = [r["id"] for r in rows if r["state"] == "building" and r["id"] != row["id"]]
         keep = ",".join(str(i) for i in building) or "-1"
         ref = "SELECT 1 FROM epoch_tiles e WHERE e.level = {t}.level AND e.x = {t}.x AND e.y = {t}.y AND e.rev = {r}"

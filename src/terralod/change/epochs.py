@@ -38,6 +38,7 @@ __all__ = [
     "epoch_names",
     "excavate",
     "polygon_mask",
+    "prepare_edit",
     "read_polygons",
 ]
 
@@ -214,6 +215,41 @@ def default_edit_name(existing: list[str]) -> str:
     return f"edit-{n}"
 
 
+def prepare_edit(
+    store_path: str | os.PathLike[str],
+    *,
+    polygon: str | os.PathLike[str] | None = None,
+    depth_m: float | None = None,
+    patch: str | os.PathLike[str] | None = None,
+    epoch: str | None = None,
+    base: str | None = None,
+    resume: bool = False,
+) -> tuple[EditResult, str, str, dict[str, Any]]:
+    """The edit of epoch ``base`` (default: the latest) checked and computed, nothing written: (the edit,
+    the new epoch's name, the base epoch's name, the info kept with the epoch)."""
+    from terralod.io.reader import read_heightfield
+    from terralod.pyramid.update import check_update, stored_heightfield
+    from terralod.store import open_store
+
+    if (polygon is None) == (patch is None):
+        raise InputError("give --polygon with --depth-m, or --patch", str(store_path))
+    with open_store(store_path, epoch=base) as s:
+        hf = stored_heightfield(s)
+        crs = s.crs
+        existing = s.epochs
+        base_name = str(s.epoch)
+    if polygon is not None:
+        if depth_m is None:
+            raise InputError("--polygon needs --depth-m (metres down; negative for a fill)", str(polygon))
+        res = excavate(hf, read_polygons(polygon, crs), float(depth_m), str(polygon))
+    else:
+        res = apply_patch(hf, read_heightfield(patch), str(patch))
+    name = epoch or default_edit_name(existing)
+    check_update(store_path, res.heightfield, name, base=base_name, resume=resume)
+    info = {"edit": res.description, "edited": datetime.date.today().isoformat()}
+    return res, name, base_name, info
+
+
 def edit_store(
     store_path: str | os.PathLike[str],
     *,
@@ -230,27 +266,10 @@ def edit_store(
     """Edit epoch ``base`` (default: the latest) of a store and write the result as new epoch ``epoch``
     (default ``edit-N``), rebuilding only the tiles the edit touches. Returns (the edit, the UpdateReport).
     """
-    from terralod.io.reader import read_heightfield
     from terralod.pyramid.update import update_store
-    from terralod.store import open_store
 
-    if (polygon is None) == (patch is None):
-        raise InputError("give --polygon with --depth-m, or --patch", str(store_path))
-    with open_store(store_path, epoch=base) as s:
-        from terralod.pyramid.update import stored_heightfield
-
-        hf = stored_heightfield(s)
-        crs = s.crs
-        existing = s.epochs
-        base_name = s.epoch
-    if polygon is not None:
-        if depth_m is None:
-            raise InputError("--polygon needs --depth-m (metres down; negative for a fill)", str(polygon))
-        res = excavate(hf, read_polygons(polygon, crs), float(depth_m), str(polygon))
-    else:
-        res = apply_patch(hf, read_heightfield(patch), str(patch))
-    name = epoch or default_edit_name(existing)
-    info = {"edit": res.description, "edited": datetime.date.today().isoformat()}
+    res, name, base_name, info = prepare_edit(store_path, polygon=polygon, depth_m=depth_m, patch=patch,
+                                              epoch=epoch, base=base, resume=resume)  # fmt: skip
     rep = update_store(res.heightfield, store_path, name, base=base_name, resume=resume, workers=workers,
                        progress=progress, stop_after=stop_after, kind="edit", info=info)  # fmt: skip
     return res, rep

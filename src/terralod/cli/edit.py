@@ -3,11 +3,9 @@ fill (negative depth) or a pasted raster as a new epoch, rebuilding only the til
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import click
 
-from terralod.cli._common import console, progress
+from terralod.cli._common import console
 
 
 @click.command()
@@ -25,8 +23,8 @@ from terralod.cli._common import console, progress
 @click.option("--workers", type=click.IntRange(1, 256), default=None, help="Threads (default: all cores).")
 def edit(store: str, polygon, depth_m, patch, epoch, base, resume: bool, workers) -> None:
     """Dig, fill or patch the terrain of STORE and keep the result as a new epoch."""
-    from terralod.change.epochs import edit_store
-    from terralod.cli.update import print_update
+    from terralod.change.epochs import prepare_edit
+    from terralod.cli.update import print_update, run_update
 
     if (polygon is None) == (patch is None):
         raise click.UsageError("give --polygon with --depth-m, or --patch")
@@ -34,15 +32,11 @@ def edit(store: str, polygon, depth_m, patch, epoch, base, resume: bool, workers
         raise click.BadParameter(
             "--polygon needs --depth-m (metres down; negative for a fill)", param_hint="--depth-m"
         )
-    with progress("editing") as prog:
-        task = prog.add_task(Path(store).name, total=None)
-
-        def cb(done: int, total: int) -> None:
-            prog.update(task, completed=done, total=total)
-
-        res, rep = edit_store(store, polygon=polygon, depth_m=depth_m, patch=patch, epoch=epoch, base=base,
-                              resume=resume, workers=workers, progress=cb)  # fmt: skip
+    res, name, base_name, info = prepare_edit(store, polygon=polygon, depth_m=depth_m, patch=patch, epoch=epoch,
+                                              base=base, resume=resume)  # fmt: skip
     d = res.description
     what = {"excavation": "removed", "fill": "added", "patch": "changed (net)"}[d["edit"]]
     console.print(f"{d['edit']}: {abs(res.volume_m3):,.0f} m³ {what} over {d['cells']:,} cells")
+    rep = run_update(res.heightfield, store, name, base=base_name, resume=resume, workers=workers, kind="edit",
+                     info=info)  # fmt: skip
     print_update(rep)

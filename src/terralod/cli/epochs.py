@@ -46,6 +46,8 @@ def epochs(store: str, delete: str | None, as_json: bool) -> None:
     from terralod.store import TileStore, open_store
 
     if delete is not None:
+        with open_store(store) as s:  # refused on a read-only connection: a bad name writes nothing
+            s.check_delete(delete)
         with TileStore.open(store, writable=True) as s:
             s.delete_epoch(delete)
             s.vacuum()

@@ -52,9 +52,11 @@ def run_update(hf, store: str, epoch: str, **kw: Any):
 @read_options
 def update(store: str, dem: str, epoch: str, base, resume: bool, workers, **read: Any) -> None:
     """Add DEM as epoch EPOCH of STORE (same grid and CRS), rebuilding only the tiles that changed."""
+    from terralod.pyramid.update import check_update
     from terralod.store import open_store
 
     with open_store(store):  # a missing or foreign store is named before the DEM is read
         pass
     hf = load(dem, **read)
+    check_update(store, hf, epoch, base=base, resume=resume)  # bad input: one line, before any progress
     print_update(run_update(hf, store, epoch, base=base, resume=resume, workers=workers))

@@ -141,6 +141,7 @@ def stored_heightfield(store: TileStore, epoch: str | None = None) -> Heightfiel
     names, when that still has the digest the store recorded."""
     t = Affine(*store.meta["transform"][:6])
     name = epoch if epoch is not None else store.epoch
+    what = f"epoch {name!r}" if name is not None else "its tiles"
     info = store.epoch_info(name) if (store.has_epochs and name is not None) else dict(store.meta)
     kept = store.epoch_source(name) if store.has_epochs and name is not None else None
     if kept is not None:
@@ -157,13 +158,13 @@ def stored_heightfield(store: TileStore, epoch: str | None = None) -> Heightfiel
         hf = read_heightfield(src)
     else:
         raise StoreError(
-            f"keeps no source samples for epoch {name!r} and its source {src!r} is gone; "
+            f"keeps no source samples for {what} and its source {src!r} is gone; "
             "rebuild the store with `terralod build SOURCE -o STORE --epoch DATE`",
             str(store.path),
         )
     if hf.digest() != digest:
         raise StoreError(
-            f"keeps no source samples for epoch {name!r} and {src} no longer reads as the DEM it was built "
+            f"keeps no source samples for {what} and {src} no longer reads as the DEM it was built "
             "from; rebuild the store with `terralod build SOURCE -o STORE --epoch DATE`",
             str(store.path),
         )
@@ -210,6 +211,55 @@ def validate_epoch_name(name: str, where: str) -> str:
     return name
 
 
+def _check_update(store: TileStore, hf: Heightfield, epoch: str, resume: bool) -> dict[str, Any] | None:
+    """Refuse an update that cannot go ahead (one line); the interrupted row of ``epoch`` when resuming."""
+    p = store.path
+    if not store.complete:
+        raise StoreError("is an incomplete build; finish it with `terralod build ... --resume` first", str(p))
+    rows = store.epoch_rows()
+    same = next((r for r in rows if r["name"] == epoch), None)
+    pending = [r for r in rows if r["state"] == "building"]
+    if same is not None and same["state"] == "complete":
+        raise InputError(f"epoch {epoch!r} exists already (epochs: {', '.join(store.epochs)})", str(p))
+    if same is not None and not resume:
+        raise StoreError(
+            f"an update to epoch {epoch!r} was interrupted; finish it with --resume or remove it with "
+            f"`terralod epochs {p} --delete {epoch}`",
+            str(p),
+        )
+    others = [r for r in pending if r["name"] != epoch]
+    if others:
+        raise StoreError(
+            f"an update to epoch {others[0]['name']!r} was interrupted; finish it with --resume or remove "
+            f"it with `terralod epochs {p} --delete {others[0]['name']}`",
+            str(p),
+        )
+    if same is not None and same["info"].get("source_digest") != hf.digest():
+        raise StoreError(
+            f"cannot resume epoch {epoch!r}: it was started from other data ({same['info'].get('source')})",
+            str(p),
+        )
+    check_same_grid(store, hf, hf.source)
+    check_quantisation(store, hf, hf.source)
+    method = str(store.meta["method"])
+    if method not in METHODS:
+        raise StoreError(f"was built with mesher {method!r}, which this terralod does not have", str(p))
+    return same
+
+
+def check_update(
+    path: str | os.PathLike[str],
+    hf: Heightfield,
+    epoch: str,
+    *,
+    base: str | None = None,
+    resume: bool = False,
+) -> None:
+    """Refuse, before any work or output, an update :func:`update_store` would refuse (read-only)."""
+    with TileStore.open(path, epoch=base) as ro:
+        _check_update(ro, hf, validate_epoch_name(epoch, str(path)), resume)
+
+
 def update_store(
     hf: Heightfield,
     path: str | os.PathLike[str],
@@ -238,41 +288,14 @@ def update_store(
     p = Path(path)
     t_start = time.perf_counter()
     epoch = validate_epoch_name(epoch, str(p))
+    with TileStore.open(
+        p, epoch=base
+    ) as ro:  # every check on a read-only connection: bad input writes nothing
+        same = _check_update(ro, hf, epoch, resume)
+        method = str(ro.meta["method"])
+        old = stored_heightfield(ro)
     store = TileStore.open(p, writable=True, epoch=base)
     try:
-        if not store.complete:
-            raise StoreError(
-                "is an incomplete build; finish it with `terralod build ... --resume` first", str(p)
-            )
-        rows = store.epoch_rows()
-        same = next((r for r in rows if r["name"] == epoch), None)
-        pending = [r for r in rows if r["state"] == "building"]
-        if same is not None and same["state"] == "complete":
-            raise InputError(f"epoch {epoch!r} exists already (epochs: {', '.join(store.epochs)})", str(p))
-        if same is not None and not resume:
-            raise StoreError(
-                f"an update to epoch {epoch!r} was interrupted; finish it with --resume or remove it with "
-                f"`terralod epochs {p} --delete {epoch}`",
-                str(p),
-            )
-        others = [r for r in pending if r["name"] != epoch]
-        if others:
-            raise StoreError(
-                f"an update to epoch {others[0]['name']!r} was interrupted; finish it with --resume or remove "
-                f"it with `terralod epochs {p} --delete {others[0]['name']}`",
-                str(p),
-            )
-        if same is not None and same["info"].get("source_digest") != hf.digest():
-            raise StoreError(
-                f"cannot resume epoch {epoch!r}: it was started from other data ({same['info'].get('source')})",
-                str(p),
-            )
-        check_same_grid(store, hf, hf.source)
-        check_quantisation(store, hf, hf.source)
-        method = str(store.meta["method"])
-        if method not in METHODS:
-            raise StoreError(f"was built with mesher {method!r}, which this terralod does not have", str(p))
-        old = stored_heightfield(store)
         if not store.has_epochs:
             store.adopt_tiles_as_epoch(base_name, {**epoch_record(old, "build"), "created": None})
         base_epoch = str(store.epoch)
