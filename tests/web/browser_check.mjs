@@ -1,21 +1,27 @@
 // Drive Debian's headless Chromium (software WebGL) through puppeteer-core against a running
 // `terralod serve`: load the viewer in one format, wait for every tile, sample heights, take a screenshot.
-// usage: node browser_check.mjs URL FORMAT POINTS_JSON SCREENSHOT_PNG [TIMEOUT_MS]  → one JSON line on stdout
+// usage: node browser_check.mjs URL FORMATS POINTS_JSON SCREENSHOT_PREFIX [TIMEOUT_MS]
+//   FORMATS: comma-separated (terrain,3dtiles), each loaded in its own browser, concurrently;
+//   writes PREFIX<format>.png and prints one JSON line {format: result, ...} on stdout.
 import puppeteer from "puppeteer-core";
 
-const [url, format, pointsJson, shot, timeoutArg] = process.argv.slice(2);
+const [url, formats, pointsJson, shotPrefix, timeoutArg] = process.argv.slice(2);
 const timeout = Number(timeoutArg || 40000);
 const points = JSON.parse(pointsJson);
-const out = { format, errors: [], failedRequests: [], blocked: [], tileResponses: 0, badTileResponses: [] };
-const browser = await puppeteer.launch({
+const launch = () => puppeteer.launch({
   executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
   headless: "new",
   args: ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync", "--window-size=800,600"],
+    "--disable-background-networking", "--disable-component-update", "--disable-sync", "--window-size=640,480",
+    "--disable-background-timer-throttling", "--disable-renderer-backgrounding", "--disable-backgrounding-occluded-windows"],
 });
+async function check(format) {
+const browser = await launch();  // one browser per format: a background tab of a shared one gets no frames
+const shot = `${shotPrefix}${format}.png`;
+const out = { format, errors: [], failedRequests: [], blocked: [], tileResponses: 0, badTileResponses: [] };
 try {
   const page = await browser.newPage();
-  await page.setViewport({ width: 800, height: 600 });
+  await page.setViewport({ width: 640, height: 480 });
   await page.setRequestInterception(true);
   const origin = new URL(url).origin;
   page.on("request", (r) => {
@@ -46,4 +52,10 @@ try {
 } finally {
   await browser.close();
 }
-console.log(JSON.stringify(out));
+return out;
+}
+const t0 = Date.now();
+const results = await Promise.all(formats.split(",").map(check));
+const all = Object.fromEntries(results.map((r) => [r.format, r]));
+all.wallMs = Date.now() - t0;
+console.log(JSON.stringify(all));

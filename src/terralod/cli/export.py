@@ -35,9 +35,23 @@ from terralod.cli._common import console, progress
 def export(store: str, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool) -> None:
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh terrain."""
     from terralod.export import export_3dtiles, export_quantized_mesh
+    from terralod.export.common import check_exportable, check_output
+    from terralod.export.geodesy import Geodesy
     from terralod.terrain import open_terrain
 
-    with open_terrain(store) as terrain, progress("exporting") as prog:
+    with open_terrain(store) as terrain:
+        if epoch is not None:
+            check_exportable(terrain, epoch)  # a missing epoch: one line naming the ones there are
+        check_output(output, overwrite)  # refusals first: one line, before any progress output
+        Geodesy(terrain.crs, store)
+        check_exportable(terrain, epoch)
+        _run(terrain, fmt, output, metric, epoch, overwrite)
+
+
+def _run(terrain, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool) -> None:
+    from terralod.export import export_3dtiles, export_quantized_mesh
+
+    with progress("exporting") as prog:
         task = prog.add_task(fmt, total=None)
 
         def cb(done: int, total: int) -> None:

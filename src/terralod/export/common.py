@@ -19,7 +19,14 @@ import numpy as np
 
 from terralod.errors import InputError, StoreError
 
-__all__ = ["apply_affine", "atomic_folder", "check_exportable", "source_heightfield", "valid_at"]
+__all__ = [
+    "apply_affine",
+    "atomic_folder",
+    "check_exportable",
+    "check_output",
+    "source_heightfield",
+    "valid_at",
+]
 
 
 def check_exportable(terrain: Any, epoch: str | None = None) -> None:
@@ -35,13 +42,18 @@ def check_exportable(terrain: Any, epoch: str | None = None) -> None:
             raise InputError(f"has no epochs (asked for --epoch {epoch})", where)
         if epoch not in terrain.epochs:
             raise InputError(f"has no epoch {epoch} (it has {', '.join(terrain.epochs)})", where)
-        if not hasattr(terrain, "at_epoch"):
+        if not hasattr(terrain, "with_epoch"):
             raise InputError("epoch selection is not available for this kind of store", where)
 
 
 def source_heightfield(terrain: Any) -> Any:
     """The source DEM of a grid store when it can be read again and is the one the store was built from
     (same digest); None otherwise (TIN stores, moved or changed sources)."""
+    if getattr(terrain, "epochs", None) and hasattr(terrain, "heightfield"):
+        try:  # a store of epochs keeps each epoch's samples
+            return terrain.heightfield()
+        except Exception:  # noqa: BLE001 - fall back to the recorded source
+            pass
     meta = getattr(terrain, "meta", {}) or {}
     src, digest = meta.get("source"), meta.get("source_digest")
     if not src or not digest:
@@ -77,9 +89,9 @@ def valid_at(hf: Any, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
-@contextmanager
-def atomic_folder(out: str | os.PathLike[str], overwrite: bool) -> Iterator[Path]:
-    """Yield a temporary folder that becomes ``out`` when the block ends without error."""
+def check_output(out: str | os.PathLike[str], overwrite: bool) -> None:
+    """Refuse an output that is a file, a non-empty folder without ``overwrite``, or in a missing or
+    read-only folder."""
     dst = Path(out)
     if dst.exists() and not dst.is_dir():
         raise InputError("exists and is not a folder", str(dst))
@@ -90,6 +102,14 @@ def atomic_folder(out: str | os.PathLike[str], overwrite: bool) -> Iterator[Path
         raise InputError(f"output folder {parent} does not exist", str(dst))
     if not os.access(parent, os.W_OK):
         raise InputError(f"output folder {parent} is not writable", str(dst))
+
+
+@contextmanager
+def atomic_folder(out: str | os.PathLike[str], overwrite: bool) -> Iterator[Path]:
+    """Yield a temporary folder that becomes ``out`` when the block ends without error."""
+    check_output(out, overwrite)
+    dst = Path(out)
+    parent = dst.resolve().parent
     for stale in parent.glob(f".{dst.name}.tmp-*"):
         shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=parent))

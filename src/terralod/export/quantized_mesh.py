@@ -535,8 +535,8 @@ def export_quantized_mesh(
     ``Content-Encoding: gzip``, as ``terralod serve`` does)."""
     t0 = time.perf_counter()
     check_exportable(terrain, epoch)
-    if epoch is not None:
-        terrain = terrain.at_epoch(epoch)
+    if epoch is not None and epoch != getattr(terrain, "epoch", None):
+        terrain = terrain.with_epoch(epoch)
     qm = QuantizedMesh(terrain)
     rep = ExportReport(Path(out))
     per_level: dict[int, float] = {}

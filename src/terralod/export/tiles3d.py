@@ -300,8 +300,8 @@ def export_3dtiles(
     """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree."""
     t0 = time.perf_counter()
     check_exportable(terrain, epoch)
-    if epoch is not None:
-        terrain = terrain.at_epoch(epoch)
+    if epoch is not None and epoch != getattr(terrain, "epoch", None):
+        terrain = terrain.with_epoch(epoch)
     view = Tiles3D(terrain, metric=metric)
     rep = ExportReport(Path(out))
     with atomic_folder(out, overwrite) as tmp:

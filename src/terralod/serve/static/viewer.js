@@ -25,7 +25,7 @@
   const opts = {
     baseLayer: false, baseLayerPicker: false, geocoder: false, timeline: false, animation: false,
     homeButton: false, sceneModePicker: false, navigationHelpButton: false, fullscreenButton: false,
-    infoBox: false, selectionIndicator: false, requestRenderMode: false, skyBox: false,
+    infoBox: false, selectionIndicator: false, requestRenderMode: true, maximumRenderTimeChange: Infinity, skyBox: false,
     contextOptions: { webgl: { preserveDrawingBuffer: true } },
   };
   let terrainProvider = null;
