@@ -34,7 +34,6 @@ from terralod.cli._common import console, progress
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 def export(store: str, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool) -> None:
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh terrain."""
-    from terralod.export import export_3dtiles, export_quantized_mesh
     from terralod.export.common import check_exportable, check_output
     from terralod.export.geodesy import Geodesy
     from terralod.terrain import open_terrain
