@@ -20,6 +20,7 @@ from terralod.cli._common import (
     triple,
     view_options,
 )
+from terralod.cli._epochs import at_epoch, caption, epoch_options, overlay_for
 
 #: Image files ``render -o`` writes (Pillow picks the format by suffix).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".bmp")
@@ -48,12 +49,13 @@ def describe_frame(output: str, stats: dict[str, Any]) -> None:
 )
 @click.option("--wireframe", is_flag=True)
 @click.option("--overwrite", is_flag=True, help="Replace an existing image.")
+@epoch_options
 @aim_options
 @view_options
 @read_options
 def render(
     path, output, eye, target, size_text, threshold_px, background, mode, wireframe, overwrite, look_at,
-    from_text, water_level, fractal_levels, cull, **read: Any,
+    from_text, water_level, fractal_levels, cull, epoch, overlay, from_epoch, lod_m, **read: Any,
 ) -> None:  # fmt: skip
     """Render one frame of a store (or a DEM, built first) to a PNG, headless (EGL)."""
     from terralod.render.offscreen import CameraPose, FrameRenderer, overview_pose, save_png, terrain_colours
@@ -64,14 +66,15 @@ def render(
         raise click.BadParameter("give both --eye and --target", param_hint="--eye")
     if eye and (look_at or from_text):
         raise click.BadParameter("give --eye/--target or --look-at/--from, not both", param_hint="--eye")
-    with open_terrain_arg(path, read, fractal_levels) as terrain:
+    with open_terrain_arg(path, read, fractal_levels) as whole, at_epoch(whole, epoch) as terrain:
         pose = aimed_pose(terrain, look_at, from_text) or overview_pose(terrain)
         if eye and target:
             pose = CameraPose(triple(eye, "--eye"), triple(target, "--target"))
         st = terrain_colours(terrain, render_settings(background, mode, wireframe), water_level)
+        ov = overlay_for(terrain, overlay, from_epoch, lod_m, st)
         fr = FrameRenderer(terrain, w, h, threshold_px=threshold_px, settings=st, cull=cull)
         try:
-            save_png(fr.frame(pose), output)
+            save_png(caption(fr.frame(pose), terrain, ov), output)
         finally:
             fr.close()
     describe_frame(output, fr.last_stats)
