@@ -26,6 +26,7 @@ COMMANDS = [
     ("view", "view"),
     ("demo", "demo"),
     ("bench", "bench"),
+    ("warmup", "warmup"),
     ("export", "export"),
     ("serve", "serve"),
     ("update", "update"),
@@ -47,6 +48,13 @@ def cli(verbose: bool) -> None:
     VERBOSE["on"] = verbose
     logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(name)s: %(message)s")
     quiet_libraries(verbose)
+    ctx = click.get_current_context()
+    if ctx.invoked_subcommand not in (None, "info", "warmup", "epochs") and not ctx.resilient_parsing:
+        from terralod.warmup import COLD_COMPILE_S, kernels_cold
+
+        if kernels_cold():  # say why the first run waits (scripts/install.sh compiles them ahead)
+            click.echo(f"terralod: compiling kernels once, about {COLD_COMPILE_S} s (`terralod warmup` does it "
+                       "ahead)", err=True)  # fmt: skip
 
 
 for _module, _name in COMMANDS:

@@ -235,12 +235,69 @@ def aimed_pose(terrain, look_at: str | None, from_text: str | None):
     return aim_pose(terrain, ll, fr)  # type: ignore[arg-type]
 
 
-def progress(label: str) -> Progress:
-    """A progress bar on stderr (off when stderr is not a terminal, unless -v)."""
+class PlainProgress:
+    """Progress as plain lines on stderr (for logs and pipes, where a bar would be noise): one line when a
+    task starts, then ``label name: done/total (pct %), elapsed s`` at most every ``every_s`` seconds, and
+    a last line when it ends. The subset of :class:`rich.progress.Progress` the commands use."""
+
+    def __init__(self, label: str, every_s: float = 5.0, stream=None) -> None:
+        self.label = label
+        self.every_s = every_s
+        self.stream = stream
+        self._tasks: dict[int, dict[str, Any]] = {}
+
+    def __enter__(self) -> PlainProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for k, t in self._tasks.items():
+            if t["printed"] != (t["completed"], t["total"]):
+                self._line(k)
+
+    def add_task(self, description: str, total: float | None = None, **_: Any) -> int:
+        import time
+
+        k = len(self._tasks)
+        self._tasks[k] = {"name": description, "total": total, "completed": 0, "t0": time.monotonic(),
+                          "last": time.monotonic(), "printed": None}  # fmt: skip
+        click.echo(f"{self.label} {description} ...", err=True, file=self.stream)
+        return k
+
+    def update(self, task: int, completed: float | None = None, total: float | None = None, **_: Any) -> None:
+        import time
+
+        t = self._tasks[task]
+        if completed is not None:
+            t["completed"] = completed
+        if total is not None:
+            t["total"] = total
+        now = time.monotonic()
+        done = t["total"] is not None and t["completed"] >= t["total"]
+        if now - t["last"] >= self.every_s or (done and t["printed"] != (t["completed"], t["total"])):
+            t["last"] = now
+            self._line(task)
+
+    def _line(self, task: int) -> None:
+        import time
+
+        t = self._tasks[task]
+        t["printed"] = (t["completed"], t["total"])
+        el = time.monotonic() - t["t0"]
+        if t["total"]:
+            pct = 100.0 * t["completed"] / t["total"]
+            msg = f"{self.label} {t['name']}: {t['completed']:.0f}/{t['total']:.0f} ({pct:.0f} %), {el:.0f} s"
+        else:
+            msg = f"{self.label} {t['name']}: {t['completed']:.0f}, {el:.0f} s"
+        click.echo(msg, err=True, file=self.stream)
+
+
+def progress(label: str) -> Progress | PlainProgress:
+    """A progress bar on stderr when it is a terminal; plain lines every few seconds otherwise."""
+    if not sys.stderr.isatty():
+        return PlainProgress(label)
     return Progress(
         TextColumn(f"[bold]{label}[/bold] {{task.description}}"), BarColumn(), MofNCompleteColumn(),
         TimeElapsedColumn(), console=err_console, transient=False,
-        disable=not sys.stderr.isatty() and not VERBOSE["on"],
     )  # fmt: skip
 
 
@@ -259,8 +316,22 @@ def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None,
                            overwrite=overwrite, progress=cb, **extra)  # fmt: skip
 
 
+def user_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/terralod`` (default ``~/.cache/terralod``): caches never go beside an input,
+    whose folder may be read-only."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "terralod"
+
+
+def cache_store_path(source: str | Path, digest: str) -> Path:
+    """Where the cache store of a DEM goes: the user cache folder, named by the DEM and its digest."""
+    p = Path(source)
+    return user_cache_dir() / "views" / f"{p.stem}-{digest[:16]}.terra"
+
+
 def open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path:
-    """A store path as is; a DEM is built into a cache store beside it first (rebuilt only when missing)."""
+    """A store path as is; a DEM is built into a cache store in the user cache folder first (rebuilt only
+    when missing or from another version of the DEM)."""
     from terralod.errors import StoreError
     from terralod.pyramid.builder import DEFAULT_METHOD
     from terralod.store import open_store
@@ -269,7 +340,8 @@ def open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path:
     if p.exists() and is_store(p):
         return p
     hf = load(path, **read)
-    cache = p.with_name(p.name + ".terra")
+    cache = cache_store_path(p, hf.digest())
+    cache.parent.mkdir(parents=True, exist_ok=True)
     if cache.exists():
         try:
             with open_store(cache) as s:
@@ -345,17 +417,49 @@ def frame_table(stats: dict[str, Any], title: str = "frame") -> None:
     console.print(t)
 
 
+def extent_info(crs: str | None, bounds_m) -> dict[str, Any]:
+    """``bounds_m`` [W, S, E, N] in the CRS, ``bounds_lonlat`` [W, S, E, N] in WGS84 degrees (None without
+    a CRS) and ``size_km`` [east-west, north-south] of a footprint."""
+    w, s_, e, n = (float(v) for v in bounds_m)
+    lonlat = None
+    if crs:
+        try:
+            from pyproj import CRS, Transformer
+
+            tr = Transformer.from_crs(CRS.from_user_input(crs), CRS.from_epsg(4326), always_xy=True)
+            lonlat = [float(v) for v in tr.transform_bounds(w, s_, e, n, densify_pts=21)]
+        except Exception:  # noqa: BLE001 - an unplaceable CRS has no lon/lat, the rest still holds
+            lonlat = None
+    return {"bounds_m": [w, s_, e, n], "bounds_lonlat": lonlat, "size_km": [(e - w) / 1e3, (n - s_) / 1e3]}
+
+
+def print_extent(d: dict[str, Any], width: int = 13) -> None:
+    """The footprint lines of ``info``: bounds in the CRS and in lon/lat, size in km, elevation range."""
+    w, s_, e, n = d["bounds_m"]
+    pad = " " * (width - 11)
+    console.print(f"  bounds     {pad}W {w:,.1f}  S {s_:,.1f}  E {e:,.1f}  N {n:,.1f} m")
+    if d.get("bounds_lonlat"):
+        lw, ls, le, ln = d["bounds_lonlat"]
+        console.print(f"  lon/lat    {pad}W {lw:.5f}  S {ls:.5f}  E {le:.5f}  N {ln:.5f} deg")
+    console.print(f"  size       {pad}{d['size_km'][0]:,.2f} x {d['size_km'][1]:,.2f} km")
+    lo, hi = d["elevation_range_m"]
+    console.print(f"  elevation  {pad}{lo:,.2f} .. {hi:,.2f} m")
+
+
 def heightfield_info(hf) -> dict[str, Any]:
     lo, hi = hf.valid_range_m()
+    src = hf.nodata_fraction if hf.source_nodata_fraction is None else hf.source_nodata_fraction
     return {
         "kind": "heightfield",
         "source": hf.source,
         "size": [hf.width, hf.height],
         "crs": hf.crs,
         "spacing_m": list(hf.spacing_m),
-        "bounds_m": list(hf.bounds_m),
+        **extent_info(hf.crs, hf.bounds_m),
         "elevation_range_m": [lo, hi],
         "nodata_percent": 100.0 * hf.nodata_fraction,
+        "source_nodata_percent": 100.0 * src,
+        "reprojection_margin_percent": 100.0 * hf.margin_fraction,
         "fill_method": hf.fill_method,
         "notes": list(hf.notes),
     }
@@ -365,19 +469,27 @@ def print_store_summary(summary: dict[str, Any]) -> None:
     console.print(
         f"{summary['path']}: {'complete' if summary['complete'] else 'INCOMPLETE (finish with --resume)'}"
     )
-    t = Table()
-    for col in ("level", "tiles", "vertices", "triangles", "max error m", "max vert. m", "RMS m", "KiB"):
-        t.add_column(col, justify="right")
+    from rich import box
+
+    # compact (fits 80 columns with numbers of 10 digits): errors in metres, size in KiB
+    t = Table(box=box.SIMPLE_HEAD, pad_edge=False)
+    for col in ("level", "tiles", "vertices", "triangles", "error m", "vert. m", "RMS m", "KiB"):
+        t.add_column(col, justify="right", no_wrap=True)
     for k, d in summary["per_level"].items():
         t.add_row(
-            str(k), str(d["tiles"]), f"{d['vertices']:,}", f"{d['triangles']:,}", f"{d['max_error_m']:.3f}",
-            f"{d['max_vertical_error_m']:.3f}", f"{d['rms_error_m']:.3f}", f"{d['bytes'] / 1024:.1f}",
+            str(k), f"{d['tiles']:,}", f"{d['vertices']:,}", f"{d['triangles']:,}", _g(d["max_error_m"]),
+            _g(d["max_vertical_error_m"]), _g(d["rms_error_m"]), f"{d['bytes'] / 1024:,.0f}",
         )  # fmt: skip
     console.print(t)
     console.print(
         f"{summary['levels']} levels, {summary['tiles']}/{summary['tiles_planned']} tiles, tile size "
         f"{summary['tile_size']}, {summary['size_bytes'] / 1024 / 1024:.2f} MiB on disk"
     )
+
+
+def _g(v: float) -> str:
+    """A metre figure in at most 7 characters (3 decimals below 100 m)."""
+    return f"{v:.3f}" if abs(v) < 100 else f"{v:,.1f}" if abs(v) < 1e5 else f"{v:.3g}"
 
 
 def print_tin_summary(d: dict[str, Any]) -> None:

@@ -11,9 +11,11 @@ import click
 from terralod.cli._common import (
     console,
     crs_name,
+    extent_info,
     heightfield_info,
     is_store,
     load,
+    print_extent,
     print_store_summary,
     print_tin_summary,
     read_options,
@@ -28,6 +30,8 @@ def store_info(p: Path) -> dict[str, Any]:
     if store_method(p) == TIN_METHOD:
         meta, _ = read_tin_store(p)
         meta["size_bytes"] = p.stat().st_size
+        if meta.get("bounds_m"):
+            meta.update(extent_info(meta.get("crs"), meta["bounds_m"]))
         return meta
     with open_store(p) as s:
         summary = store_summary(s)
@@ -36,7 +40,25 @@ def store_info(p: Path) -> dict[str, Any]:
         summary["method"] = s.meta.get("method")
         summary["epochs"] = [{"name": r["name"], "state": r["state"], **r["info"]} for r in s.epoch_rows()]
         summary["epoch"] = s.epoch
+        summary.update(grid_extent(s))
     return summary
+
+
+def grid_extent(s) -> dict[str, Any]:
+    """Footprint of a grid store's source (pixel edges, from its metadata) and the elevation range of its
+    stored vertices (tiles wholly over nodata excluded)."""
+    t = s.meta.get("transform") or [1.0, 0.0, 0.0, 0.0, -1.0, 0.0]
+    w, h = int(s.meta.get("width", 0)), int(s.meta.get("height", 0))
+    a, _, c, _, e, f = (float(v) for v in t[:6])
+    bounds = [min(c, c + w * a), min(f, f + h * e), max(c, c + w * a), max(f, f + h * e)]
+    rows = [r for r in s.tile_summaries() if r["n_vertices"] > 0]
+    rng = [min(r["z_min_m"] for r in rows), max(r["z_max_m"] for r in rows)] if rows else [0.0, 0.0]
+    out = extent_info(s.crs, bounds)
+    out["elevation_range_m"] = [float(rng[0]), float(rng[1])]
+    nf = s.meta.get("nodata_fraction")
+    if nf is not None:
+        out["nodata_percent"] = 100.0 * float(nf)
+    return out
 
 
 def print_epochs(d: dict[str, Any]) -> None:
@@ -70,9 +92,12 @@ def info(path: str, as_json: bool, **read: Any) -> None:
             click.echo(json.dumps(d, indent=2, default=str))
         elif d.get("method") == TIN_METHOD:
             console.print(f"source {d.get('source')}, method tin (paper 003), CRS {crs_name(d.get('crs'))}")
+            if "bounds_m" in d:
+                print_extent(d)
             print_tin_summary(d)
         else:
             console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs']}")
+            print_extent(d)
             print_store_summary(d)
             print_epochs(d)
         return
@@ -102,7 +127,12 @@ def info(path: str, as_json: bool, **read: Any) -> None:
     console.print(f"  size         {d['size'][0]} x {d['size'][1]} samples")
     console.print(f"  CRS          {crs_name(d['crs'])}")
     console.print(f"  spacing      {d['spacing_m'][0]:.3f} x {d['spacing_m'][1]:.3f} m")
-    console.print(f"  elevation    {d['elevation_range_m'][0]:.2f} .. {d['elevation_range_m'][1]:.2f} m")
-    console.print(f"  nodata       {d['nodata_percent']:.2f} %")
+    print_extent(d)
+    if d["reprojection_margin_percent"] > 0:
+        console.print(f"  nodata       {d['source_nodata_percent']:.4g} % of the source's samples")
+        console.print(f"  margin       {d['reprojection_margin_percent']:.2f} % of the grid lies outside the "
+                      "source (reprojection)")  # fmt: skip
+    else:
+        console.print(f"  nodata       {d['nodata_percent']:.4g} %")
     for n in d["notes"] + ([d["fill_method"]] if d["fill_method"] else []):
         console.print(f"  note         {n}")

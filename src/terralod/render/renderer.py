@@ -513,8 +513,9 @@ class TerrainRenderer:
         hr = st.height_range_m or ((zlo, zhi) if codes else (0.0, 1.0))
         self.prog["u_height_range"].value = (float(hr[0]), float(hr[1]))
         self.prog["u_fog_colour"].value = tuple(st.background)
-        self.prog["u_water"].value = tuple(map(float, st.water_m)) if st.water_m else (1.0, -1.0)
-        self.prog["u_water_colour"].value = tuple(map(float, st.water_colour))
+        if "u_water" in self.prog:  # (a shader variant may draw no water)
+            self.prog["u_water"].value = tuple(map(float, st.water_m)) if st.water_m else (1.0, -1.0)
+            self.prog["u_water_colour"].value = tuple(map(float, st.water_colour))
         dist = float(np.linalg.norm(target - eye))
         self.prog["u_fog_distance"].value = (dist * 6.0) if st.fog else 1e12
         self.prog["u_z_exaggeration"].value = float(st.z_exaggeration)

@@ -57,6 +57,6 @@ void main() {
     float fog = 1.0 - exp(-length(v_rel) / max(u_fog_distance, 1.0));
     c = mix(c, u_fog_colour, fog * 0.85);
     // +-1/2 of an 8-bit step of noise: smooth gradients (fog, flat shading) no longer band into rings
-    float noise = fract(52.9829189 * fract(dot(gl_FragCoord.xy, vec2(0.06711056, 0.00583715))));
+    float noise = fract(sin(dot(gl_FragCoord.xy, vec2(12.9898, 78.233))) * 43758.5453);
     f_colour = vec4(c + (noise - 0.5) / 255.0, 1.0);
 }

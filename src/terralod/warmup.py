@@ -1,0 +1,133 @@
+"""Compile the numba kernels ahead of first use, so a first ``terralod demo`` does not sit silent.
+
+The kernels are compiled with ``cache=True`` (:mod:`terralod.kernels`): the machine code is written next
+to each module (``__pycache__/*.nbi``/``*.nbc``, or under ``NUMBA_CACHE_DIR``) and later processes load it
+in milliseconds. :func:`warm_up` runs a small version of everything the commands do (a build with every
+registered method over a heightfield with nodata, selection + stitching + normals of each, fractal
+levels below a store, a detail-increment TIN and its selection), which compiles every kernel for the
+argument types the commands use. ``scripts/install.sh`` runs it (``python -m terralod warmup``).
+:func:`kernels_cold` tells a command that the cache is empty, so it can say why it is about to wait.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import pkgutil
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+#: Seconds a cold compile took on a 2-core machine (``terralod warmup`` on a fresh checkout, measured).
+COLD_COMPILE_S = 120
+
+
+def kernel_dispatchers() -> list:
+    """Every numba kernel of :mod:`terralod.kernels` (imports the modules)."""
+    from numba.core.registry import CPUDispatcher
+
+    import terralod.kernels as k
+
+    out = []
+    for m in pkgutil.iter_modules(k.__path__):
+        mod = importlib.import_module(f"{k.__name__}.{m.name}")
+        for v in vars(mod).values():
+            if isinstance(v, CPUDispatcher) and v.py_func.__module__ == mod.__name__:
+                out.append(v)
+    return out
+
+
+def kernels_cold() -> bool:
+    """True when no compiled kernel is cached yet (a fresh install): cheap, imports nothing."""
+    cache = os.environ.get("NUMBA_CACHE_DIR")
+    here = Path(__file__).resolve().parent / "kernels"
+    dirs = [here / "__pycache__"]
+    if cache:
+        dirs.append(Path(cache))
+    for d in dirs:
+        try:
+            if any(p.suffix == ".nbi" for p in d.rglob("*.nbi")):
+                return False
+        except OSError:
+            continue
+    return True
+
+
+def _terrain(n: int = 80, seed: int = 1):
+    from terralod.heightfield import Heightfield
+
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[0:n, 0:n].astype(np.float64)
+    z = 300.0 * np.exp(-((r - n / 2) ** 2 + (c - n / 2) ** 2) / (n * n / 8)) + rng.normal(0.0, 2.0, (n, n))
+    valid = np.ones((n, n), bool)
+    valid[: n // 6, : n // 6] = False  # a corner of nodata: the fill and the footprint run too
+    valid[rng.random((n, n)) < 0.01] = False
+    return Heightfield.from_array(z.astype(np.float32), 30.0, origin_m=(500000.0, 4100000.0), valid=valid)
+
+
+def _frames(terrain) -> None:
+    from terralod.render.offscreen import overview_pose
+    from terralod.runtime import Camera
+
+    pose = overview_pose(terrain)
+    for cull in ((), ("backface", "region")):
+        eng = terrain.engine(threshold_px=1.0, cull=cull)
+        try:
+            for d in (1.0, 0.3):
+                eye = np.asarray(pose.target) + (np.asarray(pose.eye) - np.asarray(pose.target)) * d
+                frame = eng.update(
+                    Camera(tuple(eye), pose.target, (0.0, 0.0, 1.0), 45.0, 320, 180, near_m=1.0)
+                )
+                for _ in frame.meshes():
+                    pass
+        finally:
+            eng.close()
+
+
+def warm_up(report: Callable[[str], None] | None = None) -> dict[str, float]:
+    """Compile (and cache) every kernel the commands use. Returns seconds per step."""
+    from terralod.pyramid.builder import METHODS, build_store
+    from terralod.store import open_store
+    from terralod.terrain import GridTerrain
+
+    say = report or (lambda _msg: None)
+    out: dict[str, float] = {}
+    hf = _terrain()
+    with tempfile.TemporaryDirectory(prefix="terralod-warmup-") as tmp:
+        for method in sorted(METHODS):
+            t0 = time.perf_counter()
+            p = Path(tmp) / f"{method}.terra"
+            build_store(hf, p, tile_size=17, method=method, workers=2)
+            with open_store(p) as s:
+                _frames(GridTerrain(s))
+            out[f"build + frames ({method})"] = time.perf_counter() - t0
+            say(f"  {method}: {out[f'build + frames ({method})']:.1f} s")
+        t0 = time.perf_counter()
+        try:
+            from terralod.fractal import FractalDetail
+            from terralod.runtime.fractal_source import FractalSource
+
+            with open_store(Path(tmp) / "chunked.terra") as s:
+                _frames(GridTerrain(s, FractalSource(s, FractalDetail(hf), 1)))
+            out["fractal levels"] = time.perf_counter() - t0
+            say(f"  fractal levels: {out['fractal levels']:.1f} s")
+        except Exception as exc:  # noqa: BLE001 - a warm-up step that fails only leaves its kernels cold
+            say(f"  fractal levels skipped ({exc})")
+        t0 = time.perf_counter()
+        try:
+            from terralod.terrain import open_terrain
+            from terralod.tin import DetailIncrementModel
+            from terralod.tin.terra import save_model_to_store
+
+            model = DetailIncrementModel.from_heightfield(_terrain(48, 2), sub_blocks=4, base_fraction=0.2)
+            save_model_to_store(model, Path(tmp) / "tin.terra", overwrite=True)
+            with open_terrain(Path(tmp) / "tin.terra") as t:
+                _frames(t)
+            out["tin"] = time.perf_counter() - t0
+            say(f"  tin: {out['tin']:.1f} s")
+        except Exception as exc:  # noqa: BLE001
+            say(f"  tin skipped ({exc})")
+    return out
