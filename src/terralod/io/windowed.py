@@ -216,7 +216,8 @@ class RasterSource(WindowSource):
 
     # -- reading -----------------------------------------------------------------------------------------
     def read_raw(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
-        """Unfilled elevations (float64 metres, arbitrary where invalid) and the valid mask of the window."""
+        """Unfilled elevations (metres, float64 when scaled, else float32; arbitrary where invalid) and the valid
+        mask of the window."""
         from rasterio.windows import Window
 
         self._check_window(r0, c0, r1, c1)
@@ -238,18 +239,20 @@ class RasterSource(WindowSource):
             raw, ok = raw[:, ::-1], ok[:, ::-1]
         if self.nodata_hint is not None:
             ok &= raw != self.nodata_hint
-        values = raw.astype(np.float64)
         if self.scale != 1.0 or self.offset != 0.0:
+            values = raw.astype(np.float64)
             values *= self.scale
             values += self.offset
+        else:  # float64 then float32 (the in-memory reader) rounds as float32 directly does
+            values = raw.astype(np.float32)
         ok &= np.isfinite(values)
         return values, np.ascontiguousarray(ok)
 
     def read(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
         values, ok = self.read_raw(r0, c0, r1, c1)
+        z = values.astype(np.float32, copy=False)
         if ok.all():
-            return values.astype(np.float32), ok
-        z = values.astype(np.float32)
+            return z, ok
         b = FILL_BLOCK
         for br in range(r0 // b, (r1 - 1) // b + 1):
             for bc in range(c0 // b, (c1 - 1) // b + 1):

@@ -1,0 +1,338 @@
+"""Scaling of out-of-core and Dask builds (issue 20): throughput, peak memory, the writer's ceiling, and a
+projection to a national DEM.
+
+Terrain: srtm3_N42E001 (Pyrenees, ../shared/data), read and reprojected to UTM in memory once, a 1025²
+crop mirror-tiled 4 x 4 (4097², ``_common.mirror_tile``), written as a COG (DEFLATE, 256² blocks) into a
+temporary folder (never the repository); ``--big`` also writes the 16385² mirror (16 x 16, 1 GiB as
+float32) as a tiled GeoTIFF written window by window and builds it once.
+
+Configurations, each in a fresh subprocess whose whole process tree (client + Dask workers) is sampled
+for RSS every 0.1 s:
+
+- ``memory-tN``: :func:`terralod.pyramid.builder.build_store` on the whole raster, N threads;
+- ``window-tN``: :func:`terralod.pyramid.distributed.build_store_windowed` on the COG, N threads;
+- ``dask-pN``: the same on a LocalCluster of N worker processes x 1 thread (cluster start not counted);
+- ``dask-p2-kill``: dask-p2 with one worker killed (SIGKILL) after 30 % of the tiles: its units are
+  rebuilt by the scheduler on the other (then restarted) worker; tiles compared with ``window-t1``.
+
+Samples/s = source samples / build seconds (the streamed plan and the error measurement included). The
+writer's ceiling: every tile of the built store re-committed into a new store by ``TileStore.write_tiles``
+in the builder's batches of 64, tiles/s. Medians of ``--repeat`` runs. Writes
+``benchmarks/results/scale.json`` and ``scale.md``. Run: ``python benchmarks/scale.py [--big] [--repeat N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sqlite3
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import SHARED, md_table, mirror_tile, write_results  # noqa: E402
+
+DEM = SHARED / "dem" / "srtm3_N42E001.tif"
+CROP = 1025
+METHOD = "chunked"
+
+
+# -- terrains ------------------------------------------------------------------------------------------
+def write_terrains(folder: Path, big: bool) -> dict[str, Path]:
+    """The 4097² COG (and the 16385² tiled GeoTIFF) of the mirror-tiled Pyrenees, in ``folder``."""
+    import rasterio
+    from rasterio.shutil import copy as rio_copy
+    from rasterio.windows import Window
+
+    from terralod.io.reader import read_heightfield
+
+    hf = read_heightfield(DEM)
+    h, w = hf.shape
+    r0, c0 = (h - CROP) // 2, (w - CROP) // 2
+    crop = np.ascontiguousarray(hf.elevation_m[r0 : r0 + CROP, c0 : c0 + CROP])
+    t = hf.transform
+    out = {}
+    z4 = mirror_tile(crop, 4)
+    profile = {"driver": "GTiff", "dtype": "float32", "count": 1, "crs": hf.crs, "transform": t,
+               "tiled": True, "blockxsize": 256, "blockysize": 256, "compress": "deflate"}  # fmt: skip
+    tmp = folder / "dem4k_tiled.tif"
+    with rasterio.open(tmp, "w", width=z4.shape[1], height=z4.shape[0], **profile) as ds:
+        ds.write(z4, 1)
+    out["4097"] = folder / "dem4k_cog.tif"
+    rio_copy(tmp, out["4097"], driver="COG", compress="deflate", blocksize=256)
+    tmp.unlink()
+    if big:
+        n = (CROP - 1) * 16 + 1
+        out["16385"] = folder / "dem16k_tiled.tif"
+        # rows of mirror copies: copy i is the crop (even i) or its flip (odd i), sharing edge rows
+        base = [crop if i % 2 == 0 else crop[::-1] for i in range(2)]
+        with rasterio.open(out["16385"], "w", width=n, height=n, **profile) as ds:
+            for i in range(16):
+                band = base[i % 2]
+                cols = [band, band[:, ::-1]]
+                strip = np.concatenate([cols[0]] + [cols[j % 2][:, 1:] for j in range(1, 16)], axis=1)
+                first = 0 if i == 0 else 1
+                ds.write(strip[first:], 1, window=Window(0, i * (CROP - 1) + first, n, CROP - first))
+    return out
+
+
+# -- one configuration, in its own process ---------------------------------------------------------------
+def child(config: str, dem: str, out: str) -> None:
+    """Build ``dem`` into ``out`` with ``config``; print one JSON line."""
+    from terralod.heightfield import Heightfield
+    from terralod.io.windowed import RasterSource
+    from terralod.pyramid.builder import build_store
+    from terralod.pyramid.distributed import build_store_windowed, dask_client
+
+    # warm the numba caches (compile time is not build time)
+    build_store(Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0), out + ".warm", method=METHOD)
+    kind, _, rest = config.partition("-")
+    n = int(rest.split("-")[0][1:])
+    info: dict = {}
+    if kind == "memory":
+        from terralod.io.reader import read_heightfield
+
+        t = time.perf_counter()
+        hf = read_heightfield(dem)
+        info["read_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        rep = build_store(hf, out, method=METHOD, workers=n, overwrite=True)
+    elif kind == "window":
+        t = time.perf_counter()
+        rep = build_store_windowed(RasterSource(dem), out, method=METHOD, workers=n, overwrite=True)
+    else:
+        client = dask_client("local", n_workers=n, threads=1)
+        client.run(lambda: build_store(Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0),
+                                       out + f".warm{os.getpid()}", method=METHOD))  # fmt: skip
+        if config.endswith("kill"):
+            _kill_later(client, out)
+        t = time.perf_counter()
+        rep = build_store_windowed(RasterSource(dem), out, method=METHOD, client=client, overwrite=True)
+        info["workers_at_end"] = len(client.scheduler_info()["workers"])
+        client.close()
+    secs = time.perf_counter() - t
+    print(json.dumps({"seconds": secs, "tiles": rep.tiles_built, "samples": rep.source_samples, **info}))
+
+
+def _kill_later(client, out: str) -> None:
+    """SIGKILL one worker process once 30 % of the tiles are committed (a thread polling the store)."""
+    pids = list(client.run(os.getpid).values())
+
+    def watch() -> None:
+        while True:
+            time.sleep(0.2)
+            try:
+                conn = sqlite3.connect(f"file:{out}?mode=ro", uri=True)
+                done = conn.execute("SELECT COUNT(*) FROM tiles").fetchone()[0]
+                conn.close()
+            except sqlite3.Error:
+                continue
+            if done >= 0.3 * 5461:
+                os.kill(pids[0], signal.SIGKILL)
+                print(json.dumps({"killed_pid": pids[0], "after_tiles": done}), file=sys.stderr)
+                return
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def run_config(config: str, dem: Path, folder: Path, timeout_s: float) -> dict:
+    """Run one configuration in a subprocess; sample the RSS of its whole process tree."""
+    out = folder / f"{config}.terra"
+    for p in folder.glob(f"{config}.terra*"):
+        p.unlink()
+    proc = subprocess.Popen([sys.executable, __file__, "--child", config, str(dem), str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    root = psutil.Process(proc.pid)
+    peak = 0
+    t0 = time.perf_counter()
+    while proc.poll() is None:
+        try:
+            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
+            peak = max(peak, rss)
+        except psutil.Error:
+            pass
+        if time.perf_counter() - t0 > timeout_s:
+            proc.kill()
+            return {"config": config, "error": f"timed out after {timeout_s:.0f} s"}
+        time.sleep(0.1)
+    stdout, stderr = proc.communicate()
+    if proc.returncode != 0:
+        return {"config": config, "error": stderr.strip().splitlines()[-1] if stderr.strip() else "failed"}
+    res = json.loads(stdout.strip().splitlines()[-1])
+    res.update(config=config, peak_rss_mib=peak / 2**20, store=str(out))
+    for line in stderr.splitlines():
+        if line.startswith("{") and "killed_pid" in line:
+            res.update(json.loads(line))
+    return res
+
+
+def tiles_of(path: str) -> list[tuple]:
+    conn = sqlite3.connect(path)
+    try:
+        return conn.execute("SELECT * FROM tiles ORDER BY level, x, y").fetchall()
+    finally:
+        conn.close()
+
+
+def writer_ceiling(store_path: str, folder: Path, repeat: int) -> dict:
+    """Tiles/s of TileStore.write_tiles re-committing every tile of a built store in batches of 64."""
+    from terralod.pyramid.builder import _BATCH_TILES
+    from terralod.store import TileStore
+
+    with TileStore.open(store_path) as s:
+        meta = {
+            k: v for k, v in s.meta.items() if k not in ("format", "version", "complete", "meta_checksum")
+        }
+        tiles = [s.raw_tile(*c) for c in s.tile_codes()]
+    rates = []
+    for i in range(repeat):
+        p = folder / f"writer{i}.terra"
+        with TileStore.create(p, meta) as dst:
+            t = time.perf_counter()
+            for k in range(0, len(tiles), _BATCH_TILES):
+                dst.write_tiles(tiles[k : k + _BATCH_TILES])
+            rates.append(len(tiles) / (time.perf_counter() - t))
+        p.unlink()
+    mib = sum(len(t.vertices) + len(t.triangles) for t in tiles) / 2**20
+    return {"tiles": len(tiles), "tiles_per_s": statistics.median(rates), "payload_mib": mib,
+            "mib_per_s": statistics.median(rates) * mib / len(tiles)}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument(
+        "--big", action="store_true", help="also build the 16385² terrain once (window, 2 workers)"
+    )
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--child", nargs=3, metavar=("CONFIG", "DEM", "OUT"))
+    ap.add_argument(
+        "--configs", default="memory-t1,memory-t2,window-t1,window-t2,dask-p1,dask-p2,dask-p2-kill"
+    )
+    args = ap.parse_args()
+    if args.child:
+        child(*args.child)
+        return
+    if not DEM.exists():
+        print(f"skipped: {DEM} not present (../shared/data beside the repository)")
+        return
+    with tempfile.TemporaryDirectory(prefix="terralod-scale-") as tmp:
+        folder = Path(tmp)
+        t = time.perf_counter()
+        dems = write_terrains(folder, args.big)
+        print(
+            f"terrains written in {time.perf_counter() - t:.1f} s: {', '.join(str(p) for p in dems.values())}"
+        )
+        results: dict[str, list[dict]] = {}
+        for config in args.configs.split(","):
+            for _ in range(1 if config.endswith("kill") else args.repeat):
+                r = run_config(config, dems["4097"], folder, 1200)
+                print(json.dumps(r))
+                results.setdefault(config, []).append(r)
+        rows, payload = summarise(results, folder)
+        big = None
+        if args.big:
+            big = run_config("window-t2", dems["16385"], folder, 3000)
+            big["samples_per_s"] = big.get("samples", 0) / big["seconds"] if "seconds" in big else None
+            print(json.dumps(big))
+        payload["big_16385"] = big
+        write_results("scale", payload, report(rows, payload))
+
+
+def summarise(results: dict[str, list[dict]], folder: Path) -> tuple[list[list], dict]:
+    rows = []
+    per = {}
+    ref = results.get("window-t1", [{}])[0].get("store")
+    for config, runs in results.items():
+        ok = [r for r in runs if "seconds" in r]
+        if not ok:
+            rows.append([config, "-", "-", "-", "-", runs[0].get("error", "")])
+            continue
+        secs = statistics.median(r["seconds"] for r in ok)
+        rss = max(r["peak_rss_mib"] for r in ok)
+        same = "-"
+        if ref and config != "window-t1":
+            same = "yes" if tiles_of(ok[0]["store"]) == tiles_of(ref) else "NO"
+        note = f"killed worker after {ok[0]['after_tiles']} tiles" if "killed_pid" in ok[0] else ""
+        per[config] = {"seconds": secs, "samples_per_s": ok[0]["samples"] / secs, "tiles": ok[0]["tiles"],
+                       "peak_rss_mib": rss, "same_tiles_as_window_t1": same, "runs": ok}  # fmt: skip
+        rows.append([config, secs, ok[0]["samples"] / secs / 1e6, rss, same, note])
+    writer = writer_ceiling(ref, folder, 3) if ref else None
+    return rows, {"configs": per, "writer": writer, "method": METHOD}
+
+
+def ratio(per: dict, a: str, b: str) -> float | None:
+    return per[b]["samples_per_s"] / per[a]["samples_per_s"] if a in per and b in per else None
+
+
+def report(rows: list[list], payload: dict) -> str:
+    per = payload["configs"]
+    md = ["# Out-of-core and Dask builds (issue 20)\n",
+          f"4097² mirror-tiled Pyrenees (srtm3_N42E001, UTM), COG, method {METHOD}, tile size 65 (5461 tiles); "
+          "one subprocess per configuration, peak RSS of its whole process tree. Machine: 2 cores shared with "
+          "other users (load varies between runs).\n",
+          md_table(["config", "build s", "M samples/s", "peak RSS MiB", "same tiles as window-t1", "note"], rows)]  # fmt: skip
+    for a, b, what in (("window-t1", "window-t2", "threads"), ("dask-p1", "dask-p2", "processes"),
+                       ("memory-t1", "memory-t2", "threads, in memory")):  # fmt: skip
+        r = ratio(per, a, b)
+        if r:
+            md.append(f"- scaling {b} / {a} ({what}): **{r:.2f}x**")
+    w = payload.get("writer")
+    if w:
+        md.append(f"- writer ceiling: **{w['tiles_per_s']:,.0f} tiles/s** ({w['mib_per_s']:.1f} MiB/s of tile "
+                  f"payload, batches of 64, one SQLite writer)")  # fmt: skip
+    big = payload.get("big_16385")
+    if big and "seconds" in big:
+        md.append(
+            f"- 16385² (tiled GeoTIFF, window-t2, once): {big['seconds']:.0f} s, "
+            f"{big['samples_per_s'] / 1e6:.2f} M samples/s, peak RSS {big['peak_rss_mib']:.0f} MiB"
+        )
+    elif big:
+        md.append(f"- 16385²: {big.get('error')}")
+    md.append(projection(payload))
+    return "\n".join(md) + "\n"
+
+
+def projection(payload: dict) -> str:
+    """A 10^12-sample DEM on N machines, from the measured per-core cost and the writer's ceiling."""
+    per = payload["configs"]
+    base = per.get("dask-p1") or per.get("window-t1")
+    w = payload.get("writer")
+    if not base or not w:
+        return ""
+    core_rate = base["samples_per_s"]  # samples/s of one worker process, one thread
+    n_samples = 1e12
+    tiles = n_samples / 64**2 * 4 / 3
+    writer_s = tiles / w["tiles_per_s"]
+    lines = ["\n## Projection: a 10^12-sample national DEM (1 m over 10^6 km²)\n",
+             f"Measured here: one worker process builds {core_rate / 1e6:.2f} M samples/s ({METHOD}, one thread, "
+             f"plan and measurement included); the writer commits {w['tiles_per_s']:,.0f} tiles/s. The store "
+             f"would hold about {tiles:.2e} tiles (M = 65).\n",
+             md_table(["machines (16 cores each)", "build hours (compute)", "writer hours", "bound by"],
+                      [[n, n_samples / (core_rate * 16 * n) / 3600, writer_s / 3600,
+                        "writer" if writer_s > n_samples / (core_rate * 16 * n) else "compute"]
+                       for n in (1, 4, 16, 64, 256)]),  # fmt: skip
+             "What limits it, in order: (1) the single SQLite writer above a few dozen machines — per-worker "
+             "shard stores merged by bulk `INSERT ... SELECT` (or a store split by quadtree prefix) remove it, "
+             "see the docstring of `terralod.pyramid.distributed`; (2) the streamed plan reads the whole DEM "
+             "once on the client (digest and lattices; about 4 TB at a disk's 0.2-1 GB/s is 1-6 hours), which "
+             "a per-strip plan on the workers with a tree of digests would spread; (3) the level barrier: "
+             "coarse levels have few tiles (the root is one task reading a decimated copy), so the last levels "
+             "run on few cores; (4) shared storage bandwidth: every sample is read about twice (plan, tiles), "
+             "4 bytes each, so 256 machines at the compute rate above need "
+             f"{2 * 4 * core_rate * 16 * 256 / 1e9:.0f} GB/s in aggregate. Cohesion costs more per tile than "
+             "Chunked LOD (see benchmarks/results/cohesion_vs_chunked.md), which moves the balance toward compute."]  # fmt: skip
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()
