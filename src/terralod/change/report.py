@@ -64,8 +64,12 @@ def volume_words(v_m3: float) -> str:
 def pm_volume(v_m3: float, u_m3: float) -> str:
     """'99.0 ± 2.8 million m³' in one unit."""
     a = max(abs(v_m3), abs(u_m3))
-    for scale, word, nd in ((1e9, "billion m³", 2), (1e6, "million m³", 1)):
-        if a >= scale:
+    for scale, word, nd, at in (
+        (1e9, "billion m³", 2, 1e9),
+        (1e6, "million m³", 1, 1e6),
+        (1e6, "million m³", 2, 1e5),
+    ):
+        if a >= at:
             return f"{v_m3 / scale:.{nd}f} ± {u_m3 / scale:.{nd}f} {word}"
     return f"{v_m3:,.0f} ± {u_m3:,.0f} m³"
 
@@ -337,10 +341,34 @@ def figure_series(series: list[dict]) -> bytes:
     gain = np.array([r["gain_m3_above_lod"] for r in series]) / 1e6
     loss = np.array([r["loss_m3_above_lod"] for r in series]) / 1e6
     fig, ax = plt.subplots(figsize=(8, 3.8))
-    ax.fill_between(t, net - net_u, net + net_u, color="0.8", label="net, ± range")
-    ax.plot(t, net, "k-o", ms=3, label="net change")
-    ax.plot(t, gain, "-", color=GAIN_COLOUR, label="added")
-    ax.plot(t, -loss, "-", color=LOSS_COLOUR, label="removed (shown below zero)")
+    # surveys far apart (> 4x the median interval) are joined by a dotted line: nothing is known between
+    days = np.array([(b - a).days for a, b in zip(t, t[1:], strict=False)], np.float64)
+    gap = days > 4 * np.median(days) if days.size > 2 else np.zeros(days.size, bool)
+    runs, start = [], 0
+    for i, g in enumerate(gap):
+        if g:
+            runs.append((start, i + 1))
+            start = i + 1
+    runs.append((start, len(t)))
+    for k, (a, b) in enumerate(runs):
+        sl = slice(a, b)
+        first = k == 0
+        ax.fill_between(
+            t[sl], (net - net_u)[sl], (net + net_u)[sl], color="0.8", label="net, ± range" if first else None
+        )
+        ax.plot(t[sl], net[sl], "k-o", ms=3, label="net change" if first else None)
+        ax.plot(t[sl], gain[sl], "-", color=GAIN_COLOUR, label="added" if first else None)
+        ax.plot(
+            t[sl], -loss[sl], "-", color=LOSS_COLOUR, label="removed (shown below zero)" if first else None
+        )
+    for i in np.nonzero(gap)[0]:
+        ax.plot(
+            t[i : i + 2],
+            net[i : i + 2],
+            ":",
+            color="0.4",
+            label="no survey in between" if i == np.nonzero(gap)[0][0] else None,
+        )
     ax.axhline(0, color="0.5", lw=0.8)
     ax.set_ylabel("volume since the first survey\n(million m³)")
     ax.set_title("Volume against time")
@@ -390,7 +418,7 @@ def render_views(result: ChangeResult, width_px: int = 560, height_px: int = 380
 
 
 def _view_pose(result: ChangeResult, zlo: float, zhi: float):
-    """Camera looking at the largest change from the terrain's low side, 35° above the horizon."""
+    """Camera looking at the largest change from the terrain's low side, 45° above the horizon."""
     from terralod.render.offscreen import CameraPose
 
     hf = result.pair.before
@@ -410,8 +438,8 @@ def _view_pose(result: ChangeResult, zlo: float, zhi: float):
     tx, ty = hf.world_xy(r0, c0)
     tz = float(z[r0, c0])
     span = math.hypot(w * dx, h * dy)
-    r = 1.0 * span
-    el = math.radians(35.0)
+    r = 0.75 * span
+    el = math.radians(45.0)
     eye = (float(tx) + r * vx * math.cos(el), float(ty) + r * vy * math.cos(el), tz + r * math.sin(el))
     return CameraPose(eye, (float(tx), float(ty), tz))
 
