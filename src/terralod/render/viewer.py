@@ -5,7 +5,9 @@ Selection runs on the engine's background thread; each frame draws the latest fi
 never waits for the next one.
 
 Keys: W/A/S/D fly, Q/E down/up, +/- threshold x/÷ 1.25, F wireframe, L level-of-detail colours,
-H error heat-map, P screenshot (PNG beside the store), Esc quit.
+H error heat-map, P screenshot (PNG beside the store), Esc quit. A store with epochs: [ ] or PageUp/PageDown
+previous/next epoch (the slider at the bottom; click it), Home/End first/last, C change overlay; the HUD shows
+the date and the elevation and change under the cursor (terralod.render.viewer_epochs).
 Mouse: left drag orbit, right drag pan, wheel zoom.
 """
 
@@ -26,6 +28,7 @@ from terralod.render.offscreen import (
     terrain_colours,
 )
 from terralod.render.renderer import _SHADERS, RenderSettings, TerrainRenderer
+from terralod.render.viewer_epochs import EpochControl
 from terralod.terrain import as_terrain, frame_stats
 
 
@@ -130,6 +133,9 @@ class Viewer:
         self._legend = legend_image(self.settings, height_px)
         self.hud = _Hud(self.ctx)
         self.legend_hud = _Hud(self.ctx)
+        # epochs: slider, change overlay, pick under the cursor (terralod.render.viewer_epochs)
+        self.epochs = EpochControl(self, terrain, cull)
+        self.epoch_huds = (_Hud(self.ctx), _Hud(self.ctx))
         pose = pose or overview_pose(terrain)
         self.eye = np.array(pose.eye, np.float64)
         self.target = np.array(pose.target, np.float64)
@@ -149,6 +155,8 @@ class Viewer:
     def _on_key(self, win, key, sc, action, mods) -> None:
         g = self.glfw
         if action != g.PRESS:
+            return
+        if self.epochs.on_key(key):
             return
         if key == g.KEY_ESCAPE:
             g.set_window_should_close(win, True)
@@ -171,6 +179,8 @@ class Viewer:
 
     def _on_button(self, win, button, action, mods) -> None:
         if action == self.glfw.PRESS:
+            if button == self.glfw.MOUSE_BUTTON_LEFT and self._mouse and self.epochs.on_click(*self._mouse):
+                return  # a click on the epoch slider
             self._buttons.add(button)
         else:
             self._buttons.discard(button)
@@ -274,11 +284,15 @@ class Viewer:
             stats = frame_stats(sel)
             self.last_stats = stats
             self.last_hud = hud_lines(stats, fps, frame_ms, self.threshold_px, self.settings)
+            if frames % 4 == 0:
+                self.epochs.update_pick()
+            self.last_hud += self.epochs.hud_lines()
             self.hud.draw(self.last_hud, self.width_px, self.height_px)
             if self.settings.legend and self.settings.mode == "elevation":
                 lh, lw = self._legend.shape[:2]
                 self.legend_hud.blit(self._legend, self.width_px - lw - 8, self.height_px - lh - 8, self.width_px,
                               self.height_px)  # fmt: skip
+            self.epochs.draw(*self.epoch_huds)
             frames += 1
             if max_frames is not None and frames >= max_frames:
                 if screenshot:
@@ -290,6 +304,7 @@ class Viewer:
 
     def close(self) -> None:
         self.engine.close() if hasattr(self.engine, "close") else None
+        self.epochs.close()
         self.renderer.release()
         self.glfw.destroy_window(self.window)
         self.glfw.terminate()
