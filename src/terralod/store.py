@@ -76,7 +76,8 @@ def meta_checksum(conn: sqlite3.Connection) -> str:
 def seal_meta(conn: sqlite3.Connection) -> None:
     """Store the checksum of the meta table; call inside the transaction that changed it."""
     conn.execute(
-        "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)", (META_CHECKSUM_KEY, json.dumps(meta_checksum(conn)))
+        "INSERT OR REPLACE INTO meta(key, value) VALUES (?, ?)",
+        (META_CHECKSUM_KEY, json.dumps(meta_checksum(conn))),
     )
 
 
@@ -468,7 +469,8 @@ class TileStore(EpochTables):
             raise CorruptStoreError(f"corrupted store ({exc})", str(p)) from exc
         if ok != "ok":
             conn.close()
-            raise CorruptStoreError(f"corrupted store (SQLite integrity check: {ok})", str(p))
+            detail = " ".join(str(ok).split())[:200]
+            raise CorruptStoreError(f"corrupted store (SQLite integrity check: {detail})", str(p))
         if _meta_value(conn, "method") == TIN_METHOD:
             conn.close()
             raise StoreError("holds a TIN detail-increment model (paper 003), not tiles", str(p))
@@ -836,8 +838,8 @@ def read_tin_store(path: str | os.PathLike[str]) -> tuple[dict[str, Any], bytes]
             row = conn.execute("SELECT model, sha256 FROM tin_model WHERE name = 'model'").fetchone()
         finally:
             conn.close()
-    except (sqlite3.DatabaseError, ValueError) as exc:
-        raise CorruptStoreError(f"corrupted TIN store ({exc})", str(p)) from exc
+    except (sqlite3.DatabaseError, ValueError, TypeError) as exc:
+        raise CorruptStoreError(f"corrupted TIN store ({' '.join(str(exc).split())[:200]})", str(p)) from exc
     if row is None:
         raise CorruptStoreError("TIN store without a model", str(p))
     blob = bytes(row[0])
