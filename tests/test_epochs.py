@@ -428,3 +428,74 @@ def test_change_overlay_golden(shared_data: Path, tmp_path: Path) -> None:
     ref = np.asarray(Image.open(golden).convert("RGB")).astype(np.int16)
     diff = np.abs(ref - img.astype(np.int16))
     assert diff.mean() < 1.5 and np.percentile(diff.max(axis=2), 99.5) < 40
+
+
+# -- the viewer's epoch controls -----------------------------------------------------------------------
+def test_slider_and_ground_pick_headless() -> None:
+    from terralod.render.renderer import look_at, perspective
+    from terralod.render.viewer_epochs import pick_ground, slider_geometry, slider_hit, slider_image
+
+    x0, y0, w, h = slider_geometry(800, 500)
+    n = 27
+    hits = [slider_hit(x0 + 18 + (w - 36) * i / (n - 1), y0 + 10, n, 800, 500) for i in range(n)]
+    assert hits == list(range(n)) and slider_hit(x0 - 5, y0 + 10, n, 800, 500) is None
+    assert slider_image([f"2004-10-{d:02d}" for d in range(1, 28)], 5, 800, 500, False).shape == (h, w, 4)
+    # the ray through the pixel where a ground point projects meets the ground at that point
+    z = _base(97, 113, 3)
+    hf = _hf(z)
+    r, c = 40, 61
+    gx, gy = hf.world_xy(r, c)
+    p = np.array([float(gx), float(gy), float(z[r, c])])
+    eye = p + np.array([-200.0, -300.0, 1500.0])  # steep: no ridge between the eye and the point
+    target = p
+    vp = perspective(45.0, 640 / 400, 1.0, 1e5) @ look_at(eye, target, np.array([0.0, 0, 1]))
+    q = vp @ np.append(p - eye, 1.0)
+    px, py = (q[0] / q[3] + 1) / 2 * 640 - 0.5, (1 - q[1] / q[3]) / 2 * 400 - 0.5
+    hit = pick_ground(eye, target, 45.0, 640, 400, px, py, hf)
+    assert hit is not None and np.hypot(hit[0] - p[0], hit[1] - p[1]) <= 15.0
+    assert pick_ground(eye, eye + np.array([0.0, 0.0, 1.0]) + [1, 0, 0], 45.0, 640, 400, 320, 10, hf) is None
+
+
+@pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="xvfb-run not installed (Debian package xvfb)")
+def test_viewer_epoch_slider_overlay_and_cursor(base_store, tmp_path: Path) -> None:
+    src, z = base_store
+    store = tmp_path / "v.terra"
+    shutil.copy(src, store)
+    z2 = z.copy()
+    z2[30:60, 40:80] += 60.0
+    update_store(_hf(z2), store, "2001-06-30", workers=2)
+    script = tmp_path / "v.py"
+    script.write_text(
+        "import json, sys\n"
+        "import terralod\n"
+        "from terralod.render.viewer import Viewer\n"
+        "from terralod.render.viewer_epochs import slider_geometry\n"
+        "v = Viewer(terralod.open(sys.argv[1]), width_px=480, height_px=300)\n"
+        "g = v.glfw\n"
+        "v.run(max_frames=2)\n"
+        "out = {'start': v.epochs.epoch}\n"
+        "v._on_key(v.window, g.KEY_PAGE_UP, 0, g.PRESS, 0)\n"
+        "out['page_up'] = v.epochs.epoch\n"
+        "v._on_key(v.window, g.KEY_RIGHT_BRACKET, 0, g.PRESS, 0)\n"
+        "v._on_key(v.window, g.KEY_C, 0, g.PRESS, 0)\n"
+        "v._mouse = (240.0, 150.0)\n"
+        "r = v.run(max_frames=5, screenshot=sys.argv[2])\n"
+        "out['hud'] = r['hud']; out['overlay'] = v.settings.overlay is not None\n"
+        "x0, y0, w, h = slider_geometry(480, 300)\n"
+        "v._mouse = (x0 + 18, y0 + 14)\n"
+        "v._on_button(v.window, g.MOUSE_BUTTON_LEFT, g.PRESS, 0)\n"
+        "out['click'] = v.epochs.epoch\n"
+        "v.close()\n"
+        "print(json.dumps(out))\n"
+    )
+    shot = tmp_path / "shot.png"
+    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    p = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", sys.executable, str(script), str(store),
+                        str(shot)], capture_output=True, text=True, timeout=300, env=env)  # fmt: skip
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert out["start"] == "2001-06-30" and out["page_up"] == "2000-01-01" and out["click"] == "2000-01-01"
+    assert out["overlay"] and any("30 Jun 2001  (2 of 2)" in ln for ln in out["hud"])
+    cursor = [ln for ln in out["hud"] if ln.startswith("under cursor: elevation")]
+    assert cursor and "change" in cursor[0] and "since 1 Jan 2000" in cursor[0]
+    assert shot.exists()
