@@ -23,7 +23,9 @@ Heightfield behind the same interface) without ever holding the whole DEM:
    *every* full-resolution sample it covers, streamed in strips of rows (``MEASURE_STRIP_SAMPLES``) with a
    margin of one quad of triangles above and below each strip (a sample's distance is taken to the
    triangles within that margin: an upper bound of the exact distance, equal to it unless the nearest
-   surface point is over a quad away). Such tiles are not the in-memory build's (deviation, below);
+   surface point is over a quad away); its footprint (triangles over nodata dropped,
+   :mod:`terralod.pyramid.footprint`) is judged on the decimated samples. Such tiles are not the
+   in-memory build's (deviation, below);
    ``max_window_samples=None`` never decimates and gives the in-memory tiles at every level, with peak
    memory bounded by the root's window: about 13 bytes a sample of ``(span_0 + 1)^2`` for cohesion,
    whose coarse levels refine on the full-resolution source.
@@ -81,6 +83,7 @@ from terralod.heightfield import Heightfield
 from terralod.io.windowed import ArraySource, WindowSource
 from terralod.kernels import jit
 from terralod.pyramid import builder
+from terralod.pyramid.footprint import drop_nodata
 from terralod.store import EncodedTile, LevelQuantisation, TileStore, encode_triangles, encode_vertices
 from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size
 
@@ -355,8 +358,8 @@ def build_unit(
 
 def _decimated_window(src: WindowSource, r0: int, c0: int, r1: int, c1: int, f: int, strip_samples: int):
     """Rows r0, r0 + f, ... <= r1 and columns likewise of [r0, r1] x [c0, c1] (inclusive), plus the last
-    row and column when they fall between, marked invalid (the mesher reads them as the edge); read in
-    strips of rows."""
+    row and column when they fall between, read in strips of rows. Returns (elevations, the mesher's mask
+    with that last row and column invalid (the mesher reads them as the edge), the samples' own mask)."""
     rows = np.arange(r0, r1 + 1, f)
     cols = np.arange(c0, c1 + 1, f)
     rows_ok = np.ones(len(rows), bool)
@@ -374,8 +377,7 @@ def _decimated_window(src: WindowSource, r0: int, c0: int, r1: int, c1: int, f: 
         sel = (rows >= a) & (rows < b)
         z[sel] = zs[rows[sel] - a][:, cols - c0]
         ok[sel] = vs[rows[sel] - a][:, cols - c0]
-    ok &= rows_ok[:, None] & cols_ok[None, :]
-    return z, ok
+    return z, ok & rows_ok[:, None] & cols_ok[None, :], ok
 
 
 def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_window_samples):
@@ -390,13 +392,22 @@ def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_windo
     r0, c0 = pyramid.origin_rc(code)
     r1, c1 = min(r0 + span, src.height - 1), min(c0 + span, src.width - 1)
     dx, dy = src.spacing_m
-    zd, vd = _decimated_window(src, r0, c0, r1, c1, f, MEASURE_STRIP_SAMPLES)
+    zd, vd, vd_own = _decimated_window(src, r0, c0, r1, c1, f, MEASURE_STRIP_SAMPLES)
     hf = Heightfield(zd, vd, src.transform @ Affine.scale(f), crs=src.crs)
     wp = WindowPyramid(src.width, src.height, pyramid.tile_size, r0, c0, f)
     if getattr(mesh_fn, "needs_spacing", False):
         rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, wp, code, spacing_m=hf.spacing_m)
     else:
         rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, wp, code)
+    # the footprint (triangles over nodata not stored) judged on the decimated samples
+    rows, cols, hz, tris = drop_nodata(rows, cols, hz, tris, vd_own, vd_own)
+    if rows.shape[0] == 0:  # wholly in nodata: stored empty, its error its children's (as build_tile)
+        zc = float(zd[0, 0])
+        return EncodedTile(code=code, error_m=float(max([0.0] + [e for e, _ in child_errors])),
+                           vertical_error_m=float(max([0.0] + [v for _, v in child_errors])), measured_error_m=0.0,
+                           measured_vertical_error_m=0.0, rms_error_m=0.0, n_samples=0, z_min_m=zc, z_max_m=zc,
+                           n_vertices=0, n_triangles=0, z0_index=0, vertices=encode_vertices(np.zeros((0, 3), np.uint16)),
+                           triangles=encode_triangles(np.zeros((0, 3), np.int32)))  # fmt: skip
     qv, z0 = builder._quantise(rows * f, cols * f, hz, 0, 0, quant)
     scale = 1.0 / (1 << quant.xy_frac_bits)
     u = qv[:, 0] * scale
