@@ -208,9 +208,15 @@ def test_3dtiles_normals_match_across_borders(sample_store: Path) -> None:
 
 def test_tin_store_exports(shared_data: Path, tmp_path: Path) -> None:
     """A detail-increment TIN store exports too: one root above the sub-blocks, ladders whose errors fall."""
+    from terralod.heightfield import Heightfield
+    from terralod.io.reader import read_heightfield
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.terra import save_model_to_store
+
+    hf = read_heightfield(shared_data / "dem/srtm1_crop256_coastal_flat_nodata.tif")
+    crop = Heightfield(hf.elevation_m[:96, :96].copy(), hf.valid[:96, :96].copy(), hf.transform, hf.crs)
     store = tmp_path / "tin.terra"
-    main(["build", "--method", "tin", str(shared_data / "dem/srtm1_crop256_coastal_flat_nodata.tif"),
-          "-o", str(store), "--sub-blocks", "4"])  # fmt: skip
+    save_model_to_store(DetailIncrementModel.from_heightfield(crop, sub_blocks=4), store)
     from terralod.terrain import open_terrain
 
     with open_terrain(store) as t:

@@ -8,7 +8,10 @@ Routes (GET and HEAD; everything else is 405; any other path is 404, never a fil
 - ``/3dtiles/tileset.json``, ``/3dtiles/tiles/L/X_Y.glb`` (:class:`terralod.export.tiles3d.Tiles3D`);
 - ``/terrain/layer.json``, ``/terrain/Z/X/Y.terrain`` (:class:`terralod.export.quantized_mesh.QuantizedMesh`,
   always gzip'd, as the format's clients expect);
-- ``/info.json`` the terrain's bounds (degrees), heights, epochs and node counts for the page.
+- ``/info.json`` the terrain's bounds (degrees), heights, epochs and node counts for the page;
+- a store with epochs: ``/e/EPOCH/3dtiles/...`` and ``/e/EPOCH/terrain/...`` the same for one epoch (the
+  plain paths are the store's latest), ``/change/BEFORE/AFTER.png`` the change overlay: ``after - before``
+  resampled on the terrain's longitude/latitude rectangle (red up, blue down, transparent below 0.5 m).
 
 Tiles are encoded on the first request and kept in a byte-bounded LRU cache; every response carries a
 strong ``ETag`` (``If-None-Match`` → 304) and is gzip'd when the client accepts it. The store is opened
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import gzip
 import hashlib
+import io
 import json
 import logging
 import mimetypes
@@ -33,6 +37,8 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
+import numpy as np
+
 log = logging.getLogger("terralod.serve")
 
 __all__ = ["TileService", "cesium_dir", "make_server"]
@@ -41,6 +47,10 @@ __all__ = ["TileService", "cesium_dir", "make_server"]
 STATIC_FILES = ("index.html", "viewer.js", "viewer.css")
 _GLB = re.compile(r"^/3dtiles/tiles/(\d{1,3})/(\d{1,9})_(\d{1,9})\.glb$")
 _TERRAIN = re.compile(r"^/terrain/(\d{1,2})/(\d{1,9})/(\d{1,9})\.terrain$")
+_EPOCH = re.compile(r"^/e/([^/]{1,64})(/.*)$")
+_CHANGE = re.compile(r"^/change/([^/]{1,64})/([^/]{1,64})\.png$")
+#: Change overlay: metres of change at full colour, below which the overlay is transparent.
+CHANGE_FULL_M, CHANGE_MIN_M = 50.0, 0.5
 CESIUM_HINT = (
     "CesiumJS not found (node_modules/cesium): run `npm ci` in the repository (bash scripts/install.sh does)"
 )
@@ -96,25 +106,65 @@ class TileService:
         Geodesy(terrain.crs, str(terrain.path) if terrain.path is not None else None)  # fail early on the CRS
         self.cache = _LRU(cache_bytes)
         self.lock = threading.Lock()
-        self._tiles3d: Any = None
-        self._qm: Any = None
+        self._views: dict[str | None, dict[str, Any]] = {}
         self.cesium = cesium_dir()
         self.stats = {"requests": 0, "encoded": 0, "hits": 0}
 
-    # lazily built views (their set-up reads the whole LOD tree / the source)
-    def tiles3d(self) -> Any:
-        if self._tiles3d is None:
-            from terralod.export.tiles3d import Tiles3D
+    # lazily built views (their set-up reads the whole LOD tree / the source), one set per epoch
+    def _view(self, epoch: str | None, kind: str) -> Any:
+        v = self._views.setdefault(epoch, {})
+        if kind not in v:
+            if "terrain" not in v:
+                same = epoch is None or epoch == getattr(self.terrain, "epoch", None)
+                v["terrain"] = self.terrain if same else self.terrain.with_epoch(epoch)
+            if kind == "tiles3d":
+                from terralod.export.tiles3d import Tiles3D
 
-            self._tiles3d = Tiles3D(self.terrain)
-        return self._tiles3d
+                v[kind] = Tiles3D(v["terrain"])
+            elif kind == "qm":
+                from terralod.export.quantized_mesh import QuantizedMesh
 
-    def qm(self) -> Any:
-        if self._qm is None:
-            from terralod.export.quantized_mesh import QuantizedMesh
+                v[kind] = QuantizedMesh(v["terrain"])
+        return v[kind]
 
-            self._qm = QuantizedMesh(self.terrain)
-        return self._qm
+    def tiles3d(self, epoch: str | None = None) -> Any:
+        return self._view(epoch, "tiles3d")
+
+    def qm(self, epoch: str | None = None) -> Any:
+        return self._view(epoch, "qm")
+
+    def change_png(self, before: str, after: str, size: int = 512) -> bytes:
+        """The change overlay ``after - before`` on the terrain's lon/lat rectangle, RGBA PNG."""
+        from PIL import Image
+
+        qm = self.qm()
+        w, s, e, n = qm.bbox
+        lon = w + (e - w) * (np.arange(size) + 0.5) / size
+        lat = n - (n - s) * (np.arange(size) + 0.5) / size
+        LON, LAT = np.meshgrid(lon, lat)
+        x, y = qm.geo.xy(LON.ravel(), LAT.ravel())
+        a = self.terrain.heightfield(before)
+        b = self.terrain.heightfield(after)
+        d = b.elevation_m.astype(np.float64) - a.elevation_m.astype(np.float64)
+        ok = a.valid & b.valid
+        inv = ~a.transform
+        col = np.floor(inv.a * x + inv.b * y + inv.c).astype(np.int64)
+        row = np.floor(inv.d * x + inv.e * y + inv.f).astype(np.int64)
+        inside = (row >= 0) & (col >= 0) & (row < d.shape[0]) & (col < d.shape[1])
+        dd = np.zeros(x.shape)
+        m = np.zeros(x.shape, bool)
+        dd[inside] = d[row[inside], col[inside]]
+        m[inside] = ok[row[inside], col[inside]]
+        t = np.clip(np.abs(dd) / CHANGE_FULL_M, 0, 1)
+        rgba = np.zeros((x.size, 4), np.uint8)
+        up = dd > 0
+        rgba[:, 0] = np.where(up, 230, 40)
+        rgba[:, 1] = 40
+        rgba[:, 2] = np.where(up, 40, 230)
+        rgba[:, 3] = np.where(m & (np.abs(dd) >= CHANGE_MIN_M), 90 + 160 * t, 0).astype(np.uint8)
+        buf = io.BytesIO()
+        Image.fromarray(rgba.reshape(size, size, 4), "RGBA").save(buf, "PNG")
+        return buf.getvalue()
 
     def info(self) -> dict[str, Any]:
         qm = self.qm()
@@ -122,34 +172,44 @@ class TileService:
         tree = self.terrain.lod_tree()
         return {"name": Path(str(self.terrain.path)).name if self.terrain.path else "terrain",
                 "kind": self.terrain.kind, "bounds_deg": list(qm.bbox), "elevation_range_m": [lo, hi],
-                "epochs": list(self.terrain.epochs), "nodes": len(tree), "max_zoom": qm.max_zoom,
-                "cesium": self.cesium is not None}  # fmt: skip
+                "epochs": list(self.terrain.epochs), "epoch": getattr(self.terrain, "epoch", None),
+                "nodes": len(tree), "max_zoom": qm.max_zoom, "cesium": self.cesium is not None,
+                "change_full_m": CHANGE_FULL_M, "change_min_m": CHANGE_MIN_M}  # fmt: skip
 
     def _encode(self, path: str) -> tuple[bytes, str, bool] | None:
         """(body, content type, already gzip'd) of a dynamic path, or None when it is not in the tile set."""
         if path == "/info.json":
             return json.dumps(self.info()).encode(), "application/json", False
+        m = _CHANGE.match(path)
+        if m:
+            if not all(e in self.terrain.epochs for e in m.groups()):
+                return None
+            return self.change_png(*m.groups()), "image/png", False
+        epoch = None
+        m = _EPOCH.match(path)
+        if m:
+            if m.group(1) not in self.terrain.epochs:
+                return None
+            epoch, path = m.group(1), m.group(2)
         if path == "/3dtiles/tileset.json":
-            return (
-                json.dumps(self.tiles3d().tileset(), separators=(",", ":")).encode(),
-                "application/json",
-                False,
-            )
+            ts = self.tiles3d(epoch).tileset()
+            return json.dumps(ts, separators=(",", ":")).encode(), "application/json", False
         m = _GLB.match(path)
         if m:
             code = tuple(int(a) for a in m.groups())
-            view = self.tiles3d()
+            view = self.tiles3d(epoch)
             if code not in view.nodes or not view.has_content(code):
                 return None
             return view.glb(code), "model/gltf-binary", False
         if path == "/terrain/layer.json":
-            return json.dumps(self.qm().layer()).encode(), "application/json", False
+            return json.dumps(self.qm(epoch).layer()).encode(), "application/json", False
         m = _TERRAIN.match(path)
         if m:
             z, x, y = (int(a) for a in m.groups())
-            if not self.qm().available(z, x, y):
+            qm = self.qm(epoch)
+            if not qm.available(z, x, y):
                 return None
-            return self.qm().tile(z, x, y).data, "application/vnd.quantized-mesh", True
+            return qm.tile(z, x, y).data, "application/vnd.quantized-mesh", True
         return None
 
     def get(self, path: str) -> tuple[bytes, str, str, bool] | None:

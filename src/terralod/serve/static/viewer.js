@@ -1,15 +1,25 @@
 // terralod viewer: CesiumJS with no account, token or internet (baseLayer: false), the store's terrain as
 // quantized-mesh (?format=terrain, default) or 3D Tiles (?format=3dtiles), hypsometric colours + hillshade,
-// tile / triangle counts and the height under the cursor. window.terralod is the hook the browser tests use.
+// tile / triangle counts, the height under the cursor and, for a store with epochs, an epoch slider with
+// the change overlay. window.terralod is the hook the browser tests use.
 "use strict";
 (async function () {
   const status = (t) => { document.getElementById("status").textContent = t; };
   const T = (window.terralod = { errors: [], ready: false, loaded: false, format: "terrain", tiles: 0, triangles: 0 });
   window.addEventListener("error", (e) => T.errors.push(String(e.message)));
-  const format = new URLSearchParams(location.search).get("format") === "3dtiles" ? "3dtiles" : "terrain";
+  const params = new URLSearchParams(location.search);
+  const format = params.get("format") === "3dtiles" ? "3dtiles" : "terrain";
   T.format = format;
   const info = await (await fetch("/info.json")).json();
   T.info = info;
+  const epochs = info.epochs || [];
+  let epoch = epochs.includes(params.get("epoch")) ? params.get("epoch") : info.epoch;
+  const prefix = (ep) => (epochs.length && ep ? `/e/${encodeURIComponent(ep)}` : "");
+  const makeTerrain = async (ep) => {
+    const p = await Cesium.CesiumTerrainProvider.fromUrl(prefix(ep) + "/terrain/", { requestVertexNormals: true, requestWaterMask: false, requestMetadata: false });
+    p.errorEvent.addEventListener((err) => T.errors.push("terrain: " + (err.message || err)));
+    return p;
+  };
   const [w, s, e, n] = info.bounds_deg;
   const [zlo, zhi] = info.elevation_range_m;
 
@@ -30,8 +40,7 @@
   };
   let terrainProvider = null;
   if (format === "terrain") {
-    terrainProvider = await Cesium.CesiumTerrainProvider.fromUrl("/terrain/", { requestVertexNormals: true, requestWaterMask: false, requestMetadata: false });
-    terrainProvider.errorEvent.addEventListener((err) => T.errors.push("terrain: " + (err.message || err)));
+    terrainProvider = await makeTerrain(epoch);
     opts.terrainProvider = terrainProvider;
   }
   const viewer = new Cesium.Viewer("globe", opts);
@@ -56,10 +65,15 @@
     globe.dynamicAtmosphereLighting = false;
     globe.material = Cesium.Material.fromType("ElevationRamp", { image: ramp, minimumHeight: zlo, maximumHeight: zhi });
   } else {
-    tileset = await Cesium.Cesium3DTileset.fromUrl("/3dtiles/tileset.json", { maximumScreenSpaceError: 2 });
-    tileset.tileFailed.addEventListener((err) => T.errors.push("3dtiles: " + err.url + ": " + err.message));
+    tileset = await makeTileset(epoch);
+    T.tileset = tileset;
+    globe.show = false;
+  }
+  async function makeTileset(ep) {
+    const ts = await Cesium.Cesium3DTileset.fromUrl(prefix(ep) + "/3dtiles/tileset.json", { maximumScreenSpaceError: 2 });
+    ts.tileFailed.addEventListener((err) => T.errors.push("3dtiles: " + err.url + ": " + err.message));
     const up = Cesium.Cartesian3.normalize(centre, new Cesium.Cartesian3());
-    tileset.customShader = new Cesium.CustomShader({
+    ts.customShader = new Cesium.CustomShader({
       lightingModel: Cesium.LightingModel.PBR,
       uniforms: {
         u_ramp: { type: Cesium.UniformType.SAMPLER_2D, value: new Cesium.TextureUniform({ url: ramp.toDataURL() }) },
@@ -74,17 +88,36 @@
           material.diffuse = texture(u_ramp, vec2(t, 0.5)).rgb;
         }`,
     });
-    scene.primitives.add(tileset);
-    T.tileset = tileset;
-    globe.show = false;
+    scene.primitives.add(ts);
+    if (T.onTileset) T.onTileset(ts);
+    return ts;
   }
 
-  // epochs (a store with epochs): the slider shows them; switching needs the change issue's overlay
-  if (info.epochs && info.epochs.length) {
+  // epochs (a store with epochs): the slider switches the terrain to that epoch and drapes the change
+  // since the first epoch over it (red up, blue down)
+  const rect = Cesium.Rectangle.fromDegrees(w, s, e, n);
+  let overlay = null;
+  const showChange = (ep) => {
+    if (overlay) { viewer.entities.remove(overlay); overlay = null; }
+    if (!epochs.length || ep === epochs[0]) return;
+    overlay = viewer.entities.add({ rectangle: { coordinates: rect, classificationType: format === "terrain" ? Cesium.ClassificationType.TERRAIN : Cesium.ClassificationType.CESIUM_3D_TILE,
+      material: new Cesium.ImageMaterialProperty({ image: `/change/${encodeURIComponent(epochs[0])}/${encodeURIComponent(ep)}.png`, transparent: true }) } });
+  };
+  T.setEpoch = async (ep) => {
+    epoch = ep;
+    document.getElementById("epochname").textContent = `${ep} (change since ${epochs[0]})`;
+    T.loaded = false;
+    if (format === "terrain") { terrainProvider = await makeTerrain(ep); viewer.terrainProvider = terrainProvider; }
+    else { scene.primitives.remove(tileset); tileset = T.tileset = await makeTileset(ep); tileset.allTilesLoaded.addEventListener(done); }
+    showChange(ep);
+    scene.requestRender();
+  };
+  if (epochs.length) {
     const box = document.getElementById("epochs"), slider = document.getElementById("epoch");
-    box.hidden = false; slider.max = info.epochs.length - 1;
-    const name = () => { document.getElementById("epochname").textContent = info.epochs[+slider.value]; };
-    slider.addEventListener("input", name); name();
+    box.hidden = false; slider.max = epochs.length - 1; slider.value = Math.max(0, epochs.indexOf(epoch));
+    document.getElementById("epochname").textContent = `${epoch} (change since ${epochs[0]})`;
+    slider.addEventListener("change", () => T.setEpoch(epochs[+slider.value]));
+    showChange(epoch);
   }
 
   // camera: an oblique view of the whole terrain
@@ -134,7 +167,7 @@
   };
 
   T.t0 = performance.now();
-  const done = () => { if (!T.loaded) { T.loaded = true; T.loadedMs = performance.now() - T.t0; status("all tiles loaded"); } };
+  function done() { if (!T.loaded) { T.loaded = true; T.loadedMs = performance.now() - T.t0; status("all tiles loaded"); } }
   scene.postRender.addEventListener(() => { if (T.firstFrameMs === undefined) T.firstFrameMs = performance.now() - T.t0; });
   if (tileset) tileset.allTilesLoaded.addEventListener(done);
   else globe.tileLoadProgressEvent.addEventListener((q) => { if (q === 0 && globe.tilesLoaded) done(); });

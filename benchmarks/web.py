@@ -1,0 +1,317 @@
+"""Web globe figures: export throughput, bytes per triangle against quantized-mesh-encoder, greedy insertion
+against the regular grid at equal measured error, CesiumJS load times in headless Chromium, and a loopback
+load test of ``terralod serve`` (1,000 concurrent tile requests).
+
+    python benchmarks/web.py [--runs 3] [--no-browser]
+
+Terrains: the bundled sample (Jacksboro fault, 416 x 440 at 74.6 m) and the 256² SRTM crop of Mt Rainier
+from ../shared/data (skipped when absent). Writes benchmarks/results/web.json and web.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import io
+import json
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import ROOT, SHARED, write_results  # noqa: E402
+
+
+def stores(tmp: Path) -> dict[str, Path]:
+    from terralod.io.reader import read_heightfield, sample_heightfield
+    from terralod.pyramid.builder import build_store
+
+    out = {}
+    p = tmp / "sample.terra"
+    build_store(sample_heightfield(), p, workers=2)
+    out["sample (Jacksboro 416x440)"] = p
+    alp = SHARED / "dem" / "srtm1_crop256_alpine.tif"
+    if alp.exists():
+        p = tmp / "alpine.terra"
+        build_store(read_heightfield(alp), p, workers=2)
+        out["SRTM Mt Rainier 256x378"] = p
+    return out
+
+
+def export_figures(path: Path, tmp: Path, runs: int) -> dict:
+    from terralod.export import export_3dtiles, export_quantized_mesh
+    from terralod.terrain import open_terrain
+
+    res: dict = {}
+    for fmt, fn in (("3dtiles", export_3dtiles), ("quantized-mesh", export_quantized_mesh)):
+        times, rep = [], None
+        for _ in range(runs):
+            with open_terrain(path) as t:
+                rep = fn(t, tmp / f"out-{fmt}", overwrite=True)
+            times.append(rep.seconds)
+        s = statistics.median(times)
+        res[fmt] = {"tiles": rep.tiles, "triangles": rep.triangles, "bytes": rep.bytes, "seconds": s,
+                    "tiles_per_s": rep.tiles / s, "mb_per_s": rep.bytes / 1e6 / s}  # fmt: skip
+    return res
+
+
+def bytes_per_triangle(path: Path) -> dict:
+    """Both formats and quantized-mesh-encoder on the same meshes (store tiles; quantized-mesh tiles)."""
+    from terralod.export.quantized_mesh import QuantizedMesh, decode_tile, encode_tile, tile_rectangle
+    from terralod.export.tiles3d import Tiles3D
+    from terralod.terrain import open_terrain
+
+    out: dict = {}
+    with open_terrain(path) as t:
+        view = Tiles3D(t)
+        glb = glbz = qm_ours = qm_ours_z = qm_lib = qm_lib_z = tri = 0
+        for n in view.tree:
+            v, tr, _ = view.mesh(n.code)
+            data = view.glb(n.code)
+            glb += len(data)
+            glbz += len(gzip.compress(data, 6))
+            lon, lat = view.geo.lonlat(v[:, 0], v[:, 1])
+            rect = (float(lon.min()), float(lat.min()), float(lon.max()), float(lat.max()))
+            raw = encode_tile(lon, lat, v[:, 2], tr, rect)
+            qm_ours += len(raw)
+            qm_ours_z += len(gzip.compress(raw, 6))
+            b = io.BytesIO()
+            import quantized_mesh_encoder as qme
+
+            qme.encode(b, np.column_stack([lon, lat, v[:, 2]]), np.asarray(tr, np.uint32), bounds=rect)
+            qm_lib += len(b.getvalue())
+            qm_lib_z += len(gzip.compress(b.getvalue(), 6))
+            tri += len(tr)
+        out["store tiles"] = {"triangles": tri, "glb_B_per_tri": glb / tri, "glb_gzip_B_per_tri": glbz / tri,
+                              "qm_ours_B_per_tri": qm_ours / tri, "qm_ours_gzip_B_per_tri": qm_ours_z / tri,
+                              "qme_B_per_tri": qm_lib / tri, "qme_gzip_B_per_tri": qm_lib_z / tri}  # fmt: skip
+        qm = QuantizedMesh(t)
+        ours = ours_z = lib = lib_z = tri = 0
+        codes = qm.tile_codes()
+        for z, x, y in codes:
+            d = decode_tile(qm.tile(z, x, y).data, tile_rectangle(z, x, y))
+            rect = tile_rectangle(z, x, y)
+            raw = encode_tile(d["lon"], d["lat"], d["height"], d["triangles"], rect)
+            ours += len(raw)
+            ours_z += len(gzip.compress(raw, 6))
+            b = io.BytesIO()
+            import quantized_mesh_encoder as qme
+
+            qme.encode(b, np.column_stack([d["lon"], d["lat"], d["height"]]), d["triangles"].astype(np.uint32),
+                       bounds=rect)  # fmt: skip
+            lib += len(b.getvalue())
+            lib_z += len(gzip.compress(b.getvalue(), 6))
+            tri += len(d["triangles"])
+        out["quantized-mesh tiles"] = {"triangles": tri, "qm_ours_B_per_tri": ours / tri,
+                                       "qm_ours_gzip_B_per_tri": ours_z / tri, "qme_B_per_tri": lib / tri,
+                                       "qme_gzip_B_per_tri": lib_z / tri}  # fmt: skip
+        # greedy insertion vs the 65² regular grid at equal measured error (finest level)
+        zmax = qm.max_zoom
+        g_raw = g_z = r_raw = r_z = g_tri = r_tri = 0
+        g_err, r_err = [], []
+        finest = [(c, qm.tile(*c).nodata_fraction) for c in codes if c[0] == zmax]
+        interior = [c for c, f in finest if f == 0.0] or [min(finest, key=lambda cf: cf[1])[0]]
+        for z, x, y in interior:  # tiles wholly inside the source: no footprint cliff in either mesh
+            grid = qm.tile(z, x, y, regular=65)
+            greedy = qm.tile(z, x, y, target_m=max(grid.error_m, 0.01))
+            gr = len(gzip.decompress(greedy.data))
+            rr = len(gzip.decompress(grid.data))
+            g_raw, g_z, r_raw, r_z = g_raw + gr, g_z + len(greedy.data), r_raw + rr, r_z + len(grid.data)
+            g_tri, r_tri = g_tri + greedy.triangles, r_tri + grid.triangles
+            g_err.append(greedy.error_m)
+            r_err.append(grid.error_m)
+        out["greedy vs grid (finest level)"] = {
+            "tiles": len(g_err), "greedy_bytes": g_raw, "greedy_gzip_bytes": g_z, "grid_bytes": r_raw,
+            "grid_gzip_bytes": r_z, "greedy_triangles": g_tri, "grid_triangles": r_tri,
+            "greedy_max_error_m": max(g_err), "grid_max_error_m": max(r_err),
+            "greedy_median_error_m": float(np.median(g_err)), "grid_median_error_m": float(np.median(r_err)),
+        }  # fmt: skip
+    return out
+
+
+def start_server(path: Path) -> tuple[subprocess.Popen, str]:
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    proc = subprocess.Popen([sys.executable, "-m", "terralod", "serve", str(path), "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, cwd=ROOT)  # fmt: skip
+    base = f"http://127.0.0.1:{port}"
+    for _ in range(200):
+        try:
+            urllib.request.urlopen(base + "/info.json", timeout=60).read()
+            return proc, base
+        except OSError:
+            time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError("server did not start")
+
+
+def load_test(base: str, n: int = 1000) -> dict:
+    """n requests at once (one thread each, released together) over the tiles of both formats."""
+    layer = json.loads(urllib.request.urlopen(base + "/terrain/layer.json").read())
+    urls = []
+    for z, ranges in enumerate(layer["available"]):
+        for r in ranges:
+            urls += [f"/terrain/{z}/{x}/{y}.terrain" for x in range(r["startX"], r["endX"] + 1)
+                     for y in range(r["startY"], r["endY"] + 1)]  # fmt: skip
+    ts = json.loads(
+        gzip.decompress(
+            urllib.request.urlopen(
+                urllib.request.Request(base + "/3dtiles/tileset.json", headers={"Accept-Encoding": "gzip"})
+            ).read()
+        )
+    )
+    stack = [ts["root"]]
+    while stack:
+        t = stack.pop()
+        if "content" in t:
+            urls.append("/3dtiles/" + t["content"]["uri"])
+        stack += t.get("children", [])
+    for u in urls:  # warm the cache: the test measures serving, the export figures measure encoding
+        urllib.request.urlopen(base + u).read()
+    lat = [0.0] * n
+    err = [None] * n
+    barrier = threading.Barrier(n)
+
+    def one(i: int) -> None:
+        u = base + urls[i % len(urls)]
+        barrier.wait()
+        t0 = time.perf_counter()
+        try:
+            with urllib.request.urlopen(urllib.request.Request(u, headers={"Accept-Encoding": "gzip"}),
+                                        timeout=60) as r:  # fmt: skip
+                r.read()
+                if r.status != 200:
+                    err[i] = str(r.status)
+        except Exception as exc:  # noqa: BLE001 - counted
+            err[i] = type(exc).__name__
+        lat[i] = time.perf_counter() - t0
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(n)]
+    t0 = time.perf_counter()
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    wall = time.perf_counter() - t0
+    ms = np.array(lat) * 1e3
+    return {"requests": n, "distinct_tiles": len(urls), "errors": sum(e is not None for e in err),
+            "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)), "wall_s": wall}  # fmt: skip
+
+
+def browser(base: str, runs: int) -> dict:
+    node_mod = ROOT / "node_modules"
+    if not shutil.which("chromium") or not (node_mod / "cesium").is_dir():
+        return {"skipped": "chromium or node_modules missing"}
+    res: dict = {"terrain": [], "3dtiles": []}
+    for _ in range(runs):
+        for fmt in ("terrain", "3dtiles"):
+            with tempfile.TemporaryDirectory() as d:
+                r = subprocess.run(["node", str(ROOT / "tests/web/browser_check.mjs"), base + "/", fmt, "[]",
+                                    d + "/", "90000"], capture_output=True, text=True, timeout=150)  # fmt: skip
+            out = json.loads(r.stdout.strip().splitlines()[-1])[fmt]
+            res[fmt].append(out)
+    summary = {}
+    for fmt, rs in res.items():
+        ok = [r for r in rs if r.get("loaded")]
+        summary[fmt] = {"runs": len(rs), "loaded": len(ok),
+                        "first_frame_ms": statistics.median(r["firstFrameMs"] for r in ok) if ok else None,
+                        "all_loaded_ms": statistics.median(r["loadedMs"] for r in ok) if ok else None,
+                        "page_to_loaded_ms": statistics.median(r["loadMs"] for r in ok) if ok else None,
+                        "tiles": ok[-1]["tiles"] if ok else None, "triangles": ok[-1]["triangles"] if ok else None,
+                        "errors": sum(len(r["errors"]) for r in rs)}  # fmt: skip
+    return summary
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--no-browser", action="store_true")
+    ap.add_argument("--requests", type=int, default=1000)
+    a = ap.parse_args()
+    payload: dict = {"terrains": {}}
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        for name, path in stores(tmp).items():
+            print("benchmarking", name, flush=True)
+            entry = {"export": export_figures(path, tmp, a.runs), "bytes": bytes_per_triangle(path)}
+            proc, base = start_server(path)
+            try:
+                entry["serve"] = load_test(base, a.requests)
+                if not a.no_browser:
+                    entry["browser"] = browser(base, max(1, a.runs - 1))
+            finally:
+                proc.terminate()
+                proc.wait(10)
+            payload["terrains"][name] = entry
+    md = ["# Web globe: exports, encodings, browser, serve", "",
+          "Medians of the runs; machine shared (2 cores, loaded). Bytes per triangle of the same meshes;",
+          "quantized-mesh sizes without extensions for the encoder comparison.", "",
+          "## Export throughput", "", "| terrain | format | tiles | triangles | MB | s | tiles/s | MB/s |",
+          "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name, e in payload["terrains"].items():
+        for fmt, r in e["export"].items():
+            md.append(f"| {name} | {fmt} | {r['tiles']} | {r['triangles']:,} | {r['bytes'] / 1e6:.2f} | "
+                      f"{r['seconds']:.2f} | {r['tiles_per_s']:.1f} | {r['mb_per_s']:.2f} |")  # fmt: skip
+    md += ["", "## Bytes per triangle (same meshes)", "",
+           "| terrain | meshes | triangles | glb | glb gzip | quantized-mesh (ours) | ours gzip | quantized-mesh-encoder | qme gzip |",
+           "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name, e in payload["terrains"].items():
+        for k, r in e["bytes"].items():
+            if k.startswith("greedy"):
+                continue
+            na = "–"
+            glb = (
+                f"{r['glb_B_per_tri']:.2f} | {r['glb_gzip_B_per_tri']:.2f}"
+                if "glb_B_per_tri" in r
+                else f"{na} | {na}"
+            )
+            md.append(f"| {name} | {k} | {r['triangles']:,} | {glb} | {r['qm_ours_B_per_tri']:.2f} | "
+                      f"{r['qm_ours_gzip_B_per_tri']:.2f} | {r['qme_B_per_tri']:.2f} | {r['qme_gzip_B_per_tri']:.2f} |")  # fmt: skip
+    md += ["", "## Quantized-mesh: greedy insertion vs the 65² regular grid at equal measured error (finest-level tiles wholly inside the source)", "",
+           "| terrain | tiles | grid max err m | greedy max err m | grid tris | greedy tris | grid B | greedy B | grid gzip B | greedy gzip B |",
+           "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name, e in payload["terrains"].items():
+        r = e["bytes"]["greedy vs grid (finest level)"]
+        md.append(f"| {name} | {r['tiles']} | {r['grid_max_error_m']:.2f} | {r['greedy_max_error_m']:.2f} | "
+                  f"{r['grid_triangles']:,} | {r['greedy_triangles']:,} | {r['grid_bytes']:,} | {r['greedy_bytes']:,} | "
+                  f"{r['grid_gzip_bytes']:,} | {r['greedy_gzip_bytes']:,} |")  # fmt: skip
+    md += [
+        "",
+        "## Serve: concurrent tile requests on loopback (warm cache)",
+        "",
+        "| terrain | requests | distinct tiles | errors | p50 ms | p99 ms | wall s |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, e in payload["terrains"].items():
+        r = e["serve"]
+        md.append(f"| {name} | {r['requests']} | {r['distinct_tiles']} | {r['errors']} | {r['p50_ms']:.1f} | "
+                  f"{r['p99_ms']:.1f} | {r['wall_s']:.2f} |")  # fmt: skip
+    if not a.no_browser:
+        md += ["", "## CesiumJS in headless Chromium (SwiftShader), server cache warm", "",
+               "| terrain | format | runs loaded | first frame ms | all tiles loaded ms | page→loaded ms | tiles | triangles | errors |",
+               "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        for name, e in payload["terrains"].items():
+            for fmt, r in e.get("browser", {}).items():
+                if not isinstance(r, dict):
+                    continue
+                ms = [f"{r[k]:.0f}" if r[k] is not None else "–" for k in ("first_frame_ms", "all_loaded_ms",
+                                                                            "page_to_loaded_ms")]  # fmt: skip
+                md.append(f"| {name} | {fmt} | {r['loaded']}/{r['runs']} | {' | '.join(ms)} | {r['tiles']} | "
+                          f"{r['triangles']:,} | {r['errors']} |")  # fmt: skip
+    write_results("web", payload, "\n".join(md) + "\n")
+
+
+if __name__ == "__main__":
+    main()
