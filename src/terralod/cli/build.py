@@ -65,6 +65,9 @@ def build(
         raise click.BadParameter("give --resume or --overwrite, not both", param_hint="--resume")
     check_output(output, list(input_paths), overwrite=overwrite, resume=resume, what="output store")
     if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
+        if dask_address or len(input_paths) > 1:
+            raise click.BadParameter("detail-increment TIN builds take one input and run locally (no --dask)",
+                                     param_hint="--dask")  # fmt: skip
         build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read)
         return
     if not is_valid_tile_size(tile_size) or tile_size > 257:
