@@ -88,7 +88,9 @@ def atheris_runs(seeds: dict[str, Path], folder: Path, seconds: float) -> dict[s
         corpus = Path(tempfile.mkdtemp(prefix=f"corpus-{target}-", dir=folder))
         (corpus / f"seed{seed.suffix}").write_bytes(seed.read_bytes())
         work = Path(tempfile.mkdtemp(prefix=f"atheris-{target}-", dir=folder))
-        code = ATHERIS_CHILD.format(tests=str(ROOT / "tests"), suffix=seed.suffix, src=str(ROOT / "src" / "terralod"))
+        code = ATHERIS_CHILD.format(
+            tests=str(ROOT / "tests"), suffix=seed.suffix, src=str(ROOT / "src" / "terralod")
+        )
         try:
             p = subprocess.run([sys.executable, "-c", code, target, str(corpus), str(work), str(per)],
                                capture_output=True, text=True, timeout=per * 3 + 120)  # fmt: skip

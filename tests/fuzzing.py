@@ -11,11 +11,13 @@ shows up as a failure instead of taking the machine down, and a crash (signal) a
 from __future__ import annotations
 
 import json
+import math
 import os
 import resource
 import struct
 import sys
 import tempfile
+import time
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -228,6 +230,8 @@ def _make_case(
               derandomize=spec.get("derandomize", True), suppress_health_check=list(HealthCheck))  # fmt: skip
     @given(data=mutation_strategy(seed))
     def case(data: bytes) -> None:
+        if time.time() > spec.get("t_end", math.inf):  # the campaign's time is up: the rest are skipped
+            return
         stats["cases"] += 1
         bad = run_case(target, data, work, suffix)
         if bad and len(stats["failures"]) < 5:
@@ -260,10 +264,17 @@ def child_main(spec_path: str) -> None:
 
 
 def run_campaign(
-    seeds: dict[str, Path], folder: Path, examples: int, *, derandomize: bool = True, timeout_s: float = 600
+    seeds: dict[str, Path],
+    folder: Path,
+    examples: int,
+    *,
+    derandomize: bool = True,
+    timeout_s: float = 600,
+    seconds: float | None = None,
 ) -> dict[str, Any]:
-    """Run ``examples`` cases per target in one child process; returns {target: {cases, failures}} plus a
-    ``_crash`` entry when the child died (signal, timeout)."""
+    """Run ``examples`` cases per target in one child process (within ``seconds`` when given: later cases
+    are skipped); returns {target: {cases, failures}} plus a ``_crash`` entry when the child died (signal,
+    timeout: a hang)."""
     import subprocess
 
     spec = folder / "spec.json"
@@ -272,6 +283,7 @@ def run_campaign(
     spec.write_text(json.dumps({
         "targets": {k: str(v) for k, v in seeds.items()}, "examples": examples, "folder": str(folder),
         "out": str(out), "derandomize": derandomize, "memory_limit": MEMORY_LIMIT,
+        "t_end": math.inf if seconds is None else time.time() + seconds,
     }))  # fmt: skip
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
     try:
