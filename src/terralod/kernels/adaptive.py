@@ -223,26 +223,38 @@ def _candidate(z, valid, w, h, px, py, a, b, c):
     best = -1.0
     bxo = -1
     byo = -1
+    # per edge e0 -> e1, inside is A x <= B with A = ey1 - ey0, B = (ex1 - ex0) (y - ey0) + A ex0 (exact
+    # integers); B is carried from row to row
+    a0, a1, a2 = by - ay, cy - by, ay - cy
+    d0, d1, d2 = bx - ax, cx - bx, ax - cx
+    b0 = d0 * (y0 - ay) + a0 * ax
+    b1 = d1 * (y0 - by) + a1 * bx
+    b2 = d2 * (y0 - cy) + a2 * cx
     for y in range(y0, y1 + 1):
-        # the covered run of this row: [xa, xb] clipped by each edge's half-plane, in exact integers
-        # (inside an edge e0 -> e1: (ey1 - ey0) x <= (ex1 - ex0) (y - ey0) + (ey1 - ey0) ex0)
+        # the covered run of this row: [xa, xb] clipped by the three half-planes
         x0 = xa
         x1 = xb
-        for k in range(3):
-            if k == 0:
-                ex0, ey0, ex1, ey1 = ax, ay, bx, by
-            elif k == 1:
-                ex0, ey0, ex1, ey1 = bx, by, cx, cy
-            else:
-                ex0, ey0, ex1, ey1 = cx, cy, ax, ay
-            aa = ey1 - ey0
-            bb = (ex1 - ex0) * (y - ey0) + aa * ex0
-            if aa > 0:
-                x1 = min(x1, bb // aa)
-            elif aa < 0:
-                x0 = max(x0, -(bb // -aa))  # ceil(bb / aa)
-            elif bb < 0:
-                x1 = x0 - 1
+        if a0 > 0:
+            x1 = min(x1, b0 // a0)
+        elif a0 < 0:
+            x0 = max(x0, -(b0 // -a0))  # ceil(b0 / a0)
+        elif b0 < 0:
+            x1 = x0 - 1
+        if a1 > 0:
+            x1 = min(x1, b1 // a1)
+        elif a1 < 0:
+            x0 = max(x0, -(b1 // -a1))
+        elif b1 < 0:
+            x1 = x0 - 1
+        if a2 > 0:
+            x1 = min(x1, b2 // a2)
+        elif a2 < 0:
+            x0 = max(x0, -(b2 // -a2))
+        elif b2 < 0:
+            x1 = x0 - 1
+        b0 += d0
+        b1 += d1
+        b2 += d2
         base = za + gy * (y - ay) - gx * ax
         for x in range(x0, x1 + 1):
             if not valid[y, x]:

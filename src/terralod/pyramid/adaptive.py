@@ -52,14 +52,14 @@ class AdaptiveOptions:
     finest_error_m : target of the finest level (root_error_m = finest_error_m * 2^L), metres
     root_vertices : with neither error given, root_error_m is the max vertical error of the greedy TIN of
         the whole terrain with this many vertices (None: M^2, a regular tile's count)
-    max_vertices_factor : a tile stops refining at this many vertices per source sample of its window
-        (1: no cap; every sample may become a vertex)
+    max_tile_vertices : a tile stops refining at this many vertices (None: no cap), so a tile whose target
+        is out of reach stays as heavy as that (its stored error is then its measured one, above the target)
     """
 
     root_error_m: float | None = None
     finest_error_m: float | None = None
     root_vertices: int | None = None
-    max_vertices_factor: float = 1.0
+    max_tile_vertices: int | None = None
 
     def __post_init__(self) -> None:
         if self.root_error_m is not None and not self.root_error_m > 0:
@@ -68,8 +68,8 @@ class AdaptiveOptions:
             raise ValueError(f"Expected finest_error_m > 0, got {self.finest_error_m}")
         if self.root_vertices is not None and self.root_vertices < 4:
             raise ValueError(f"Expected root_vertices >= 4, got {self.root_vertices}")
-        if not 0 < self.max_vertices_factor <= 1:
-            raise ValueError(f"Expected max_vertices_factor in (0, 1], got {self.max_vertices_factor}")
+        if self.max_tile_vertices is not None and self.max_tile_vertices < 4:
+            raise ValueError(f"Expected max_tile_vertices >= 4, got {self.max_tile_vertices}")
 
 
 #: Ladders computed from the data (root_vertices), per (array id, shape, pyramid, options), with a weak
@@ -140,7 +140,7 @@ def mesh_tile_with(
     east = _side(zw[:, -1], vw[:, -1], target)[1:-1]
     bx = np.concatenate([north, np.full(east.size, ww - 1), south, np.zeros(west.size, np.int64)])
     by = np.concatenate([np.zeros(north.size, np.int64), east, np.full(south.size, hh - 1), west])
-    cap = max(4 + bx.size, int(opt.max_vertices_factor * hh * ww))
+    cap = hh * ww if opt.max_tile_vertices is None else max(4 + bx.size, opt.max_tile_vertices)
     px, py, tris, _ = tin_window(zw, vw, bx.astype(np.int64), by.astype(np.int64), float(target), cap)
     # raster order of the vertices (coherent deltas for the store's coding), triangles renumbered and
     # flipped to counter-clockwise seen from above (y north: rows grow south)
@@ -174,7 +174,7 @@ def _build_meta(z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, opt: Ada
         "root_error_m": opt.root_error_m,
         "finest_error_m": opt.finest_error_m,
         "root_vertices": opt.root_vertices,
-        "max_vertices_factor": opt.max_vertices_factor,
+        "max_tile_vertices": opt.max_tile_vertices,
         "target_error_m": target_ladder(pyramid, opt, z, valid),
     }
 
