@@ -270,7 +270,18 @@ class EpochTables:
             eid = int(rows[0]["id"])
         if self.epoch_source(name) is None:
             self.put_epoch_source(eid, hf.elevation_m, hf.valid)
+        self.widen_colour_range(hf)
         return eid
+
+    def widen_colour_range(self, hf: Any) -> None:
+        """Record in meta ``colour_range_m`` the elevation range of every epoch so far (with ``hf``'s), so
+        all epochs are drawn on one colour ramp (terralod.render.offscreen.terrain_colours)."""
+        lo, hi = hf.valid_range_m()
+        old = self.meta.get("colour_range_m")
+        if old:
+            lo, hi = min(lo, float(old[0])), max(hi, float(old[1]))
+        if old != [float(lo), float(hi)]:
+            self.set_metas({"colour_range_m": [float(lo), float(hi)]})  # type: ignore[attr-defined]
 
     def resume_epoch(self, eid: int) -> None:
         """Write new tiles under the building (not first) epoch ``eid`` again (a resumed update)."""

@@ -36,7 +36,8 @@ def timelapse_video(terrain, output: str, epochs_text: str, **kw: Any) -> dict[s
     from terralod.render import RenderSettings
 
     st = terrain_colours(terrain, RenderSettings(legend=kw.get("overlay") != "change"))
-    st.height_range_m = None  # the union of the epochs' ranges (timelapse)
+    if not (getattr(terrain, "meta", {}) or {}).get("colour_range_m"):
+        st.height_range_m = None  # no range recorded for all epochs: the union of theirs (timelapse)
     lod = kw.pop("lod_m", None)
     overlay = kw.pop("overlay", "none")
     return timelapse(terrain, output, epochs=eps, settings=st, overlay=None if overlay == "none" else overlay,

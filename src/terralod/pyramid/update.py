@@ -328,6 +328,7 @@ def update_store(
             record.update(tiles_rebuilt=len(dirty), tiles_shared=len(revs) - len(dirty),
                           changed_samples=int(changed.sum()))  # fmt: skip
             store.commit_epoch(eid, revs, record)
+            store.widen_colour_range(hf)
     finally:
         store.close()
     seconds = time.perf_counter() - t_start
