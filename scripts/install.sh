@@ -5,17 +5,24 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 SUDO=""
 if [ "$(id -u)" != "0" ]; then SUDO="sudo"; fi
+# wait (up to 10 min) for another apt/dpkg run to release its lock instead of failing on it
+APT=(env DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600 -y -qq)
 if command -v apt-get >/dev/null 2>&1; then
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
+  echo "install.sh: apt packages: Mesa EGL/OpenGL (libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0)," \
+    "Xvfb (xvfb xauth), Chromium, and Node/npm if missing"
+  $SUDO "${APT[@]}" update
+  $SUDO "${APT[@]}" install --no-install-recommends \
     libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 xvfb xauth >/dev/null
   # the web viewer and its browser tests: Debian's Chromium (software WebGL) and Node for CesiumJS
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null
-  command -v npm >/dev/null 2>&1 || \
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null
+  $SUDO "${APT[@]}" install --no-install-recommends chromium >/dev/null
+  command -v npm >/dev/null 2>&1 || $SUDO "${APT[@]}" install --no-install-recommends nodejs npm >/dev/null
 else
   echo "apt-get not found: install Mesa EGL/OpenGL and Xvfb with your package manager" >&2
 fi
+echo "install.sh: pip install -e .[dev] (terralod and its test tools, into $(python -c 'import sys; print(sys.prefix)'))"
 python -m pip install -e ".[dev]"
 # CesiumJS, the Khronos glTF validator and puppeteer-core (drives the system Chromium: no browser download)
 if command -v npm >/dev/null 2>&1; then PUPPETEER_SKIP_DOWNLOAD=1 npm ci --no-audit --no-fund; fi
+# compile and cache every numba kernel now, so the first build / render / demo does not sit silent
+echo "install.sh: compiling terralod's kernels once (about 2 minutes on an idle 2-core machine)"
+python -m terralod warmup

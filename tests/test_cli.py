@@ -95,8 +95,9 @@ def test_info_and_build(tmp_path: Path) -> None:
 
 
 def test_demo_runs(tmp_path: Path) -> None:
-    p = run_cli("demo", cwd=tmp_path)
+    p = run_cli("demo", "--frames", "8", "--no-window", cwd=tmp_path)  # 8 frames: the video is not the point
     assert p.returncode == 0, p.stderr
+    assert (tmp_path / "demo.mp4").stat().st_size > 0 and (tmp_path / "demo.png").exists()
     assert "jacksboro" in p.stdout and (tmp_path / "demo.terra").exists()
     with open_store(tmp_path / "demo.terra") as s:
         assert s.complete and len(s.tile_codes()) == len(s.pyramid.all_codes())

@@ -112,11 +112,11 @@ def _path(store, seed: int, n: int) -> list[Camera]:
     return cams
 
 
-@settings(max_examples=6, deadline=None)
+@settings(max_examples=4, deadline=None)
 @given(st.integers(0, 2**31))
 def test_incremental_equals_fresh(store, seed: int) -> None:
     inc = Engine(store, threshold_px=1.5)
-    for cam in _path(store, seed, 25):
+    for cam in _path(store, seed, 18):  # 4 wandering paths of 18 views (merges, splits and jumps all occur)
         a = inc.update(cam)
         b = Engine(store, threshold_px=1.5).update(cam)
         assert a.tiles == b.tiles and a.culled == b.culled and a.fallback == b.fallback
