@@ -61,7 +61,7 @@ class AlignedPair:
         dx, dy = self.before.spacing_m
         return dx * dy
 
-    def after_on_before(self, shift_m: tuple[float, float, float] = (0.0, 0.0, 0.0), order: int = 1):
+    def after_on_before(self, shift_m: tuple[float, float, float] = (0.0, 0.0, 0.0), order: int = 3):
         """AFTER translated by ``shift_m`` = (dx, dy, dz) metres and sampled at BEFORE's cell centres.
 
         Returns (elevation (H, W) float64 with NaN where AFTER has no valid sample, valid (H, W) bool).
