@@ -205,3 +205,26 @@ def test_adaptive_engine_frames_are_watertight(adaptive_store) -> None:
         rep = find_cracks(meshes, adaptive_store.pyramid, adaptive_store.transform, tol_m=1e-4)
         assert rep.total_cracked == 0, rep
     assert len(levels) >= 2
+
+
+def test_mesher_for_a_store_remakes_its_tiles(adaptive_store) -> None:
+    """A partial rebuild meshes with the store's stated ladder: the same tiles, bit for bit, even when the
+    terrain (hence the default ladder) has changed elsewhere."""
+    z = _terrain(129, 193, 11, 600.0, 0.3)
+    valid = np.ones(z.shape, np.bool_)
+    stated = adaptive.mesher_for(adaptive_store.meta["build_options"])
+    pyr = adaptive_store.pyramid
+    codes = [(k, 0, 0) for k in pyr.levels] + [(pyr.max_level, 3, 2)]
+    for code in codes:
+        ref = adaptive.mesh_tile(z, valid, pyr, code)
+        assert all(np.array_equal(a, b) for a, b in zip(stated(z, valid, pyr, code), ref, strict=True))
+    z2 = z.copy()
+    z2[-5:, -5:] += 300.0  # a change far from tile (k, 0, 0): the default ladder moves, the stated one not
+    assert (
+        adaptive.target_ladder(pyr, adaptive.AdaptiveOptions(), z2, valid)
+        != adaptive_store.meta["build_options"]["target_error_m"]
+    )
+    for code in codes[:-1]:
+        ref = adaptive.mesh_tile(z, valid, pyr, code)
+        if code[0] == pyr.max_level:
+            assert all(np.array_equal(a, b) for a, b in zip(stated(z2, valid, pyr, code), ref, strict=True))

@@ -38,7 +38,7 @@ import numpy as np
 from terralod.kernels.adaptive import simplify_line, tin_window
 from terralod.tiles import TileCode, TilePyramid
 
-__all__ = ["AdaptiveOptions", "make_mesher", "mesh_tile", "target_ladder"]
+__all__ = ["AdaptiveOptions", "make_mesher", "mesh_tile", "mesher_for", "target_ladder"]
 
 
 @dataclass(frozen=True)
@@ -164,8 +164,28 @@ def make_mesher(**options):
         return mesh_tile_with(z, valid, pyramid, code, opt)
 
     mesher.options = opt  # type: ignore[attr-defined]
+    mesher.window_margin = _no_margin  # type: ignore[attr-defined]
     mesher.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, opt)  # type: ignore[attr-defined]
     return mesher
+
+
+def mesher_for(build_options: dict):
+    """The mesher of a store's stated adaptive build (its ``build_options``), with the ladder fixed to the
+    stated one: what a partial rebuild (an epoch's dirty tiles) must mesh with, since the default ladder is
+    computed from the data and would move with it (and the borders of rebuilt tiles with it)."""
+    ladder = build_options.get("target_error_m")
+    if not ladder:
+        raise ValueError(
+            f"Expected an adaptive store's build_options with target_error_m, got {build_options}"
+        )
+    return make_mesher(
+        root_error_m=float(ladder[0]), max_tile_vertices=build_options.get("max_tile_vertices")
+    )
+
+
+def _no_margin(stride: int) -> int:
+    """Samples beyond its own window that the mesher reads: none (the sides are the window's own lines)."""
+    return 0
 
 
 def _build_meta(z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, opt: AdaptiveOptions) -> dict:
@@ -197,4 +217,5 @@ def mesh_tile(
 
 
 mesh_tile.options = _DEFAULT  # type: ignore[attr-defined]
+mesh_tile.window_margin = _no_margin  # type: ignore[attr-defined]
 mesh_tile.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, _DEFAULT)  # type: ignore[attr-defined]
