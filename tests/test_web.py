@@ -430,3 +430,55 @@ def test_browser_cesium_loads_both_formats(
                          text=True, timeout=60, cwd=REPO)  # fmt: skip
     rep = json.loads(val.stdout.strip().splitlines()[-1])
     assert rep["files"] == len(list(out.rglob("*.glb"))) > 0 and rep["errors"] == 0, rep
+
+
+def _top_sum(tile: dict) -> float:
+    """Sum of the region tops of a tileset subtree (grows where any tile's terrain rose)."""
+    return tile["boundingVolume"]["region"][5] + sum(_top_sum(k) for k in tile.get("children", []))
+
+
+def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A store with two epochs: --epoch exports that epoch's heights, an unknown epoch is one line + exit 2;
+    the server serves /e/EPOCH/... per epoch (404 for another name) and the change overlay PNG."""
+    from terralod.heightfield import Heightfield
+    from terralod.io.reader import read_heightfield
+    from terralod.pyramid.builder import build_store
+    from terralod.pyramid.update import update_store
+    from terralod.serve import TileService
+    from terralod.terrain import open_terrain
+
+    hf = read_heightfield(shared_data / ALPINE)
+    a = Heightfield(hf.elevation_m[:80, :80].copy(), hf.valid[:80, :80].copy(), hf.transform, hf.crs)
+    z = a.elevation_m.copy()
+    r, c = np.unravel_index(np.argmax(z), z.shape)
+    z[max(r - 8, 0) : r + 8, max(c - 8, 0) : c + 8] += 60.0  # a 60 m mound on the top, in the second epoch
+    b = Heightfield(z, a.valid.copy(), a.transform, a.crs)
+    store = tmp_path / "ep.terra"
+    build_store(a, store, workers=1, epoch="2019-01-01")
+    update_store(b, store, "2020-01-01", workers=1)
+    with open_terrain(store) as t:
+        first, last = t.epochs[0], t.epochs[-1]
+        assert last == "2020-01-01"
+        svc = TileService(t)
+        assert (
+            svc.get("/e/nope/3dtiles/tileset.json") is None and svc.get("/change/nope/2020-01-01.png") is None
+        )
+        hi = _top_sum(svc.tiles3d(last).tileset()["root"])
+        assert _top_sum(svc.tiles3d(first).tileset()["root"]) < hi - 20
+        png = svc.get(f"/change/{first}/{last}.png")
+        assert png is not None and png[1] == "image/png"
+        import io
+
+        from PIL import Image
+
+        img = np.asarray(Image.open(io.BytesIO(png[0])))
+        assert img[..., 3].max() > 0 and img[..., 3].mean() < 128  # the mound, transparent elsewhere
+    out = tmp_path / "first"
+    main(["export", str(store), "--format", "3dtiles", "-o", str(out), "--epoch", first])
+    ts = json.loads((out / "tileset.json").read_text())
+    assert _top_sum(ts["root"]) < hi - 20
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["export", str(store), "--format", "3dtiles", "-o", str(tmp_path / "x"), "--epoch", "1999"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and "1999" in err[-1] and len(err) == 1

@@ -231,7 +231,7 @@ class TileService:
                 return None
             self.stats["encoded"] += 1
         body, ctype, gz = got
-        if not gz and len(body) > 1024:
+        if not gz and len(body) > 1024 and not ctype.startswith("image/"):
             body, gz = gzip.compress(body, 6, mtime=0), True
         value = (body, ctype, '"' + hashlib.sha1(body).hexdigest() + '"', gz)
         self.cache.put(path, value)
