@@ -24,5 +24,5 @@ python -m pip install -e ".[dev]"
 # CesiumJS, the Khronos glTF validator and puppeteer-core (drives the system Chromium: no browser download)
 if command -v npm >/dev/null 2>&1; then PUPPETEER_SKIP_DOWNLOAD=1 npm ci --no-audit --no-fund; fi
 # compile and cache every numba kernel now, so the first build / render / demo does not sit silent
-echo "install.sh: compiling terralod's kernels once (about 2 minutes on an idle 2-core machine)"
+echo "install.sh: compiling terralod's kernels once (about 3 minutes on an idle machine)"
 python -m terralod warmup
