@@ -10,8 +10,8 @@ without them reads as one unnamed epoch, exactly as before)
                    (``building`` | ``complete``) and ``info`` (JSON: source, digest, fill, what was rebuilt).
 ``epoch_tiles``    (epoch, level, x, y) -> rev: the tiles of an epoch. An epoch shares every tile it did
                    not rebuild with the epoch before it by pointing at that tile's row (no copy).
-``source_blocks``  content-addressed (sha256) zlib blocks of 64 x 64 source samples (float32 elevation
-                   + packed validity), so an epoch's elevation grid is kept exactly as built, and
+``source_blocks``  content-addressed zlib blocks of 64 x 64 source samples (float32 elevation + packed
+                   validity; key: sha256 of the stored bytes), so an epoch's grid is kept exactly as built,
 ``epoch_source``   (epoch, block) -> digest: unchanged blocks are shared between epochs like tiles.
 
 Transactions: a first build writes each batch of tiles and their ``epoch_tiles`` rows together (a killed
@@ -387,14 +387,15 @@ class EpochTables:
                 zz = z[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
                 vv = v[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
                 raw = zz.astype("<f4").tobytes() + np.packbits(vv).tobytes()
-                d = hashlib.sha256(raw).hexdigest()
-                blocks[d] = raw
+                data = zlib.compress(raw, 6)
+                d = hashlib.sha256(data).hexdigest()  # of the bytes stored (terralod check verifies them)
+                blocks[d] = data
                 maps.append((int(eid), by * nbx + bx, d))
         with self._conn:
             have = {r[0] for r in self._conn.execute("SELECT digest FROM source_blocks")}
             self._conn.executemany(
                 "INSERT INTO source_blocks VALUES (?, ?)",
-                [(d, zlib.compress(raw, 6)) for d, raw in blocks.items() if d not in have],
+                [(d, data) for d, data in blocks.items() if d not in have],
             )
             self._conn.execute("DELETE FROM epoch_source WHERE epoch = ?", (int(eid),))
             self._conn.executemany("INSERT INTO epoch_source VALUES (?, ?, ?)", maps)
@@ -422,11 +423,11 @@ class EpochTables:
         z = np.empty((h, w), np.float32)
         v = np.empty((h, w), bool)
         for blk, data, digest in rows:
-            raw = zlib.decompress(data)
-            if hashlib.sha256(raw).hexdigest() != digest:
+            if hashlib.sha256(bytes(data)).hexdigest() != digest:
                 raise CorruptStoreError(
                     f"epoch {info['name']!r}: a source block fails its checksum", str(self.path)
                 )
+            raw = zlib.decompress(data)
             by, bx = divmod(int(blk), nbx)
             r0, c0 = by * b, bx * b
             bh, bw = min(b, h - r0), min(b, w - c0)

@@ -68,13 +68,14 @@ class ChangeOverlay:
 
 
 def nice_max_m(values: list[float] | np.ndarray, lod_m: float) -> float:
-    """A round colour-scale end (1, 2, 5 x 10^k metres) at or above the 99.5th percentile of |change|."""
+    """A round colour-scale end (1, 1.5, 2, 2.5, 3, 4, 5, 6, 8 x 10^k metres) at or above the 99.5th
+    percentile of |change|: the largest changes take the darkest colours."""
     v = np.abs(np.asarray(values, np.float64))
     v = v[np.isfinite(v)]
     top = float(np.percentile(v, 99.5)) if v.size else 0.0
     top = max(top, 2.0 * lod_m, 1e-3)
     k = 10 ** math.floor(math.log10(top))
-    for m in (1, 2, 5, 10):
+    for m in (1, 1.5, 2, 2.5, 3, 4, 5, 6, 8, 10):
         if m * k >= top:
             return float(m * k)
     return float(10 * k)
@@ -156,7 +157,7 @@ def legend_image(overlay: ChangeOverlay, scale: float = 1.0) -> Any:
     dr = ImageDraw.Draw(img)
     title = "Ground change" + (f" since {format_date(overlay.before)}" if overlay.before else "")
     dr.text((int(8 * s), int(4 * s)), title, fill=(20, 20, 20, 255), font=fb)
-    x0, x1, y0 = int(12 * s), w - int(12 * s), int(24 * s)
+    x0, x1, y0 = int(24 * s), w - int(24 * s), int(24 * s)
     vals = np.linspace(-overlay.max_m, overlay.max_m, x1 - x0)
     cols = change_colour(vals, overlay.lod_m, overlay.max_m)
     for i, c in enumerate(cols):
@@ -213,7 +214,7 @@ def annotate(img: np.ndarray, *, date: str | None = None, overlay: ChangeOverlay
         if subtitle:
             dr.text((int(18 * s), int(50 * s)), subtitle, fill=(230, 230, 230, 255), font=fs)
     if overlay is not None:
-        leg = legend_image(overlay, s)
+        leg = legend_image(overlay, 0.8 * s)
         if leg.width < w and leg.height < h:
             im.alpha_composite(leg, (w - leg.width - int(8 * s), h - leg.height - int(8 * s)))
     return np.asarray(im.convert("RGB")).copy()
