@@ -282,7 +282,9 @@ def test_quantized_mesh_export_against_source(alpine_store: Path, shared_data: P
 
 
 # -- errors of the CLI --------------------------------------------------------------------------------
-def test_export_cli_refusals(sample_store: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_export_cli_refusals(
+    sample_store: Path, shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     busy = tmp_path / "busy"
     busy.mkdir()
     (busy / "keep.txt").write_text("mine")
@@ -292,6 +294,17 @@ def test_export_cli_refusals(sample_store: Path, tmp_path: Path, capsys: pytest.
     assert (busy / "keep.txt").read_text() == "mine" and not list(tmp_path.glob(".busy.tmp-*"))
 
     from affine import Affine
+
+    from terralod.io.reader import read_heightfield  # a store whose build was interrupted
+    from terralod.pyramid.builder import build_store as _build
+
+    part = tmp_path / "part.terra"
+    _build(read_heightfield(shared_data / ALPINE), part, workers=1, stop_after=3)
+    with pytest.raises(SystemExit) as exc:
+        main(["export", str(part), "--format", "quantized-mesh", "-o", str(tmp_path / "part-out")])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and "incomplete" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "part-out").exists()
 
     from terralod.heightfield import Heightfield  # a store without a CRS
     from terralod.pyramid.builder import build_store
