@@ -206,7 +206,8 @@ def terrain_colours(terrain, settings: RenderSettings, water_level_m: float | No
     ``water_level_m`` when given, else the SRTM-style sea at 0 m when :func:`has_sea` finds one."""
     t = as_terrain(terrain)
     meta = getattr(t, "meta", {}) or {}
-    rng = meta.get("colour_range_m") or meta.get("elevation_range_m") or t.elevation_range_m
+    rng = meta.get("colour_range_m") or meta.get("elevation_range_m") or _vertex_range(t)
+    rng = rng or t.elevation_range_m
     lo, hi = float(rng[0]), float(rng[1])
     if water_level_m is not None:
         settings.water_m = (-1e9, float(water_level_m))
@@ -217,6 +218,18 @@ def terrain_colours(terrain, settings: RenderSettings, water_level_m: float | No
     if settings.height_range_m is None:
         settings.height_range_m = (lo, max(hi, lo + 1.0))
     return settings
+
+
+def _vertex_range(t) -> tuple[float, float] | None:
+    """(lowest, highest) stored vertex of a grid store over all its tiles (the root level alone misses the
+    peaks its coarse mesh cuts), None for other terrains."""
+    summaries = getattr(getattr(t, "store", None), "tile_summaries", None)
+    if summaries is None:
+        return None
+    rows = [r for r in summaries() if r.get("n_vertices", 1) > 0]
+    if not rows:
+        return None
+    return float(min(r["z_min_m"] for r in rows)), float(max(r["z_max_m"] for r in rows))
 
 
 def legend_image(settings: RenderSettings, height_px: int) -> np.ndarray:
