@@ -96,7 +96,12 @@ def plain_summary(result: ChangeResult, dates: tuple[str | None, str | None]) ->
     gain, gain_u = s["gain_m3_above_lod"], s["gain_above_lod_uncertainty_m3"]
     loss, loss_u = s["loss_m3_above_lod"], s["loss_above_lod_uncertainty_m3"]
     out = []
-    if gain >= loss:
+    if s["area_gain_m2"] == 0 and s["area_loss_m2"] == 0:
+        out.append(
+            f"{when} the ground did not change measurably: no part of the map rose or dropped by more than "
+            f"{lod:.1f} m (the largest differences are +{s['max_rise_m']:.1f} m and -{s['max_drop_m']:.1f} m)."
+        )
+    elif gain >= loss:
         out.append(
             f"{when} about {pm_volume(gain, gain_u)} of material (rock, ice, soil) was added to the ground "
             f"surface — as much as {_count(gain / OLYMPIC_POOL_M3)} Olympic swimming pools — over "
@@ -218,6 +223,8 @@ def figure_map(result: ChangeResult, line=None) -> bytes:
     aspect = hf.width / hf.height
     fig, ax = plt.subplots(figsize=(min(11, 3 + 6.5 * aspect), 7.5))
     ax.imshow(shade, cmap="gray", vmin=-0.3, vmax=1.3, extent=ext, origin="upper", interpolation="nearest")
+    nodata = np.ma.masked_where(np.isfinite(dod), np.ones_like(dod))
+    ax.imshow(nodata, cmap="Greys", vmin=0, vmax=1, extent=ext, origin="upper", interpolation="nearest")
     grey = np.ma.masked_where(~(np.isfinite(dod) & (np.abs(dod) <= lod)), np.ones_like(dod))
     ax.imshow(grey, cmap="Greys", vmin=0, vmax=3, alpha=0.35, extent=ext, origin="upper")
     im = ax.imshow(
@@ -232,6 +239,8 @@ def figure_map(result: ChangeResult, line=None) -> bytes:
     from matplotlib.patches import Patch
 
     handles = [Patch(facecolor="0.75", edgecolor="0.5", label=f"within ±{lod:.1f} m: no measurable change")]
+    if not np.isfinite(dod).all():
+        handles.append(Patch(facecolor="black", label="no data in one of the surveys"))
     ext_d = result.summary["extremes"]
     for key, mark, _col, label in (("max_rise", "^", GAIN_COLOUR, "largest rise"),
                                   ("max_drop", "v", LOSS_COLOUR, "largest drop")):  # fmt: skip
@@ -446,9 +455,11 @@ def _view_pose(result: ChangeResult, zlo: float, zhi: float):
 
 def figures(result: ChangeResult, series: list[dict] | None = None, views: bool = True) -> dict[str, bytes]:
     """Every figure of the report as PNG bytes, by name."""
-    line = profile_line(result)
+    lod = result.uncertainty.level_of_detection_m
+    changed = bool(np.any(np.abs(np.nan_to_num(result.dod)) > lod))
+    line = profile_line(result) if changed else None
     out = {"map": figure_map(result, line), "histogram": figure_histogram(result)}
-    if len(line[0]) > 1:
+    if line is not None and len(line[0]) > 1:
         out["profile"] = figure_profile(result, line)
     if series:
         out["series"] = figure_series(series)
