@@ -127,7 +127,11 @@ def plain_summary(result: ChangeResult, dates: tuple[str | None, str | None]) ->
             )
     out.append(
         f"Counting every part of the map, the net change is {pm_volume(net, net_u)} "
-        f"({'more' if net >= 0 else 'less'} material than before)."
+        + (
+            "(too small to tell from zero)."
+            if abs(net) <= net_u
+            else f"({'more' if net > 0 else 'less'} material than before)."
+        )
     )
     out.append(
         f"Changes smaller than {lod:.1f} m up or down cannot be told apart from survey error and are shown "
