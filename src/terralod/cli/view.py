@@ -17,17 +17,20 @@ from terralod.cli._common import open_terrain_arg, read_options, size, view_opti
 @click.option("--threshold-px", default=2.0, show_default=True)
 @click.option("--frames", type=int, default=None, help="Close after this many frames (scripted runs).")
 @click.option("--screenshot", help="PNG written after the last frame (with --frames).")
+@click.option("--epoch", default=None, metavar="DATE", help="Epoch to start on (default: the latest).")
 @water_option
 @view_options
 @read_options
 def view(
-    path, size_text, threshold_px, frames, screenshot, water_level, fractal_levels, cull, **read: Any
+    path, size_text, threshold_px, frames, screenshot, epoch, water_level, fractal_levels, cull, **read: Any
 ) -> None:
     """Open the real-time viewer on a store (or a DEM, built into a cache store first)."""
     from terralod.render.viewer import run_viewer
 
     w, h = size(size_text)
-    with open_terrain_arg(path, read, fractal_levels) as terrain:
+    from terralod.cli._epochs import at_epoch
+
+    with open_terrain_arg(path, read, fractal_levels) as whole, at_epoch(whole, epoch) as terrain:
         if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
             raise click.UsageError("no display (DISPLAY is unset); use `terralod render` or `terralod flythrough`")
         title = "terralod (TIN)" if terrain.kind == "tin" else "terralod"
