@@ -117,3 +117,27 @@ def test_frame_shows_sky_over_nodata(tmp_path: Path) -> None:
         fr.close()
     mid = img[28:36, 28:36].reshape(-1, 3)
     assert (mid == (255, 0, 255)).all(), "terrain drawn over the nodata lake"
+
+
+def test_exports_skip_tiles_wholly_over_nodata(tmp_path: Path) -> None:
+    """3D Tiles of a store whose tiles lie partly wholly over nodata: those get no content, the rest a glb."""
+    from pyproj import CRS
+
+    from terralod.export.tiles3d import export_3dtiles
+    from terralod.terrain import open_terrain
+
+    z = fractal_terrain(97, 113, 3, relief_m=600.0)
+    r, c = np.mgrid[0:97, 0:113]
+    valid = r + c > 40  # the north-west corner tiles of the finest level are all nodata
+    hf = Heightfield.from_array(
+        z, 30.0, origin_m=(500000.0, 4100000.0), valid=valid, crs=CRS.from_epsg(32633).to_wkt()
+    )
+    build_store(hf, tmp_path / "w.terra", tile_size=17, method="chunked", workers=2)
+    with open_store(tmp_path / "w.terra") as s:
+        empty = sum(1 for code in s.tile_codes() if s.tile(*code).triangles.shape[0] == 0)
+        total = len(s.tile_codes())
+    assert empty > 0
+    with open_terrain(tmp_path / "w.terra") as t:
+        rep = export_3dtiles(t, tmp_path / "tiles")
+    assert rep.tiles == total - empty
+    assert len(list((tmp_path / "tiles").rglob("*.glb"))) == total - empty

@@ -199,9 +199,8 @@ class Tiles3D:
         return v, t, nrm
 
     def has_content(self, code: Any) -> bool:
-        """False for a node whose every triangle is nodata (it gets no content in the tileset)."""
-        if self._hf is None:
-            return True
+        """False for a node whose every triangle is nodata (it gets no content in the tileset); a stored
+        tile wholly over nodata has no triangle at all (terralod.pyramid.footprint)."""
         return bool(self.mesh(code)[1].size)
 
     def glb(self, code: Any) -> bytes:
