@@ -14,9 +14,11 @@ import json
 import math
 import os
 import resource
+import signal
 import struct
 import sys
 import tempfile
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -27,6 +29,8 @@ import numpy as np
 
 #: Absurd integers written into headers (little and big endian, 2/4/8 bytes).
 ABSURD = (0, 1, 2, 3, 0x7F, 0xFF, 0x7FFF, 0xFFFF, 0x7FFFFFFF, 0xFFFFFFFF, 2**31, 65537, 2**40 + 1)
+#: Seconds a case may take before it counts as a hang.
+CASE_TIMEOUT_S = 60
 #: Memory a fuzz case may use (bytes) before the reader is deemed to allocate without bound.
 MEMORY_LIMIT = 3 << 30
 
@@ -209,8 +213,14 @@ def run_case(target: str, data: bytes, folder: Path, suffix: str) -> str | None:
     for side in ("", "-wal", "-shm", "-journal"):
         Path(f"{p}{side}").unlink(missing_ok=True)
     p.write_bytes(data)
+    alarm = hasattr(signal, "SIGALRM") and threading.current_thread() is threading.main_thread()
+    if alarm:
+        signal.signal(signal.SIGALRM, _hung)
+        signal.alarm(CASE_TIMEOUT_S)
     try:
         READERS[target](p)
+    except CaseHung:
+        return f"hang: no answer within {CASE_TIMEOUT_S} s"
     except TerralodError as exc:
         if "\n" in str(exc) or not str(exc).startswith(str(p)):
             return f"TerralodError not one line naming the file: {str(exc)[:300]!r}"
@@ -218,7 +228,18 @@ def run_case(target: str, data: bytes, folder: Path, suffix: str) -> str | None:
     except Exception as exc:  # noqa: BLE001 - this is what the fuzzing is looking for
         tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
         return f"{type(exc).__name__}: {str(exc)[:200]} | " + "".join(tb[-3:]).replace("\n", " ")[:600]
+    finally:
+        if alarm:
+            signal.alarm(0)
     return None
+
+
+class CaseHung(BaseException):
+    """Raised by the alarm in a case that takes longer than :data:`CASE_TIMEOUT_S` (a hang)."""
+
+
+def _hung(signum: int, frame: Any) -> None:
+    raise CaseHung()
 
 
 def _make_case(

@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -177,6 +178,39 @@ def _units_from_geokeys(header) -> tuple[str, float, float | None, str | None] |
     return None
 
 
+def check_las_header(p: Path) -> None:
+    """Refuse, before laspy parses it, a LAS/LAZ public header whose counts cannot fit the file (an absurd
+    VLR count makes laspy loop for hours; found by fuzzing)."""
+    src = str(p)
+    try:
+        size = p.stat().st_size
+        with open(p, "rb") as fh:
+            head = fh.read(375)
+    except OSError as exc:
+        raise InputError(f"cannot read ({exc.strerror or exc})", src) from None
+    if len(head) < 4 or head[:4] != b"LASF":
+        raise InputError("not a LAS/LAZ file (no LASF signature)", src)
+    if len(head) < 227:
+        raise InputError(f"truncated LAS header ({len(head)} of at least 227 bytes)", src)
+    major, minor = head[24], head[25]
+    header_size, offset = struct.unpack_from("<HI", head, 94)
+    (n_vlr,) = struct.unpack_from("<I", head, 100)
+    if major != 1 or minor > 4:
+        raise InputError(f"LAS version {major}.{minor} is not one laspy reads (1.0-1.4)", src)
+    if not 227 <= header_size <= offset <= size:
+        raise InputError(
+            f"LAS header size {header_size} / point data offset {offset} do not fit the {size}-byte file", src
+        )
+    if n_vlr * 54 > offset - header_size:
+        raise InputError(
+            f"LAS header claims {n_vlr:,} variable-length records, more than fit before the points", src
+        )
+    if minor >= 4 and len(head) >= 247:
+        start, n_evlr = struct.unpack_from("<QI", head, 235)
+        if n_evlr and (start > size or n_evlr * 60 > size - start):
+            raise InputError(f"LAS header claims {n_evlr:,} extended records beyond the file", src)
+
+
 def _records_in_file(p: Path, header) -> int | None:
     """Point records an uncompressed LAS file holds by its size (None for LAZ or when unknown)."""
     try:
@@ -199,6 +233,7 @@ def describe_las(path: str | os.PathLike[str]) -> dict[str, Any]:
     src = str(p)
     if not p.exists():
         raise InputNotFoundError("file not found", src)
+    check_las_header(p)
     try:
         with laspy.open(src) as f:
             h = f.header
@@ -265,6 +300,7 @@ def read_las(
     src = str(p)
     if not p.exists():
         raise InputNotFoundError("file not found", src)
+    check_las_header(p)
     try:
         las = laspy.read(src)
     except Exception as exc:  # laspy raises its own and OSError/ValueError subclasses
