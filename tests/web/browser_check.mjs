@@ -40,6 +40,8 @@ try {
   await page.goto(`${url}?format=${format}`, { waitUntil: "load", timeout });
   await page.waitForFunction(() => window.terralod && (window.terralod.loaded || window.terralod.errors.length), { timeout, polling: 200 });
   out.loadMs = Date.now() - t0;
+  await page.evaluate(() => terralod.viewer && terralod.viewer.scene.requestRender());
+  await new Promise((r) => setTimeout(r, 500));
   const state = await page.evaluate(() => ({ loaded: terralod.loaded, errors: terralod.errors, tiles: terralod.tiles,
     triangles: terralod.triangles, firstFrameMs: terralod.firstFrameMs, loadedMs: terralod.loadedMs }));
   Object.assign(out, state, { errors: out.errors.concat(state.errors) });
