@@ -183,6 +183,11 @@ def test_3dtiles_export_round_trip(sample_store: Path, tmp_path: Path) -> None:
         view = Tiles3D(t)
         walk(root, np.zeros(3))
         assert checked >= 6 and rep.tiles == len(tree)
+    if shutil.which("node") and (NODE_MODULES / "gltf-validator").is_dir():  # Khronos: 0 errors on every glb
+        val = subprocess.run(["node", str(REPO / "tests" / "web" / "validate_glb.mjs"), str(out)], capture_output=True,
+                             text=True, timeout=60, cwd=REPO)  # fmt: skip
+        res = json.loads(val.stdout.strip().splitlines()[-1])
+        assert res["files"] == rep.tiles and res["errors"] == 0, res
 
 
 def test_3dtiles_normals_match_across_borders(sample_store: Path) -> None:
