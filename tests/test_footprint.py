@@ -141,3 +141,26 @@ def test_exports_skip_tiles_wholly_over_nodata(tmp_path: Path) -> None:
         rep = export_3dtiles(t, tmp_path / "tiles")
     assert rep.tiles == total - empty
     assert len(list((tmp_path / "tiles").rglob("*.glb"))) == total - empty
+
+
+def test_fractal_levels_add_no_detail_over_nodata(tmp_path: Path) -> None:
+    from terralod.fractal import FractalDetail
+    from terralod.runtime.fractal_source import FractalSource
+
+    hf = _holed(3)
+    build_store(hf, tmp_path / "f.terra", tile_size=17, method="chunked", workers=2)
+    with open_store(tmp_path / "f.terra") as s:
+        src = FractalSource(s, FractalDetail(hf), 1, workers=1)
+        level = src.base_level + 1
+        seen_empty = 0
+        for code in src.pyramid.tile_codes(level):
+            r0, c0 = (v / src.factor for v in src.pyramid.origin_rc(code))
+            if not (20 <= r0 <= 70 and 30 <= c0 <= 100):
+                continue  # tiles around the lake only (cheap)
+            t = src.tile(*code)
+            if t.triangles.shape[0] == 0:
+                seen_empty += 1
+                continue
+            rc = t.grid_rc / src.factor
+            assert footprint_mask(rc[:, 0], rc[:, 1], t.triangles.astype(np.int64), hf.valid).all()
+        assert seen_empty > 0  # tiles inside the lake: nothing drawn

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from terralod.pyramid.footprint import footprint_mask
 from terralod.tiles import TilePyramid, ancestor
 
 
@@ -132,9 +133,19 @@ class FractalSource:
             )  # fmt: skip
         ft = self.detail.tile((level, x, y), tile_size=self.pyramid.tile_size)
         err = self._floor[level - self.base_level]
-        rc = np.stack([ft.rows * f, ft.cols * f], axis=1)
-        z = ft.vertices[:, 2]
+        verts, tris, rows, cols = ft.vertices, ft.triangles, ft.rows, ft.cols
+        valid = self.detail.hf.valid
+        r0, c0 = max(int(rows.min()), 0), max(int(cols.min()), 0)
+        if not valid[r0 : int(np.ceil(rows.max())) + 1, c0 : int(np.ceil(cols.max())) + 1].all():
+            # no detail over nodata either: the footprint of the stored tiles (terralod.pyramid.footprint)
+            keep = footprint_mask(rows.astype(np.float64), cols.astype(np.float64), tris.astype(np.int64), valid)
+            used = np.zeros(len(verts), bool)
+            used[tris[keep].ravel()] = True
+            remap = np.cumsum(used) - 1
+            verts, rows, cols, tris = verts[used], rows[used], cols[used], remap[tris[keep]]
+        rc = np.stack([rows * f, cols * f], axis=1)
+        z = verts[:, 2]
+        zlo, zhi = (float(z.min()), float(z.max())) if len(z) else (0.0, 0.0)
         return _SourceTile(
-            (level, x, y), ft.vertices, ft.triangles.astype(np.uint32), rc, err, err, err, float(z.min()),
-            float(z.max()),
+            (level, x, y), verts, tris.astype(np.uint32), rc, err, err, err, zlo, zhi,
         )  # fmt: skip
