@@ -6,6 +6,11 @@
 (async function () {
   const status = (t) => { document.getElementById("status").textContent = t; };
   const T = (window.terralod = { errors: [], ready: false, loaded: false, format: "terrain", tiles: 0, triangles: 0 });
+  if (typeof Cesium === "undefined") {
+    status("CesiumJS is not installed on the server: run `npm ci` in the terralod repository (bash scripts/install.sh does), then restart terralod serve");
+    T.errors.push("CesiumJS missing");
+    return;
+  }
   window.addEventListener("error", (e) => T.errors.push(String(e.message)));
   const params = new URLSearchParams(location.search);
   const format = params.get("format") === "3dtiles" ? "3dtiles" : "terrain";
