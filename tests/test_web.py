@@ -500,3 +500,26 @@ def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pyte
         main(["export", str(store), "--format", "3dtiles", "-o", str(tmp_path / "x"), "--epoch", "1999"])
     err = capsys.readouterr().err.strip().splitlines()
     assert exc.value.code == 2 and "1999" in err[-1] and len(err) == 1
+
+
+def test_serve_cli_binds_loopback_by_default(alpine_store: Path) -> None:
+    """`terralod serve` listens on 127.0.0.1 unless told otherwise, and warns for any other address."""
+    import re
+    import sys
+
+    for host, warn in ((None, False), ("127.0.0.2", True)):
+        cmd = [sys.executable, "-m", "terralod", "serve", str(alpine_store), "--port", "0"]
+        if host:
+            cmd += ["--host", host]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+        try:
+            line = proc.stdout.readline()
+            m = re.search(r"http://([\d.]+):(\d+)/", line)
+            assert m, line
+            assert m.group(1) == (host or "127.0.0.1")
+            code, _, body = _get(f"http://{m.group(1)}:{m.group(2)}/info.json")
+            assert code == 200 and json.loads(body)["kind"] == "grid"
+        finally:
+            proc.terminate()
+            _, err = proc.communicate(timeout=20)
+        assert ("warning" in err) == warn, err
