@@ -374,16 +374,29 @@ class EpochTables:
         self._conn.execute("VACUUM")
 
     # -- source samples --------------------------------------------------------------------------------
-    def put_epoch_source(self, eid: int, elevation_m: np.ndarray, valid: np.ndarray) -> None:
-        """Keep epoch ``eid``'s elevation grid (float32, exactly) and validity mask, in shared blocks."""
+    def put_epoch_source(
+        self, eid: int, elevation_m: np.ndarray, valid: np.ndarray, *, like: int | None = None,
+        changed: np.ndarray | None = None,
+    ) -> None:  # fmt: skip
+        """Keep epoch ``eid``'s elevation grid (float32, exactly) and validity mask, in shared blocks.
+        With ``like`` (an epoch whose blocks are stored) and ``changed`` (where the samples differ from it),
+        a block without a changed sample takes that epoch's block as it is (not compressed again)."""
         z = np.ascontiguousarray(elevation_m, np.float32)
         v = np.ascontiguousarray(valid, bool)
         h, w = z.shape
         b = SOURCE_BLOCK
         nbx = -(-w // b)
         blocks, maps = {}, []
+        prior: dict[int, str] = {}
+        if like is not None and changed is not None:
+            q = "SELECT block, digest FROM epoch_source WHERE epoch = ?"
+            prior = {int(k): str(d) for k, d in self._conn.execute(q, (int(like),))}
         for by in range(-(-h // b)):
             for bx in range(nbx):
+                k = by * nbx + bx
+                if k in prior and not changed[by * b : (by + 1) * b, bx * b : (bx + 1) * b].any():  # type: ignore[index]
+                    maps.append((int(eid), k, prior[k]))
+                    continue
                 zz = z[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
                 vv = v[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
                 raw = zz.astype("<f4").tobytes() + np.packbits(vv).tobytes()

@@ -187,6 +187,7 @@ class UpdateReport:
     seconds: float
     build_seconds: float
     complete: bool
+    build_cpu_s: float = 0.0
 
     @property
     def tiles_shared(self) -> int:
@@ -196,11 +197,17 @@ class UpdateReport:
     def ms_per_tile(self) -> float:
         return 1e3 * self.build_seconds / self.tiles_built if self.tiles_built else 0.0
 
+    @property
+    def cpu_ms_per_tile(self) -> float:
+        """CPU milliseconds (all threads) of meshing, measuring and writing per rebuilt tile."""
+        return 1e3 * self.build_cpu_s / self.tiles_built if self.tiles_built else 0.0
+
     def as_dict(self) -> dict[str, Any]:
         d = dict(vars(self))
         d["path"] = str(self.path)
         d["tiles_shared"] = self.tiles_shared
         d["ms_per_tile"] = self.ms_per_tile
+        d["cpu_ms_per_tile"] = self.cpu_ms_per_tile
         return d
 
 
@@ -309,7 +316,7 @@ def update_store(
         else:
             eid = int(same["id"])
             store.resume_epoch(eid)
-        store.put_epoch_source(eid, hf.elevation_m, hf.valid)
+        store.put_epoch_source(eid, hf.elevation_m, hf.valid, like=base_id, changed=changed)
         errors = store.tile_errors()  # the base epoch's
         done = store.rev_tile_errors(eid)
         errors.update(done)
@@ -317,9 +324,11 @@ def update_store(
         n_skipped = len(dirty) - len(todo)
         if stop_after is not None:
             todo = todo[: max(0, stop_after)]
+        c_build = time.process_time()
         built, t_build = _rebuild(
             store, hf, pyramid, method, todo, errors, workers, progress, n_skipped, len(dirty)
         )
+        c_build = time.process_time() - c_build
         complete = n_skipped + built == len(dirty)
         if complete:
             revs = store.epoch_tile_revs(base_id)
@@ -334,7 +343,7 @@ def update_store(
     seconds = time.perf_counter() - t_start
     log.info("epoch %s: %d dirty tiles, %d rebuilt now, in %.2f s", epoch, len(dirty), built, seconds)
     return UpdateReport(p, epoch, base_epoch, len(pyramid.all_codes()), len(dirty), built, n_skipped,
-                        int(changed.sum()), seconds, t_build, complete)  # fmt: skip
+                        int(changed.sum()), seconds, t_build, complete, c_build)  # fmt: skip
 
 
 def _rebuild(
