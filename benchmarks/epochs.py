@@ -80,6 +80,7 @@ def local_edits(tmp: Path, quick: bool) -> dict | None:
         out.append({"pit": f"pit-{k + 1}", "tiles_rebuilt": rep.tiles_dirty, "tiles_total": rep.tiles_total,
                     "edit_wall_s": time.perf_counter() - t0, "edit_cpu_s": time.process_time() - c0,
                     "cpu_ms_per_rebuilt_tile": 1e3 * (time.process_time() - c0) / max(rep.tiles_built, 1),
+                    "mesh_cpu_ms_per_rebuilt_tile": rep.cpu_ms_per_tile,
                     "volume_m3": res.volume_m3})  # fmt: skip
     with open_store(store) as st:
         quant = st.quantisation
@@ -98,6 +99,7 @@ def local_edits(tmp: Path, quick: bool) -> dict | None:
         "median_edit_wall_s": med(r["edit_wall_s"] for r in out),
         "median_edit_cpu_s": med(r["edit_cpu_s"] for r in out),
         "median_cpu_ms_per_rebuilt_tile": med(r["cpu_ms_per_rebuilt_tile"] for r in out),
+        "median_mesh_cpu_ms_per_rebuilt_tile": med(r["mesh_cpu_ms_per_rebuilt_tile"] for r in out),
         "full_wall_s": full_wall, "full_cpu_s": full_cpu, "identical": identical,
     }}  # fmt: skip
 
@@ -144,6 +146,7 @@ def main() -> None:
             "rebuild_wall_s": rep.build_seconds,
             "ms_per_rebuilt_tile": 1e3 * rep.build_seconds / max(rep.tiles_built, 1),
             "cpu_ms_per_rebuilt_tile": 1e3 * up_cpu / max(rep.tiles_built, 1),
+            "mesh_cpu_ms_per_rebuilt_tile": rep.cpu_ms_per_tile,
             "full_wall_s": full_wall, "full_cpu_s": full_cpu, "full_tiles": full.tiles_built,
             "ms_per_tile_full": 1e3 * full_wall / full.tiles_built,
             "cpu_ms_per_tile_full": 1e3 * full_cpu / full.tiles_built,
@@ -166,6 +169,7 @@ def main() -> None:
         "median_ms_per_rebuilt_tile": med(r["ms_per_rebuilt_tile"] for r in per_epoch),
         "median_ms_per_tile_full": med(r["ms_per_tile_full"] for r in per_epoch),
         "median_cpu_ms_per_rebuilt_tile": med(r["cpu_ms_per_rebuilt_tile"] for r in per_epoch),
+        "median_mesh_cpu_ms_per_rebuilt_tile": med(r["mesh_cpu_ms_per_rebuilt_tile"] for r in per_epoch),
         "median_cpu_ms_per_tile_full": med(r["cpu_ms_per_tile_full"] for r in per_epoch),
         "all_identical": all(r["identical_to_full_build"] for r in per_epoch),
         "store_bytes": store_bytes,
@@ -197,10 +201,10 @@ def main() -> None:
             summary["timelapse_frames"] = n
             summary["timelapse_bytes"] = video.stat().st_size
     hdr = ["epoch", "samples changed", "tiles rebuilt / total", "update s", "full rebuild s", "update / full",
-           "update CPU s", "full CPU s", "CPU ms per rebuilt tile", "wall ms per rebuilt tile", "identical"]  # fmt: skip
+           "update CPU s", "full CPU s", "mesh CPU ms per rebuilt tile", "wall ms per rebuilt tile", "identical"]  # fmt: skip
     table = [[r["epoch"], r["changed_samples"], f"{r['tiles_rebuilt']}/{r['tiles_total']}", r["update_wall_s"],
               r["full_wall_s"], r["update_wall_s"] / r["full_wall_s"], r["update_cpu_s"], r["full_cpu_s"],
-              r["cpu_ms_per_rebuilt_tile"], r["ms_per_rebuilt_tile"],
+              r["mesh_cpu_ms_per_rebuilt_tile"], r["ms_per_rebuilt_tile"],
               "yes" if r["identical_to_full_build"] else "NO"] for r in per_epoch]  # fmt: skip
     md = (
         f"# Epochs of one store: St Helens {len(series)} epochs, {summary['grid'][0]} x {summary['grid'][1]} at "
@@ -209,8 +213,8 @@ def main() -> None:
         f"rebuild {summary['median_full_wall_s']:.2f} s (CPU {summary['median_update_cpu_s']:.2f} vs "
         f"{summary['median_full_cpu_s']:.2f} s); {summary['median_tiles_rebuilt']:.0f} of "
         f"{per_epoch[0]['tiles_total'] if per_epoch else 0} tiles rebuilt; "
-        f"{summary['median_cpu_ms_per_rebuilt_tile']:.1f} ms CPU per rebuilt tile, the update's whole CPU time "
-        f"over its tiles (wall {summary['median_ms_per_rebuilt_tile']:.1f} ms on this shared machine; full build: "
+        f"{summary['median_mesh_cpu_ms_per_rebuilt_tile']:.1f} ms CPU per rebuilt tile to mesh, measure and "
+        f"write it ({summary['median_cpu_ms_per_rebuilt_tile']:.1f} ms with the whole update's CPU time; wall {summary['median_ms_per_rebuilt_tile']:.1f} ms on this shared machine; full build: "
         f"{summary['median_cpu_ms_per_tile_full']:.1f} ms CPU per tile; goal <= 50 ms per tile per core). "
         "Rebuilt tiles are always the costlier ones: every ancestor of a change up to the root, each "
         "re-meshed and measured against all the samples it covers.\n\n"
@@ -228,17 +232,19 @@ def main() -> None:
             f"{e['n']} pits of 2 x 2 km dug 12 m (`edit_store`): median {e['median_tiles_rebuilt']:.0f} of "
             f"{e['tiles_total']} tiles rebuilt, edit {e['median_edit_wall_s']:.2f} s (CPU "
             f"{e['median_edit_cpu_s']:.2f} s) vs full rebuild {e['full_wall_s']:.2f} s (CPU {e['full_cpu_s']:.2f} s); "
-            f"{e['median_cpu_ms_per_rebuilt_tile']:.1f} ms CPU per rebuilt tile; byte-identical to a full "
+            f"{e['median_mesh_cpu_ms_per_rebuilt_tile']:.1f} ms CPU per rebuilt tile to mesh, measure and write it "
+            f"({e['median_cpu_ms_per_rebuilt_tile']:.1f} with the whole edit's CPU time; the tiles rebuilt are the "
+            "chain of ancestors up to the root, the costliest of the store); byte-identical to a full "
             f"rebuild: {e['identical']}.\n\n"
             + md_table(
-                ["pit", "tiles rebuilt", "edit s", "edit CPU s", "CPU ms per rebuilt tile"],
+                ["pit", "tiles rebuilt", "edit s", "edit CPU s", "mesh CPU ms per rebuilt tile"],
                 [
                     [
                         r["pit"],
                         r["tiles_rebuilt"],
                         r["edit_wall_s"],
                         r["edit_cpu_s"],
-                        r["cpu_ms_per_rebuilt_tile"],
+                        r["mesh_cpu_ms_per_rebuilt_tile"],
                     ]
                     for r in edits["rows"]
                 ],
