@@ -205,6 +205,7 @@ def test_killed_update_changes_nothing_and_resume_finishes_it(base_store, tmp_pa
     assert len(after["revs"]) >= 16  # the interrupted epoch's rows, invisible to readers
     with open_store(store) as s:
         assert s.epochs == ["2000-01-01"] and s.epoch == "2000-01-01"
+        assert [p for p in s.verify_epochs() if "interrupted update" in p]
     assert _rows(store) == _rows(src)
     # without --resume: one line, nothing changed; with it: finished, identical to an uninterrupted update
     p = cli(capfd, "update", str(store), str(dem), "--epoch", "2002-02-02")
@@ -214,6 +215,16 @@ def test_killed_update_changes_nothing_and_resume_finishes_it(base_store, tmp_pa
     update_store(_hf(z2, source=str(dem)), ref, "2002-02-02", workers=1)
     assert _rows(store) == _rows(ref)
     assert _rows(store, "2000-01-01") == _rows(src)
+    with open_store(store) as s:
+        assert s.verify_epochs() == []
+    # a damaged source block is found
+    con = sqlite3.connect(store)
+    with con:
+        con.execute("UPDATE source_blocks SET data = ? WHERE digest = (SELECT digest FROM source_blocks LIMIT 1)",
+                    (b"x",))  # fmt: skip
+    con.close()
+    with open_store(store) as s:
+        assert any("fails its checksum" in p for p in s.verify_epochs())
 
 
 def test_reader_keeps_its_epoch_while_an_update_commits(base_store, tmp_path: Path) -> None:

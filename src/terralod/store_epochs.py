@@ -369,6 +369,32 @@ class EpochTables:
         if self.epoch == name:
             self._init_epochs(None)
 
+    def verify_epochs(self) -> list[str]:
+        """Problems of the epoch tables, one line each (empty for a sound store): unfinished updates, map
+        entries whose tile row is missing, epochs whose source blocks are missing or fail their sha256.
+        (For ``terralod check``; the tile rows themselves are checked by their own CRC.)"""
+        if not self.has_epochs:
+            return []
+        out = []
+        for r in self.epoch_rows():
+            if r["state"] != "complete":
+                out.append(f"epoch {r['name']!r}: interrupted update (finish it with --resume or delete it)")
+                continue
+            missing = self._conn.execute(
+                "SELECT count(*) FROM epoch_tiles e WHERE e.epoch = ? AND NOT ("
+                "(e.rev = 0 AND EXISTS (SELECT 1 FROM tiles t WHERE t.level = e.level AND t.x = e.x AND t.y = e.y)) "
+                "OR EXISTS (SELECT 1 FROM tile_revs t WHERE t.level = e.level AND t.x = e.x AND t.y = e.y "
+                "AND t.rev = e.rev))",
+                (r["id"],),
+            ).fetchone()[0]
+            if missing:
+                out.append(f"epoch {r['name']!r}: {missing} tiles of its map are not stored")
+            try:
+                self.epoch_source(r["name"])
+            except Exception as exc:  # noqa: BLE001 - reported, not raised
+                out.append(f"epoch {r['name']!r}: source samples unreadable ({getattr(exc, 'message', exc)})")
+        return out
+
     def vacuum(self) -> None:
         """Give the pages of deleted rows back to the file system."""
         self._conn.execute("VACUUM")
