@@ -510,3 +510,26 @@ def test_viewer_epoch_slider_overlay_and_cursor(base_store, tmp_path: Path) -> N
     cursor = [ln for ln in out["hud"] if ln.startswith("under cursor: elevation")]
     assert cursor and "change" in cursor[0] and "since 1 Jan 2000" in cursor[0]
     assert shot.exists()
+
+
+def test_adaptive_update_keeps_the_stated_ladder(tmp_path: Path) -> None:
+    """The adaptive TIN plans its error ladder from the first epoch (build_options): an update meshes with
+    that ladder, so it equals a fresh build with the same ladder and quantisation."""
+    from terralod.pyramid.adaptive import mesher_for
+    from terralod.pyramid.builder import METHODS, register_method
+
+    z = _base(97, 113, 5)
+    store, fresh = tmp_path / "a.terra", tmp_path / "f.terra"
+    build_store(_hf(z), store, tile_size=17, method="adaptive", epoch="a", workers=2)
+    z2 = z.copy()
+    z2[10:20, 10:20] += 30.0
+    rep = update_store(_hf(z2), store, "b", workers=2)
+    assert 0 < rep.tiles_dirty < rep.tiles_total
+    with open_store(store) as s:
+        quant, opts = s.quantisation, s.meta["build_options"]
+    register_method("_adaptive_stated", mesher_for(opts))
+    try:
+        build_store(_hf(z2), fresh, tile_size=17, method="_adaptive_stated", quantisation=quant, workers=2)
+    finally:
+        METHODS.pop("_adaptive_stated", None)
+    assert _rows(store) == _rows(fresh)

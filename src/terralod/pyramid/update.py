@@ -59,6 +59,17 @@ def window_margin(method: str, stride: int) -> int:
     return 4 * stride
 
 
+def stated_mesher(method: str, build_options: dict[str, Any]) -> Any:
+    """The mesher of ``method`` with the options the store states: a mesher module's
+    ``mesher_for(build_options)`` where it has one (e.g. the adaptive TIN's error ladder, planned from the
+    first epoch's data and fixed for the store like the quantisation), else the registered mesher."""
+    import sys
+
+    fn = METHODS[method]
+    make = getattr(fn, "mesher_for", None) or getattr(sys.modules.get(fn.__module__), "mesher_for", None)
+    return make(build_options) if callable(make) else fn
+
+
 def changed_samples(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """(H, W) bool: where elevation (bit for bit, as float32) or validity differ between two epochs."""
     za = np.ascontiguousarray(a[0], np.float32).view(np.uint32)
@@ -352,7 +363,7 @@ def _rebuild(
     progress: Callable[[int, int], None] | None, n_skipped: int, total: int,
 ) -> tuple[int, float]:  # fmt: skip
     """Mesh and measure ``todo`` (finest first) level by level, committing batches; (tiles built, seconds)."""
-    mesh_fn = METHODS[method]
+    mesh_fn = stated_mesher(method, store.meta.get("build_options") or {})
     quant = store.quantisation
     n_workers = max(1, workers or os.cpu_count() or 1)
     built = 0
