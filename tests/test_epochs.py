@@ -533,3 +533,28 @@ def test_adaptive_update_keeps_the_stated_ladder(tmp_path: Path) -> None:
     finally:
         METHODS.pop("_adaptive_stated", None)
     assert _rows(store) == _rows(fresh)
+
+
+def test_log_attraction_margin_rebuilds_tiles_whose_roughness_window_changed(tmp_path: Path) -> None:
+    """The cohesion map with LoG attraction reads roughness 2 strides around a tile: a change just outside
+    tile (1, 0, 0)'s own samples changes that tile, so the update must (and does) rebuild it."""
+    from terralod.pyramid.builder import METHODS, register_method
+    from terralod.pyramid.cohesion import make_mesher
+
+    register_method("_cohesion_log", make_mesher(attraction="log"))
+    try:
+        z = _base(97, 113, 5)
+        store, fresh = tmp_path / "l.terra", tmp_path / "f.terra"
+        build_store(_hf(z), store, tile_size=17, method="_cohesion_log", epoch="a", workers=2)
+        z2 = z.copy()
+        z2[2:62, 67] -= 50.0  # 3 columns east of the tile's last (64), inside its 8-sample margin
+        update_store(_hf(z2), store, "b", workers=2)
+        with open_store(store) as s:
+            build_store(
+                _hf(z2), fresh, tile_size=17, method="_cohesion_log", quantisation=s.quantisation, workers=2
+            )
+        new, ref, old = _rows(store), _rows(fresh), _rows(store, "a")
+    finally:
+        METHODS.pop("_cohesion_log", None)
+    assert ref[(1, 0, 0)] != old[(1, 0, 0)] and (1, 0, 0) in _revs(store, "b", rebuilt=True)
+    assert new == ref

@@ -2,9 +2,11 @@
 
 A tile's *source window* is every sample its mesher reads: the tile's own samples ``[r0, r0 + span]`` x
 ``[c0, c0 + span]`` (clipped to the data, whose last row and column stand in for the padding), widened by
-the mesher's margin — 0 for Chunked LOD, ``2 * stride`` for the vertex cohesion map (paper 000), whose LoG
-roughness of sigma = stride / 2 is taken over 4 sigma around the window (``cohesion._window_roughness``);
-other meshers get ``4 * stride`` unless they declare ``window_margin(stride)``. A tile is *dirty* when
+the mesher's margin — 0 for Chunked LOD and for the vertex cohesion map (paper 000) with its default
+error-driven attraction, ``2 * stride`` for the cohesion map with LoG attraction (the paper as written),
+whose roughness of sigma = stride / 2 is taken over 4 sigma around the window
+(``cohesion._window_roughness``); other meshers get ``4 * stride`` unless they declare
+``window_margin(stride)`` (the adaptive TIN: 0). One sample more is added for safety. A tile is *dirty* when
 any sample of its window differs (bit for bit, elevation or validity) between the base epoch and the new
 one. A parent's window holds its children's, so every ancestor of a dirty tile is dirty too and is
 re-meshed and re-measured, and a clean tile's children are clean: its bytes, including its monotone error,
@@ -37,6 +39,7 @@ from affine import Affine
 from terralod.errors import InputError, StoreError
 from terralod.heightfield import Heightfield
 from terralod.pyramid.builder import METHODS, _level_max_range, build_tile
+from terralod.pyramid.cohesion import CohesionOptions
 from terralod.store import EncodedTile, TileStore
 from terralod.store_epochs import DEFAULT_EPOCH, epoch_record
 from terralod.tiles import TileCode, TilePyramid
@@ -54,8 +57,11 @@ def window_margin(method: str, stride: int) -> int:
         return int(own(stride))
     if method == "chunked":
         return 0
-    if method == "cohesion":
-        return 2 * stride
+    opt = getattr(fn, "options", None)
+    if method == "cohesion" or isinstance(opt, CohesionOptions):
+        # the default (error-driven attraction) reads only the tile's own samples; LoG attraction (the paper
+        # as written) reads 4 sigma = 2 strides of roughness around them
+        return 2 * stride if getattr(opt, "attraction", "error") == "log" else 0
     return 4 * stride
 
 
