@@ -472,8 +472,8 @@ def print_store_summary(summary: dict[str, Any]) -> None:
     from rich import box
 
     # compact (fits 80 columns with numbers of 10 digits): errors in metres, size in KiB
-    t = Table(box=box.SIMPLE_HEAD, pad_edge=False)
-    for col in ("level", "tiles", "vertices", "triangles", "error m", "vert. m", "RMS m", "KiB"):
+    t = Table(box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    for col in ("level", "tiles", "vertices", "triangles", "max error m", "max vert. m", "RMS m", "KiB"):
         t.add_column(col, justify="right", no_wrap=True)
     for k, d in summary["per_level"].items():
         t.add_row(
