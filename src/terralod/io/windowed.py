@@ -38,6 +38,7 @@ Deviations from the in-memory reader, and why:
 from __future__ import annotations
 
 import math
+import os
 import threading
 import warnings
 from collections import OrderedDict
@@ -58,6 +59,9 @@ __all__ = ["ArraySource", "RasterSource", "WindowSource", "open_source"]
 #: Side of the fixed nodata-fill blocks, samples, and the halo each is filled with (see deviation 1).
 FILL_BLOCK = 512
 FILL_HALO = 64
+#: GDAL's block cache of a process reading windows, bytes (GDAL's default, 5 % of the RAM, would hold
+#: decompressed blocks up to GiBs on a large machine); left alone when GDAL_CACHEMAX is set.
+GDAL_CACHE_BYTES = 128 << 20
 #: Filled blocks kept per source and process (each (FILL_BLOCK)^2 float32 + bool, 1.25 MiB).
 FILL_CACHE_BLOCKS = 64
 
@@ -196,6 +200,10 @@ class RasterSource(WindowSource):
 
         ds = getattr(self._local, "ds", None)
         if ds is None:
+            if "GDAL_CACHEMAX" not in os.environ:
+                from rasterio._env import set_gdal_config
+
+                set_gdal_config("GDAL_CACHEMAX", GDAL_CACHE_BYTES)
             target = self._vrt if self._vrt is not None else self.paths[0]
             try:
                 with warnings.catch_warnings():
