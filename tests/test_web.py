@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import re
 import shutil
 import subprocess
 import threading
@@ -426,6 +427,7 @@ def test_browser_cesium_loads_both_formats(
         assert res["loaded"] and not res["errors"] and not res["failedRequests"], res
         assert res["tileResponses"] > 0 and all(b.startswith("304") for b in res["badTileResponses"])
         assert not res["blocked"]
+        assert re.search(r"height under cursor -?\d+\.\d m", res["cursor"]), res["cursor"]
         img = np.asarray(Image.open(tmp_path / f"shot-{fmt}.png").convert("RGB"), np.float64)[120:, :]
         assert img.std() > 15 and (img.sum(axis=2) > 60).mean() > 0.2  # a lit, varied terrain fills the frame
     layer = qm.layer()
@@ -504,7 +506,6 @@ def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pyte
 
 def test_serve_cli_binds_loopback_by_default(alpine_store: Path) -> None:
     """`terralod serve` listens on 127.0.0.1 unless told otherwise, and warns for any other address."""
-    import re
     import sys
 
     for host, warn in ((None, False), ("127.0.0.2", True)):

@@ -49,6 +49,10 @@ try {
   await new Promise((r) => setTimeout(r, 300));
   await page.screenshot({ path: shot });
   out.hud = await page.evaluate(() => document.getElementById("hud").innerText);
+  await page.mouse.move(320, 330);
+  await page.mouse.move(322, 332);
+  await new Promise((r) => setTimeout(r, 400));
+  out.cursor = await page.evaluate(() => document.getElementById("cursor").textContent);
 } catch (e) {
   out.errors.push("driver: " + e.message);
 } finally {
