@@ -13,7 +13,8 @@ BEFORE's grid), same output (the translation applied to AFTER, metres):
   grids and any CRS (geographic inputs are in UTM after reading).
 - ``"terralod"``: the same model written in gradient form, ``dh ≈ −∇z·(dx, dy) + dz`` (Nuth & Kääb's
   cosine is the projection of the shift on the gradient, ``tan α·cos(b − ψ)``), solved by Gauss-Newton
-  with iteratively re-weighted least squares (cells beyond 3 NMAD of the residual dropped each step)
+  with iteratively re-weighted least squares (cells beyond 3 NMAD of the residual dropped each step; the
+  gradient is BEFORE's, fixed, as in inverse-compositional image alignment)
   instead of their binned curve fit of ``dh / tan α`` against aspect, on a coarse-to-fine pair of
   Gaussian-smoothed surfaces (4, 2, 1 px, then unsmoothed) so that shifts of several pixels converge.
   AFTER is sampled from its own grid at the shifted positions (cubic spline), never resampled twice.
@@ -196,23 +197,24 @@ def _fit_terralod(
         a_s = ndimage.gaussian_filter(a_full, sigma_px * px / min(dxa, dya)) if sigma_px else a_full
         b = b_s[rows, cols]
         a_coef = ndimage.spline_filter(a_s, order=3)
-        gy_a, gx_a = np.gradient(a_s)
-        gx_a, gy_a = gx_a / dxa, -gy_a / dya  # d/dx east, d/dy north (row 0 north)
+        # the gradient of BEFORE at its own cells (central differences leave the cell's own sample out, so
+        # white noise in the residual is uncorrelated with it; AFTER's gradient would share AFTER's noise)
+        gy_b, gx_b = np.gradient(b_s)
+        gx = gx_b[rows, cols] / before.spacing_m[0]  # d/dx east
+        gy = -gy_b[rows, cols] / before.spacing_m[1]  # d/dy north (row 0 north)
         for _ in range(max_iter):
             iters += 1
             r, c = after.sample_rc(x - t[0], y - t[1])
             coords = np.stack([r, c])
             a = ndimage.map_coordinates(a_coef, coords, order=3, mode="nearest", prefilter=False)
             _, ok = sample_surface(after, r, c, order=1)
-            gx = ndimage.map_coordinates(gx_a, coords, order=1, mode="nearest")
-            gy = ndimage.map_coordinates(gy_a, coords, order=1, mode="nearest")
             res = a + t[2] - b
             med = np.median(res[ok])
             s = max(nmad(res[ok]), 1e-9)
             use = ok & (np.abs(res - med) <= OUTLIER_NMAD * s)
             if use.sum() < MIN_STABLE_CELLS:
                 break
-            # r(t + δ) ≈ r(t) − gx·δx − gy·δy + δz = 0
+            # r(t + δ) ≈ r(t) − ∇A(x − t)·δ + δz, and ∇A(x − t) ≈ ∇B(x) near the solution
             m = np.column_stack([gx[use], gy[use], -np.ones(int(use.sum()))])
             delta, *_ = np.linalg.lstsq(m, res[use], rcond=None)
             t += delta
