@@ -31,20 +31,26 @@ from _common import write_results  # noqa: E402
 
 
 def hypothesis_rounds(seeds: dict[str, Path], folder: Path, seconds: float, per_round: int) -> dict[str, Any]:
+    """Rounds of ``per_round`` random cases per target until ``seconds`` are spent; one child process per
+    target and round (a crash by signal loses only that target's round, and is counted)."""
     total: dict[str, Any] = {t: {"cases": 0, "failures": []} for t in seeds}
     crashes: list[str] = []
     t_end = time.monotonic() + seconds
     rounds = 0
     while time.monotonic() < t_end:
-        res = fuzzing.run_campaign(
-            seeds, folder, per_round, derandomize=False, timeout_s=max(60.0, 4 * seconds)
-        )
+        order = list(seeds)[rounds % len(seeds) :] + list(seeds)[: rounds % len(seeds)]  # rotate the start
         rounds += 1
-        if "_crash" in res:
-            crashes.append(res.pop("_crash"))
-        for t, r in res.items():
-            total[t]["cases"] += r["cases"]
-            total[t]["failures"] += r["failures"][: max(0, 5 - len(total[t]["failures"]))]
+        for k, t in enumerate(order):
+            share = max(1.0, (t_end - time.monotonic()) / (len(order) - k))
+            res = fuzzing.run_campaign({t: seeds[t]}, folder, per_round, derandomize=False, seconds=share,
+                                       timeout_s=share + 300)  # fmt: skip
+            if "_crash" in res:
+                crashes.append(f"{t}: {res.pop('_crash')[-400:]}")
+            for name, r in res.items():
+                total[name]["cases"] += r["cases"]
+                total[name]["failures"] += r["failures"][: max(0, 5 - len(total[name]["failures"]))]
+            if time.monotonic() >= t_end:
+                break
     return {"targets": total, "rounds": rounds, "crashes": crashes}
 
 
@@ -72,7 +78,7 @@ def one(data):
     if bad:
         raise RuntimeError(bad)
 atheris.Setup([sys.argv[0], f"-max_total_time={{seconds}}", "-rss_limit_mb=3072", "-timeout=60",
-               "-print_final_stats=1", seed_dir], one)
+               "-print_final_stats=1", "-artifact_prefix=" + work + "/", seed_dir], one)
 atheris.Fuzz()
 """
 
