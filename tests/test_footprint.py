@@ -76,14 +76,16 @@ def test_no_stored_triangle_lies_over_nodata(tmp_path: Path, method: str) -> Non
             if code[0] == finest:
                 for tri in t.triangles:
                     covered |= _covered(rows, cols, tri, hf.shape)
-        # the finest level still covers every valid sample away from the nodata's edge
+        assert not covered[40:60, 50:80].any()  # the lake's interior is sky
+        if method not in ("chunked", "cohesion"):
+            return  # other meshers' finest level is not the full-resolution grid (adaptive TINs)
+        # the finest level (the source grid) still covers every valid sample away from the nodata's edge
         inner = hf.valid.copy()
         for dr in (-1, 0, 1):
             for dc in (-1, 0, 1):
                 inner &= np.roll(np.roll(hf.valid, dr, 0), dc, 1)
         inner[[0, -1], :] = inner[:, [0, -1]] = False
         assert covered[inner].all()
-        assert not covered[40:60, 50:80].any()  # the lake's interior is sky
 
 
 def test_fully_valid_tiles_are_untouched(tmp_path: Path) -> None:
