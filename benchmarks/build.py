@@ -17,7 +17,8 @@ mirror-tiling of Puget Sound) and each tile method (M = 65, all cores):
    is the renderer's layout: 24 bytes a vertex (float32 position + normal) and 12 a triangle (uint32);
    ``adaptive`` is the default ladder (root error from a regular tile's vertex count, halving per level);
    ``adaptive_fine`` the ladder from a near-lossless finest level (0.5 m) with every tile capped at M^2
-   vertices;
+   vertices (``--methods adaptive_dense,adaptive`` runs the default ladder with a root of 4 M^2 vertices:
+   ``benchmarks/results/build_adaptive_dense.md``, renamed from that run's ``build.md``);
 3. the 2 px camera path of ``benchmarks/cohesion_vs_chunked.py`` (a circle over the terrain, 20 degrees
    down, 1920 x 1080): triangles drawn per frame, the worst drawn screen error, GPU MiB of the frame.
 
@@ -55,6 +56,8 @@ TILE_SIZE = 65
 #: The adaptive ladder from the other end: a near-lossless finest level (0.5 m), halving upward, every tile
 #: capped at a regular tile's M^2 vertices (coarse tiles then stop above their target, measured).
 register_method("adaptive_fine", adaptive.make_mesher(finest_error_m=0.5, max_tile_vertices=TILE_SIZE**2))
+#: The default ladder with a root of 4 M^2 vertices (every level's target halved).
+register_method("adaptive_dense", adaptive.make_mesher(root_vertices=4 * TILE_SIZE**2))
 #: GPU bytes of the renderer (terralod.render.renderer): per vertex, per triangle.
 GPU_VERTEX_BYTES = 24
 GPU_TRIANGLE_BYTES = 12
