@@ -126,7 +126,7 @@ class Viewer:
         self.fov_y_deg = fov_y_deg
         self.threshold_px = threshold_px
         # the terrain's own engine (selection on a worker thread where the kind has one)
-        self.engine = terrain.engine(threshold_px=threshold_px, background=True, cull=cull)
+        self.engine = terrain.engine(threshold_px=threshold_px, background=True, cull=cull, async_loads=True)
         self.renderer = TerrainRenderer(width_px, height_px, ctx=self.ctx)
         # one colour ramp (with its legend) over the terrain's range, water where the source marks it
         self.settings = terrain_colours(terrain, RenderSettings(legend=True), water_level_m)
