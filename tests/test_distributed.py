@@ -3,6 +3,8 @@ in-memory build, a streamed plan equal to the in-memory one, coarse tiles measur
 
 from __future__ import annotations
 
+import os
+import signal
 import sqlite3
 from pathlib import Path
 
@@ -159,8 +161,8 @@ def test_geographic_rasters_are_refused_in_one_line(tmp_path: Path) -> None:
 
 def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
     """A LocalCluster of 2 worker processes builds the in-memory build's tiles; an interrupted Dask build
-    (stopped after some tiles, as a dead client leaves it) finishes with resume; an unreachable scheduler
-    is refused before anything is written."""
+    (stopped after some tiles, as a dead client leaves it) finishes with resume; a build during which a
+    worker is killed gives the same tiles; an unreachable scheduler is refused."""
     pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
     tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(129, 193, seed=7, relief_m=400.0))
     build_store(read_heightfield(tif), tmp_path / "mem.terra", tile_size=33, method="chunked", workers=1)
@@ -173,10 +175,27 @@ def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
         rest = build_store_windowed(RasterSource(tif), out, tile_size=33, method="chunked", client=client,
                                     resume=True)  # fmt: skip
         assert rest.tiles_skipped == first.tiles_built
+        # a worker killed (SIGKILL) once the first tiles are committed: its units are rebuilt elsewhere
+        pids = list(client.run(os.getpid).values())
+        killed = []
+
+        def kill_once(done: int, total: int) -> None:
+            if done and not killed:
+                os.kill(pids[0], signal.SIGKILL)
+                killed.append(done)
+
+        # tile size 9 on 65 x 97: the first commit (64 tiles or 0.5 s) is mid-level, units in flight
+        small = _write_tif(tmp_path / "small.tif", fractal_terrain(65, 97, seed=8, relief_m=300.0))
+        hit = tmp_path / "killed.terra"
+        rep = build_store_windowed(RasterSource(small), hit, tile_size=9, method="chunked", client=client,
+                                   unit_span_samples=8, progress=kill_once)  # fmt: skip
+        assert killed and killed[0] < 8 * 12 and rep.tiles_total == rep.tiles_built
     finally:
         cluster = client.cluster
         client.close()
         cluster.close()
     assert _rows(out) == _rows(tmp_path / "mem.terra")
+    build_store(read_heightfield(small), tmp_path / "mem9.terra", tile_size=9, method="chunked", workers=1)
+    assert _rows(hit) == _rows(tmp_path / "mem9.terra")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
         dask_client("tcp://127.0.0.1:9", timeout_s=1.0)
