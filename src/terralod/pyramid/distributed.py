@@ -27,8 +27,12 @@ Heightfield behind the same interface) without ever holding the whole DEM:
    :mod:`terralod.pyramid.footprint`) is judged on the decimated samples. Such tiles are not the
    in-memory build's (deviation, below);
    ``max_window_samples=None`` never decimates and gives the in-memory tiles at every level, with peak
-   memory bounded by the root's window: about 13 bytes a sample of ``(span_0 + 1)^2`` for cohesion,
-   whose coarse levels refine on the full-resolution source.
+   memory bounded by the root's window, ``(span_0 + 1)^2`` samples at 5 bytes each as read (float32 +
+   mask), plus 9 for cohesion's float64 copy and mask (its coarse levels refine on the full-resolution
+   source): about 3.7 GB for a 16385² root (an estimate from the array sizes, not measured). The default
+   budget (4097² samples read whole) bounds a work unit at about 14 bytes x 16.8 M = 235 MB plus the
+   mesher's per-quad arrays; a process also holds GDAL's block cache (capped at 128 MiB by the window
+   source) and one plan strip (at most ``SCAN_STRIP_SAMPLES``).
 4. **One writer**: results stream back (threads or Dask futures, as they complete) to the caller's
    process, which commits them in transactions of at most ``_BATCH_TILES`` tiles or
    ``_COMMIT_SECONDS`` (the builder's policy). Levels run finest first with a barrier between levels
