@@ -203,7 +203,8 @@ def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> None:
             os.dup2(devnull, 1)
             import laspy
 
-            laspy.read(str(p))
+            # single-threaded: a parallel decoder's thread pool, if the parent started one, is not in the child
+            laspy.read(str(p), laz_backend=laspy.LazBackend.Lazrs)
             code = 0
         except BaseException:  # noqa: BLE001 - the parent reads again and reports the error itself
             code = 3
