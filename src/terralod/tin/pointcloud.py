@@ -212,14 +212,20 @@ def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> None:
             os._exit(code)
     t_end = time.monotonic() + timeout_s
     while True:
-        done, status = os.waitpid(pid, os.WNOHANG)
+        try:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if not done:
+                time.sleep(0.005)
+        except BaseException:  # interrupted (Ctrl-C, an alarm): the child must not outlive us
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            raise
         if done:
             break
         if time.monotonic() > t_end:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
             raise InputError(f"decoding the LAZ points took over {timeout_s:g} s; the file is probably corrupt", str(p))
-        time.sleep(0.005)
     if os.WIFSIGNALED(status):
         raise InputError(
             f"the LAZ decoder (lazrs) crashed on the compressed points (signal {os.WTERMSIG(status)}): the file is "
