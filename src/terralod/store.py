@@ -1,4 +1,12 @@
-"""TileStore: the level-of-detail tiles of one terrain in one SQLite file (``*.terra``, WAL mode).
+"""TileStore: the level-of-detail tiles of one terrain in one SQLite file (``*.terra``).
+
+Integrity (format version 2): ``meta_sha256`` is the SHA-256 of every other meta row (:func:`meta_checksum`),
+re-sealed by every metadata write and verified at open, so a changed quantisation or transform is a
+:class:`CorruptStoreError`, never wrong coordinates; each tile row has its CRC-32. A store is created
+atomically (schema and metadata committed to a temporary beside it, then linked into place) and replaced
+atomically (``--overwrite`` builds beside the old one, :func:`install_store` renames it over when complete).
+Writers work in WAL mode and leave rollback mode when they close, so readers (``mode=ro``) leave no
+``-wal``/``-shm`` behind. Older formats open with one line naming ``terralod check --upgrade``.
 
 Layout
 ------
