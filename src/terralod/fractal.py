@@ -827,8 +827,10 @@ def write_geotiff(detail: FractalDetail, output: str | os.PathLike[str], factor:
     if detail.hf.crs:
         profile["crs"] = CRS.from_user_input(detail.hf.crs)
     invalid = 0
+    from terralod.io.raster import c_stderr_captured, error_line
+
     try:
-        with rasterio.open(tmp, "w", **profile) as dst:
+        with c_stderr_captured() as said, rasterio.open(tmp, "w", **profile) as dst:
             for r0 in range(0, nr, STRIP_ROWS):
                 n = min(STRIP_ROWS, nr - r0)
                 z = detail.window(r0, 0, n, nc, factor)
@@ -840,7 +842,7 @@ def write_geotiff(detail: FractalDetail, output: str | os.PathLike[str], factor:
     except BaseException as exc:
         tmp.unlink(missing_ok=True)
         if isinstance(exc, Exception) and not isinstance(exc, InputError):  # full disk, I/O: name the file
-            text = " ".join(str(getattr(exc, "strerror", None) or exc).split())[:200]
+            text = error_line(exc) + (f"; {said[0]}" if said else "")
             raise OSError(getattr(exc, "errno", None), f"cannot write ({text})", str(out)) from exc
         raise
     return {"rows": nr, "cols": nc, "invalid": invalid}

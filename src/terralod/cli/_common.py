@@ -527,6 +527,8 @@ LIBRARY_LOGGERS = ("rasterio", "fiona", "laspy", "py.warnings", "PIL", "numba", 
 def quiet_libraries(verbose: bool) -> None:
     """Route library warnings to logging and show them only with ``-v`` (INFO level and up)."""
     logging.captureWarnings(True)
+    if not verbose:  # GDAL's own default handler (messages outside rasterio's handler, e.g. libtiff on close)
+        os.environ.setdefault("CPL_LOG", os.devnull)
     for name in LIBRARY_LOGGERS:
         logging.getLogger(name).setLevel(logging.INFO if verbose else logging.CRITICAL)
 

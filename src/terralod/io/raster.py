@@ -27,8 +27,14 @@ north. Every conversion is recorded in ``Heightfield.notes``.
 
 from __future__ import annotations
 
+import logging
 import math
+import os
+import sys
+import tempfile
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -182,6 +188,33 @@ def read_raster(
             )
         notes = (*notes, "geotransform ignored: the file has no CRS")
     return place_heightfield(values, valid, src, hints, notes=notes)
+
+
+@contextmanager
+def c_stderr_captured() -> Iterator[list[str]]:
+    """Collect what C libraries write straight to file descriptor 2 (libtiff prints some errors itself,
+    before any ``terralod:`` line could): yields a list filled with those lines on exit; they are logged at
+    INFO (shown with ``-v``) and callers may add the first one to their message."""
+    lines: list[str] = []
+    try:
+        buf = tempfile.TemporaryFile()
+        saved = os.dup(2)
+    except OSError:
+        yield lines
+        return
+    sys.stderr.flush()
+    os.dup2(buf.fileno(), 2)
+    try:
+        yield lines
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+        buf.seek(0)
+        lines.extend(ln for ln in buf.read().decode("utf-8", "replace").splitlines() if ln.strip())
+        buf.close()
+        for ln in lines:
+            logging.getLogger("terralod.io.gdal").info("%s", ln)
 
 
 def error_line(exc: BaseException) -> str:
