@@ -271,7 +271,8 @@ def _zigzag_delta16(a: np.ndarray) -> np.ndarray:
 
 
 def _undo_zigzag_delta16(z: np.ndarray) -> np.ndarray:
-    return undo_zigzag_delta(z, 0xFFFF).astype(np.uint16)
+    out: np.ndarray = undo_zigzag_delta(z, 0xFFFF).astype(np.uint16)
+    return out
 
 
 def _zigzag_delta32(a: np.ndarray) -> np.ndarray:
@@ -280,7 +281,8 @@ def _zigzag_delta32(a: np.ndarray) -> np.ndarray:
 
 
 def _undo_zigzag_delta32(z: np.ndarray) -> np.ndarray:
-    return undo_zigzag_delta(z, 0xFFFFFFFF).astype(np.uint32)
+    out: np.ndarray = undo_zigzag_delta(z, 0xFFFFFFFF).astype(np.uint32)
+    return out
 
 
 #: zlib level of tile blobs: 3 compresses a 65² tile 2.5x faster than 6 for ~3 % more bytes (measured on
@@ -822,7 +824,8 @@ def store_method(path: str | os.PathLike[str]) -> str | None:
     except sqlite3.Error:
         return None
     try:
-        return _meta_value(conn, "method")
+        method = _meta_value(conn, "method")
+        return None if method is None else str(method)
     finally:
         conn.close()
 

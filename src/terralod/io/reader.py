@@ -58,7 +58,8 @@ from affine import Affine
 
 from terralod.errors import InputError, InputNotFoundError
 from terralod.heightfield import Heightfield
-from terralod.io.heightmap import ENCODINGS, read_array, read_image
+from terralod.io.encodings import ENCODINGS
+from terralod.io.heightmap import read_array, read_image
 from terralod.io.raster import FrameHints, georeferenced_heightfield, read_raster
 
 IMAGE_SUFFIXES = frozenset({".png", ".webp"})
@@ -120,7 +121,7 @@ def read_heightfield(
     if isinstance(band, bool) or not isinstance(band, int | np.integer) or band < 1:
         raise InputError(f"band must be a 1-based integer, got {band!r}", src)
     side = read_sidecar(p)
-    explicit = {
+    explicit: dict[str, Any] = {
         "vertical_scale": _opt_float(vertical_scale, "vertical_scale", src),
         "vertical_offset": _opt_float(vertical_offset, "vertical_offset", src),
         "spacing_m": None if spacing_m is None else spacing_pair(spacing_m, src),
@@ -132,7 +133,7 @@ def read_heightfield(
     suffix = p.suffix.lower()
     if suffix in IMAGE_SUFFIXES or suffix in ARRAY_SUFFIXES:
         notes = (f"sidecar {p.with_suffix('.json').name} read",) if side else ()
-        common = {
+        common: dict[str, Any] = {
             "vertical_scale": opts.get("vertical_scale"),
             "vertical_offset": opts.get("vertical_offset"),
             "nodata": opts.get("nodata"),
@@ -165,7 +166,8 @@ def sample_heightfield() -> Heightfield:
     """
     from matplotlib import cbook
 
-    with cbook.get_sample_data("jacksboro_fault_dem.npz") as d:
+    sample: Any = cbook.get_sample_data("jacksboro_fault_dem.npz")
+    with sample as d:
         z = np.asarray(d["elevation"], dtype=np.float64)
         west, east = float(d["xmin"]), float(d["xmax"])
         south, north = sorted((float(d["ymin"]), float(d["ymax"])))
@@ -204,8 +206,8 @@ def read_sidecar(path: str | os.PathLike[str]) -> dict[str, Any]:
         raise InputError(f"sidecar is not valid JSON ({exc})", name) from None
     if not isinstance(raw, dict):
         raise InputError(f"sidecar must hold a JSON object, got {type(raw).__name__}", name)
-    vert = raw.get("vertical") if isinstance(raw.get("vertical"), dict) else {}
-    hor = raw.get("horizontal") if isinstance(raw.get("horizontal"), dict) else {}
+    vert: dict[str, Any] = raw["vertical"] if isinstance(raw.get("vertical"), dict) else {}
+    hor: dict[str, Any] = raw["horizontal"] if isinstance(raw.get("horizontal"), dict) else {}
 
     def pick(flat: str, nested: dict[str, Any], key: str) -> Any:
         return raw[flat] if raw.get(flat) is not None else nested.get(key)
@@ -288,8 +290,8 @@ def _hints(opts: dict[str, Any], src: str) -> FrameHints:
         spacing_m=opts.get("spacing_m"),
         crs=crs,
         transform=None if t is None else Affine.from_gdal(*t),
-        origin_m=None if opts.get("origin_m") is None else tuple(opts["origin_m"]),  # type: ignore[arg-type]
-        bounds=None if opts.get("bounds") is None else tuple(opts["bounds"]),  # type: ignore[arg-type]
+        origin_m=None if opts.get("origin_m") is None else tuple(opts["origin_m"]),
+        bounds=None if opts.get("bounds") is None else tuple(opts["bounds"]),
         tile=opts.get("tile"),
     )
 

@@ -87,7 +87,7 @@ class BuildReport:
 
 
 @jit
-def _level_max_range(z, s, m, step):
+def _level_max_range(z: np.ndarray, s: int, m: int, step: int) -> float:
     """Largest (max - min) height over the rows and columns ``step`` apart (edge-replicated) of any tile
     window of a level: ``step = s`` takes the level's grid vertices; ``step = 1`` every source sample
     (relocated vertices may sit on any sample, or between samples with bilinear heights, so all samples
@@ -141,7 +141,7 @@ def plan_quantisation(
 
 def _store_meta(
     hf: Heightfield, pyramid: TilePyramid, method: str, quant: dict[int, LevelQuantisation]
-) -> dict:
+) -> dict[str, Any]:
     return {
         "source": hf.source,
         "source_digest": hf.digest(),
@@ -202,7 +202,8 @@ def build_tile(
     """Mesh, quantise, dequantise and measure one tile; monotone errors from its children."""
     r0, c0 = pyramid.origin_rc(code)
     if getattr(mesh_fn, "needs_spacing", False):
-        rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code, spacing_m=hf.spacing_m)
+        spaced: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = mesh_fn
+        rows, cols, hz, tris = spaced(hf.elevation_m, hf.valid, pyramid, code, spacing_m=hf.spacing_m)
     else:
         rows, cols, hz, tris = mesh_fn(hf.elevation_m, hf.valid, pyramid, code)
     span = pyramid.span(code[0])
