@@ -235,7 +235,7 @@ def _num(v: float):
 def read_stable_mask(path, hf) -> np.ndarray:
     """A stable-ground mask on ``hf``'s grid from a raster (non-zero, finite = stable; nearest-neighbour
     onto the grid, in its own CRS) or from GeoJSON polygons (inside = stable; see
-    :func:`terralod.change.volumes.read_zones` for their CRS)."""
+    :func:`terralod.change.zones.read_zones` for their CRS)."""
     from pathlib import Path
 
     from terralod.errors import InputError, InputNotFoundError
@@ -244,7 +244,7 @@ def read_stable_mask(path, hf) -> np.ndarray:
     if not p.exists():
         raise InputNotFoundError("file not found", str(p))
     if p.suffix.lower() in (".geojson", ".json"):
-        from terralod.change.volumes import read_zones
+        from terralod.change.zones import read_zones
 
         masks = [m for _, m, _, _ in read_zones(p, hf)]
         return np.logical_or.reduce(masks)

@@ -1,0 +1,99 @@
+"""Zones of a change budget: GeoJSON polygons as masks on a heightfield's grid (GCD's budget segregation).
+
+Coordinates are in the CRS named by the file's ``crs`` member, else lon/lat as RFC 7946 says. Used by the
+budgets (:mod:`terralod.change.volumes`) and by stable-ground masks (:mod:`terralod.change.coregister`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from terralod.change.difference import crs_label
+from terralod.errors import InputError
+from terralod.heightfield import Heightfield
+
+
+def read_zones(path: str | Path, hf: Heightfield) -> list[tuple[str, np.ndarray, float, dict]]:
+    """Polygons of a GeoJSON file as masks on ``hf``'s grid: (name, mask, fraction of the polygon's area on
+    the terrain, geometry in the grid CRS). Coordinates are in the CRS named by the file's ``crs`` member,
+    else lon/lat (RFC 7946).
+
+    Raises
+    ------
+    InputError : unreadable file, no polygon, a CRS that cannot be used, a polygon outside the terrain.
+    """
+    from rasterio.features import rasterize
+    from shapely.geometry import box, mapping, shape
+    from shapely.ops import transform as shp_transform
+
+    p = Path(path)
+    src = str(p)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        from terralod.errors import InputNotFoundError
+
+        raise InputNotFoundError("file not found", src) from None
+    except (OSError, ValueError) as exc:
+        raise InputError(f"is not GeoJSON ({exc})", src) from None
+    crs_name = None
+    if isinstance(data, dict) and isinstance(data.get("crs"), dict):
+        crs_name = (data["crs"].get("properties") or {}).get("name")
+    feats = _features(data, src)
+    if crs_name is None:
+        crs_name = "EPSG:4326"
+    if hf.crs is None:
+        raise InputError("the terrain has no CRS, so GeoJSON coordinates cannot be placed on it", src)
+    try:
+        from pyproj import CRS, Transformer
+
+        tr = Transformer.from_crs(CRS.from_user_input(crs_name), CRS.from_user_input(hf.crs), always_xy=True)
+    except Exception as exc:  # noqa: BLE001 - pyproj raises its own CRSError
+        raise InputError(f"crs {crs_name!r} cannot be used ({exc})", src) from None
+    terrain_box = box(*hf.bounds_m)
+    out = []
+    for i, (props, geom) in enumerate(feats):
+        name = str(props.get("name", f"zone {i + 1}"))
+        try:
+            g = shp_transform(lambda x, y, z=None: tr.transform(x, y), shape(geom))
+        except Exception as exc:  # noqa: BLE001 - shapely's errors for broken rings
+            raise InputError(f"polygon {name!r} is not a valid geometry ({exc})", src) from None
+        if g.is_empty or g.area <= 0:
+            raise InputError(f"polygon {name!r} has no area", src)
+        inside = g.intersection(terrain_box)
+        frac = float(inside.area / g.area)
+        mask = (
+            rasterize([(mapping(g), 1)], out_shape=hf.shape, transform=hf.transform, fill=0, dtype="uint8")
+            .astype(bool)
+        )  # fmt: skip
+        if frac <= 0 or not (mask & hf.valid).any():
+            b = ", ".join(f"{v:.1f}" for v in g.bounds)
+            raise InputError(
+                f"polygon {name!r} lies outside the terrain: its bounds ({b}) vs the terrain's "
+                f"({', '.join(f'{v:.1f}' for v in hf.bounds_m)}) in {crs_label(hf.crs)}",
+                src,
+            )
+        out.append((name, mask, frac, mapping(g)))
+    return out
+
+
+def _features(data, src: str) -> list[tuple[dict, dict]]:
+    if not isinstance(data, dict):
+        raise InputError("is not a GeoJSON object", src)
+    kind = data.get("type")
+    if kind == "FeatureCollection":
+        items = [(f.get("properties") or {}, f.get("geometry")) for f in data.get("features") or []]
+    elif kind == "Feature":
+        items = [(data.get("properties") or {}, data.get("geometry"))]
+    else:
+        items = [({}, data)]
+    polys = [(p, g) for p, g in items if isinstance(g, dict) and g.get("type") in ("Polygon", "MultiPolygon")]
+    if not polys:
+        raise InputError("holds no Polygon or MultiPolygon", src)
+    return polys
+
+
+# -- the whole chain -----------------------------------------------------------------------------------
