@@ -76,6 +76,7 @@ suffix = {suffix!r}
 def one(data):
     bad = fuzzing.run_case(target, bytes(data), Path(work), suffix)
     if bad:
+        Path(work, "failure.txt").write_text(bad)  # what happened (libFuzzer only says "target exited")
         raise RuntimeError(bad)
 atheris.Setup([sys.argv[0], f"-max_total_time={{seconds}}", "-rss_limit_mb=3072", "-timeout=60",
                "-print_final_stats=1", "-artifact_prefix=" + work + "/", seed_dir], one)
@@ -107,7 +108,9 @@ def atheris_runs(seeds: dict[str, Path], folder: Path, seconds: float) -> dict[s
         m = re.search(r"stat::number_of_executed_units:\s*(\d+)", log) or re.search(r"Done (\d+) runs", log)
         runs = int(m.group(1)) if m else 0
         failure = None
-        if rc not in (0,):
+        if (work / "failure.txt").exists():
+            failure = (work / "failure.txt").read_text()[:600]
+        elif rc not in (0,):
             lines = [ln for ln in log.splitlines() if "RuntimeError" in ln or "Uncaught" in ln]
             lines = lines or [ln for ln in log.splitlines() if "ERROR" in ln or "crash" in ln]
             failure = (lines[-1] if lines else log[-400:])[:600]

@@ -471,10 +471,11 @@ class TileStore(EpochTables):
             conn = sqlite3.connect(uri, uri=True, check_same_thread=False)
         except sqlite3.Error as exc:
             raise StoreError(f"cannot open ({exc})", str(p)) from exc
+        conn.text_factory = _lenient_text  # a damaged file may hold text that is not UTF-8 (found by fuzzing)
         try:
             conn.execute(f"PRAGMA query_only = {0 if writable else 1}")
             ok = conn.execute("PRAGMA quick_check").fetchone()[0]
-        except sqlite3.DatabaseError as exc:
+        except (sqlite3.DatabaseError, ValueError) as exc:
             conn.close()
             raise CorruptStoreError(f"corrupted store ({exc})", str(p)) from exc
         if ok != "ok":
@@ -757,6 +758,11 @@ CREATE TABLE IF NOT EXISTS tin_model (name TEXT PRIMARY KEY, model BLOB NOT NULL
 """
 
 
+def _lenient_text(raw: bytes) -> str:
+    """SQLite text as str, undecodable bytes replaced (so damage is reported, not raised as UnicodeError)."""
+    return raw.decode("utf-8", "replace")
+
+
 def _meta_value(conn: sqlite3.Connection, key: str) -> Any:
     """One meta value (JSON-decoded), None when absent or unreadable."""
     try:
@@ -841,6 +847,7 @@ def read_tin_store(path: str | os.PathLike[str]) -> tuple[dict[str, Any], bytes]
     _check_header(p)
     try:
         conn = sqlite3.connect(f"file:{p.resolve()}?mode=ro", uri=True)
+        conn.text_factory = _lenient_text
         try:
             meta = {k: json.loads(v) for k, v in conn.execute("SELECT key, value FROM meta")}
             verify_meta(conn, meta, p)
