@@ -12,7 +12,7 @@ class TerralodError(Exception):
     """Root of every terralod error. ``path`` names the file concerned, when there is one."""
 
     def __init__(self, message: str, path: str | None = None) -> None:
-        self.message = message
+        self.message = " ".join(str(message).split())  # always one line (SQLite, GDAL, PROJJSON wrap theirs)
         self.path = None if path is None else str(path)
         super().__init__(f"{self.path}: {message}" if self.path else message)
 

@@ -178,22 +178,22 @@ def _units_from_geokeys(header) -> tuple[str, float, float | None, str | None] |
     return None
 
 
-def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> None:
+def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> bool:
     """Decode a LAZ file once in a forked child first: lazrs aborts the whole process (a Rust allocation
     failure, not an exception) on some corrupt compressed points (found by fuzzing), which must become one
-    line instead. POSIX only; elsewhere, and for uncompressed LAS, nothing is done."""
+    line instead. POSIX only; elsewhere, and for uncompressed LAS, nothing is done. Returns True for LAZ."""
     import signal
     import time
 
-    if not hasattr(os, "fork"):
-        return
     try:
         with open(p, "rb") as fh:
             head = fh.read(105)
     except OSError:
-        return
+        return False
     if len(head) < 105 or not (head[104] & 0x80 or p.suffix.lower() == ".laz"):
-        return
+        return False
+    if not hasattr(os, "fork"):
+        return True
     pid = os.fork()
     if pid == 0:  # child: decode, say nothing, exit
         code = 3
@@ -232,6 +232,7 @@ def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> None:
             "corrupt",
             str(p),
         )
+    return True
 
 
 #: Largest ratio of decompressed point bytes to compressed bytes believed of a LAZ file (LASzip reaches
@@ -375,9 +376,9 @@ def read_las(
     if not p.exists():
         raise InputNotFoundError("file not found", src)
     check_las_header(p)
-    _probe_laz_decoding(p)
-    try:
-        las = laspy.read(src)
+    compressed = _probe_laz_decoding(p)
+    try:  # the decoder the probe proved on this file (the parallel one may fail differently)
+        las = laspy.read(src, laz_backend=laspy.LazBackend.Lazrs) if compressed else laspy.read(src)
     except Exception as exc:  # laspy raises its own and OSError/ValueError subclasses
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
     header = las.header
