@@ -225,7 +225,9 @@ def run_case(target: str, data: bytes, folder: Path, suffix: str) -> str | None:
         if "\n" in str(exc) or not str(exc).startswith(str(p)):
             return f"TerralodError not one line naming the file: {str(exc)[:300]!r}"
         return None
-    except Exception as exc:  # noqa: BLE001 - this is what the fuzzing is looking for
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # noqa: BLE001 - this is what the fuzzing is looking for (pyo3 panics too)
         tb = traceback.format_exception(type(exc), exc, exc.__traceback__)
         return f"{type(exc).__name__}: {str(exc)[:200]} | " + "".join(tb[-3:]).replace("\n", " ")[:600]
     finally:

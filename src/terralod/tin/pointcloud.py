@@ -323,7 +323,9 @@ def describe_las(path: str | os.PathLike[str]) -> dict[str, Any]:
                 "compressed": bool(h.are_points_compressed),
             }
             wkt = _wkt_of(h)
-    except Exception as exc:  # laspy raises its own and OSError/ValueError subclasses
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # laspy raises its own, OSError/ValueError, and lazrs pyo3 PanicException
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from None
     d["crs"] = wkt
     n_file = _records_in_file(p, h)
@@ -379,7 +381,9 @@ def read_las(
     compressed = _probe_laz_decoding(p)
     try:  # the decoder the probe proved on this file (the parallel one may fail differently)
         las = laspy.read(src, laz_backend=laspy.LazBackend.Lazrs) if compressed else laspy.read(src)
-    except Exception as exc:  # laspy raises its own and OSError/ValueError subclasses
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except BaseException as exc:  # laspy raises its own, OSError/ValueError, and lazrs pyo3 PanicException
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
     header = las.header
     n_read = len(las.points)
