@@ -251,9 +251,9 @@ def check_las_header(p: Path) -> None:
     except OSError as exc:
         raise InputError(f"cannot read ({exc.strerror or exc})", src) from None
     if len(head) < 4 or head[:4] != b"LASF":
-        raise InputError("not a LAS/LAZ file (no LASF signature)", src)
+        raise InputError("cannot read as LAS/LAZ (no LASF signature)", src)
     if len(head) < 227:
-        raise InputError(f"truncated LAS header ({len(head)} of at least 227 bytes)", src)
+        raise InputError(f"cannot read as LAS/LAZ (truncated header: {len(head)} of at least 227 bytes)", src)
     major, minor = head[24], head[25]
     header_size, offset = struct.unpack_from("<HI", head, 94)
     (n_vlr,) = struct.unpack_from("<I", head, 100)
