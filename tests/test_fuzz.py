@@ -69,7 +69,9 @@ def test_decoders_refuse_wrong_counts(q: np.ndarray, k: int) -> None:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=600
+    )
 
 
 def test_cli_one_line_with_and_without_verbose(seeds: dict[str, Path], tmp_path: Path) -> None:
