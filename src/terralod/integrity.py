@@ -171,7 +171,9 @@ def _check_tiles(store: TileStore, rep: CheckReport) -> None:
                 rep.problems.append(exc.message)
                 rep.broken_tiles.add(c)
                 continue
-            except KeyError:
+            except KeyError:  # listed by the index, absent from the table: the file's b-trees disagree
+                rep.problems.append(f"tile {c} is listed but cannot be read (damaged index)")
+                rep.broken_tiles.add(c)
                 continue
             n_decoded += 1
             tiles[c] = t
