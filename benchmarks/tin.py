@@ -70,7 +70,9 @@ def _input_rows(model: DetailIncrementModel) -> tuple[np.ndarray, np.ndarray] | 
 
     def key(t: np.ndarray) -> np.ndarray:
         c = np.take_along_axis(t, (np.argmin(t, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
-        return (c[:, 0] * (model.vertices_m.shape[0] + 1) + c[:, 1]) * (model.vertices_m.shape[0] + 1) + c[:, 2]
+        return (c[:, 0] * (model.vertices_m.shape[0] + 1) + c[:, 1]) * (model.vertices_m.shape[0] + 1) + c[
+            :, 2
+        ]
 
     fi = full_in.astype(np.int64)
     k_model, k_in = key(full), key(fi)
@@ -123,8 +125,12 @@ def static_pyramid_bytes(model: DetailIncrementModel, levels: int = 6) -> dict:
         alone = [*alone, *(encode_mesh_rows(a) for a in alone)]
         standalone += min(len(_encode_arrays({"vertices_m": model.vertices_m[used], "t": a})) for a in alone)
     model.mesh_at(0)
-    return {"bytes": len(_encode_arrays(best)), "plain_bytes": len(_encode_arrays(plain)), "triangles": counts,
-            "standalone_bytes": standalone}
+    return {
+        "bytes": len(_encode_arrays(best)),
+        "plain_bytes": len(_encode_arrays(plain)),
+        "triangles": counts,
+        "standalone_bytes": standalone,
+    }
 
 
 #: sections of the model file, in file order, for the byte breakdown
@@ -196,8 +202,10 @@ ZOOM_FRAMES = 120
 ZOOM_TOP_M, ZOOM_BOTTOM_M = 20000.0, 50.0  #: eye heights of the first and last zoom frames
 ZOOM_MARKS_M = (20000.0, 5000.0, 1000.0, 300.0, 50.0)  #: eye heights reported
 ZOOM_MARK_FRAMES = tuple(
-    int(round((ZOOM_FRAMES - 1) * np.log(h / ZOOM_TOP_M) / np.log(ZOOM_BOTTOM_M / ZOOM_TOP_M))) for h in ZOOM_MARKS_M
+    int(round((ZOOM_FRAMES - 1) * np.log(h / ZOOM_TOP_M) / np.log(ZOOM_BOTTOM_M / ZOOM_TOP_M)))
+    for h in ZOOM_MARKS_M
 )
+
 
 def reconstruction(model: DetailIncrementModel) -> dict:
     model.mesh_at(0)
@@ -249,7 +257,9 @@ def reconstruction(model: DetailIncrementModel) -> dict:
 
 
 # -- 3. QEM speed -------------------------------------------------------------------------------------------
-def qem_speed(v: np.ndarray, t: np.ndarray, fraction: float = 0.2, vertical_weight: float | None = None) -> dict:
+def qem_speed(
+    v: np.ndarray, t: np.ndarray, fraction: float = 0.2, vertical_weight: float | None = None
+) -> dict:
     from terralod.tin.delaunay import mesh_boundary_vertices
     from terralod.tin.qem import simplify
 
@@ -257,8 +267,15 @@ def qem_speed(v: np.ndarray, t: np.ndarray, fraction: float = 0.2, vertical_weig
     kind = np.where(locked, 1, 0).astype(np.uint8)
     vb = np.where(locked, -1, 0).astype(np.int32)
     tb = np.zeros(t.shape[0], np.int32)
-    simplify(v[:50], np.zeros((0, 3), np.int32), kind[:50], tb[:0], vb[:50], base_fraction=0.5,
-             vertical_weight=vertical_weight)  # compile
+    simplify(
+        v[:50],
+        np.zeros((0, 3), np.int32),
+        kind[:50],
+        tb[:0],
+        vb[:50],
+        base_fraction=0.5,
+        vertical_weight=vertical_weight,
+    )  # compile
     best = None
     for _ in range(3):
         t0 = time.perf_counter()
@@ -291,7 +308,9 @@ def _pyfqmr(v, t, target):
 def _fast_simplification(v, t, target):
     import fast_simplification
 
-    vv, ff = fast_simplification.simplify(v, t.astype(np.int32), target_count=int(target), preserve_border=True)
+    vv, ff = fast_simplification.simplify(
+        v, t.astype(np.int32), target_count=int(target), preserve_border=True
+    )
     return np.asarray(vv, np.float64), np.asarray(ff, np.int64)
 
 
@@ -355,7 +374,9 @@ def main() -> None:
     for cost, w in (("QEM + vertical term (default)", None), ("QEM alone (paper)", 0.0)):
         if clouds:
             m = clouds[0][1]
-            results["qem"][f"{clouds[0][0]}|{cost}"] = qem_speed(m.vertices_m, m._full_tris, vertical_weight=w)
+            results["qem"][f"{clouds[0][0]}|{cost}"] = qem_speed(
+                m.vertices_m, m._full_tris, vertical_weight=w
+            )
         results["qem"][f"{dem_name}|{cost}"] = qem_speed(v, t, vertical_weight=w)
     results["errors"][dem_name] = peer_errors(hf, v, t)
 
@@ -378,39 +399,43 @@ def main() -> None:
                     "without the shared vertex array", "pyramid as plain index triples (bytes)",
                     "model / that pyramid", "pyramid of 6 standalone meshes (bytes)", "model / that pyramid",
                     "save (s)", "load (s)"], rows)  # fmt: skip
-    md += ("\nBoth files hold the same vertex array (input order) once and go through the same container: integers "
-           "in their narrowest type, byte-shuffled, float columns as their distinct values plus rank changes where "
-           "that is smaller, everything in one LZMA2 stream (file format 5). The pyramid holds the model's global "
-           "scales at 20, 36, 52, 68, 84, 100 % of the triangles, each mesh in the smallest of six codings: three "
-           "row orders (the input TIN's rows and vertex rotation, what a simplifier that deletes rows keeps; rows "
-           "sorted by vertex index; each triple from its smallest vertex, rows sorted), each as plain index triples "
-           "or as delta rows (first vertex minus the previous row's, the other two minus the first), the coding the "
-           "model's base mesh uses; 'model / pyramid' is against that pyramid. 'pyramid as plain index triples' "
-           "keeps only the plain codings (what the pyramid had up to format 4, now in the same LZMA2 stream), for "
-           "comparison with earlier results; it is not the fair reference, since the model's base mesh is "
-           "delta-coded. 'pyramid of 6 standalone meshes' is how a static LOD pyramid is kept in practice (paper 003 §4 "
-           "compares with OSG's IVE, a model per scale): each of the 6 meshes its own file with only the vertices it "
-           "uses (renumbered, input order), the smallest of the same six codings, its own LZMA2 stream (headers not "
-           "counted); the shared-vertex pyramid above is the stricter reference. The model file stores the base mesh "
-           "(delta rows, canonical order), a box per sub-block and "
-           "one vertex split per raw record, coded from geometry (`terralod.kernels.tincodec`): the removed vertex "
-           "u as its rank among the vertices its sub-block has still to insert, largest vertical distance to the "
-           "current surface first (a per-vertex sub-block label, predicted from the vertex's cell, says which "
-           "sub-block), the kept vertex v as a corner (0-2, nearest first) of the "
-           "current triangle holding u's xy, the moved fan as the number of its triangles before and after that "
-           "triangle (v and the fan's counts ranked by their frequency so far within a geometric context), plus the quantised MMQE and measured-error drops; table 1's fields are derived on loading. "
-           "Merged records (k = 4, 16, paper §2.2.2) are derived in memory from the raw ones, so a merged model's "
-           "file is the raw file with its merge factor: one size per dataset (the records and changes of each k are "
-           "those of the model in memory). Save and load: best of 3, the model file (k = 1), compile excluded.\n\n")
+    md += (
+        "\nBoth files hold the same vertex array (input order) once and go through the same container: integers "
+        "in their narrowest type, byte-shuffled, float columns as their distinct values plus rank changes where "
+        "that is smaller, everything in one LZMA2 stream (file format 5). The pyramid holds the model's global "
+        "scales at 20, 36, 52, 68, 84, 100 % of the triangles, each mesh in the smallest of six codings: three "
+        "row orders (the input TIN's rows and vertex rotation, what a simplifier that deletes rows keeps; rows "
+        "sorted by vertex index; each triple from its smallest vertex, rows sorted), each as plain index triples "
+        "or as delta rows (first vertex minus the previous row's, the other two minus the first), the coding the "
+        "model's base mesh uses; 'model / pyramid' is against that pyramid. 'pyramid as plain index triples' "
+        "keeps only the plain codings (what the pyramid had up to format 4, now in the same LZMA2 stream), for "
+        "comparison with earlier results; it is not the fair reference, since the model's base mesh is "
+        "delta-coded. 'pyramid of 6 standalone meshes' is how a static LOD pyramid is kept in practice (paper 003 §4 "
+        "compares with OSG's IVE, a model per scale): each of the 6 meshes its own file with only the vertices it "
+        "uses (renumbered, input order), the smallest of the same six codings, its own LZMA2 stream (headers not "
+        "counted); the shared-vertex pyramid above is the stricter reference. The model file stores the base mesh "
+        "(delta rows, canonical order), a box per sub-block and "
+        "one vertex split per raw record, coded from geometry (`terralod.kernels.tincodec`): the removed vertex "
+        "u as its rank among the vertices its sub-block has still to insert, largest vertical distance to the "
+        "current surface first (a per-vertex sub-block label, predicted from the vertex's cell, says which "
+        "sub-block), the kept vertex v as a corner (0-2, nearest first) of the "
+        "current triangle holding u's xy, the moved fan as the number of its triangles before and after that "
+        "triangle (v and the fan's counts ranked by their frequency so far within a geometric context), plus the quantised MMQE and measured-error drops; table 1's fields are derived on loading. "
+        "Merged records (k = 4, 16, paper §2.2.2) are derived in memory from the raw ones, so a merged model's "
+        "file is the raw file with its merge factor: one size per dataset (the records and changes of each k are "
+        "those of the model in memory). Save and load: best of 3, the model file (k = 1), compile excluded.\n\n"
+    )
     md += "### Where the model file's bytes go\n\n"
     names = list(SECTIONS)
     rows = [[s["dataset"], *(s["model_sections"][n] for n in names), s["model"][1]["bytes"], s["vertex_bytes"],
              s["static_pyramid_bytes"] - s["vertex_bytes"]] for s in results["storage"]]  # fmt: skip
     md += md_table(["dataset", *names, "model total", "pyramid: vertices", "pyramid: 6 meshes"], rows)
-    md += ("\nEach section's bytes: what it adds to the compressed payload, in file order (the 64-byte header is "
-           "counted with the metadata: source, CRS, notes, merge factor). 'pyramid: vertices' is the vertex "
-           "array coded alone; the pyramid's meshes are the rest of its stream. Neither file can go below its "
-           "vertex array, which both share.\n\n")
+    md += (
+        "\nEach section's bytes: what it adds to the compressed payload, in file order (the 64-byte header is "
+        "counted with the metadata: source, CRS, notes, merge factor). 'pyramid: vertices' is the vertex "
+        "array coded alone; the pyramid's meshes are the rest of its stream. Neither file can go below its "
+        "vertex array, which both share.\n\n"
+    )
     md += "## Reconstruction\n\n"
     rows = [[n, r["refine_step_us_median"], r["coarsen_step_us_median"], r["full_to_base_ms"]]
             for n, r in results["reconstruction"].items()]  # fmt: skip
@@ -421,25 +446,33 @@ def main() -> None:
     rows = []
     for n, r in results["reconstruction"].items():
         for rule, z in r["zoom"].items():
-            name = "measured error, box distance (default)" if rule == "measured" else "sqrt(MMQE) at centre (paper)"
+            name = (
+                "measured error, box distance (default)"
+                if rule == "measured"
+                else "sqrt(MMQE) at centre (paper)"
+            )
             px = z["max_error_px"]
             rows.append([n, name, *z["triangles"].values(), f"{px:.2f}" if np.isfinite(px) else "∞ (eye in a box)",
                          z["frame_ms_mean"], z["frame_ms_max"]])  # fmt: skip
     md += md_table(["dataset", "scale rule", *(f"triangles at {h / 1000:g} km" for h in ZOOM_MARKS_M),
                     "max measured error on screen (px)", "frame ms (mean)",
                     "frame ms (max)"], rows)  # fmt: skip
-    md += (f"\n{ZOOM_FRAMES} frames, eye from 20 km to 50 m above the centre of the sub-blocks (offset 0.3 h east, "
-           "0.5 h south: the eye also moves sideways, so a sub-block it leaves may coarsen), 1080 px, 60°, N = 2 px; frame = scale selection + applying/reverting records + the "
-           "triangle list. 'max measured error on screen': over every frame and sub-block, the drawn scale's "
-           "measured max vertical error (an upper bound over the input points) projected from the nearest point "
-           "of the sub-block's box. The paper's rule projects sqrt(MMQE), a mean error, from the sub-block's "
-           "centre: on the Puget crop it is 5-7 m at the base in most blocks, 20 km wide, so it never refines there, "
-           "while the eye comes inside a sub-block's box (distance 0: any error is unbounded on screen).\n\n")
+    md += (
+        f"\n{ZOOM_FRAMES} frames, eye from 20 km to 50 m above the centre of the sub-blocks (offset 0.3 h east, "
+        "0.5 h south: the eye also moves sideways, so a sub-block it leaves may coarsen), 1080 px, 60°, N = 2 px; frame = scale selection + applying/reverting records + the "
+        "triangle list. 'max measured error on screen': over every frame and sub-block, the drawn scale's "
+        "measured max vertical error (an upper bound over the input points) projected from the nearest point "
+        "of the sub-block's box. The paper's rule projects sqrt(MMQE), a mean error, from the sub-block's "
+        "centre: on the Puget crop it is 5-7 m at the base in most blocks, 20 km wide, so it never refines there, "
+        "while the eye comes inside a sub-block's box (distance 0: any error is unbounded on screen).\n\n"
+    )
     md += "## QEM edge collapse speed (one core, numba, compile excluded, best of 3)\n\n"
     md += md_table(["dataset", "cost", "triangles", "collapses", "seconds", "collapses/s"],
                    [[*n.split("|"), q["triangles"], q["collapses"], q["seconds"], q["collapses_per_s"]]
                     for n, q in results["qem"].items()])  # fmt: skip
-    md += f"\n## Error at equal triangle count ({dem_name}, {t.shape[0]:,} triangles; measured by terralod)\n\n"
+    md += (
+        f"\n## Error at equal triangle count ({dem_name}, {t.shape[0]:,} triangles; measured by terralod)\n\n"
+    )
     rows = []
     for r in results["errors"][dem_name]:
         target = int(round(t.shape[0] * r["fraction"]))
@@ -453,14 +486,16 @@ def main() -> None:
                          r["seconds"]])  # fmt: skip
     md += md_table(["triangles kept (target)", "method", "triangles", "at the target", "max vertical m",
                     "Hausdorff m", "RMS vertical m", "samples covered %", "seconds"], rows)  # fmt: skip
-    md += ("\npyfqmr and fast-simplification stop at 29,268 triangles on this mesh: they cannot reach 5 % or 1 %, "
-           "so those rows compare a peer holding 1.12x and 5.6x the triangles of the others (more triangles, so a "
-           "smaller error is expected of it); 'at the target' says which rows have the target count. terralod keeps every vertex at an input point (paper 003's endpoint placement) and locks the "
-           "outline; its default cost adds to the quadric the largest vertical distance from the removed vertices "
-           "under the collapse to the new surface (`vertical_weight`, see `terralod.tin.qem`), the paper's cost "
-           "is the quadric alone; the peers place vertices freely (pyfqmr, fast-simplification) or at input points "
-           "(meshoptimizer), border preserved where offered. 'samples covered' is the share of DEM samples "
-           "under the simplified surface.\n")
+    md += (
+        "\npyfqmr and fast-simplification stop at 29,268 triangles on this mesh: they cannot reach 5 % or 1 %, "
+        "so those rows compare a peer holding 1.12x and 5.6x the triangles of the others (more triangles, so a "
+        "smaller error is expected of it); 'at the target' says which rows have the target count. terralod keeps every vertex at an input point (paper 003's endpoint placement) and locks the "
+        "outline; its default cost adds to the quadric the largest vertical distance from the removed vertices "
+        "under the collapse to the new surface (`vertical_weight`, see `terralod.tin.qem`), the paper's cost "
+        "is the quadric alone; the peers place vertices freely (pyfqmr, fast-simplification) or at input points "
+        "(meshoptimizer), border preserved where offered. 'samples covered' is the share of DEM samples "
+        "under the simplified surface.\n"
+    )
     write_results("tin", results, md)
 
 

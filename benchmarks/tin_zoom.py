@@ -40,7 +40,9 @@ def datasets() -> list[tuple[str, DetailIncrementModel]]:
         out.append(("autzen_trim.laz", DetailIncrementModel.from_las(laz, sub_blocks=4)))
     hf = puget_sound_1k()
     if hf is None:
-        out.append(("jacksboro_sample", DetailIncrementModel.from_heightfield(sample_heightfield(), sub_blocks=16)))
+        out.append(
+            ("jacksboro_sample", DetailIncrementModel.from_heightfield(sample_heightfield(), sub_blocks=16))
+        )
     else:
         z = hf.elevation_m[256:769, 256:769].copy()
         crop = Heightfield.from_array(z, 160.0, origin_m=(500000.0, 5300000.0))
@@ -97,7 +99,9 @@ def main() -> None:
     results: dict = {"frames": FRAMES, "zoom": {}}
     data = datasets()
     try:
-        results["render"] = render_lod(data[-1][1], Path(__file__).resolve().parent / "results" / "tin_zoom_lod.png")
+        results["render"] = render_lod(
+            data[-1][1], Path(__file__).resolve().parent / "results" / "tin_zoom_lod.png"
+        )
     except Exception as exc:  # noqa: BLE001 - no EGL context: the numbers still stand
         results["render"] = {"error": f"{type(exc).__name__}: {exc}"}
     for name, model in data:
@@ -112,12 +116,16 @@ def main() -> None:
     md += md_table(["model (merge k)", "records of the block", "frame ms (mean)", "frame ms (p99)",
                     "frame ms (max)", "records in the worst frame", "records applied", "µs / record",
                     "triangles at 20 km", "triangles at 2 m", "first frame ms"], rows)  # fmt: skip
-    md += ("\nFrame = scale query (measured error, the default) + applying/reverting ΔT records + one mesh per sub-block with normals "
-           "(CPU, one core; no drawing). The first frame cuts every sub-block's mesh and is reported apart. "
-           "k = 16 merges 16 collapses per record with the §2.2.2 compression: fewer, larger steps.\n")
+    md += (
+        "\nFrame = scale query (measured error, the default) + applying/reverting ΔT records + one mesh per sub-block with normals "
+        "(CPU, one core; no drawing). The first frame cuts every sub-block's mesh and is reported apart. "
+        "k = 16 merges 16 collapses per record with the §2.2.2 compression: fewer, larger steps.\n"
+    )
     if "png" in results["render"]:
-        md += (f"\n`tin_zoom_lod.png`: {data[-1][0]}, sub-blocks coloured by scale band (red = base, pink = full "
-               f"resolution), N = 0.3 px; scales {results['render']['block_scales']}.\n")
+        md += (
+            f"\n`tin_zoom_lod.png`: {data[-1][0]}, sub-blocks coloured by scale band (red = base, pink = full "
+            f"resolution), N = 0.3 px; scales {results['render']['block_scales']}.\n"
+        )
     write_results("tin_zoom", results, md)
 
 

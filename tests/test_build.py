@@ -36,6 +36,7 @@ def check_store_invariants(path: Path, hf: Heightfield) -> None:
         assert set(codes) == set(s.pyramid.all_codes())
         tiles = {c: s.tile(*c) for c in codes}
         dx, dy = hf.spacing_m
+
         def window_valid(c) -> bool:
             r0, c0 = s.pyramid.origin_rc(c)
             span = s.pyramid.span(c[0])
@@ -47,7 +48,9 @@ def check_store_invariants(path: Path, hf: Heightfield) -> None:
                 assert t.vertices.shape[0] == 0 and not window_valid(c)
                 continue
             # no stored triangle lies over nodata (at least half of its covered samples are valid)
-            assert footprint_mask(t.grid_rc[:, 0], t.grid_rc[:, 1], t.triangles.astype(np.int64), hf.valid).all()
+            assert footprint_mask(
+                t.grid_rc[:, 0], t.grid_rc[:, 1], t.triangles.astype(np.int64), hf.valid
+            ).all()
             # independently measured errors never exceed the stored ones
             rep = measure_error(t.vertices, t.triangles, hf)
             assert rep.hausdorff_m <= t.error_m + TOL

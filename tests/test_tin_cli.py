@@ -24,7 +24,9 @@ FOOT_M = 0.3048
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def _points(seed: int, n: int) -> np.ndarray:
@@ -66,8 +68,10 @@ def test_store_roundtrip_is_exact_and_tile_readers_refuse_it(tmp_path: Path) -> 
     assert r.mesh_at(0)[1].shape[0] == summary["base_triangles"]
     # refining the stored base fully gives the input Delaunay TIN
     t, f = r.mesh_at(r.n_scales - 1)[1].astype(np.int64), m._full_tris.astype(np.int64)
-    canon = [np.sort(np.take_along_axis(x, (np.argmin(x, 1)[:, None] + np.arange(3)) % 3, 1).view("i8,i8,i8"), 0)
-             for x in (t, f)]
+    canon = [
+        np.sort(np.take_along_axis(x, (np.argmin(x, 1)[:, None] + np.arange(3)) % 3, 1).view("i8,i8,i8"), 0)
+        for x in (t, f)
+    ]
     assert np.array_equal(*canon)
     with pytest.raises(StoreError, match="TIN detail-increment model"):
         open_store(out)
@@ -160,7 +164,9 @@ def test_cli_build_tin_from_a_dem(tmp_path: Path) -> None:
     import rasterio
     from rasterio.transform import from_origin
 
-    z = (200.0 + 30.0 * np.sin(np.arange(40)[:, None] / 6.0) * np.cos(np.arange(50)[None, :] / 8.0)).astype("f4")
+    z = (200.0 + 30.0 * np.sin(np.arange(40)[:, None] / 6.0) * np.cos(np.arange(50)[None, :] / 8.0)).astype(
+        "f4"
+    )
     tif = tmp_path / "dem.tif"
     with rasterio.open(tif, "w", driver="GTiff", width=50, height=40, count=1, dtype="float32", crs="EPSG:32610",
                        transform=from_origin(500000, 5200000, 30.0, 30.0)) as ds:  # fmt: skip

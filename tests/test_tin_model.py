@@ -138,7 +138,13 @@ def test_save_load_roundtrip_and_checksum(tmp_path: Path) -> None:
     for b in range(m.n_blocks):
         for a, c in zip(m.records(b), r.records(b), strict=True):
             assert a.level_index == c.level_index and a.mmqe_value == c.mmqe_value
-            for f in ("deleted_tri", "deleted_tri_vex", "replaced_tri", "replaced_tri_vex_ori", "replaced_tri_vex_new"):
+            for f in (
+                "deleted_tri",
+                "deleted_tri_vex",
+                "replaced_tri",
+                "replaced_tri_vex_ori",
+                "replaced_tri_vex_new",
+            ):
                 assert np.array_equal(getattr(a, f), getattr(c, f)), f
     # merged records use the general layout (original triples stored); they survive the file too
     c = m.compressed(4)
@@ -168,7 +174,9 @@ def test_save_load_roundtrip_and_checksum(tmp_path: Path) -> None:
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(12, 800), blocks=st.sampled_from([1, 4, 9]),
        k=st.sampled_from([1, 3]))  # fmt: skip
-def test_compact_file_gives_every_table1_field(tmp_path_factory, seed: int, n: int, blocks: int, k: int) -> None:
+def test_compact_file_gives_every_table1_field(
+    tmp_path_factory, seed: int, n: int, blocks: int, k: int
+) -> None:
     """The file stores vertex splits, not table 1: loading derives every record field, slot and MMQE of
     the model that was saved, merged or not; the full scale is the input TIN."""
     m = DetailIncrementModel.from_points(_cloud(seed, n), sub_blocks=blocks).compressed(k)
@@ -284,9 +292,16 @@ def _vertical_error_per_block(m: DetailIncrementModel) -> np.ndarray:
 
 
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**31 - 1), n=st.integers(60, 400), blocks=st.sampled_from([1, 4]),
-       relief=st.floats(1.0, 200.0), pick=st.floats(0.0, 1.0))
-def test_stored_error_bounds_the_measured_error(seed: int, n: int, blocks: int, relief: float, pick: float) -> None:
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(60, 400),
+    blocks=st.sampled_from([1, 4]),
+    relief=st.floats(1.0, 200.0),
+    pick=st.floats(0.0, 1.0),
+)
+def test_stored_error_bounds_the_measured_error(
+    seed: int, n: int, blocks: int, relief: float, pick: float
+) -> None:
     """The stored measured error of every sub-block's scale is at least the max vertical distance, measured
     independently, from the input points to that scale's surface; it falls to 0 at full resolution, never
     grows from coarse to fine, and merged records keep it at their scales."""
@@ -304,7 +319,9 @@ def test_stored_error_bounds_the_measured_error(seed: int, n: int, blocks: int, 
         assert e[-1] == 0.0 and (np.diff(e) <= 0).all()
     k4 = m.compressed(4)
     for b in range(m.n_blocks):
-        assert np.array_equal(k4.error_m(b), m.error_m(b)[np.minimum(np.arange(k4.block_n_scales[b]) * 4, nb[b])])
+        assert np.array_equal(
+            k4.error_m(b), m.error_m(b)[np.minimum(np.arange(k4.block_n_scales[b]) * 4, nb[b])]
+        )
 
 
 def test_measured_rule_refines_near_the_eye_and_meets_n_pixels() -> None:
@@ -392,8 +409,13 @@ def test_both_costs_reach_the_target_with_valid_tins() -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 400), cols=st.sampled_from([0, 1, 3]),
-       distinct=st.integers(1, 50), special=st.booleans())
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(0, 400),
+    cols=st.sampled_from([0, 1, 3]),
+    distinct=st.integers(1, 50),
+    special=st.booleans(),
+)
 def test_float_coding_is_bit_exact(seed: int, n: int, cols: int, distinct: int, special: bool) -> None:
     """Float arrays in a file come back bit for bit (signed zeros, NaN, infinities, subnormals included),
     whether a column is coded by its distinct values or stored as it is."""
@@ -413,8 +435,9 @@ def test_float_coding_is_bit_exact(seed: int, n: int, cols: int, distinct: int, 
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), h=st.integers(3, 40), w=st.integers(3, 40), blocks=st.sampled_from([1, 4, 9]),
        flat=st.booleans())  # fmt: skip
-def test_grid_models_survive_the_split_coder(tmp_path_factory, seed: int, h: int, w: int, blocks: int,
-                                             flat: bool) -> None:
+def test_grid_models_survive_the_split_coder(
+    tmp_path_factory, seed: int, h: int, w: int, blocks: int, flat: bool
+) -> None:
     """Grid TINs put removed vertices exactly on edges of the coarser mesh (zero orientations in the coder's
     walk): every record, slot and scale still comes back from the file, with no escape needed for most."""
     from terralod import Heightfield
@@ -436,7 +459,9 @@ def test_grid_models_survive_the_split_coder(tmp_path_factory, seed: int, h: int
 
 
 @settings(max_examples=60, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 300), nv=st.integers(1, 10**6), canonical=st.booleans())
+@given(
+    seed=st.integers(0, 2**31 - 1), n=st.integers(0, 300), nv=st.integers(1, 10**6), canonical=st.booleans()
+)
 def test_mesh_rows_coding_is_exact(seed: int, n: int, nv: int, canonical: bool) -> None:
     """Delta-coded triangle rows (the base mesh in a file, every mesh of the benchmark's pyramid) decode to
     the same rows, in any order; canonical rows keep every triangle and its orientation."""

@@ -104,7 +104,9 @@ def test_tin_frame_renders(tmp_path: Path) -> None:
     assert 0.05 < 1.0 - magenta.mean() < 0.95, "the TIN covers part of the frame"
     # close over the west edge: finer scales there, same frame size
     lo, hi = m.vertices_m.min(axis=0), m.vertices_m.max(axis=0)
-    img2 = fr.frame(CameraPose((lo[0], 0.5 * (lo[1] + hi[1]), hi[2] + 20.0), (hi[0], 0.5 * (lo[1] + hi[1]), lo[2])))
+    img2 = fr.frame(
+        CameraPose((lo[0], 0.5 * (lo[1] + hi[1]), hi[2] + 20.0), (hi[0], 0.5 * (lo[1] + hi[1]), lo[2]))
+    )
     assert img2.shape == img.shape and fr.last_stats["triangles"] >= 1
     fr.close()
     # the CLI renders a TIN store

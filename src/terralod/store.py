@@ -210,7 +210,9 @@ def install_store(new: str | os.PathLike[str], p: str | os.PathLike[str]) -> Non
     try:
         os.replace(new, p)
     except OSError as exc:
-        raise StoreError(f"cannot replace ({exc.strerror or exc}); the new store is at {new}", str(p)) from exc
+        raise StoreError(
+            f"cannot replace ({exc.strerror or exc}); the new store is at {new}", str(p)
+        ) from exc
 
 
 def upgrade_store(path: str | os.PathLike[str]) -> str:
@@ -233,7 +235,9 @@ def upgrade_store(path: str | os.PathLike[str]) -> str:
         if version in READABLE_VERSIONS:
             return f"{p}: format version {version} is current, nothing to do"
         if version not in UPGRADABLE_VERSIONS:
-            raise CorruptStoreError(f"store format version {version!r} cannot be upgraded; rebuild it", str(p))
+            raise CorruptStoreError(
+                f"store format version {version!r} cannot be upgraded; rebuild it", str(p)
+            )
         with conn:
             conn.execute(
                 "INSERT OR REPLACE INTO meta(key, value) VALUES ('version', ?)", (json.dumps(FORMAT_VERSION),)
@@ -489,7 +493,9 @@ class TileStore(EpochTables):
             store = cls(p, conn, writable, epoch)
         except (KeyError, ValueError, TypeError, AttributeError, IndexError, sqlite3.DatabaseError) as exc:
             conn.close()
-            raise CorruptStoreError(f"corrupted store metadata ({type(exc).__name__}: {exc})", str(p)) from exc
+            raise CorruptStoreError(
+                f"corrupted store metadata ({type(exc).__name__}: {exc})", str(p)
+            ) from exc
         except BaseException:
             conn.close()
             raise
@@ -678,10 +684,14 @@ class TileStore(EpochTables):
             raise KeyError(f"tile {(level, x, y)} is not in {self.path}")
         try:
             (k, tx, ty, e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, vb, tb, ck) = r
-            t = EncodedTile((k, tx, ty), e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, bytes(vb), bytes(tb))
+            t = EncodedTile(
+                (k, tx, ty), e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, bytes(vb), bytes(tb)
+            )
             ok = t.checksum == ck
         except (ValueError, TypeError, struct.error) as exc:
-            raise CorruptStoreError(f"tile {(level, x, y)} has a malformed row ({exc})", str(self.path)) from exc
+            raise CorruptStoreError(
+                f"tile {(level, x, y)} has a malformed row ({exc})", str(self.path)
+            ) from exc
         if not ok:
             raise CorruptStoreError(f"tile {(level, x, y)} fails its checksum", str(self.path))
         return t
@@ -818,7 +828,9 @@ def write_tin_store(
         remove_store_files(tmp)
         if isinstance(exc, StoreError):
             raise
-        raise StoreError(f"cannot write ({exc.strerror if isinstance(exc, OSError) else exc})", str(p)) from exc
+        raise StoreError(
+            f"cannot write ({exc.strerror if isinstance(exc, OSError) else exc})", str(p)
+        ) from exc
     return p.stat().st_size
 
 

@@ -399,7 +399,9 @@ def render_settings(background: str | None, mode: str, wireframe: bool):
             rgb = tuple(float(a) for a in background.split(","))
             assert len(rgb) == 3
         except (ValueError, AssertionError):
-            raise click.BadParameter(f"expected R,G,B, got {background!r}", param_hint="--background") from None
+            raise click.BadParameter(
+                f"expected R,G,B, got {background!r}", param_hint="--background"
+            ) from None
         st.background = tuple(c / 255.0 if max(rgb) > 1.0 else c for c in rgb)  # type: ignore[assignment]
     return st
 
@@ -494,7 +496,9 @@ def _g(v: float) -> str:
 
 def print_tin_summary(d: dict[str, Any]) -> None:
     """Print :func:`terralod.tin.terra.model_summary` output."""
-    console.print(f"  TIN          {d['vertices']:,} vertices, {d['triangles']:,} triangles (full resolution)")
+    console.print(
+        f"  TIN          {d['vertices']:,} vertices, {d['triangles']:,} triangles (full resolution)"
+    )
     base_pct = 100.0 * d["base_triangles"] / max(d["triangles"], 1)
     console.print(f"  base         {d['base_triangles']:,} triangles ({base_pct:.1f} %)")
     console.print(
@@ -506,7 +510,9 @@ def print_tin_summary(d: dict[str, Any]) -> None:
     svo = d["svo_length_m"]
     console.print(f"  sqrt(MMQE)   {svo['base']:.3f} m at the base, {svo['full']:.3f} m at full resolution")
     if "max_vertical_error_m" in d:
-        console.print(f"  max error    {d['max_vertical_error_m']['base']:.3f} m vertical at the base (measured), 0 at full")
+        console.print(
+            f"  max error    {d['max_vertical_error_m']['base']:.3f} m vertical at the base (measured), 0 at full"
+        )
     if "size_bytes" in d:
         console.print(f"  size         {d['size_bytes']:,} bytes")
     for n in d.get("notes", []):

@@ -29,9 +29,15 @@ from terralod.cli._common import (
     help="Tile mesher: cohesion (paper 000, the vertex cohesion map) or chunked (Chunked LOD); tin builds a "
     "detail-increment TIN (paper 003), the default for LAS/LAZ input.",
 )  # fmt: skip
-@click.option("--sub-blocks", default="4", show_default=True, help="TIN: sub-blocks, a square number or auto.")
 @click.option(
-    "--base-fraction", type=float, default=0.2, show_default=True, help="TIN: triangles kept in the base mesh."
+    "--sub-blocks", default="4", show_default=True, help="TIN: sub-blocks, a square number or auto."
+)
+@click.option(
+    "--base-fraction",
+    type=float,
+    default=0.2,
+    show_default=True,
+    help="TIN: triangles kept in the base mesh.",
 )
 @click.option("--workers", type=int, default=None, help="Threads (default: all cores).")
 @click.option("--resume", is_flag=True, help="Finish an interrupted build of the same input.")
@@ -46,9 +52,15 @@ from terralod.cli._common import (
     help="Name of the terrain's first epoch (e.g. the survey date 2000-09-25): the store keeps its samples, "
     "so `terralod update` / `terralod edit` can add later epochs.",
 )  # fmt: skip
-@click.option("--dask", "dask_address", default=None,
-              help="Build on Dask: local (a LocalCluster of worker processes) or tcp://HOST:PORT (a scheduler).")
-@click.option("--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2).")
+@click.option(
+    "--dask",
+    "dask_address",
+    default=None,
+    help="Build on Dask: local (a LocalCluster of worker processes) or tcp://HOST:PORT (a scheduler).",
+)
+@click.option(
+    "--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2)."
+)
 @read_options
 def build(
     input_paths: tuple[str, ...], output: str, tile_size: int, method: str, sub_blocks: str, base_fraction: float,
@@ -71,7 +83,9 @@ def build(
         build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read)
         return
     if not is_valid_tile_size(tile_size) or tile_size > 257:
-        raise click.BadParameter(f"expected 2^n + 1 between 3 and 257, got {tile_size}", param_hint="--tile-size")
+        raise click.BadParameter(
+            f"expected 2^n + 1 between 3 and 257, got {tile_size}", param_hint="--tile-size"
+        )
     if method not in METHODS:
         raise click.BadParameter(
             f"expected one of {', '.join(sorted(METHODS))}, got {method!r}", param_hint="--method"
@@ -113,7 +127,9 @@ def windowed_build(input_paths: tuple[str, ...], dask_address: str | None, epoch
 
     if len(input_paths) > 1 or dask_address:
         if epoch is not None:
-            raise click.BadParameter("--epoch builds in memory; not with a mosaic or --dask", param_hint="--epoch")
+            raise click.BadParameter(
+                "--epoch builds in memory; not with a mosaic or --dask", param_hint="--epoch"
+            )
         return True
     return epoch is None and is_large_raster(input_paths[0])
 
@@ -133,7 +149,9 @@ def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: floa
             raise click.BadParameter(f"expected a square number or auto, got {sub_blocks!r}",
                                      param_hint="--sub-blocks") from None  # fmt: skip
     if not 0.0 < base_fraction <= 1.0:
-        raise click.BadParameter(f"expected a fraction in (0, 1], got {base_fraction}", param_hint="--base-fraction")
+        raise click.BadParameter(
+            f"expected a fraction in (0, 1], got {base_fraction}", param_hint="--base-fraction"
+        )
     if Path(output).exists() and not overwrite:
         raise StoreError("already exists (pass --overwrite to replace it)", output)
     t0 = time.perf_counter()

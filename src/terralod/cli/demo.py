@@ -44,6 +44,8 @@ def demo(output: str, tile_size: int, frames: int, no_window: bool) -> None:
             run_viewer(terrain)
             return
         stem = Path(output).with_suffix("")
-        summary = render_flythrough(terrain, f"{stem}.mp4", frames=frames, size=(1024, 576), png=f"{stem}.png")
+        summary = render_flythrough(
+            terrain, f"{stem}.mp4", frames=frames, size=(1024, 576), png=f"{stem}.png"
+        )
     flythrough_table(summary)
     console.print(f"wrote {stem}.mp4 and {stem}.png")

@@ -32,9 +32,13 @@ def view(
 
     with open_terrain_arg(path, read, fractal_levels) as whole, at_epoch(whole, epoch) as terrain:
         if not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY"):
-            raise click.UsageError("no display (DISPLAY is unset); use `terralod render` or `terralod flythrough`")
+            raise click.UsageError(
+                "no display (DISPLAY is unset); use `terralod render` or `terralod flythrough`"
+            )
         title = "terralod (TIN)" if terrain.kind == "tin" else "terralod"
         out = run_viewer(terrain, width_px=w, height_px=h, threshold_px=threshold_px, max_frames=frames,
                          screenshot=screenshot, cull=cull, title=title, water_level_m=water_level)  # fmt: skip
     if frames:
-        click.echo(json.dumps({"frames": out["frames"], "hud": out["hud"], "stats": out["stats"]}, default=str))
+        click.echo(
+            json.dumps({"frames": out["frames"], "hud": out["hud"], "stats": out["stats"]}, default=str)
+        )

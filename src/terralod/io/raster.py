@@ -147,7 +147,8 @@ def read_raster(
         kind = np.dtype(ds.dtypes[bands[0] - 1]).kind
         if kind not in "iuf":
             raise InputError(
-                f"band {bands[0]} holds {ds.dtypes[bands[0] - 1]} values; elevations must be real numbers", src
+                f"band {bands[0]} holds {ds.dtypes[bands[0] - 1]} values; elevations must be real numbers",
+                src,
             )
         file_nodata = ds.nodatavals[bands[0] - 1]
         scale_tag = (ds.scales or (1.0,) * ds.count)[bands[0] - 1]

@@ -175,7 +175,9 @@ def _side_run(tris, head, nxt, node_tri, qxy, t, v, dx, dy, back):
         a = _after(tris, t, v) if back else _after(tris, t, _after(tris, t, v))
         if (qxy[a, 0] - qxy[v, 0]) * dx + (qxy[a, 1] - qxy[v, 1]) * dy <= 0:
             break
-        t2 = _edge_tri(tris, head, nxt, node_tri, a, v) if back else _edge_tri(tris, head, nxt, node_tri, v, a)
+        t2 = (
+            _edge_tri(tris, head, nxt, node_tri, a, v) if back else _edge_tri(tris, head, nxt, node_tri, v, a)
+        )
         if t2 < 0:
             break
         t = t2
@@ -315,8 +317,28 @@ def _unlink(slot_head, cnext, cprev, cand_slot, w):
 
 
 @jit
-def split_codes(encode, qxy, z, label, base_tri, block_ptr, vpos, vat, seg_lo, seg_hi, rec_u, rec_v, rec_x,
-                rec_m, sym_u, sym_v, sym_j, sym_a, esc_v, esc_x):
+def split_codes(
+    encode,
+    qxy,
+    z,
+    label,
+    base_tri,
+    block_ptr,
+    vpos,
+    vat,
+    seg_lo,
+    seg_hi,
+    rec_u,
+    rec_v,
+    rec_x,
+    rec_m,
+    sym_u,
+    sym_v,
+    sym_j,
+    sym_a,
+    esc_v,
+    esc_x,
+):
     """Vertex splits to symbols (``encode``) or back, replaying them from the base mesh.
 
     Parameters
@@ -410,7 +432,9 @@ def split_codes(encode, qxy, z, label, base_tri, block_ptr, vpos, vat, seg_lo, s
                 if u < 0 or u >= n_v or vpos[u] < seg_lo[b] or vpos[u] >= seg_hi[b] or cbucket[u] < 0:
                     return r + 1, n_esc
                 bu = cbucket[u]
-                rank = _bucket_below(fen, cbucket, vat, bu, vpos[u]) - _bucket_below(fen, cbucket, vat, bu, seg_lo[b])
+                rank = _bucket_below(fen, cbucket, vat, bu, vpos[u]) - _bucket_below(
+                    fen, cbucket, vat, bu, seg_lo[b]
+                )
                 for k in range(bu + 1, N_BUCKETS):
                     rank += cnt[b, k]
                 sym_u[r] = rank
@@ -424,7 +448,9 @@ def split_codes(encode, qxy, z, label, base_tri, block_ptr, vpos, vat, seg_lo, s
                     rank -= cnt[b, k]
                 if sym_u[r] < 0 or bu < 0:
                     return r + 1, n_esc
-                p = _bucket_find(fen, cbucket, vat, bu, rank + _bucket_below(fen, cbucket, vat, bu, seg_lo[b]))
+                p = _bucket_find(
+                    fen, cbucket, vat, bu, rank + _bucket_below(fen, cbucket, vat, bu, seg_lo[b])
+                )
                 if p < seg_lo[b] or p >= seg_hi[b]:
                     return r + 1, n_esc
                 u = vat[p]
@@ -492,8 +518,12 @@ def split_codes(encode, qxy, z, label, base_tri, block_ptr, vpos, vat, seg_lo, s
                     sym_j[r] = 0
                     sym_a[r] = m
                 else:
-                    cj = _side_run(tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], True)
-                    ca = _side_run(tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], False)
+                    cj = _side_run(
+                        tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], True
+                    )
+                    ca = _side_run(
+                        tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], False
+                    )
                     after = m - 1 - j
                     sym_j[r] = _to_rank(fan_counts[0], cj, j)
                     sym_a[r] = _to_rank(fan_counts[1], ca, after)
@@ -514,8 +544,12 @@ def split_codes(encode, qxy, z, label, base_tri, block_ptr, vpos, vat, seg_lo, s
                     m = sym_a[r]
                 elif 0 <= sv < V_ESCAPE and t_in >= 0:
                     v = c0 if sv == 0 else (c1 if sv == 1 else c2)
-                    cj = _side_run(tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], True)
-                    ca = _side_run(tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], False)
+                    cj = _side_run(
+                        tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], True
+                    )
+                    ca = _side_run(
+                        tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], False
+                    )
                     j = _from_rank(fan_counts[0], cj, sym_j[r])
                     after = _from_rank(fan_counts[1], ca, sym_a[r])
                     if j < 0 or after < 0:

@@ -449,7 +449,9 @@ def _measure_series(meshes, z, valid, r0: int, c0: int, span: int, spacing_m) ->
     dx, dy = spacing_m
     r1 = min(r0 + span, h - 1)
     c1 = min(c0 + span, w - 1)
-    local = [(np.stack([(cols - c0) * dx, (rows - r0) * dy, hz], axis=1), tris) for rows, cols, hz, tris in meshes]
+    local = [
+        (np.stack([(cols - c0) * dx, (rows - r0) * dy, hz], axis=1), tris) for rows, cols, hz, tris in meshes
+    ]
     win = (slice(r0, r1 + 1), slice(c0, c1 + 1))
     return measure_error_window_series(local, z[win], valid[win], dx, dy)
 

@@ -138,7 +138,9 @@ class FractalSource:
         r0, c0 = max(int(rows.min()), 0), max(int(cols.min()), 0)
         if not valid[r0 : int(np.ceil(rows.max())) + 1, c0 : int(np.ceil(cols.max())) + 1].all():
             # no detail over nodata either: the footprint of the stored tiles (terralod.pyramid.footprint)
-            keep = footprint_mask(rows.astype(np.float64), cols.astype(np.float64), tris.astype(np.int64), valid)
+            keep = footprint_mask(
+                rows.astype(np.float64), cols.astype(np.float64), tris.astype(np.int64), valid
+            )
             used = np.zeros(len(verts), bool)
             used[tris[keep].ravel()] = True
             remap = np.cumsum(used) - 1

@@ -584,7 +584,9 @@ class Engine:
         self._resident = np.zeros(self.index.n, bool)
         self._admitted = np.zeros(self.index.n, bool)
         self._waiting_groups = 0
-        self._priority = np.zeros(self.index.n)  # projected error (px) of a parent when its children were asked for
+        self._priority = np.zeros(
+            self.index.n
+        )  # projected error (px) of a parent when its children were asked for
         self.max_new_tiles = int(max_new_tiles)
         self._generation = 0  # bumped by every finished asynchronous load
         self._gen_lock = threading.Lock()
@@ -649,7 +651,9 @@ class Engine:
             new = res[ch] & ~adm[ch]
             if new.any():
                 n_res = np.bincount(par[res[ch]] - off, minlength=n_kids.size)
-                full = np.flatnonzero((n_res == n_kids) & (n_kids > 0)) + off  # parents with every child decoded
+                full = (
+                    np.flatnonzero((n_res == n_kids) & (n_kids > 0)) + off
+                )  # parents with every child decoded
                 has_new = np.zeros(self.index.n, bool)
                 has_new[par[new]] = True
                 for q in full[has_new[full]].tolist():

@@ -135,8 +135,9 @@ class TinRuntime:
         """Move every sub-block to its SVO scale for ``camera`` (a :class:`terralod.runtime.Camera`)."""
         m = self.model
         t0 = time.perf_counter()
-        scales = m.scales_for_camera(camera.eye, camera.fov_y_deg, camera.height_px, self.threshold_px,
-                                     error=self.error)
+        scales = m.scales_for_camera(
+            camera.eye, camera.fov_y_deg, camera.height_px, self.threshold_px, error=self.error
+        )
         t1 = time.perf_counter()
         before = m.block_scales
         m.set_block_scales(scales)

@@ -18,4 +18,12 @@ from terralod.tin.increments import DetailIncrementModel
 from terralod.tin.pointcloud import PointCloud, read_las
 from terralod.tin.records import DeltaT, Increments
 
-__all__ = ["DeltaT", "DetailIncrementModel", "Increments", "PointCloud", "read_las", "read_text", "write_text"]
+__all__ = [
+    "DeltaT",
+    "DetailIncrementModel",
+    "Increments",
+    "PointCloud",
+    "read_las",
+    "read_text",
+    "write_text",
+]

@@ -64,7 +64,9 @@ def _check_manifold(tris: np.ndarray, source: str | None) -> None:
     n = int(tris.max()) + 1
     directed = e[:, 0] * n + e[:, 1]
     if np.unique(directed).size != directed.size:
-        raise InputError("the triangulation has a repeated directed edge (inconsistent or non-manifold)", source)
+        raise InputError(
+            "the triangulation has a repeated directed edge (inconsistent or non-manifold)", source
+        )
     und = np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1])
     _, cnt = np.unique(und, return_counts=True)
     if (cnt > 2).any():
@@ -124,8 +126,9 @@ def delaunay_tin(
     return np.ascontiguousarray(vertices), tris, used
 
 
-def grid_tin(elevation_m: np.ndarray, valid: np.ndarray, x_m: np.ndarray, y_m: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def grid_tin(
+    elevation_m: np.ndarray, valid: np.ndarray, x_m: np.ndarray, y_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Grid TIN of a raster: two triangles per cell whose four samples are valid.
 
     Parameters
@@ -270,7 +273,12 @@ def split_sub_blocks(vertices: np.ndarray, triangles: np.ndarray, k: int) -> Sub
     nb = k * k
     r, c = np.divmod(np.arange(nb), k)
     bounds = np.stack(
-        [lo[0] + span[0] * c / k, hi[1] - span[1] * (r + 1) / k, lo[0] + span[0] * (c + 1) / k, hi[1] - span[1] * r / k],
+        [
+            lo[0] + span[0] * c / k,
+            hi[1] - span[1] * (r + 1) / k,
+            lo[0] + span[0] * (c + 1) / k,
+            hi[1] - span[1] * r / k,
+        ],
         axis=1,
     )
     # Centres from the triangle corners of each block (a vertex counts once per triangle using it).

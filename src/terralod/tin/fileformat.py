@@ -150,7 +150,9 @@ def _narrow(a: np.ndarray) -> np.ndarray:
     if a.dtype.kind not in "iu" or a.size == 0:
         return a.astype(a.dtype.newbyteorder("<"))
     lo, hi = int(a.min()), int(a.max())
-    for t in (np.uint8, np.uint16, np.uint32, np.uint64) if lo >= 0 else (np.int8, np.int16, np.int32, np.int64):
+    for t in (
+        (np.uint8, np.uint16, np.uint32, np.uint64) if lo >= 0 else (np.int8, np.int16, np.int32, np.int64)
+    ):
         info = np.iinfo(t)
         if info.min <= lo and hi <= info.max:
             return a.astype(np.dtype(t).newbyteorder("<"))
@@ -200,7 +202,6 @@ def decode_mesh_rows(rows: np.ndarray) -> np.ndarray:
     d = _unzigzag(np.asarray(rows).reshape(-1, 3))
     a = np.cumsum(d[:, 0])
     return np.stack([a, a + d[:, 1], a + d[:, 2]], axis=1)
-
 
 
 def _estimate(raw: bytes) -> int:
@@ -368,8 +369,13 @@ def _parse_arrays(buf: bytes, src: str) -> dict[str, np.ndarray]:
     return arrays
 
 
-def write_container(path: str | os.PathLike[str], meta: dict[str, Any], arrays: dict[str, np.ndarray],
-                    *, compress: bool = True) -> int:
+def write_container(
+    path: str | os.PathLike[str],
+    meta: dict[str, Any],
+    arrays: dict[str, np.ndarray],
+    *,
+    compress: bool = True,
+) -> int:
     """Write ``meta`` (JSON) and named arrays with the checksummed header; returns the file size, bytes.
 
     The payload (meta + arrays) is one stream, compressed once (:func:`_pack`) when ``compress``. Written
@@ -378,8 +384,14 @@ def write_container(path: str | os.PathLike[str], meta: dict[str, Any], arrays: 
     body = json.dumps(meta, sort_keys=True, separators=(",", ":")).encode()
     plain = _uvarint(len(body)) + body + _array_section(arrays)
     payload = _pack(plain) if compress else plain
-    head = _HEADER.pack(MAGIC, FORMAT_VERSION, _FLAG_LZMA if compress else 0, 0, len(payload),
-                        hashlib.sha256(payload).digest())
+    head = _HEADER.pack(
+        MAGIC,
+        FORMAT_VERSION,
+        _FLAG_LZMA if compress else 0,
+        0,
+        len(payload),
+        hashlib.sha256(payload).digest(),
+    )
     p = Path(path)
     tmp = p.with_name(p.name + ".tmp")
     with open(tmp, "wb") as f:
@@ -400,14 +412,20 @@ def read_container(path: str | os.PathLike[str]) -> tuple[dict[str, Any], dict[s
         raise CorruptStoreError("not a terralod detail-increment file (bad magic)", src)
     magic, version, flags, _, length, digest = _HEADER.unpack_from(data)
     if version > FORMAT_VERSION:
-        raise CorruptStoreError(f"format version {version} is newer than this terralod's ({FORMAT_VERSION})", src)
+        raise CorruptStoreError(
+            f"format version {version} is newer than this terralod's ({FORMAT_VERSION})", src
+        )
     if version < FORMAT_VERSION:
         raise CorruptStoreError(
             f"format version {version} is no longer read (this terralod reads {FORMAT_VERSION}): rebuild the model "
-            "from its source", src)
+            "from its source",
+            src,
+        )
     payload = data[_HEADER.size :]
     if len(payload) != length:
-        raise CorruptStoreError(f"truncated or padded: payload of {len(payload)} bytes, header says {length}", src)
+        raise CorruptStoreError(
+            f"truncated or padded: payload of {len(payload)} bytes, header says {length}", src
+        )
     if hashlib.sha256(payload).digest() != digest:
         raise CorruptStoreError("checksum mismatch: the file is corrupted", src)
     plain = _unpack(payload, src) if flags & _FLAG_LZMA else payload

@@ -220,8 +220,13 @@ class DetailIncrementModel:
 
         pc = read_las(path, ground_only=ground_only, units=units)
         return cls.from_points(
-            pc.xyz_m, sub_blocks=sub_blocks, base_fraction=base_fraction, dedup_tol_m=dedup_tol_m,
-            source=pc.source, crs=pc.crs, notes=pc.notes,
+            pc.xyz_m,
+            sub_blocks=sub_blocks,
+            base_fraction=base_fraction,
+            dedup_tol_m=dedup_tol_m,
+            source=pc.source,
+            crs=pc.crs,
+            notes=pc.notes,
         )
 
     @classmethod
@@ -236,7 +241,9 @@ class DetailIncrementModel:
         _, ys = hf.world_xy(np.arange(h), np.zeros(h))
         vertices, tris, _ = grid_tin(hf.elevation_m, hf.valid, xs, ys)
         k = blocks_per_side(_auto_sub_blocks(vertices.shape[0]) if sub_blocks == "auto" else sub_blocks)  # type: ignore[arg-type]
-        return cls._build(vertices, tris, k, base_fraction, hf.source, hf.crs, tuple(getattr(hf, "notes", ())))
+        return cls._build(
+            vertices, tris, k, base_fraction, hf.source, hf.crs, tuple(getattr(hf, "notes", ()))
+        )
 
     @classmethod
     def _build(cls, vertices, tris, k, base_fraction, source, crs, notes) -> DetailIncrementModel:
@@ -244,21 +251,43 @@ class DetailIncrementModel:
         from terralod.tin.qem import measured_errors, simplify
 
         sb = split_sub_blocks(vertices, tris, k)
-        log = simplify(vertices, tris, sb.kind, sb.tri_block, sb.vert_block, base_fraction=base_fraction,
-                       n_blocks=sb.n_blocks)
+        log = simplify(
+            vertices,
+            tris,
+            sb.kind,
+            sb.tri_block,
+            sb.vert_block,
+            base_fraction=base_fraction,
+            n_blocks=sb.n_blocks,
+        )
         err = measured_errors(vertices, tris, log)
         inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0], err)
         # a box around each block's triangles: every scale's surface lies inside it
         t = np.asarray(tris, np.int64).ravel()
         tb = np.repeat(sb.tri_block.astype(np.int64), 3)
-        lo = np.repeat(vertices.min(axis=0)[None, :], sb.n_blocks, axis=0) if t.size else np.zeros((sb.n_blocks, 3))
+        lo = (
+            np.repeat(vertices.min(axis=0)[None, :], sb.n_blocks, axis=0)
+            if t.size
+            else np.zeros((sb.n_blocks, 3))
+        )
         hi = lo.copy()
         has = np.bincount(tb, minlength=sb.n_blocks) > 0
         lo[has], hi[has] = np.inf, -np.inf
         np.minimum.at(lo, tb, vertices[t])
         np.maximum.at(hi, tb, vertices[t])
-        model = cls(vertices, base_tris, base_alive, inc, k, sb.centre_m, sb.bounds_m,
-                    source=str(source), crs=crs, notes=notes, block_boxes_m=np.concatenate([lo, hi], axis=1))
+        model = cls(
+            vertices,
+            base_tris,
+            base_alive,
+            inc,
+            k,
+            sb.centre_m,
+            sb.bounds_m,
+            source=str(source),
+            crs=crs,
+            notes=notes,
+            block_boxes_m=np.concatenate([lo, hi], axis=1),
+        )
         # the input TIN, kept for checks: the full scale holds the same triangles (in other slots, a
         # triple possibly rotated)
         model._full_tris = np.ascontiguousarray(tris, np.int32)
@@ -291,10 +320,16 @@ class DetailIncrementModel:
 
     def block_scales_of(self, scale: int) -> np.ndarray:
         """(B,) per-block scales of global scale ``scale``."""
-        if isinstance(scale, bool) or not isinstance(scale, int | np.integer) or not 0 <= scale < self.n_scales:
+        if (
+            isinstance(scale, bool)
+            or not isinstance(scale, int | np.integer)
+            or not 0 <= scale < self.n_scales
+        ):
             raise ValueError(f"Expected a scale in [0, {self.n_scales}), got {scale!r}")
         inc = self.increments
-        return np.bincount(inc.record_block[inc.order[: int(scale)]], minlength=self.n_blocks).astype(np.int64)
+        return np.bincount(inc.record_block[inc.order[: int(scale)]], minlength=self.n_blocks).astype(
+            np.int64
+        )
 
     def set_block_scales(self, scales: Sequence[int] | np.ndarray) -> None:
         """Move each sub-block to its scale by applying (or reverting) its increments (eq. 2)."""
@@ -303,16 +338,37 @@ class DetailIncrementModel:
         if s.shape != (self.n_blocks,):
             raise ValueError(f"Expected {self.n_blocks} per-block scales, got shape {s.shape}")
         if (s < 0).any() or (s > nmax).any():
-            raise ValueError(f"Expected per-block scales in [0, n_b], n_b = {nmax.tolist()}, got {s.tolist()}")
+            raise ValueError(
+                f"Expected per-block scales in [0, n_b], n_b = {nmax.tolist()}, got {s.tolist()}"
+            )
         inc = self.increments
         for b in np.flatnonzero(s != self._scales):
             cur, tgt, base = int(self._scales[b]), int(s[b]), int(inc.block_ptr[b])
             if tgt > cur:
-                refine_records(self._tris, self._alive, base + cur, base + tgt, inc.del_ptr, inc.del_slot,
-                               inc.del_tri, inc.rep_ptr, inc.rep_slot, inc.rep_old)
+                refine_records(
+                    self._tris,
+                    self._alive,
+                    base + cur,
+                    base + tgt,
+                    inc.del_ptr,
+                    inc.del_slot,
+                    inc.del_tri,
+                    inc.rep_ptr,
+                    inc.rep_slot,
+                    inc.rep_old,
+                )
             else:
-                coarsen_records(self._tris, self._alive, base + tgt, base + cur, inc.del_ptr, inc.del_slot,
-                                inc.rep_ptr, inc.rep_slot, inc.rep_new)
+                coarsen_records(
+                    self._tris,
+                    self._alive,
+                    base + tgt,
+                    base + cur,
+                    inc.del_ptr,
+                    inc.del_slot,
+                    inc.rep_ptr,
+                    inc.rep_slot,
+                    inc.rep_new,
+                )
             self._scales[b] = tgt
 
     def triangles(self) -> np.ndarray:
@@ -327,8 +383,9 @@ class DetailIncrementModel:
         used, inv = np.unique(t, return_inverse=True)
         return self.vertices_m[used], inv.reshape(t.shape).astype(np.int32)
 
-    def mesh_at(self, scale: int | Sequence[int] | np.ndarray, *, compact: bool = False
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def mesh_at(
+        self, scale: int | Sequence[int] | np.ndarray, *, compact: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The TIN at a scale.
 
         Parameters
@@ -350,8 +407,14 @@ class DetailIncrementModel:
             self.set_block_scales(scale)  # type: ignore[arg-type]
         return self._mesh(compact)
 
-    def _camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
-                threshold_px: float, error: str) -> tuple[np.ndarray, np.ndarray]:
+    def _camera(
+        self,
+        eye_m: Sequence[float] | np.ndarray,
+        fov_y_deg: float,
+        height_px: float,
+        threshold_px: float,
+        error: str,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Checked camera: (eye (3,), distance of every sub-block (B,), metres, for ``error``'s rule)."""
         eye = np.asarray(eye_m, np.float64)
         if eye.shape != (3,) or not np.isfinite(eye).all():
@@ -366,8 +429,15 @@ class DetailIncrementModel:
             return eye, np.linalg.norm(self.block_centres_m - eye[None, :], axis=1)
         raise ValueError(f"Expected error 'measured' or 'mmqe', got {error!r}")
 
-    def scales_for_camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
-                          threshold_px: float = 2.0, *, error: str = "measured") -> np.ndarray:
+    def scales_for_camera(
+        self,
+        eye_m: Sequence[float] | np.ndarray,
+        fov_y_deg: float,
+        height_px: float,
+        threshold_px: float = 2.0,
+        *,
+        error: str = "measured",
+    ) -> np.ndarray:
         """(B,) per-sub-block scales for a perspective camera: the coarsest scale whose error projects to at
         most ``threshold_px`` pixels. A pure query: the state is not touched.
 
@@ -389,21 +459,37 @@ class DetailIncrementModel:
         return select_scales(inc.mmqe_m2, inc.mmqe_ptr, self.block_centres_m, np.asarray(eye_m, np.float64),
                              math.radians(fov_y_deg), float(height_px), float(threshold_px))  # fmt: skip
 
-    def projected_error_px(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
-                           scales: np.ndarray | None = None, *, error: str = "measured") -> np.ndarray:
+    def projected_error_px(
+        self,
+        eye_m: Sequence[float] | np.ndarray,
+        fov_y_deg: float,
+        height_px: float,
+        scales: np.ndarray | None = None,
+        *,
+        error: str = "measured",
+    ) -> np.ndarray:
         """(B,) each sub-block's error at ``scales`` (default: its current scale) projected to the screen,
         pixels, by the rule of ``error`` (see :meth:`scales_for_camera`)."""
         _, d = self._camera(eye_m, fov_y_deg, height_px, 1.0, error)
         inc = self.increments
         s = self._scales if scales is None else np.asarray(scales, np.int64)
         if error == "measured":
-            return projected_px(inc.error_m[inc.mmqe_ptr[:-1] + s], d, math.radians(fov_y_deg), float(height_px))
+            return projected_px(
+                inc.error_m[inc.mmqe_ptr[:-1] + s], d, math.radians(fov_y_deg), float(height_px)
+            )
         return projected_px(np.sqrt(inc.mmqe_m2[inc.mmqe_ptr[:-1] + s]), d, math.radians(fov_y_deg),
                             float(height_px))  # fmt: skip
 
-    def mesh_for_camera(self, eye_m: Sequence[float] | np.ndarray, fov_y_deg: float, height_px: float,
-                        threshold_px: float = 2.0, *, compact: bool = False, error: str = "measured"
-                        ) -> tuple[np.ndarray, np.ndarray]:
+    def mesh_for_camera(
+        self,
+        eye_m: Sequence[float] | np.ndarray,
+        fov_y_deg: float,
+        height_px: float,
+        threshold_px: float = 2.0,
+        *,
+        compact: bool = False,
+        error: str = "measured",
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The TIN with each sub-block at its scale for this camera (see :meth:`scales_for_camera`)."""
         self.set_block_scales(self.scales_for_camera(eye_m, fov_y_deg, height_px, threshold_px, error=error))
         return self._mesh(compact)
@@ -427,9 +513,19 @@ class DetailIncrementModel:
 
         Its sub-block scales are this model's S_0, S_k, S_2k, …, S_{n_b}.
         """
-        m = DetailIncrementModel(self.vertices_m, self._base_tris, self._base_alive, self.increments.merged(k),
-                                 self.k, self.block_centres_m, self.block_bounds_m, source=self.source,
-                                 crs=self.crs, notes=self.notes, block_boxes_m=self.block_boxes_m)
+        m = DetailIncrementModel(
+            self.vertices_m,
+            self._base_tris,
+            self._base_alive,
+            self.increments.merged(k),
+            self.k,
+            self.block_centres_m,
+            self.block_bounds_m,
+            source=self.source,
+            crs=self.crs,
+            notes=self.notes,
+            block_boxes_m=self.block_boxes_m,
+        )
         m._full_tris = self._full_tris
         return m
 
@@ -564,7 +660,9 @@ class DetailIncrementModel:
         # the splits from their symbols, replaying them over the base (terralod.kernels.tincodec)
         base_tri = decode_mesh_rows(rows)
         if base_tri.size and (base_tri.min() < 0 or base_tri.max() >= v.shape[0]):
-            raise CorruptStoreError("inconsistent detail-increment records: base triangles do not fit the mesh", src)
+            raise CorruptStoreError(
+                "inconsistent detail-increment records: base triangles do not fit the mesh", src
+            )
         out = np.ones(v.shape[0], np.bool_)
         out[base_tri.ravel()] = False
         label = np.full(v.shape[0], nb, np.int64)
@@ -573,7 +671,9 @@ class DetailIncrementModel:
         label[out] = np.where(lab_esc == 0, _block_cells(v, k)[out], lab_esc - 1)
         if not np.array_equal(np.bincount(label, minlength=nb + 1)[:nb], br):
             raise CorruptStoreError("inconsistent detail-increment file: vertex blocks", src)
-        sym_u, sym_v, sym_j, after = (a[n].astype(np.int64) for n in ("split_u", "split_v", "split_j", "split_after"))
+        sym_u, sym_v, sym_j, after = (
+            a[n].astype(np.int64) for n in ("split_u", "split_v", "split_j", "split_after")
+        )
         rec_u, rec_v, rec_x, rec_m = (np.zeros(n_rec, np.int64) for _ in range(4))
         vpos, vat, lo, hi = _insert_order(label, nb)
         status, _ = split_codes(False, _grid_xy(v), v[:, 2].copy(), label, base_tri.astype(np.int32), bptr, vpos, vat,
@@ -582,14 +682,34 @@ class DetailIncrementModel:
                                 a["escape_x1"].astype(np.int64))  # fmt: skip
         if status != 0:
             where = "base triangles" if status < 0 else f"record {max(status, 1) - 1}"
-            raise CorruptStoreError(f"inconsistent detail-increment records: {where} does not fit the mesh", src)
+            raise CorruptStoreError(
+                f"inconsistent detail-increment records: {where} does not fit the mesh", src
+            )
         inc, base_tris, base_alive = Increments.from_compact(
-            v.shape[0], base_tri, br, rec_u, rec_v, rec_x, rec_m, codes(a["mmqe_first"], a["mmqe_drop"]),
-            codes(a["error_first"], a["error_drop"]), source=src,
+            v.shape[0],
+            base_tri,
+            br,
+            rec_u,
+            rec_v,
+            rec_x,
+            rec_m,
+            codes(a["mmqe_first"], a["mmqe_drop"]),
+            codes(a["error_first"], a["error_drop"]),
+            source=src,
         )
         if step > 1:
             inc = inc.merged(step)
-        m = cls(v, base_tris, base_alive, inc, k, a["block_centres_m"], a["block_bounds_m"],
-                source=str(meta.get("source", src)), crs=meta.get("crs"), notes=meta.get("notes", ()),
-                block_boxes_m=a["block_boxes_m"])
+        m = cls(
+            v,
+            base_tris,
+            base_alive,
+            inc,
+            k,
+            a["block_centres_m"],
+            a["block_bounds_m"],
+            source=str(meta.get("source", src)),
+            crs=meta.get("crs"),
+            notes=meta.get("notes", ()),
+            block_boxes_m=a["block_boxes_m"],
+        )
         return m

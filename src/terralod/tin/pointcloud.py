@@ -164,7 +164,9 @@ def _units_from_geokeys(header) -> tuple[str, float, float | None, str | None] |
         keys = {k.id: k.value_offset for k in vlr.geo_keys if k.tiff_tag_location == 0}
         vert = _GEOKEY_UNITS.get(keys.get(4099, -1), (None, None))[1]
         if keys.get(1024) == 2:  # ModelTypeGeographic
-            raise InputError("coordinates are geographic (degrees); reproject the cloud to a projected CRS first")
+            raise InputError(
+                "coordinates are geographic (degrees); reproject the cloud to a projected CRS first"
+            )
         if 3076 in keys and keys[3076] in _GEOKEY_UNITS:
             name, f = _GEOKEY_UNITS[keys[3076]]
             return name, f, vert, None
@@ -225,7 +227,9 @@ def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> bool:
         if time.monotonic() > t_end:
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-            raise InputError(f"decoding the LAZ points took over {timeout_s:g} s; the file is probably corrupt", str(p))
+            raise InputError(
+                f"decoding the LAZ points took over {timeout_s:g} s; the file is probably corrupt", str(p)
+            )
     if os.WIFSIGNALED(status):
         raise InputError(
             f"the LAZ decoder (lazrs) crashed on the compressed points (signal {os.WTERMSIG(status)}): the file is "
@@ -342,7 +346,9 @@ def _wkt_of(header) -> str | None:
     for vlr in header.vlrs:
         if type(vlr).__name__ == "WktCoordinateSystemVlr":
             s = vlr.string
-            return s.decode("ascii", "replace").strip("\x00") if isinstance(s, bytes) else str(s).strip("\x00")
+            return (
+                s.decode("ascii", "replace").strip("\x00") if isinstance(s, bytes) else str(s).strip("\x00")
+            )
     return None
 
 
@@ -391,7 +397,9 @@ def read_las(
     n_file = _records_in_file(p, header)
     if n_read != int(header.point_count) or (n_file is not None and n_file != n_read):
         held = f"the file holds {n_file}" if n_file is not None else f"{n_read} could be read"
-        notes.append(f"header point count {int(header.point_count)} disagrees with the records ({held}); read {n_read}")
+        notes.append(
+            f"header point count {int(header.point_count)} disagrees with the records ({held}); read {n_read}"
+        )
         log.warning("%s: %s", src, notes[-1])
     if n_read == 0:
         raise InputError("the file has no point records", src)
@@ -440,7 +448,9 @@ def read_las(
     cls = np.asarray(las.classification) if "classification" in las.point_format.dimension_names else None
     classified = cls is not None and bool((cls == GROUND).any())
     if ground_only is True and not classified:
-        raise InputError("no ground points (class 2) in the cloud; pass ground_only=False to use all points", src)
+        raise InputError(
+            "no ground points (class 2) in the cloud; pass ground_only=False to use all points", src
+        )
     if classified and ground_only is not False:
         keep = cls == GROUND
         xyz = xyz[keep]

@@ -167,7 +167,20 @@ def simplify(
     )
     (_, cu, cv, cblock, cmmqe, ccost, mmqe0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new) = out
     return CollapseLog(
-        cu, cv, cblock, cmmqe, ccost, mmqe0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new, tris, alive
+        cu,
+        cv,
+        cblock,
+        cmmqe,
+        ccost,
+        mmqe0,
+        del_slot,
+        del_tri,
+        rep_ptr,
+        rep_slot,
+        rep_old,
+        rep_new,
+        tris,
+        alive,
     )
 
 
@@ -182,8 +195,13 @@ def measured_errors(vertices_m: np.ndarray, triangles: np.ndarray, log: Collapse
     true max (a vertex no collapse since touched keeps its distance).
     """
     e = collapse_vertical_errors(
-        np.ascontiguousarray(vertices_m, np.float64), np.ascontiguousarray(triangles, np.int32), log.u,
-        log.del_slot, log.rep_ptr, log.rep_slot, log.rep_new,
+        np.ascontiguousarray(vertices_m, np.float64),
+        np.ascontiguousarray(triangles, np.int32),
+        log.u,
+        log.del_slot,
+        log.rep_ptr,
+        log.rep_slot,
+        log.rep_new,
     )
     if e.size == 0:
         return e
@@ -219,6 +237,14 @@ def simplify_mesh(
     kind = np.where(locked, LOCKED, FREE).astype(np.uint8)
     vb = np.where(locked, -1, 0).astype(np.int32)
     frac = min(max(target_triangles / max(tris.shape[0], 1), math.ulp(1.0)), 1.0)
-    log = simplify(vertices_m, tris, kind, np.zeros(tris.shape[0], np.int32), vb, base_fraction=frac,
-                   shape_eps=shape_eps, vertical_weight=vertical_weight)
+    log = simplify(
+        vertices_m,
+        tris,
+        kind,
+        np.zeros(tris.shape[0], np.int32),
+        vb,
+        base_fraction=frac,
+        shape_eps=shape_eps,
+        vertical_weight=vertical_weight,
+    )
     return vertices_m, log.base_tris[log.base_alive]

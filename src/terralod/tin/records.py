@@ -120,7 +120,9 @@ def quantise_mmqe(mmqe_m2: np.ndarray) -> np.ndarray:
     mm = np.asarray(mmqe_m2, np.float64)
     with np.errstate(divide="ignore"):
         c = np.round(np.log2(np.maximum(mm, 0.0)) * MMQE_STEPS_PER_OCTAVE)
-    return np.maximum(np.nan_to_num(c, nan=MMQE_ZERO_CODE, neginf=MMQE_ZERO_CODE), MMQE_ZERO_CODE).astype(np.int64)
+    return np.maximum(np.nan_to_num(c, nan=MMQE_ZERO_CODE, neginf=MMQE_ZERO_CODE), MMQE_ZERO_CODE).astype(
+        np.int64
+    )
 
 
 def quantise_error(error_m: np.ndarray) -> np.ndarray:
@@ -266,8 +268,9 @@ class Increments:
 
     # -- construction ----------------------------------------------------------------------------------
     @classmethod
-    def from_log(cls, log: Any, n_blocks: int, n_vertices: int, error_m: np.ndarray
-                 ) -> tuple[Increments, np.ndarray, np.ndarray]:
+    def from_log(
+        cls, log: Any, n_blocks: int, n_vertices: int, error_m: np.ndarray
+    ) -> tuple[Increments, np.ndarray, np.ndarray]:
         """Records from a :class:`terralod.tin.qem.CollapseLog` (collapse order → refinement order).
 
         ``error_m`` (C,): the measured error of each collapse (:func:`terralod.tin.qem.measured_errors`).
@@ -288,8 +291,10 @@ class Increments:
         # x1: the third vertex of the deleted triangle holding the directed edge u -> v
         d = log.del_tri.reshape(c, 2, 3)[perm].astype(np.int64)
         uu, vv = u[:, None], v[:, None]
-        has_uv = ((d[..., 0] == uu) & (d[..., 1] == vv)) | ((d[..., 1] == uu) & (d[..., 2] == vv)) | (
-            (d[..., 2] == uu) & (d[..., 0] == vv)
+        has_uv = (
+            ((d[..., 0] == uu) & (d[..., 1] == vv))
+            | ((d[..., 1] == uu) & (d[..., 2] == vv))
+            | ((d[..., 2] == uu) & (d[..., 0] == vv))
         )
         third = d.sum(axis=2) - uu - vv
         x1 = np.where(has_uv[:, 0], third[:, 0], third[:, 1])
@@ -302,10 +307,22 @@ class Increments:
         block_ptr = np.concatenate([[0], np.cumsum(block_records)])
         for b in range(n_blocks):
             lo, hi = block_ptr[b], block_ptr[b + 1]
-            mm[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]]))
+            mm[lo + b : hi + b + 1] = monotone_mmqe(
+                np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]])
+            )
             ee[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([err[perm[lo:hi]], [0.0]]))
-        return cls.from_compact(n_vertices, base_tri, block_records, u, v, x1, m, quantise_mmqe(mm),
-                                quantise_error(ee), source="collapse log")
+        return cls.from_compact(
+            n_vertices,
+            base_tri,
+            block_records,
+            u,
+            v,
+            x1,
+            m,
+            quantise_mmqe(mm),
+            quantise_error(ee),
+            source="collapse log",
+        )
 
     @classmethod
     def from_compact(
@@ -337,7 +354,9 @@ class Increments:
         Returns (increments, base triples (S, 3), base alive (S,)); CorruptStoreError (naming ``source``)
         when the splits do not fit together.
         """
-        rec_u, rec_v, rec_x1, rec_m = (np.ascontiguousarray(a, np.int64) for a in (rec_u, rec_v, rec_x1, rec_m))
+        rec_u, rec_v, rec_x1, rec_m = (
+            np.ascontiguousarray(a, np.int64) for a in (rec_u, rec_v, rec_x1, rec_m)
+        )
         rec_w = np.zeros(rec_u.size, np.int64)
         base_tri = np.ascontiguousarray(base_tri, np.int32).reshape(-1, 3)
         status, _, del_tri, rep_ptr, rep_slot, rep_old, rep_new = replay_splits(
@@ -345,7 +364,9 @@ class Increments:
         )
         if status != 0:
             where = "base triangles" if status < 0 else f"record {status - 1}"
-            raise CorruptStoreError(f"inconsistent detail-increment records: {where} does not fit the mesh", source)
+            raise CorruptStoreError(
+                f"inconsistent detail-increment records: {where} does not fit the mesh", source
+            )
         c = rec_u.size
         n_base = base_tri.shape[0]
         block_ptr = np.concatenate([[0], np.cumsum(block_records)]).astype(np.int64)
@@ -402,8 +423,10 @@ class Increments:
         # Every change as an event (group, slot, record, original triple, new triple; new = -1: deleted).
         nd = self.del_slot.size
         ev_rec = np.concatenate(
-            [np.repeat(np.arange(self.n_records), np.diff(self.del_ptr)),
-             np.repeat(np.arange(self.n_records), np.diff(self.rep_ptr))]
+            [
+                np.repeat(np.arange(self.n_records), np.diff(self.del_ptr)),
+                np.repeat(np.arange(self.n_records), np.diff(self.rep_ptr)),
+            ]
         )
         ev_slot = np.concatenate([self.del_slot, self.rep_slot])
         ev_old = np.concatenate([self.del_tri, self.rep_old])
@@ -441,8 +464,19 @@ class Increments:
             rank = np.full(n_groups, np.iinfo(np.int64).max, np.int64)
             np.minimum.at(rank, rec_group, self.rank)
         return Increments(
-            gptr, del_ptr, slot[dead], old[dead], rep_ptr, slot[~dead], old[~dead], new[~dead], mm, rank,
-            self.step * k, raw=self if self.rec_u is not None else None, error_m=ee,
+            gptr,
+            del_ptr,
+            slot[dead],
+            old[dead],
+            rep_ptr,
+            slot[~dead],
+            old[~dead],
+            new[~dead],
+            mm,
+            rank,
+            self.step * k,
+            raw=self if self.rec_u is not None else None,
+            error_m=ee,
         )
 
 
@@ -452,4 +486,3 @@ def canonical_rows(tris: np.ndarray) -> np.ndarray:
     t = np.asarray(tris, np.int64).reshape(-1, 3)
     t = np.take_along_axis(t, (np.argmin(t, axis=1)[:, None] + np.arange(3)) % 3, axis=1)
     return np.ascontiguousarray(t[np.lexsort((t[:, 2], t[:, 1], t[:, 0]))], np.int32)
-

@@ -38,8 +38,15 @@ import math
 
 import numpy as np
 
-__all__ = ["box_distance_m", "monotone_mmqe", "projected_px", "select_scale", "select_scales",
-           "select_scales_measured", "svo_length_px"]
+__all__ = [
+    "box_distance_m",
+    "monotone_mmqe",
+    "projected_px",
+    "select_scale",
+    "select_scales",
+    "select_scales_measured",
+    "svo_length_px",
+]
 
 
 def monotone_mmqe(mmqe_m2: np.ndarray) -> np.ndarray:
@@ -109,8 +116,9 @@ def svo_length_px(
     return np.sqrt(np.asarray(mmqe_m2, np.float64)) * height_px / (2.0 * d * math.tan(0.5 * fov_y_rad))
 
 
-def select_scale(mono_m2: np.ndarray, distance_m: float, fov_y_rad: float, height_px: float,
-                 threshold_px: float = 2.0) -> int:
+def select_scale(
+    mono_m2: np.ndarray, distance_m: float, fov_y_rad: float, height_px: float, threshold_px: float = 2.0
+) -> int:
     """Coarsest scale s with ``svo_length_px(mono_m2[s], …) <= threshold_px`` (the finest if none).
 
     ``mono_m2`` must be non-increasing (:func:`monotone_mmqe`).

@@ -87,4 +87,3 @@ def load_model_from_store(path: str | os.PathLike[str]) -> tuple[DetailIncrement
         except CorruptStoreError as exc:
             raise CorruptStoreError(f"TIN model: {exc.message}", str(path)) from exc
     return model, meta
-
