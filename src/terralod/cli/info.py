@@ -58,7 +58,22 @@ def grid_extent(s) -> dict[str, Any]:
     nf = s.meta.get("nodata_fraction")
     if nf is not None:
         out["nodata_percent"] = 100.0 * float(nf)
+    snf, mf = s.meta.get("source_nodata_fraction"), s.meta.get("margin_fraction")
+    if snf is not None:
+        out["source_nodata_percent"] = 100.0 * float(snf)
+    if mf is not None:
+        out["reprojection_margin_percent"] = 100.0 * float(mf)
     return out
+
+
+def print_nodata(d: dict[str, Any]) -> None:
+    """The source's own nodata apart from the margin a reprojection leaves around it (DEMs and stores)."""
+    if d.get("reprojection_margin_percent", 0.0) > 0 and d.get("source_nodata_percent") is not None:
+        console.print(f"  nodata       {d['source_nodata_percent']:.4g} % of the source's samples")
+        console.print(f"  margin       {d['reprojection_margin_percent']:.2f} % of the grid lies outside the "
+                      "source (reprojection)")  # fmt: skip
+    elif d.get("nodata_percent") is not None:
+        console.print(f"  nodata       {d['nodata_percent']:.4g} %")
 
 
 def print_epochs(d: dict[str, Any]) -> None:
@@ -98,6 +113,7 @@ def info(path: str, as_json: bool, **read: Any) -> None:
         else:
             console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs']}")
             print_extent(d)
+            print_nodata(d)
             print_store_summary(d)
             print_epochs(d)
         return
@@ -128,11 +144,6 @@ def info(path: str, as_json: bool, **read: Any) -> None:
     console.print(f"  CRS          {crs_name(d['crs'])}")
     console.print(f"  spacing      {d['spacing_m'][0]:.3f} x {d['spacing_m'][1]:.3f} m")
     print_extent(d)
-    if d["reprojection_margin_percent"] > 0:
-        console.print(f"  nodata       {d['source_nodata_percent']:.4g} % of the source's samples")
-        console.print(f"  margin       {d['reprojection_margin_percent']:.2f} % of the grid lies outside the "
-                      "source (reprojection)")  # fmt: skip
-    else:
-        console.print(f"  nodata       {d['nodata_percent']:.4g} %")
+    print_nodata(d)
     for n in d["notes"] + ([d["fill_method"]] if d["fill_method"] else []):
         console.print(f"  note         {n}")

@@ -162,6 +162,8 @@ def _store_meta(
         "fill_method": hf.fill_method,
         "notes": list(hf.notes),
         "nodata_fraction": hf.nodata_fraction,
+        "source_nodata_fraction": getattr(hf, "source_nodata_fraction", None),  # a reprojected source's own
+        "margin_fraction": getattr(hf, "margin_fraction", 0.0),  # the grid outside the source's footprint
         "quantisation": {
             str(k): {"xy_frac_bits": q.xy_frac_bits, "z_step_m": q.z_step_m} for k, q in quant.items()
         },
