@@ -50,10 +50,9 @@ def source_heightfield(terrain: Any) -> Any:
     """The source DEM of a grid store when it can be read again and is the one the store was built from
     (same digest); None otherwise (TIN stores, moved or changed sources)."""
     if getattr(terrain, "epochs", None) and hasattr(terrain, "heightfield"):
-        try:  # a store of epochs keeps each epoch's samples
-            return terrain.heightfield()
-        except Exception:  # noqa: BLE001 - fall back to the recorded source
-            pass
+        # a store of epochs keeps each epoch's samples; the recorded source is only its first epoch, so a
+        # failure here is an error to report, never a reason to fall back to another epoch's DEM
+        return terrain.heightfield()
     meta = getattr(terrain, "meta", {}) or {}
     src, digest = meta.get("source"), meta.get("source_digest")
     if not src or not digest:
