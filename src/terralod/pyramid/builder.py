@@ -13,7 +13,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -253,6 +253,35 @@ def build_tile(
     )
 
 
+def commit_streamed(
+    store: TileStore,
+    tiles: Iterable[EncodedTile],
+    errors: dict[TileCode, tuple[float, float]],
+    built: int,
+    written: Callable[[int], None],
+) -> int:
+    """The one writer of a build: finished tiles committed in transactions of ``_BATCH_TILES`` tiles or
+    ``_COMMIT_SECONDS`` seconds (local threads and Dask workers alike); each tile's errors recorded in
+    ``errors`` for its parent. Returns ``built`` plus the tiles written; ``written(total so far)`` after each
+    transaction."""
+    batch: list[EncodedTile] = []
+    last = time.perf_counter()
+    for enc in tiles:
+        batch.append(enc)
+        errors[enc.code] = (enc.error_m, enc.vertical_error_m)
+        now = time.perf_counter()
+        if len(batch) >= _BATCH_TILES or now - last > _COMMIT_SECONDS:
+            store.write_tiles(batch)
+            built += len(batch)
+            batch, last = [], now
+            written(built)
+    if batch:
+        store.write_tiles(batch)
+        built += len(batch)
+        written(built)
+    return built
+
+
 def build_store(
     hf: Heightfield,
     path: str | os.PathLike[str],
@@ -352,24 +381,8 @@ def build_store(
                     kids = [errors[c] for c in pyramid.children(code)]
                     return build_tile(hf, pyramid, code, quant[_lvl], mesh_fn, kids)
 
-                batch: list[EncodedTile] = []
-                last = time.perf_counter()
-                for enc in pool.map(one, level_codes):
-                    batch.append(enc)
-                    errors[enc.code] = (enc.error_m, enc.vertical_error_m)
-                    now = time.perf_counter()
-                    if len(batch) >= _BATCH_TILES or now - last > _COMMIT_SECONDS:
-                        store.write_tiles(batch)
-                        built += len(batch)
-                        batch = []
-                        last = now
-                        if progress:
-                            progress(n_skipped + built, total)
-                if batch:
-                    store.write_tiles(batch)
-                    built += len(batch)
-                    if progress:
-                        progress(n_skipped + built, total)
+                built = commit_streamed(store, pool.map(one, level_codes), errors, built,
+                                        lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
                 if stop_after is not None and built >= stop_after:
                     break
         if n_skipped + built == total:

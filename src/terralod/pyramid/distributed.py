@@ -600,24 +600,9 @@ def build_store_windowed(
                 futures.append(
                     runner.submit(shared, tile_size, method, unit, quant[level], kids, max_window_samples)
                 )
-            batch: list[EncodedTile] = []
-            last = time.perf_counter()
-            for tiles in runner.completed(futures):
-                for enc in tiles:
-                    errors[enc.code] = (enc.error_m, enc.vertical_error_m)
-                batch.extend(tiles)
-                now = time.perf_counter()
-                if len(batch) >= builder._BATCH_TILES or now - last > builder._COMMIT_SECONDS:
-                    store.write_tiles(batch)
-                    built += len(batch)
-                    batch, last = [], now
-                    if progress:
-                        progress(n_skipped + built, total)
-            if batch:
-                store.write_tiles(batch)
-                built += len(batch)
-                if progress:
-                    progress(n_skipped + built, total)
+            streamed = (enc for tiles in runner.completed(futures) for enc in tiles)
+            built = builder.commit_streamed(store, streamed, errors, built,
+                                            lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
             if stop_after is not None and built >= stop_after:
                 break
         if n_skipped + built == total:
