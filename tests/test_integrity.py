@@ -79,6 +79,12 @@ def test_check_repair_resume(built, tmp_path: Path, capsys) -> None:
     con.execute("UPDATE tiles SET error_m = 0 WHERE level=1 AND x=0 AND y=0")  # not monotone, and a bad CRC
     con.commit()
     con.close()
+    # info reads every row's checksum: it no longer calls such a store "complete" and exits 2
+    code, out, err = cli(capsys, "info", str(s))
+    assert code == 2 and "2 tile(s) FAIL their checksums" in out, (out, err)
+    one_line(err, "2 tile(s) fail their checksums", "check --repair")
+    code, out, _ = cli(capsys, "info", str(store))
+    assert code == 0 and "every tile's checksum verified" in out
     code, out, _ = cli(capsys, "check", str(s))
     assert code == 2
     problems = [ln for ln in out.splitlines() if ln.strip().startswith("problem:")]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import random
+import shutil
 import signal
 import sqlite3
 import struct
@@ -236,3 +237,78 @@ def test_reader_racing_the_writer_sees_only_committed_tiles(dems, tmp_path: Path
     os.waitpid(pid, 0)
     assert len(seen) >= 3 and seen == sorted(seen) and seen[-1] < len(ref_rows), seen
     assert _rows(out) == ref_rows
+
+
+# -- a killed export ----------------------------------------------------------------------------------------
+def _tree(d: Path) -> dict[str, bytes]:
+    return {str(f.relative_to(d)): f.read_bytes() for f in sorted(d.rglob("*")) if f.is_file()}
+
+
+def _export(store: Path, out: Path, fmt: str, overwrite: bool = False, progress=None) -> None:
+    from terralod.export import export_3dtiles, export_quantized_mesh
+    from terralod.terrain import open_terrain
+
+    fn = export_3dtiles if fmt == "3dtiles" else export_quantized_mesh
+    with open_terrain(store) as t:
+        fn(t, out, overwrite=overwrite, progress=progress)
+
+
+def _export_killed_at(store: Path, out: Path, fmt: str, n: int, overwrite: bool) -> None:
+    def cb(done: int, total: int) -> None:
+        if done >= n:
+            _die()
+
+    _killed(lambda: _export(store, out, fmt, overwrite, cb))
+
+
+def _export_killed_between_renames(store: Path, out: Path, fmt: str) -> None:
+    def run() -> None:
+        real = os.replace
+
+        def replace(a, b):  # the old output set aside, then killed before the new one is renamed in
+            real(a, b)
+            if Path(b).name == "x":
+                _die()
+
+        os.replace = replace
+        _export(store, out, fmt, True)
+
+    _killed(run)
+
+
+@pytest.mark.parametrize("fmt", ["3dtiles", "quantized-mesh"])
+def test_kill_export_at_random_points(dems, tmp_path: Path, fmt: str) -> None:
+    """An export killed at seeded random tiles, fresh or replacing an earlier export, leaves nothing or the
+    old output under the output name; running it again gives the uninterrupted export's bytes."""
+    from terralod.export.common import check_output
+
+    _, _, _, ref, old, _, _ = dems
+    want, earlier = tmp_path / "want", tmp_path / "earlier"
+    totals: list[int] = []
+    _export(ref, want, fmt, progress=lambda d, t: totals.append(t))
+    _export(old, earlier, fmt)
+    want_tree, earlier_tree = _tree(want), _tree(earlier)
+    assert want_tree != earlier_tree and totals
+    rng = random.Random(SEED + len(fmt))
+    for i, n in enumerate(sorted(rng.sample(range(1, totals[-1]), 2))):
+        fresh = tmp_path / f"fresh{i}"
+        _export_killed_at(ref, fresh, fmt, n, overwrite=False)
+        assert not fresh.exists()  # nothing half-written under the name
+        _export(ref, fresh, fmt)
+        assert _tree(fresh) == want_tree
+        replaced = tmp_path / f"replaced{i}"
+        shutil.copytree(earlier, replaced)
+        _export_killed_at(ref, replaced, fmt, n, overwrite=True)
+        assert _tree(replaced) == earlier_tree  # the old output, whole
+        _export(ref, replaced, fmt, overwrite=True)
+        assert _tree(replaced) == want_tree
+    # killed between setting the old output aside and renaming the new one in: the old one comes back
+    between = tmp_path / "between"
+    shutil.copytree(earlier, between)
+    _export_killed_between_renames(ref, between, fmt)
+    assert not between.exists()
+    check_output(between, overwrite=True)  # what every export does first
+    assert _tree(between) == earlier_tree
+    _export(ref, between, fmt, overwrite=True)
+    assert _tree(between) == want_tree
+    assert not [f for f in tmp_path.iterdir() if ".tmp-" in f.name]  # temporaries swept

@@ -50,7 +50,7 @@ from affine import Affine
 
 from terralod.errors import CorruptStoreError, StoreError
 from terralod.kernels.codec import undo_zigzag_delta
-from terralod.store_epochs import EpochTables
+from terralod.store_epochs import TILE_COLUMNS, EpochTables
 from terralod.tiles import TileCode, TilePyramid
 
 FORMAT_NAME = "terralod-store"
@@ -743,6 +743,24 @@ class TileStore(EpochTables):
                 self.tile(*c)
             except CorruptStoreError:
                 bad.append(c)
+        return bad
+
+    def checksum_failures(self) -> list[TileCode]:
+        """Codes of tiles whose row fails its checksum (blobs not decoded; :meth:`verify` decodes too),
+        in one pass over the selected epoch's rows."""
+        bad: list[TileCode] = []
+        try:
+            for r in self._conn.execute(f"SELECT {TILE_COLUMNS} FROM {self._tiles_src}"):
+                (k, tx, ty, e, ev, me, mev, rms, ns, zmin, zmax, nv, nt, z0, vb, tb, ck) = r
+                try:
+                    values = (k, tx, ty, e, ev, me, mev, rms, float(ns), zmin, zmax, nv, nt, z0)
+                    ok = row_checksum(values, bytes(vb), bytes(tb)) == ck
+                except (ValueError, TypeError, struct.error):
+                    ok = False
+                if not ok:
+                    bad.append((k, tx, ty))
+        except sqlite3.DatabaseError as exc:
+            raise CorruptStoreError(f"tiles cannot be read ({exc})", str(self.path)) from exc
         return bad
 
     def size_bytes(self) -> int:

@@ -40,6 +40,9 @@ def store_info(p: Path) -> dict[str, Any]:
         summary["method"] = s.meta.get("method")
         summary["epochs"] = [{"name": r["name"], "state": r["state"], **r["info"]} for r in s.epoch_rows()]
         summary["epoch"] = s.epoch
+        bad = s.checksum_failures()  # "complete" is said of tiles that pass their checksums
+        summary["checksum_failures"] = len(bad)
+        summary["checksum_failures_first"] = [list(c) for c in bad[:3]]
         summary.update(grid_extent(s))
     return summary
 
@@ -116,6 +119,14 @@ def info(path: str, as_json: bool, **read: Any) -> None:
             print_nodata(d)
             print_store_summary(d)
             print_epochs(d)
+        if d.get("checksum_failures"):
+            from terralod.errors import CorruptStoreError
+
+            raise CorruptStoreError(
+                f"{d['checksum_failures']} tile(s) fail their checksums: `terralod check --repair` drops them, "
+                "then `terralod build --resume` rebuilds them",
+                str(p),
+            )
         return
     if p.suffix.lower() in (".las", ".laz"):
         from terralod.tin.pointcloud import describe_las

@@ -2,7 +2,8 @@
 
 An export is written into a temporary folder beside the output and renamed into place at the end, so an
 interrupted export leaves nothing half-written under the output name (a leftover ``.DIR.tmp-*`` folder is
-removed by the next export). An output folder that exists and is not empty needs ``overwrite``.
+removed by the next export; an old output set aside by a kill between the two renames of a replacement is
+put back first). An output folder that exists and is not empty needs ``overwrite``.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ __all__ = [
     "atomic_folder",
     "check_exportable",
     "check_output",
+    "restore_set_aside",
     "source_heightfield",
     "valid_at",
 ]
@@ -90,8 +92,9 @@ def valid_at(hf: Any, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 def check_output(out: str | os.PathLike[str], overwrite: bool) -> None:
     """Refuse an output that is a file, a non-empty folder without ``overwrite``, or in a missing or
-    read-only folder."""
+    read-only folder (an old output a killed replacement set aside is put back first)."""
     dst = Path(out)
+    restore_set_aside(dst)
     if dst.exists() and not dst.is_dir():
         raise InputError("exists and is not a folder", str(dst))
     if dst.is_dir() and any(dst.iterdir()) and not overwrite:
@@ -101,6 +104,24 @@ def check_output(out: str | os.PathLike[str], overwrite: bool) -> None:
         raise InputError(f"output folder {parent} does not exist", str(dst))
     if not os.access(parent, os.W_OK):
         raise InputError(f"output folder {parent} is not writable", str(dst))
+
+
+def restore_set_aside(out: str | os.PathLike[str]) -> bool:
+    """Put back an output folder that an export killed between its two renames left aside.
+
+    Replacing ``out`` renames it to ``.OUT.tmp-old-*/x`` and then the new folder to ``out``; a kill in
+    between leaves no ``out``. The old folder is then still whole: it is moved back (True), so a killed
+    export leaves either the old output or the new one, never none.
+    """
+    dst = Path(out)
+    if dst.exists() or dst.is_symlink():
+        return False
+    for old in sorted(dst.resolve().parent.glob(f".{dst.name}.tmp-old-*")):
+        if (old / "x").is_dir():
+            os.replace(old / "x", dst)
+            shutil.rmtree(old, ignore_errors=True)
+            return True
+    return False
 
 
 @contextmanager
@@ -116,7 +137,7 @@ def atomic_folder(out: str | os.PathLike[str], overwrite: bool) -> Iterator[Path
         yield tmp
         if dst.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-old-", dir=parent))
-            os.replace(dst, old / "x")
+            os.replace(dst, old / "x")  # a kill between these two renames: the next export puts it back
             os.replace(tmp, dst)
             shutil.rmtree(old, ignore_errors=True)
         else:
