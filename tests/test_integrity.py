@@ -18,6 +18,7 @@ from terralod import build_store, open_store, read_heightfield
 from terralod.cli import main
 from terralod.errors import CorruptStoreError, InputError, StoreError
 from terralod.integrity import check_store
+from terralod.store import FORMAT_VERSION, TileStore, seal_meta
 
 from conftest import fractal_terrain
 
@@ -133,7 +134,40 @@ def test_metadata_checksum_and_upgrade(built, tmp_path: Path, capsys) -> None:
     code, out, _ = cli(capsys, "check", "--upgrade", str(s))
     assert code == 0 and "upgraded from format version 1" in out
     with open_store(s) as st:
-        assert st.verify() == []
+        assert st.verify() == [] and st.meta["version"] == FORMAT_VERSION == 3
+
+
+def _with_version(src: Path, to: Path, version: int) -> Path:
+    s = _copy(src, to)
+    con = sqlite3.connect(s)
+    with con:
+        con.execute("UPDATE meta SET value = ? WHERE key = 'version'", (str(version),))
+        seal_meta(con)
+    con.close()
+    return s
+
+
+def test_format_version_3_epochs(built, tmp_path: Path, capsys) -> None:
+    """Epochs bumped the format to 3: a version-2 store (no epochs) reads as it is and becomes version 3
+    when it gets epoch tables; a newer version is refused with one line; ``--upgrade`` brings 2 to 3."""
+    _, store = built
+    with open_store(store) as st:
+        assert st.meta["version"] == 3
+    v2 = _with_version(store, tmp_path / "v2.terra", 2)
+    with open_store(v2) as st:
+        assert st.meta["version"] == 2 and st.verify() == []
+    with TileStore.open(v2, writable=True) as st:
+        st.adopt_tiles_as_epoch("2020-01-01", {"kind": "build"})
+    with open_store(v2) as st:  # re-sealed: opens, and says 3
+        assert st.meta["version"] == 3 and st.has_epochs and st.verify() == []
+    code, out, _ = cli(capsys, "check", "--upgrade", str(_with_version(store, tmp_path / "u.terra", 2)))
+    assert code == 0 and "upgraded from format version 2 to 3" in out
+    v4 = _with_version(store, tmp_path / "v4.terra", 4)
+    with pytest.raises(StoreError, match="newer than this terralod"):
+        open_store(v4)
+    code, _, err = cli(capsys, "info", str(v4))
+    assert code == 2
+    one_line(err, "format version 4 is newer", "upgrade terralod")
 
 
 def test_damaged_stores_one_line(built, tmp_path: Path, capsys) -> None:

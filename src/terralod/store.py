@@ -1,6 +1,6 @@
 """TileStore: the level-of-detail tiles of one terrain in one SQLite file (``*.terra``).
 
-Integrity (format version 2): ``meta_sha256`` is the SHA-256 of every other meta row (:func:`meta_checksum`),
+Integrity (format versions 2 and 3; 3 may hold epochs): ``meta_sha256`` is the SHA-256 of every other meta row (:func:`meta_checksum`),
 re-sealed by every metadata write and verified at open, so a changed quantisation or transform is a
 :class:`CorruptStoreError`, never wrong coordinates; each tile row has its CRC-32. A store is created
 atomically (schema and metadata committed to a temporary beside it, then linked into place) and replaced
@@ -55,11 +55,14 @@ from terralod.tiles import TileCode, TilePyramid
 
 FORMAT_NAME = "terralod-store"
 #: Bumped by every change of the store format. 2: the metadata carries a checksum (``meta_sha256``) and a
-#: closed store is left in rollback-journal mode (no ``-wal``/``-shm`` beside it).
-FORMAT_VERSION = 2
-#: Versions opened as they are (each has the metadata checksum); a later format that still reads an
-#: older layout lists it here.
-READABLE_VERSIONS = (FORMAT_VERSION,)
+#: closed store is left in rollback-journal mode (no ``-wal``/``-shm`` beside it). 3: the store may hold
+#: epochs (:mod:`terralod.store_epochs`); a reader of version 2 would read only the first epoch's tiles
+#: without a word, so it must refuse such a store (it does: it reads only version 2).
+FORMAT_VERSION = 3
+#: Versions opened as they are (each has the metadata checksum). A version-2 store is a version-3 store
+#: without epoch tables; the first epoch tables written into it make it version 3
+#: (:meth:`TileStore.add_epoch_tables`).
+READABLE_VERSIONS = (2, FORMAT_VERSION)
 #: Older versions :func:`upgrade_store` (``terralod check --upgrade``) brings to ``FORMAT_VERSION``.
 UPGRADABLE_VERSIONS = (1,)
 #: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
@@ -95,6 +98,12 @@ def verify_meta(conn: sqlite3.Connection, meta: dict[str, Any], path: Path) -> N
         raise CorruptStoreError("not a terralod store (no format marker)", str(path))
     version = meta.get("version")
     if version not in READABLE_VERSIONS:
+        if isinstance(version, int) and version > FORMAT_VERSION:
+            raise StoreError(
+                f"store format version {version} is newer than this terralod (it reads versions "
+                f"{', '.join(map(str, READABLE_VERSIONS))}); upgrade terralod to read it",
+                str(path),
+            )
         if version in UPGRADABLE_VERSIONS:
             raise StoreError(
                 f"store format version {version}, this terralod reads {FORMAT_VERSION}; upgrade it with "
@@ -219,8 +228,9 @@ def upgrade_store(path: str | os.PathLike[str]) -> str:
     """Bring a store of an older format version (:data:`UPGRADABLE_VERSIONS`) to :data:`FORMAT_VERSION`
     in place, in one transaction; returns a line saying what was done.
 
-    1 -> 2: the metadata gets its checksum (computed from the metadata as found: version 1 had none to
-    check it against) and the file leaves WAL mode.
+    1 -> 3: the metadata gets its checksum (computed from the metadata as found: version 1 had none to
+    check it against) and the file leaves WAL mode. 2 -> 3: the version number only (a version-2 store
+    reads as it is; upgrading it makes sure an older terralod no longer opens it).
     """
     p = Path(path)
     if not p.exists():
@@ -232,9 +242,13 @@ def upgrade_store(path: str | os.PathLike[str]) -> str:
         raise StoreError(f"cannot open ({exc})", str(p)) from exc
     try:
         version = _meta_value(conn, "version")
-        if version in READABLE_VERSIONS:
+        if version == FORMAT_VERSION:
             return f"{p}: format version {version} is current, nothing to do"
-        if version not in UPGRADABLE_VERSIONS:
+        if version in READABLE_VERSIONS:  # readable as it is: verify before re-sealing
+            verify_meta(
+                conn, {str(k): json.loads(v) for k, v in conn.execute("SELECT key, value FROM meta")}, p
+            )
+        elif version not in UPGRADABLE_VERSIONS:
             raise CorruptStoreError(
                 f"store format version {version!r} cannot be upgraded; rebuild it", str(p)
             )
@@ -249,7 +263,8 @@ def upgrade_store(path: str | os.PathLike[str]) -> str:
         raise StoreError(f"cannot upgrade ({exc})", str(p)) from exc
     finally:
         conn.close()
-    return f"{p}: upgraded from format version {version} to {FORMAT_VERSION} (metadata checksum added)"
+    what = "metadata checksum added" if version in UPGRADABLE_VERSIONS else "version number only"
+    return f"{p}: upgraded from format version {version} to {FORMAT_VERSION} ({what})"
 
 
 _SCHEMA = """
@@ -744,6 +759,16 @@ class TileStore(EpochTables):
             except CorruptStoreError:
                 bad.append(c)
         return bad
+
+    def add_epoch_tables(self) -> None:
+        """Create the epoch tables (idempotent); a version-2 store becomes version 3 in doing so."""
+        super().add_epoch_tables()
+        if self.meta.get("version") != FORMAT_VERSION:
+            self.set_metas({"version": FORMAT_VERSION})
+            try:
+                self._conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
+            except sqlite3.Error as exc:
+                raise StoreError(f"cannot write the format version ({exc})", str(self.path)) from exc
 
     def checksum_failures(self) -> list[TileCode]:
         """Codes of tiles whose row fails its checksum (blobs not decoded; :meth:`verify` decodes too),
