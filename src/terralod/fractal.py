@@ -840,7 +840,7 @@ def write_geotiff(detail: FractalDetail, output: str | os.PathLike[str], factor:
                 dst.write(z, 1, window=Window(0, r0, nc, n))
         os.replace(tmp, out)
     except BaseException as exc:
-        tmp.unlink(missing_ok=True)
+        _discard(tmp)
         if isinstance(exc, Exception) and not isinstance(exc, InputError):  # full disk, I/O: name the file
             text = error_line(exc) + (f"; {said[0]}" if said else "")
             raise OSError(getattr(exc, "errno", None), f"cannot write ({text})", str(out)) from exc
@@ -923,3 +923,12 @@ def amplify_command(
     }
     log.info("amplified %s x%d -> %s (%d x %d) in %.2f s", summary["input"], factor, output, nr, nc, dt)
     return summary
+
+
+def _discard(tmp: Path) -> None:
+    """Remove a temporary output if it is there; never raises (on a read-only file system even an unlink of
+    a missing file fails, and the error that matters is the write's)."""
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass

@@ -687,7 +687,11 @@ class TileStore(EpochTables):
             with self._conn:
                 self._insert_tile_rows(rows)  # table tiles, or an epoch's revision (terralod.store_epochs)
         except sqlite3.Error as exc:
-            raise StoreError(f"cannot write tiles ({exc})", str(self.path)) from exc
+            raise StoreError(
+                f"cannot write the store ({exc}; is the disk full?); the tiles committed so far are kept: "
+                "free space, then run the same command with --resume",
+                str(self.path),
+            ) from exc
 
     def raw_tile(self, level: int, x: int, y: int) -> EncodedTile:
         """The stored row of a tile, checksum verified."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sqlite3
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -312,8 +313,23 @@ def run_build(hf, out: str, *, tile_size: int, method: str, workers: int | None,
         def cb(done: int, total: int) -> None:
             prog.update(task, completed=done, total=total)
 
-        return build_store(hf, out, tile_size=tile_size, method=method, workers=workers, resume=resume,
-                           overwrite=overwrite, progress=cb, **extra)  # fmt: skip
+        try:
+            return build_store(hf, out, tile_size=tile_size, method=method, workers=workers, resume=resume,
+                               overwrite=overwrite, progress=cb, **extra)  # fmt: skip
+        except sqlite3.Error as exc:  # disk full, I/O error, file-size limit: name the store and the way on
+            raise store_write_error(exc, out) from exc
+
+
+def store_write_error(exc: BaseException, out: str | Path) -> Exception:
+    """The one line of a store that could not be written (full disk, I/O error, file-size limit): what
+    is committed stays, and ``--resume`` finishes once there is room."""
+    from terralod.errors import StoreError
+
+    return StoreError(
+        f"cannot write the store ({exc}; is the disk full?); the tiles committed so far are kept: free "
+        "space, then run the same command with --resume",
+        str(out),
+    )
 
 
 def user_cache_dir() -> Path:

@@ -4,6 +4,8 @@
 place:
 
 - ``cache=True``: compiled code is cached on disk next to the module, so a second process starts fast;
+  a cache that cannot be written (full disk, read-only install, file-size limit) is logged and skipped:
+  the kernel compiled in memory runs all the same (numba would raise the ``OSError`` instead);
 - ``nogil=True``: kernels release the GIL, so the builder can mesh and measure tiles on threads;
 - ``fastmath=False``: IEEE arithmetic, no reassociation or contraction, so results are reproducible and
   the exact geometric predicates (e.g. the shared-edge coverage test in :mod:`terralod.kernels.error`)
@@ -15,6 +17,7 @@ place:
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -28,5 +31,29 @@ if TYPE_CHECKING:  # to a type checker a kernel is the Python function it compil
 
 else:
     jit = functools.partial(numba.njit, cache=True, nogil=True, fastmath=False, error_model="numpy")
+
+
+def _tolerate_cache_write_errors() -> None:
+    """Make a failed write of numba's on-disk cache a logged warning instead of an error of the caller."""
+    from numba.core import caching
+
+    save = caching.Cache.save_overload
+    if getattr(save, "_terralod_tolerant", False):
+        return
+
+    @functools.wraps(save)
+    def save_overload(self: Any, sig: Any, data: Any) -> None:
+        try:
+            save(self, sig, data)
+        except OSError as exc:
+            logging.getLogger("terralod.kernels").warning(
+                "kernel cache not written (%s); the kernel compiles again in the next process", exc
+            )
+
+    save_overload._terralod_tolerant = True  # type: ignore[attr-defined]
+    caching.Cache.save_overload = save_overload  # type: ignore[method-assign]
+
+
+_tolerate_cache_write_errors()
 
 __all__ = ["jit"]

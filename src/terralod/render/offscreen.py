@@ -377,10 +377,10 @@ def save_png(img: np.ndarray, path: str | Path) -> None:
         Image.fromarray(img).save(tmp, format=Image.registered_extensions().get(out.suffix.lower(), "PNG"))
         os.replace(tmp, out)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
+        _discard(tmp)
         raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from exc
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        _discard(tmp)
         raise
 
 
@@ -394,3 +394,12 @@ def write_video(frames, path: str | Path, fps: int = 24) -> int:
             w.append_data(f)
             n += 1
     return n
+
+
+def _discard(tmp: Path) -> None:
+    """Remove a temporary output if it is there; never raises (on a read-only file system even an unlink of
+    a missing file fails, and the error that matters is the write's)."""
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
