@@ -638,7 +638,7 @@ def _grow(a, n):
 
 
 @jit
-def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps, vweight):
+def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps, vweight, Q0, W0):
     """Half-edge QEM collapses until every sub-block is down to its target triangle count.
 
     Parameters
@@ -659,6 +659,10 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         Orientation tolerance of rewritten triangles (see the module docstring), dimensionless.
     vweight : float
         Weight of the vertical term (see the module docstring), dimensionless; 0: the quadric alone.
+    Q0, W0 : (N, 10), (N,) float64, or (0, 10), (0,)
+        The initial quadrics and areas (:func:`plane_quadrics`), copied; empty: those of ``tris``. A
+        sub-block simplified on its own (:func:`terralod.tin.qem.simplify`) passes the quadrics of the
+        whole TIN, so a seam vertex starts with the planes of its triangles in every sub-block.
 
     Returns
     -------
@@ -672,7 +676,11 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     n_v = P.shape[0]
     n_b = target.shape[0]
     arena, start, length, cap, top = _build_stars(tris, alive, n_v)
-    Q, W = plane_quadrics(P, tris, alive)
+    if Q0.shape[0] == n_v:
+        Q = Q0.copy()
+        W = W0.copy()
+    else:
+        Q, W = plane_quadrics(P, tris, alive)
     selfq = np.empty(n_v, np.float64)  # Q_w(P_w): the half of a collapse cost that depends on w only
     for w in range(n_v):
         selfq[w] = _quadric_at(Q, w, P[w, 0], P[w, 1], P[w, 2])
@@ -997,3 +1005,47 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
             head[bs] = p
         out[i] = e
     return out
+
+
+# -- edge topology of a triangle list ---------------------------------------------------------------------
+@jit
+def edge_topology(tris, n_v):
+    """Directed edges of triangles (a → b for each consecutive pair of a triple), counted per vertex.
+
+    Returns ``(repeated, outline)``: ``repeated`` True when some directed edge occurs twice (an inconsistent
+    or non-manifold triangulation: with every directed edge once, no undirected edge has more than two
+    triangles); ``outline`` (n_v,) bool, the vertices of an edge used by a single triangle (either
+    direction counted). O(sum of squared vertex degrees), one pass over a CSR of the out-edges.
+    """
+    m = tris.shape[0]
+    ptr = np.zeros(n_v + 1, np.int64)
+    for t in range(m):
+        for k in range(3):
+            ptr[tris[t, k] + 1] += 1
+    for a in range(n_v):
+        ptr[a + 1] += ptr[a]
+    fill = ptr[:-1].copy()
+    dst = np.empty(3 * m, np.int64)
+    for t in range(m):
+        for k in range(3):
+            a = tris[t, k]
+            dst[fill[a]] = tris[t, (k + 1) % 3]
+            fill[a] += 1
+    repeated = False
+    outline = np.zeros(n_v, np.bool_)
+    for a in range(n_v):
+        for i in range(ptr[a], ptr[a + 1]):
+            b = dst[i]
+            cnt = 0
+            for j in range(ptr[a], ptr[a + 1]):
+                if dst[j] == b:
+                    cnt += 1
+            if cnt > 1:
+                repeated = True
+            for j in range(ptr[b], ptr[b + 1]):
+                if dst[j] == a:
+                    cnt += 1
+            if cnt == 1:
+                outline[a] = True
+                outline[b] = True
+    return repeated, outline

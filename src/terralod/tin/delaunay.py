@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from terralod.errors import InputError
-from terralod.kernels.qem import FREE, LOCKED
+from terralod.kernels.qem import FREE, LOCKED, edge_topology
 
 __all__ = ["SubBlocks", "delaunay_tin", "grid_tin", "mesh_boundary_vertices", "split_sub_blocks"]
 
@@ -52,25 +52,21 @@ def _orient_ccw(xy: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _compact(vertices: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Drop unused vertices; returns (vertices, tris renumbered, kept old indices ascending)."""
-    used = np.unique(tris)
+    used = np.flatnonzero(np.bincount(tris.ravel(), minlength=vertices.shape[0]))
     remap = np.full(vertices.shape[0], -1, np.int64)
     remap[used] = np.arange(used.size)
     return vertices[used], remap[tris].astype(np.int32), used
 
 
 def _check_manifold(tris: np.ndarray, source: str | None) -> None:
-    """InputError unless every edge is used by one triangle, or by two with opposite directions."""
-    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]).astype(np.int64)
-    n = int(tris.max()) + 1
-    directed = e[:, 0] * n + e[:, 1]
-    if np.unique(directed).size != directed.size:
+    """InputError unless every edge is used by one triangle, or by two with opposite directions (every
+    directed edge once: then no edge has three triangles). One linear pass
+    (:func:`terralod.kernels.qem.edge_topology`), no sort."""
+    repeated, _ = edge_topology(np.ascontiguousarray(tris, np.int64), int(tris.max()) + 1)
+    if repeated:
         raise InputError(
             "the triangulation has a repeated directed edge (inconsistent or non-manifold)", source
         )
-    und = np.minimum(e[:, 0], e[:, 1]) * n + np.maximum(e[:, 0], e[:, 1])
-    _, cnt = np.unique(und, return_counts=True)
-    if (cnt > 2).any():
-        raise InputError("the triangulation has an edge shared by more than two triangles", source)
 
 
 def delaunay_tin(
@@ -107,9 +103,12 @@ def delaunay_tin(
     xy = points_m[:, :2]
     centre = 0.5 * (xy.min(axis=0) + xy.max(axis=0))
     local = xy - centre
-    if np.unique(local, axis=0).shape[0] < 3:
+    # at least 3 distinct xy: a point unlike the first, then one unlike both (no sort of the cloud)
+    other = np.flatnonzero((local != local[0]).any(axis=1))
+    third = other[(local[other] != local[other[0]]).any(axis=1)] if other.size else other
+    if third.size == 0:
         raise InputError(
-            f"Expected at least 3 points with distinct xy to triangulate, got {np.unique(local, axis=0).shape[0]}",
+            f"Expected at least 3 points with distinct xy to triangulate, got {1 + min(other.size, 1)}",
             source,
         )
     try:
@@ -181,15 +180,9 @@ def grid_tin(
 
 def mesh_boundary_vertices(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
     """(V,) bool: vertices on an edge used by a single triangle (the TIN's outline, holes included)."""
-    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]).astype(np.int64)
-    lo = np.minimum(e[:, 0], e[:, 1])
-    hi = np.maximum(e[:, 0], e[:, 1])
-    key = lo * n_vertices + hi
-    uniq, cnt = np.unique(key, return_counts=True)
-    single = uniq[cnt == 1]
-    out = np.zeros(n_vertices, bool)
-    out[single // n_vertices] = True
-    out[single % n_vertices] = True
+    if len(triangles) == 0:
+        return np.zeros(n_vertices, bool)
+    _, out = edge_topology(np.ascontiguousarray(triangles, np.int64), int(n_vertices))
     return out
 
 

@@ -23,7 +23,8 @@ Deviation, and why:
   that triangle (escape: v and x1 as they are), v and the fan's counts ranked by frequency within a
   geometric context; the base mesh in canonical order (:func:`terralod.tin.records.canonical_rows`) as
   delta rows (:func:`encode_mesh_rows`); each block's MMQE and measured-error codes as the first and the
-  drops. What goes into the arrays is :meth:`terralod.tin.increments.DetailIncrementModel.save`'s; a file
+  drops; the LZMA2 stream of a payload over 2 MiB is coded in pieces on threads (:data:`LZMA_PIECE_BYTES`,
+  dictionary resets inside the one stream: same format, same decoded payload). What goes into the arrays is :meth:`terralod.tin.increments.DetailIncrementModel.save`'s; a file
   of a merged model stores the raw splits and the merge factor. Versions 1 (slots and triples), 2 (no
   measured error), 3 (floats not coded by column) and 4 (splits as plain indices, deflated per array)
   are refused with one line naming the file.
@@ -134,8 +135,35 @@ def read_text(path: str | os.PathLike[str]) -> tuple[int, list[list[DeltaT]]]:
 _LZMA_FILTERS = [{"id": lzma.FILTER_LZMA2, "preset": 9}]
 
 
-def _pack(raw: bytes) -> bytes:
-    return lzma.compress(raw, format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+#: Payloads over this are compressed as independent pieces of this many bytes, on threads, and joined into
+#: the same one LZMA2 stream (each piece's first chunk resets the dictionary, which LZMA2 allows anywhere):
+#: any reader of format 5 decodes it; the bytes depend on the payload alone, never on the thread count.
+#: About 0.02 % larger than one piece (a 8 MB payload: 3,448,628 against 3,448,040 bytes), ~2x faster on 2
+#: cores; a payload up to one piece is coded exactly as before.
+LZMA_PIECE_BYTES = 1 << 21
+
+
+def _pack_piece(raw: bytes) -> bytes:
+    """One raw LZMA2 stream without its end marker (the 0 control byte)."""
+    c = lzma.compress(raw, format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+    if not c or c[-1] != 0:  # pragma: no cover - liblzma always ends a raw LZMA2 stream with 0x00
+        raise RuntimeError("unexpected LZMA2 stream end")
+    return c[:-1]
+
+
+def _pack(raw: bytes, workers: int | None = None) -> bytes:
+    if len(raw) <= LZMA_PIECE_BYTES:
+        return lzma.compress(raw, format=lzma.FORMAT_RAW, filters=_LZMA_FILTERS)
+    pieces = [raw[i : i + LZMA_PIECE_BYTES] for i in range(0, len(raw), LZMA_PIECE_BYTES)]
+    n = min(len(pieces), workers if workers is not None else min(os.cpu_count() or 1, 8))
+    if n <= 1:
+        coded = [_pack_piece(b) for b in pieces]
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(n) as pool:  # liblzma runs without the GIL
+            coded = list(pool.map(_pack_piece, pieces))
+    return b"".join(coded) + b"\x00"
 
 
 def _unpack(buf: bytes, src: str) -> bytes:
@@ -375,15 +403,17 @@ def write_container(
     arrays: dict[str, np.ndarray],
     *,
     compress: bool = True,
+    workers: int | None = None,
 ) -> int:
     """Write ``meta`` (JSON) and named arrays with the checksummed header; returns the file size, bytes.
 
-    The payload (meta + arrays) is one stream, compressed once (:func:`_pack`) when ``compress``. Written
+    The payload (meta + arrays) is one LZMA2 stream when ``compress`` (:func:`_pack`; pieces of
+    :data:`LZMA_PIECE_BYTES` compressed on ``workers`` threads, the same bytes for any number). Written
     to ``path + '.tmp'`` then renamed, so an interrupted write never leaves a half file.
     """
     body = json.dumps(meta, sort_keys=True, separators=(",", ":")).encode()
     plain = _uvarint(len(body)) + body + _array_section(arrays)
-    payload = _pack(plain) if compress else plain
+    payload = _pack(plain, workers) if compress else plain
     head = _HEADER.pack(
         MAGIC,
         FORMAT_VERSION,

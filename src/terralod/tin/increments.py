@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -80,6 +81,20 @@ def _insert_order(label: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndar
     vpos[vat] = np.arange(vat.size, dtype=np.int64)
     seg = np.searchsorted(label[vat], np.arange(n_blocks + 1)).astype(np.int64)
     return vpos, vat, seg[:-1], seg[1:]
+
+
+class _Clock:
+    """Stage timer: ``clock(name)`` adds the seconds since the last call to ``timings[name]``."""
+
+    def __init__(self, timings: dict[str, float] | None) -> None:
+        self.timings = timings
+        self.t = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        if self.timings is not None:
+            self.timings[name] = self.timings.get(name, 0.0) + now - self.t
+        self.t = now
 
 
 # -- the model -------------------------------------------------------------------------------------------
@@ -165,6 +180,9 @@ class DetailIncrementModel:
         source: str = "<points>",
         crs: str | None = None,
         notes: Sequence[str] = (),
+        workers: int | None = None,
+        timings: dict[str, float] | None = None,
+        executor: Any = None,
     ) -> DetailIncrementModel:
         """Delaunay TIN of points, split into sub-blocks, simplified to its base, with its increments.
 
@@ -182,6 +200,14 @@ class DetailIncrementModel:
             :func:`terralod.tin.pointcloud.thin_duplicates`.
         source, crs, notes
             Provenance, kept with the model.
+        workers : int, optional
+            Threads simplifying the sub-blocks in parallel (default: the cores, at most 8); the model is
+            the same for any number.
+        timings : dict, optional
+            Filled with the seconds of each stage (dedup, delaunay, split, qem, records).
+        executor : callable, optional
+            ``executor(fn, blocks)`` runs ``fn`` on each sub-block instead of the thread pool (Dask:
+            :func:`terralod.tin.distributed.dask_executor`).
 
         Raises
         ------
@@ -191,6 +217,7 @@ class DetailIncrementModel:
         from terralod.tin.delaunay import blocks_per_side, delaunay_tin
         from terralod.tin.pointcloud import check_points, thin_duplicates
 
+        clock = _Clock(timings)
         pts = check_points(xyz_m, source if source != "<points>" else None)
         keep = thin_duplicates(pts, dedup_tol_m)
         extra = []
@@ -198,8 +225,12 @@ class DetailIncrementModel:
             extra.append(f"thinned {pts.shape[0] - keep.size} duplicate point(s) within {dedup_tol_m} m")
         src = None if source == "<points>" else source
         k = blocks_per_side(_auto_sub_blocks(keep.size) if sub_blocks == "auto" else sub_blocks)  # type: ignore[arg-type]
-        vertices, tris, _ = delaunay_tin(pts[keep], source=src)
-        return cls._build(vertices, tris, k, base_fraction, source, crs, (*notes, *extra))
+        pts = pts[keep]
+        clock("dedup")
+        vertices, tris, _ = delaunay_tin(pts, source=src)
+        clock("delaunay")
+        return cls._build(vertices, tris, k, base_fraction, source, crs, (*notes, *extra),
+                          workers=workers, clock=clock, executor=executor)  # fmt: skip
 
     @classmethod
     def from_las(
@@ -211,14 +242,20 @@ class DetailIncrementModel:
         dedup_tol_m: float = 0.01,
         ground_only: bool | None = None,
         units: str | float | None = None,
+        workers: int | None = None,
+        timings: dict[str, float] | None = None,
+        executor: Any = None,
     ) -> DetailIncrementModel:
         """:meth:`from_points` of a LAS/LAZ file's points (ground only when classified, metres).
 
-        See :func:`terralod.tin.pointcloud.read_las` for ``ground_only`` and ``units``.
+        See :func:`terralod.tin.pointcloud.read_las` for ``ground_only`` and ``units``, :meth:`from_points`
+        for ``workers``, ``timings`` (plus "read") and ``executor``.
         """
         from terralod.tin.pointcloud import read_las
 
+        clock = _Clock(timings)
         pc = read_las(path, ground_only=ground_only, units=units)
+        clock("read")
         return cls.from_points(
             pc.xyz_m,
             sub_blocks=sub_blocks,
@@ -227,13 +264,23 @@ class DetailIncrementModel:
             source=pc.source,
             crs=pc.crs,
             notes=pc.notes,
+            workers=workers,
+            timings=timings,
+            executor=executor,
         )
 
     @classmethod
     def from_heightfield(
-        cls, hf: Any, *, sub_blocks: int | str = 4, base_fraction: float = 0.2
+        cls,
+        hf: Any,
+        *,
+        sub_blocks: int | str = 4,
+        base_fraction: float = 0.2,
+        workers: int | None = None,
+        executor: Any = None,
     ) -> DetailIncrementModel:
-        """The grid TIN of a :class:`terralod.Heightfield`'s valid samples (world metres), as a model."""
+        """The grid TIN of a :class:`terralod.Heightfield`'s valid samples (world metres), as a model
+        (``workers``, ``executor``: see :meth:`from_points`)."""
         from terralod.tin.delaunay import blocks_per_side, grid_tin
 
         h, w = hf.shape
@@ -241,26 +288,22 @@ class DetailIncrementModel:
         _, ys = hf.world_xy(np.arange(h), np.zeros(h))
         vertices, tris, _ = grid_tin(hf.elevation_m, hf.valid, xs, ys)
         k = blocks_per_side(_auto_sub_blocks(vertices.shape[0]) if sub_blocks == "auto" else sub_blocks)  # type: ignore[arg-type]
-        return cls._build(
-            vertices, tris, k, base_fraction, hf.source, hf.crs, tuple(getattr(hf, "notes", ()))
-        )
+        return cls._build(vertices, tris, k, base_fraction, hf.source, hf.crs, tuple(getattr(hf, "notes", ())),
+                          workers=workers, executor=executor)  # fmt: skip
 
     @classmethod
-    def _build(cls, vertices, tris, k, base_fraction, source, crs, notes) -> DetailIncrementModel:
+    def _build(cls, vertices, tris, k, base_fraction, source, crs, notes, *, workers=None, clock=None,
+               executor=None) -> DetailIncrementModel:  # fmt: skip
         from terralod.tin.delaunay import split_sub_blocks
-        from terralod.tin.qem import measured_errors, simplify
+        from terralod.tin.qem import simplify_blocks
 
+        clock = clock or _Clock(None)
         sb = split_sub_blocks(vertices, tris, k)
-        log = simplify(
-            vertices,
-            tris,
-            sb.kind,
-            sb.tri_block,
-            sb.vert_block,
-            base_fraction=base_fraction,
-            n_blocks=sb.n_blocks,
-        )
-        err = measured_errors(vertices, tris, log)
+        clock("split")
+        # each sub-block on its own heap, in parallel; measured errors per block with it
+        log, err = simplify_blocks(vertices, tris, sb.kind, sb.tri_block, base_fraction=base_fraction,
+                                   n_blocks=sb.n_blocks, workers=workers, executor=executor)  # fmt: skip
+        clock("qem")
         inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0], err)
         # a box around each block's triangles: every scale's surface lies inside it
         t = np.asarray(tris, np.int64).ravel()
@@ -291,6 +334,7 @@ class DetailIncrementModel:
         # the input TIN, kept for checks: the full scale holds the same triangles (in other slots, a
         # triple possibly rotated)
         model._full_tris = np.ascontiguousarray(tris, np.int32)
+        clock("records")
         return model
 
     # -- sizes and scales -------------------------------------------------------------------------------
@@ -595,10 +639,11 @@ class DetailIncrementModel:
         }
         return meta, arrays
 
-    def save(self, path: str | os.PathLike[str], *, compress: bool = True) -> int:
-        """Write the model (base mesh + increments + MMQE) to one checksummed file; returns its size, bytes."""
+    def save(self, path: str | os.PathLike[str], *, compress: bool = True, workers: int | None = None) -> int:
+        """Write the model (base mesh + increments + MMQE) to one checksummed file; returns its size, bytes
+        (``workers`` threads compress it; the bytes are the same for any number)."""
         meta, arrays = self._payload()
-        return write_container(path, meta, arrays, compress=compress)
+        return write_container(path, meta, arrays, compress=compress, workers=workers)
 
     def export_text(self, path: str | os.PathLike[str]) -> None:
         """Write the increments in the paper's text scheme (:func:`write_text`)."""

@@ -18,9 +18,20 @@ Deviations, and why:
   orders by the weighted cost (m⁴); the MMQE uses the cost divided by the summed area of the planes, an
   area-weighted mean squared distance (m²), so that sqrt(MMQE) is the length in metres §2.3.2 projects
   to the screen. The paper's unweighted sum grows with the number of merged planes instead.
-- **One heap for all sub-blocks**, each sub-block stopping at its own target (``base_fraction`` of its
-  triangles): the paper runs the sub-blocks in parallel threads; one heap gives the same per-block
-  sequences (collapses in different blocks commute) with a global order that ``mesh_at(scale)`` uses.
+- **One heap per sub-block, in parallel** (as the paper's threads), each sub-block stopping at its own
+  target (``base_fraction`` of its triangles). A sub-block is simplified as a mesh of its own triangles,
+  its seam and outline vertices LOCKED, starting from the quadrics of the whole TIN (a seam vertex holds
+  the planes of its triangles in every sub-block around it). What a collapse merges into a seam vertex's
+  quadric stays in its own sub-block's copy: with one heap for all sub-blocks (this module until 2026-12)
+  a collapse onto a seam vertex v in one block raised the cost of every later collapse onto v in the
+  neighbouring block, so the per-block sequences depended on how the blocks interleaved, and collapses in
+  different blocks did not commute. Now they do: each block's sequence is a function of that block's
+  triangles and the initial quadrics, the same on 1 or N threads, on Dask workers, or one block after
+  another (``workers=1``). The link condition is tested on the block's mesh: a collapse that it accepts and
+  the whole TIN's link condition refuses would need an edge of another block inside this block's outline,
+  which the orientation test rejects (the block's outline is fixed and its triangles stay
+  counter-clockwise, so they tile the same region). The log is block-major; the global order of scales
+  comes from the MMQE ranks of the records (:class:`terralod.tin.records.Increments`).
 - **A vertical term in the cost** (``vertical_weight``, default :data:`VERTICAL_WEIGHT`; 0 is the
   paper's cost). The quadric measures the distance to the planes of the triangles around u, not to the
   points removed before, so QEM alone let the surface drift far from them: on the 513² Puget Sound crop
@@ -37,14 +48,28 @@ Deviations, and why:
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from terralod.errors import InputError
-from terralod.kernels.qem import FREE, LOCKED, collapse_vertical_errors, qem_simplify
+from terralod.kernels.qem import FREE, LOCKED, collapse_vertical_errors, plane_quadrics, qem_simplify
 
-__all__ = ["CollapseLog", "measured_errors", "simplify", "simplify_mesh"]
+__all__ = [
+    "BlockJob",
+    "BlockResult",
+    "CollapseLog",
+    "block_jobs",
+    "measured_errors",
+    "merge_blocks",
+    "run_block",
+    "simplify",
+    "simplify_blocks",
+    "simplify_mesh",
+]
 
 #: Default orientation tolerance of rewritten triangles: twice the area must exceed this times the sum
 #: of the squared xy edge lengths (an equilateral triangle has ~0.58; 1e-9 only rejects slivers whose
@@ -102,6 +127,215 @@ class CollapseLog:
         return int(self.u.shape[0])
 
 
+@dataclass(frozen=True)
+class BlockJob:
+    """What simplifying one sub-block needs, in the block's own (local) vertex and slot numbering.
+
+    Local vertex i is ``verts[i]`` of the TIN, local slot j is ``slots[j]``; both ascending, so every
+    tie the kernel breaks by index goes the same way as in the whole TIN. Plain arrays: a job pickles to a
+    Dask worker (:mod:`terralod.tin.distributed`).
+    """
+
+    block: int
+    verts: np.ndarray  #: (n,) int64 TIN vertex of each local vertex, ascending
+    slots: np.ndarray  #: (m,) int64 TIN slot of each local triangle, ascending
+    p: np.ndarray  #: (n, 3) float64 positions in the TIN's centred frame, metres
+    world_m: np.ndarray  #: (n, 3) float64 world positions (measured errors), metres
+    tris: np.ndarray  #: (m, 3) int32 local triples, counter-clockwise
+    kind: np.ndarray  #: (n,) uint8 FREE / LOCKED
+    q: np.ndarray  #: (n, 10) float64 initial quadrics of the whole TIN
+    w: np.ndarray  #: (n,) float64 their areas, m²
+    target: int  #: stop at this many live triangles
+    shape_eps: float
+    vertical_weight: float
+
+
+@dataclass(frozen=True)
+class BlockResult:
+    """One sub-block's collapses (local numbering, see :class:`BlockJob`) and measured errors."""
+
+    block: int
+    out: tuple  #: the kernel's return tuple (:func:`terralod.kernels.qem.qem_simplify`)
+    tris: np.ndarray  #: (m, 3) int32 local triples at the base
+    alive: np.ndarray  #: (m,) bool
+    error_m: np.ndarray  #: (C_b,) float64 running max of the measured vertical error, metres
+
+
+def _targets(tri_block: np.ndarray, nb: int, base_fraction: float) -> np.ndarray:
+    count = np.bincount(tri_block, minlength=nb)
+    return np.ceil(count * float(base_fraction)).astype(np.int64)
+
+
+def _check(base_fraction: float, vertical_weight: float | None) -> float:
+    if not (0.0 < base_fraction <= 1.0):
+        raise InputError(f"Expected base_fraction in (0, 1], got {base_fraction}")
+    if vertical_weight is not None and not (vertical_weight >= 0.0 and math.isfinite(vertical_weight)):
+        raise InputError(f"Expected vertical_weight >= 0, got {vertical_weight}")
+    return VERTICAL_WEIGHT if vertical_weight is None else float(vertical_weight)
+
+
+def block_jobs(
+    vertices_m: np.ndarray,
+    triangles: np.ndarray,
+    kind: np.ndarray,
+    tri_block: np.ndarray,
+    *,
+    base_fraction: float = 0.2,
+    shape_eps: float = SHAPE_EPS,
+    n_blocks: int | None = None,
+    vertical_weight: float | None = None,
+) -> tuple[int, Callable[[int], BlockJob | None]]:
+    """(number of blocks, make(b)): ``make(b)`` cuts sub-block b's job out of the TIN (None: no triangle).
+
+    The quadrics are computed once over the whole TIN (so a seam vertex has the planes of every block
+    around it); cutting a job is O(V) numpy work that releases the GIL, so threads may cut their own.
+    """
+    vw = _check(base_fraction, vertical_weight)
+    v = np.asarray(vertices_m, np.float64)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    p = np.ascontiguousarray(v - centre)
+    tris = np.ascontiguousarray(triangles, np.int32)
+    tb = np.ascontiguousarray(tri_block, np.int32)
+    nb = max(int(tb.max()) + 1 if tb.size else 1, int(n_blocks or 0))
+    target = _targets(tb, nb, base_fraction)
+    q, w = plane_quadrics(p, tris, np.ones(tris.shape[0], np.bool_))
+    kind8 = np.ascontiguousarray(kind, np.uint8)
+    order = np.argsort(tb, kind="stable")
+    ptr = np.searchsorted(tb[order], np.arange(nb + 1))
+
+    def make(b: int) -> BlockJob | None:
+        slots = order[ptr[b] : ptr[b + 1]].astype(np.int64)
+        if slots.size == 0:
+            return None
+        t = tris[slots]
+        used = np.zeros(v.shape[0], np.bool_)
+        used[t.ravel()] = True
+        verts = np.flatnonzero(used)
+        local = np.searchsorted(verts, t).astype(np.int32)
+        return BlockJob(int(b), verts, slots, p[verts], v[verts], local, kind8[verts], q[verts], w[verts],
+                        int(target[b]), float(shape_eps), vw)  # fmt: skip
+
+    return nb, make
+
+
+def run_block(job: BlockJob) -> BlockResult:
+    """Simplify one sub-block (its own heap, its seam LOCKED) and measure each collapse's error.
+
+    A pure function of the job (the numba kernels release the GIL: threads run blocks in parallel)."""
+    tris = job.tris.copy()
+    alive = np.ones(tris.shape[0], np.bool_)
+    n = job.p.shape[0]
+    out = qem_simplify(job.p, tris, alive, job.kind, np.zeros(tris.shape[0], np.int32), np.zeros(n, np.int32),
+                       np.array([job.target], np.int64), job.shape_eps, job.vertical_weight, job.q, job.w)  # fmt: skip
+    _, cu, _, _, _, _, _, del_slot, _, rep_ptr, rep_slot, _, rep_new = out
+    e = collapse_vertical_errors(job.world_m, job.tris, cu, del_slot, rep_ptr, rep_slot, rep_new)
+    np.maximum.accumulate(e, out=e)
+    return BlockResult(job.block, out, tris, alive, e)
+
+
+def merge_blocks(
+    triangles: np.ndarray, nb: int, jobs: Sequence[BlockJob | None], results: Sequence[BlockResult | None]
+) -> tuple[CollapseLog, np.ndarray]:
+    """One log (block-major, each block's collapses in its order) and its measured errors, in the TIN's
+    numbering, from the per-block results (``jobs[b]``, ``results[b]``; None for an empty block)."""
+    tris = np.ascontiguousarray(triangles, np.int32).copy()
+    alive = np.ones(tris.shape[0], np.bool_)
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in
+                                          ("u", "v", "b", "mm", "c", "ds", "dt", "rp", "rs", "ro", "rn", "e")}  # fmt: skip
+    mmqe0 = np.zeros(nb, np.float64)
+    nrep = 0
+    for b in range(nb):
+        job, res = jobs[b], results[b]
+        if job is None or res is None:
+            continue
+        (_, cu, cv, _, cmmqe, ccost, m0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new) = res.out
+        vi, si = job.verts.astype(np.int32), job.slots.astype(np.int32)
+        mmqe0[b] = m0[0]
+        parts["u"].append(vi[cu])
+        parts["v"].append(vi[cv])
+        parts["b"].append(np.full(cu.size, b, np.int32))
+        parts["mm"].append(cmmqe)
+        parts["c"].append(ccost)
+        parts["ds"].append(si[del_slot])
+        parts["dt"].append(vi[del_tri])
+        parts["rp"].append(rep_ptr[1:] + nrep)
+        parts["rs"].append(si[rep_slot])
+        parts["ro"].append(vi[rep_old])
+        parts["rn"].append(vi[rep_new])
+        parts["e"].append(res.error_m)
+        nrep += int(rep_ptr[-1])
+        tris[si] = vi[res.tris]
+        alive[si] = res.alive
+
+    def cat(key: str, dtype: type, shape: tuple[int, ...] = (0,)) -> np.ndarray:
+        a = parts[key]
+        return np.concatenate(a).astype(dtype, copy=False) if a else np.zeros(shape, dtype)
+
+    log = CollapseLog(cat("u", np.int32), cat("v", np.int32), cat("b", np.int32), cat("mm", np.float64),
+                      cat("c", np.float64), mmqe0, cat("ds", np.int32), cat("dt", np.int32, (0, 3)),
+                      np.concatenate([[0], cat("rp", np.int64)]).astype(np.int64), cat("rs", np.int32),
+                      cat("ro", np.int32, (0, 3)), cat("rn", np.int32, (0, 3)), tris, alive)  # fmt: skip
+    return log, cat("e", np.float64)
+
+
+def _workers(workers: int | None) -> int:
+    if workers is None:
+        return max(1, min(os.cpu_count() or 1, 8))
+    if isinstance(workers, bool) or int(workers) < 1:
+        raise InputError(f"Expected workers >= 1, got {workers!r}")
+    return int(workers)
+
+
+def simplify_blocks(
+    vertices_m: np.ndarray,
+    triangles: np.ndarray,
+    kind: np.ndarray,
+    tri_block: np.ndarray,
+    *,
+    base_fraction: float = 0.2,
+    shape_eps: float = SHAPE_EPS,
+    n_blocks: int | None = None,
+    vertical_weight: float | None = None,
+    workers: int | None = None,
+    executor: Callable[[list[BlockJob]], list[BlockResult]] | None = None,
+) -> tuple[CollapseLog, np.ndarray]:
+    """Each sub-block simplified on its own (its seam LOCKED), ``workers`` threads, and merged: (log,
+    measured errors (C,), the per-block running max of :func:`measured_errors`).
+
+    The result does not depend on ``workers`` (each block's collapses are a function of its job);
+    ``executor(jobs)`` may replace the thread pool: it returns :func:`run_block` of each job, in order
+    (Dask workers, :func:`terralod.tin.distributed.dask_executor`).
+    """
+    nb, make = block_jobs(vertices_m, triangles, kind, tri_block, base_fraction=base_fraction,
+                          shape_eps=shape_eps, n_blocks=n_blocks, vertical_weight=vertical_weight)  # fmt: skip
+    jobs: list[BlockJob | None] = [None] * nb
+
+    def one(b: int) -> BlockResult | None:
+        job = make(b)
+        jobs[b] = job
+        return None if job is None else run_block(job)
+
+    # biggest blocks first: the pool ends together
+    size = np.bincount(np.asarray(tri_block, np.int64), minlength=nb)
+    blocks = [int(b) for b in np.argsort(-size, kind="stable")]
+    n_threads = _workers(workers)
+    if executor is not None:
+        made = [make(b) for b in blocks]
+        for b, job in zip(blocks, made, strict=True):
+            jobs[b] = job
+        ran = iter(executor([j for j in made if j is not None]))
+        got = [None if j is None else next(ran) for j in made]
+    elif n_threads == 1 or nb == 1:
+        got = [one(b) for b in blocks]
+    else:
+        with ThreadPoolExecutor(min(n_threads, nb)) as pool:
+            got = list(pool.map(one, blocks))
+    results: list[BlockResult | None] = [None] * nb
+    for b, r in zip(blocks, got, strict=True):
+        results[b] = r
+    return merge_blocks(triangles, nb, jobs, results)
+
+
 def simplify(
     vertices_m: np.ndarray,
     triangles: np.ndarray,
@@ -113,6 +347,8 @@ def simplify(
     shape_eps: float = SHAPE_EPS,
     n_blocks: int | None = None,
     vertical_weight: float | None = None,
+    workers: int | None = None,
+    single_heap: bool = False,
 ) -> CollapseLog:
     """Collapse edges by increasing QEM cost until each sub-block keeps ``base_fraction`` of its triangles.
 
@@ -136,15 +372,21 @@ def simplify(
     vertical_weight : float, optional
         Weight of the vertical term added to the quadric cost (default :data:`VERTICAL_WEIGHT`); 0 gives the
         paper's cost, the quadric alone (faster, larger max error).
+    workers : int, optional
+        Threads simplifying sub-blocks (default: the cores, at most 8); the log is the same for any number.
+    single_heap : bool
+        The former build (one heap for all sub-blocks, seam quadrics shared across blocks, the log in
+        global cost order), kept for comparisons; its per-block sequences may differ near the seams.
 
     Returns
     -------
     CollapseLog
     """
-    if not (0.0 < base_fraction <= 1.0):
-        raise InputError(f"Expected base_fraction in (0, 1], got {base_fraction}")
-    if vertical_weight is not None and not (vertical_weight >= 0.0 and math.isfinite(vertical_weight)):
-        raise InputError(f"Expected vertical_weight >= 0, got {vertical_weight}")
+    if not single_heap:
+        return simplify_blocks(vertices_m, triangles, kind, tri_block, base_fraction=base_fraction,
+                               shape_eps=shape_eps, n_blocks=n_blocks, vertical_weight=vertical_weight,
+                               workers=workers)[0]  # fmt: skip
+    vw = _check(base_fraction, vertical_weight)
     v = np.asarray(vertices_m, np.float64)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
     p = np.ascontiguousarray(v - centre)
@@ -152,36 +394,13 @@ def simplify(
     alive = np.ones(tris.shape[0], np.bool_)
     tb = np.ascontiguousarray(tri_block, np.int32)
     nb = max(int(tb.max()) + 1 if tb.size else 1, int(n_blocks or 0))
-    count = np.bincount(tb, minlength=nb)
-    target = np.ceil(count * float(base_fraction)).astype(np.int64)
-    out = qem_simplify(
-        p,
-        tris,
-        alive,
-        np.ascontiguousarray(kind, np.uint8),
-        tb,
-        np.ascontiguousarray(vert_block, np.int32),
-        target,
-        float(shape_eps),
-        VERTICAL_WEIGHT if vertical_weight is None else float(vertical_weight),
-    )
+    target = _targets(tb, nb, base_fraction)
+    out = qem_simplify(p, tris, alive, np.ascontiguousarray(kind, np.uint8), tb,
+                       np.ascontiguousarray(vert_block, np.int32), target, float(shape_eps), vw,
+                       np.zeros((0, 10)), np.zeros(0))  # fmt: skip
     (_, cu, cv, cblock, cmmqe, ccost, mmqe0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new) = out
-    return CollapseLog(
-        cu,
-        cv,
-        cblock,
-        cmmqe,
-        ccost,
-        mmqe0,
-        del_slot,
-        del_tri,
-        rep_ptr,
-        rep_slot,
-        rep_old,
-        rep_new,
-        tris,
-        alive,
-    )
+    return CollapseLog(cu, cv, cblock, cmmqe, ccost, mmqe0, del_slot, del_tri, rep_ptr, rep_slot, rep_old,
+                       rep_new, tris, alive)  # fmt: skip
 
 
 def measured_errors(vertices_m: np.ndarray, triangles: np.ndarray, log: CollapseLog) -> np.ndarray:

@@ -62,13 +62,18 @@ def model_summary(model: DetailIncrementModel) -> dict[str, Any]:
 
 
 def save_model_to_store(
-    model: DetailIncrementModel, path: str | os.PathLike[str], *, overwrite: bool = False
+    model: DetailIncrementModel,
+    path: str | os.PathLike[str],
+    *,
+    overwrite: bool = False,
+    workers: int | None = None,
 ) -> dict[str, Any]:
-    """Write ``model`` to a ``.terra`` TIN store; returns its summary with ``size_bytes``."""
+    """Write ``model`` to a ``.terra`` TIN store (compressed on ``workers`` threads, the same bytes for any
+    number); returns its summary with ``size_bytes``."""
     summary = model_summary(model)
     with tempfile.TemporaryDirectory(prefix="terralod-tin-") as tmp:
         f = Path(tmp) / "model.tdim"
-        model.save(f)
+        model.save(f, workers=workers)
         blob = f.read_bytes()
     meta = {**summary, "crs": model.crs, "model_bytes": len(blob)}
     summary["size_bytes"] = write_tin_store(path, meta, blob, overwrite=overwrite)
