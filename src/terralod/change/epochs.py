@@ -18,7 +18,6 @@ metres. A cell is inside when its centre is (rasterio's ``geometry_mask``), so t
 from __future__ import annotations
 
 import datetime
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from terralod.errors import InputError, InputNotFoundError
+from terralod.errors import InputError
 from terralod.heightfield import Heightfield
 
 __all__ = [
@@ -77,27 +76,11 @@ def difference(store_path: str | os.PathLike[str], before: str, after: str) -> n
 def read_polygons(path: str | os.PathLike[str], crs: str | None) -> list[dict[str, Any]]:
     """The Polygon / MultiPolygon geometries of a GeoJSON file, in ``crs`` (the store's), each as a GeoJSON
     geometry dict with a ``name`` (its feature's ``name`` property, else ``polygon N``)."""
+    from terralod.change.zones import read_geojson_polygons
+
     p = Path(path)
-    if not p.exists():
-        raise InputNotFoundError("no such file", str(p))
-    try:
-        doc = json.loads(p.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(f"is not GeoJSON ({exc})", str(p)) from None
-    if not isinstance(doc, dict):
-        raise InputError("is not GeoJSON (expected an object)", str(p))
-    feats = doc.get("features") if doc.get("type") == "FeatureCollection" else [doc]
-    out = []
-    for i, f in enumerate(feats or []):
-        geom = f.get("geometry") if isinstance(f, dict) and f.get("type") == "Feature" else f
-        if not isinstance(geom, dict) or geom.get("type") not in ("Polygon", "MultiPolygon"):
-            continue
-        props = f.get("properties") or {} if isinstance(f, dict) else {}
-        out.append({"type": geom["type"], "coordinates": geom.get("coordinates"),
-                    "name": str(props.get("name", f"polygon {i + 1}"))})  # fmt: skip
-    if not out:
-        raise InputError("holds no Polygon or MultiPolygon", str(p))
-    src_crs = _geojson_crs(doc)
+    feats, src_crs = read_geojson_polygons(p, "polygon")
+    out = [{"type": g["type"], "coordinates": g.get("coordinates"), "name": name} for name, g in feats]
     if crs and src_crs != "local":
         from rasterio.warp import transform_geom
 
@@ -107,17 +90,6 @@ def read_polygons(path: str | os.PathLike[str], crs: str | None) -> list[dict[st
         except Exception as exc:  # noqa: BLE001 - any projection failure is the file's problem
             raise InputError(f"cannot transform its polygons to the terrain's CRS ({exc})", str(p)) from None
     return out
-
-
-def _geojson_crs(doc: dict[str, Any]) -> str:
-    c = doc.get("crs")
-    if isinstance(c, dict):
-        name = (c.get("properties") or {}).get("name")
-        if name:
-            return "local" if str(name).lower() == "local" else str(name)
-    if isinstance(c, str):
-        return c
-    return "EPSG:4326"
 
 
 def polygon_mask(polygons: list[dict[str, Any]], hf: Heightfield) -> np.ndarray:

@@ -7,6 +7,7 @@ budgets (:mod:`terralod.change.volumes`) and by stable-ground masks (:mod:`terra
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -29,22 +30,10 @@ def read_zones(path: str | Path, hf: Heightfield) -> list[tuple[str, np.ndarray,
     from shapely.geometry import box, mapping, shape
     from shapely.ops import transform as shp_transform
 
-    p = Path(path)
-    src = str(p)
-    try:
-        data = json.loads(p.read_text())
-    except FileNotFoundError:
-        from terralod.errors import InputNotFoundError
-
-        raise InputNotFoundError("file not found", src) from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"is not GeoJSON ({exc})", src) from None
-    crs_name = None
-    if isinstance(data, dict) and isinstance(data.get("crs"), dict):
-        crs_name = (data["crs"].get("properties") or {}).get("name")
-    feats = _features(data, src)
-    if crs_name is None:
-        crs_name = "EPSG:4326"
+    src = str(Path(path))
+    feats, crs_name = read_geojson_polygons(path, "zone")
+    if crs_name == "local":
+        crs_name = hf.crs  # the terrain's own coordinates
     if hf.crs is None:
         raise InputError("the terrain has no CRS, so GeoJSON coordinates cannot be placed on it", src)
     try:
@@ -55,8 +44,7 @@ def read_zones(path: str | Path, hf: Heightfield) -> list[tuple[str, np.ndarray,
         raise InputError(f"crs {crs_name!r} cannot be used ({exc})", src) from None
     terrain_box = box(*hf.bounds_m)
     out = []
-    for i, (props, geom) in enumerate(feats):
-        name = str(props.get("name", f"zone {i + 1}"))
+    for name, geom in feats:
         try:
             g = shp_transform(lambda x, y, z=None: tr.transform(x, y), shape(geom))
         except Exception as exc:  # noqa: BLE001 - shapely's errors for broken rings
@@ -78,6 +66,46 @@ def read_zones(path: str | Path, hf: Heightfield) -> list[tuple[str, np.ndarray,
             )
         out.append((name, mask, frac, mapping(g)))
     return out
+
+
+def read_geojson_polygons(
+    path: str | os.PathLike[str], default_name: str = "polygon"
+) -> tuple[list[tuple[str, dict]], str]:
+    """The Polygon / MultiPolygon geometries of a GeoJSON file (a FeatureCollection, a Feature or a bare
+    geometry), each with its name (its feature's ``name`` property, else ``"{default_name} N"``), and the
+    file's CRS: the name in its ``crs`` member (``"local"``: the terrain's own coordinates), else EPSG:4326
+    (RFC 7946). The one GeoJSON reader of zones, stable-ground masks and epoch edits.
+
+    Raises
+    ------
+    InputNotFoundError : no such file. InputError : not GeoJSON, or no polygon in it.
+    """
+    from terralod.errors import InputNotFoundError
+
+    p = Path(path)
+    src = str(p)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise InputNotFoundError("file not found", src) from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"is not GeoJSON ({exc})", src) from None
+    feats = _features(data, src)
+    named = [
+        (str(props.get("name", f"{default_name} {i + 1}")), geom) for i, (props, geom) in enumerate(feats)
+    ]
+    return named, _crs_name(data)
+
+
+def _crs_name(data: dict) -> str:
+    c = data.get("crs")
+    if isinstance(c, dict):
+        name = (c.get("properties") or {}).get("name")
+        if name:
+            return "local" if str(name).lower() == "local" else str(name)
+    if isinstance(c, str) and c:
+        return c
+    return "EPSG:4326"
 
 
 def _features(data, src: str) -> list[tuple[dict, dict]]:
