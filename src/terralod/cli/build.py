@@ -77,10 +77,12 @@ def build(
         raise click.BadParameter("give --resume or --overwrite, not both", param_hint="--resume")
     check_output(output, list(input_paths), overwrite=overwrite, resume=resume, what="output store")
     if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
-        if dask_address or len(input_paths) > 1:
-            raise click.BadParameter("detail-increment TIN builds take one input and run locally (no --dask)",
-                                     param_hint="--dask")  # fmt: skip
-        build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read)
+        if len(input_paths) > 1:
+            raise click.BadParameter("detail-increment TIN builds take one input", param_hint="INPUT")
+        if workers is not None and workers < 1:
+            raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
+        build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read, workers=workers,
+                  dask_address=dask_address, dask_workers=dask_workers)  # fmt: skip
         return
     if not is_valid_tile_size(tile_size) or tile_size > 257:
         raise click.BadParameter(
@@ -135,8 +137,10 @@ def windowed_build(input_paths: tuple[str, ...], dask_address: str | None, epoch
 
 
 def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: float, overwrite: bool,
-              read: dict[str, Any]) -> None:  # fmt: skip
-    """``build --method tin``: LAS/LAZ points (or a DEM's samples) → detail-increment TIN store."""
+              read: dict[str, Any], *, workers: int | None = None, dask_address: str | None = None,
+              dask_workers: int | None = None) -> None:  # fmt: skip
+    """``build --method tin``: LAS/LAZ points (or a DEM's samples) → detail-increment TIN store; sub-blocks
+    simplified on ``workers`` threads, or on Dask workers with ``dask_address`` (the same store)."""
     from terralod.errors import StoreError
     from terralod.tin import DetailIncrementModel
     from terralod.tin.terra import save_model_to_store
@@ -154,12 +158,24 @@ def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: floa
         )
     if Path(output).exists() and not overwrite:
         raise StoreError("already exists (pass --overwrite to replace it)", output)
+    client = executor = None
+    if dask_address:
+        from terralod.tin.distributed import close_client, dask_executor, open_client
+
+        client = open_client(dask_address, dask_workers)  # InputError (one line) when unreachable
+        executor = dask_executor(client)
     t0 = time.perf_counter()
-    if Path(input_path).suffix.lower() in (".las", ".laz"):
-        model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction)
-    else:
-        model = DetailIncrementModel.from_heightfield(load(input_path, **read), sub_blocks=blocks,
-                                                      base_fraction=base_fraction)  # fmt: skip
-    summary = save_model_to_store(model, output, overwrite=overwrite)
+    try:
+        if Path(input_path).suffix.lower() in (".las", ".laz"):
+            model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction,
+                                                  workers=workers, executor=executor)  # fmt: skip
+        else:
+            model = DetailIncrementModel.from_heightfield(load(input_path, **read), sub_blocks=blocks,
+                                                          base_fraction=base_fraction, workers=workers,
+                                                          executor=executor)  # fmt: skip
+    finally:
+        if client is not None:
+            close_client(client)
+    summary = save_model_to_store(model, output, overwrite=overwrite, workers=workers)
     console.print(f"built a detail-increment TIN (paper 003) in {time.perf_counter() - t0:.2f} s")
     print_tin_summary(summary)
