@@ -199,3 +199,76 @@ def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
     assert _rows(hit) == _rows(tmp_path / "mem9.terra")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
         dask_client("tcp://127.0.0.1:9", timeout_s=1.0)
+
+
+def _die_on_every_unit():
+    """A Dask worker plugin (installed on every worker, restarted ones too) whose workers die in every
+    work unit, as a worker killed by the out-of-memory guard does."""
+    from distributed import WorkerPlugin
+
+    class DieOnEveryUnit(WorkerPlugin):
+        name = "terralod-test-die"
+
+        def setup(self, worker) -> None:
+            import terralod.pyramid.distributed as d
+
+            def die(*args, **kwargs):
+                os._exit(1)
+
+            d.build_unit = die
+
+    return DieOnEveryUnit()
+
+
+def test_dask_workers_lost_on_every_try_is_one_clear_line(tmp_path: Path) -> None:
+    """A unit whose workers keep dying (out of memory) ends the build with one line saying so and how to
+    go on; the store keeps what was committed and resumes locally into the in-memory build's tiles."""
+    pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
+    import dask
+
+    from terralod.errors import WorkerLostError
+
+    tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(65, 97, seed=9, relief_m=300.0))
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        client = dask_client("local", n_workers=1, threads=1)
+    try:
+        client.register_plugin(_die_on_every_unit())
+        out = tmp_path / "lost.terra"
+        with pytest.raises(WorkerLostError, match="out of memory.*--resume"):
+            build_store_windowed(
+                RasterSource(tif), out, tile_size=9, method="chunked", client=client, retries=0
+            )
+    finally:
+        cluster = client.cluster
+        client.close()
+        cluster.close()
+    with TileStore.open(out) as s:
+        assert not s.complete and s.verify() == []
+    build_store_windowed(RasterSource(tif), out, tile_size=9, method="chunked", workers=1, resume=True)
+    build_store(read_heightfield(tif), tmp_path / "mem.terra", tile_size=9, method="chunked", workers=1)
+    assert _rows(out) == _rows(tmp_path / "mem.terra")
+
+
+def test_windowed_overwrite_keeps_the_old_store_until_complete(tmp_path: Path) -> None:
+    """``overwrite`` of an out-of-core build builds beside the old store: stopped early (or killed) it
+    leaves the old store whole; complete, it replaces it."""
+    tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(65, 97, seed=10, relief_m=300.0))
+    other = _write_tif(tmp_path / "other.tif", fractal_terrain(65, 97, seed=11, relief_m=300.0))
+    out = tmp_path / "s.terra"
+    build_store_windowed(RasterSource(other), out, tile_size=9, method="chunked", workers=1)
+    old = _rows(out)
+    part = build_store_windowed(RasterSource(tif), out, tile_size=9, method="chunked", workers=1, overwrite=True,
+                                stop_after=5)  # fmt: skip
+    assert part.tiles_built == 5 and _rows(out) == old
+    with pytest.raises(RuntimeError, match="stop"):
+
+        def boom(done: int, total: int) -> None:
+            if done > 3:
+                raise RuntimeError("stop")
+
+        build_store_windowed(RasterSource(tif), out, tile_size=9, method="chunked", workers=1, overwrite=True,
+                             progress=boom)  # fmt: skip
+    assert _rows(out) == old and not [f for f in tmp_path.iterdir() if f.name.endswith(".tmp")]
+    build_store_windowed(RasterSource(tif), out, tile_size=9, method="chunked", workers=1, overwrite=True)
+    build_store(read_heightfield(tif), tmp_path / "mem.terra", tile_size=9, method="chunked", workers=1)
+    assert _rows(out) == _rows(tmp_path / "mem.terra") != old

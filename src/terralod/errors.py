@@ -35,3 +35,8 @@ class CorruptStoreError(StoreError):
 
 class BuildMismatchError(TerralodError, ValueError):
     """A resumed build does not match the store it resumes (other source or options)."""
+
+
+class WorkerLostError(TerralodError, RuntimeError):
+    """A distributed build lost the workers of one work unit more times than it retries (out of memory,
+    usually): the tiles committed so far are kept."""

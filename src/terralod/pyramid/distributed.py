@@ -82,13 +82,22 @@ import numpy as np
 from affine import Affine
 
 from terralod.error import measure_error_window
-from terralod.errors import BuildMismatchError, InputError, StoreError
+from terralod.errors import BuildMismatchError, InputError, StoreError, WorkerLostError
 from terralod.heightfield import Heightfield
 from terralod.io.windowed import ArraySource, WindowSource
 from terralod.kernels import jit
 from terralod.pyramid import builder
 from terralod.pyramid.footprint import drop_nodata
-from terralod.store import EncodedTile, LevelQuantisation, TileStore, encode_triangles, encode_vertices
+from terralod.store import (
+    EncodedTile,
+    LevelQuantisation,
+    TileStore,
+    encode_triangles,
+    encode_vertices,
+    install_store,
+    remove_store_files,
+    replacement_path,
+)
 from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size
 
 log = logging.getLogger(__name__)
@@ -521,9 +530,18 @@ class _DaskRunner:
 
     def completed(self, futures):
         from dask.distributed import as_completed
+        from distributed import KilledWorker
 
         for fut in as_completed(futures):
-            yield fut.result()
+            try:
+                res = fut.result()
+            except KilledWorker as exc:  # the unit's workers died, retries included: memory, usually
+                raise WorkerLostError(
+                    f"Dask workers died building a work unit ({exc}); out of memory? give each worker more "
+                    "memory or fewer threads (--workers), or use a smaller --tile-size; the tiles committed "
+                    "so far are kept: run the same command with --resume"
+                ) from None
+            yield res
             fut.release()
 
     def close(self) -> None:
@@ -572,14 +590,14 @@ def build_store_windowed(
     plan = scan_source(src, pyramid)
     quant = plan.quant(grid_vertices=(method == "chunked"))
     meta = builder._store_meta(_FrameMeta(src, plan), pyramid, method, quant)  # type: ignore[arg-type]
-    store = _open_or_create(p, meta, resume, overwrite)
+    store, target = _open_or_create(p, meta, resume, overwrite)
     runner = (
         _DaskRunner(client, retries)
         if client is not None
         else _ThreadRunner(max(1, workers or os.cpu_count() or 1))
     )
     codes = pyramid.all_codes(finest_first=True)
-    built = 0
+    built = n_skipped = total = 0
     try:
         errors = store.tile_errors()
         total = len(codes)
@@ -607,16 +625,28 @@ def build_store_windowed(
                 break
         if n_skipped + built == total:
             store.set_meta("complete", True)
-    finally:
+    except BaseException:
         runner.close()
         store.close()
+        if target != p:  # --overwrite: the old store was never touched
+            remove_store_files(target)
+        raise
+    runner.close()
+    store.close()
+    if target != p:
+        if n_skipped + built == total:
+            install_store(target, p)
+        else:
+            remove_store_files(target)  # stopped early (stop_after): the old store stays as it was
     seconds = time.perf_counter() - t_start
     log.info("built %d tiles (%d already present) in %.2f s, out of core", built, n_skipped, seconds)
     return builder.BuildReport(p, total, built, n_skipped, seconds, src.width * src.height)
 
 
-def _open_or_create(p: Path, meta: dict, resume: bool, overwrite: bool) -> TileStore:
-    """The store to write: resumed (its meta must match this build's), or created (atomically)."""
+def _open_or_create(p: Path, meta: dict, resume: bool, overwrite: bool) -> tuple[TileStore, Path]:
+    """The store to write and where it is: resumed at ``p`` (its meta must match this build's), created
+    at ``p`` (atomically), or with ``overwrite`` created beside ``p``, which the caller renames over ``p``
+    once complete (the old store is never removed before the new one is whole)."""
     if p.exists() and resume:
         store = TileStore.open(p, writable=True)
         for key in ("source_digest", "build_options", "quantisation", "width", "height", "tile_size"):
@@ -627,10 +657,13 @@ def _open_or_create(p: Path, meta: dict, resume: bool, overwrite: bool) -> TileS
                     "use --overwrite to rebuild",
                     str(p),
                 )
-        return store
-    if p.exists():
+        return store, p
+    if p.exists() or p.is_symlink():
         if not overwrite:
             raise StoreError("already exists; use --resume to finish it or --overwrite to replace it", str(p))
-        for suffix in ("", "-wal", "-shm"):
-            Path(f"{p}{suffix}").unlink(missing_ok=True)
-    return TileStore.create(p, meta)
+        if p.is_dir():
+            raise StoreError("is a directory, not a tile store", str(p))
+        target = replacement_path(p)
+        remove_store_files(target)
+        return TileStore.create(target, meta), target
+    return TileStore.create(p, meta), p
