@@ -105,3 +105,33 @@ def test_mutated_store_detected_by_check(seeds: dict[str, Path], tmp_path: Path)
         open_store(p)
     rep = check_store(p)
     assert not rep.sound and "checksum" in rep.problems[0]
+
+
+#: A LAZ file found by atheris (mutated from the synthetic seed): lazrs aborts the process decoding its
+#: points when the address space is limited (as the campaign limits it, 3 GiB).
+LAZ_ABORT = Path(__file__).parent / "golden" / "fuzz_laz_lazrs_abort.laz"
+
+
+@pytest.mark.parametrize("handler", ["default", "host_handler"])
+def test_laz_decoder_abort_is_one_line(tmp_path: Path, handler: str) -> None:
+    """The LAZ decoder's abort stays in the forked probe and becomes one line, also when the host process
+    has its own SIGABRT handler (a fuzzer's crash reporter, faulthandler), which the probe must not run."""
+    code = (
+        "import os, resource, signal, sys\n"
+        "resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))\n"
+        # a C-level handler, as libFuzzer's: SIGABRT calls _exit(6), so the process exits instead of dying
+        + (
+            "import ctypes\nlibc = ctypes.CDLL(None)\nlibc.signal(signal.SIGABRT, libc._exit)\n"
+            if handler == "host_handler"
+            else ""
+        )  # fmt: skip
+        + "from terralod.errors import TerralodError\n"
+        "from terralod.tin.pointcloud import read_las\n"
+        "try:\n"
+        f"    read_las({str(LAZ_ABORT)!r})\n"
+        "except TerralodError as exc:\n"
+        "    print('ONE LINE:', exc)\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
+    assert "ONE LINE:" in p.stdout and "fuzz_laz_lazrs_abort.laz" in p.stdout, p.stdout

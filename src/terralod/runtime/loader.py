@@ -11,7 +11,8 @@ watertight while loading.
 
 Cost per frame on the frame thread: the resident-children test over the quadtree (a few numpy bincounts)
 and the queue update; reading, zlib decoding and the stitcher's boundary preparation (``TilePrep``) run on
-the worker (numba kernels release the GIL).
+the worker (numba kernels release the GIL), between frames: while the engine updates a frame the worker
+finishes the tile in hand and waits (:attr:`TileLoader.frame_idle`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,11 @@ class TileLoader:
         self._seq = 0
         self.loaded = 0
         self.error: BaseException | None = None
+        #: cleared by the engine while a frame is selected and stitched: the worker finishes the tile in
+        #: hand and waits, so the frame thread never competes with it for the GIL (whose hand-over waits
+        #: up to ``sys.getswitchinterval()``, 5 ms, per switch: the spikes of a frame that loads meanwhile)
+        self.frame_idle = threading.Event()
+        self.frame_idle.set()
         self._thread = threading.Thread(target=self._run, name="terralod-load", daemon=True)
         self._thread.start()
 
@@ -100,6 +106,7 @@ class TileLoader:
             try:
                 done = []
                 for code in codes:
+                    self.frame_idle.wait()  # never during a frame's update (see frame_idle)
                     if code in self.cache:
                         continue
                     with self.io_lock:
@@ -118,6 +125,7 @@ class TileLoader:
                     self._cv.notify_all()
 
     def close(self) -> None:
+        self.frame_idle.set()
         with self._cv:
             self._closed = True
             self._heap.clear()

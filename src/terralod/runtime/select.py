@@ -720,7 +720,13 @@ class Engine:
             if (self._last is not None and camera.key == self._last_key
                     and self._generation == self._last_generation):  # fmt: skip
                 return self._last  # camera still: no traversal at all (paper 000's parser)
-            return self._update(camera)
+            if self._loader is None:
+                return self._update(camera)
+            self._loader.frame_idle.clear()  # the loader pauses between tiles while this frame runs
+            try:
+                return self._update(camera)
+            finally:
+                self._loader.frame_idle.set()
 
     def _update(self, camera: Camera) -> Selection:
         t0 = time.perf_counter()

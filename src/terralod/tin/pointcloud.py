@@ -200,6 +200,10 @@ def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> bool:
     if pid == 0:  # child: decode, say nothing, exit
         code = 3
         try:
+            # die by the signal itself: a handler the host process installed (faulthandler, a fuzzer's
+            # crash reporter) must not turn the child's abort into an exit code or a report of its own
+            for sig in (signal.SIGABRT, signal.SIGSEGV, signal.SIGBUS, signal.SIGILL, signal.SIGFPE):
+                signal.signal(sig, signal.SIG_DFL)
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, 2)
             os.dup2(devnull, 1)
@@ -230,10 +234,15 @@ def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> bool:
             raise InputError(
                 f"decoding the LAZ points took over {timeout_s:g} s; the file is probably corrupt", str(p)
             )
-    if os.WIFSIGNALED(status):
+    if os.WIFSIGNALED(status) or os.WEXITSTATUS(status) not in (0, 3):  # 3: an exception, reported below
         raise InputError(
-            f"the LAZ decoder (lazrs) crashed on the compressed points (signal {os.WTERMSIG(status)}): the file is "
-            "corrupt",
+            "the LAZ decoder (lazrs) crashed on the compressed points ("
+            + (
+                f"signal {os.WTERMSIG(status)}"
+                if os.WIFSIGNALED(status)
+                else f"exit {os.WEXITSTATUS(status)}"
+            )
+            + "): the file is corrupt",
             str(p),
         )
     return True
