@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from terralod.kernels import jit
+from terralod.kernels import jit, leaf
 
 
 # -- 1-D: the shared border --------------------------------------------------------------------------------
@@ -88,13 +88,13 @@ def simplify_line(z, ok, target):
 
 
 # -- predicates (exact: int64 on small integer coordinates) ----------------------------------------------
-@jit
+@leaf
 def _orient(ax, ay, bx, by, cx, cy):
     """Twice the signed area of (a, b, c): > 0 counter-clockwise in the (x, y) frame."""
     return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
 
 
-@jit
+@leaf
 def _in_circle(ax, ay, bx, by, cx, cy, px, py):
     """True when p lies strictly inside the circumcircle of the counter-clockwise triangle (a, b, c)."""
     adx = ax - px
@@ -109,18 +109,18 @@ def _in_circle(ax, ay, bx, by, cx, cy, px, py):
     return adx * (bdy * cl - cdy * bl) - ady * (bdx * cl - cdx * bl) + al * (bdx * cdy - bdy * cdx) > 0
 
 
-@jit
+@leaf
 def _nxt(e):
     return e - e % 3 + (e % 3 + 1) % 3
 
 
-@jit
+@leaf
 def _prv(e):
     return e - e % 3 + (e % 3 + 2) % 3
 
 
 # -- the heap of triangles by worst error ----------------------------------------------------------------
-@jit
+@leaf
 def _heap_less(err, heap, i, j):
     """Heap order: larger error first, then smaller triangle id (deterministic ties)."""
     a = heap[i]
@@ -128,7 +128,7 @@ def _heap_less(err, heap, i, j):
     return err[a] > err[b] or (err[a] == err[b] and a < b)
 
 
-@jit
+@leaf
 def _heap_swap(heap, pos, i, j):
     a = heap[i]
     b = heap[j]
@@ -138,7 +138,7 @@ def _heap_swap(heap, pos, i, j):
     pos[a] = j
 
 
-@jit
+@leaf
 def _heap_up(err, heap, pos, i):
     while i > 0:
         p = (i - 1) >> 1
@@ -148,7 +148,7 @@ def _heap_up(err, heap, pos, i):
         i = p
 
 
-@jit
+@leaf
 def _heap_down(err, heap, pos, i, n):
     while True:
         left = 2 * i + 1
@@ -163,7 +163,7 @@ def _heap_down(err, heap, pos, i, n):
         i = j
 
 
-@jit
+@leaf
 def _heap_remove(err, heap, pos, n, t):
     """Remove triangle t (in the heap) from a heap of n entries; returns the new size."""
     i = pos[t]
@@ -180,14 +180,14 @@ def _heap_remove(err, heap, pos, n, t):
 
 
 # -- the mesh ----------------------------------------------------------------------------------------------
-@jit
+@leaf
 def _link(half, e, h):
     half[e] = h
     if h >= 0:
         half[h] = e
 
 
-@jit
+@leaf
 def _set_tri(tri, half, pending, npend, t, a, b, c, ha, hb, hc):
     """(Re)make triangle t = (a, b, c) with opposite half-edges (ha, hb, hc); queue it for a candidate."""
     tri[3 * t] = a
@@ -200,7 +200,7 @@ def _set_tri(tri, half, pending, npend, t, a, b, c, ha, hb, hc):
     return npend + 1
 
 
-@jit
+@leaf
 def _candidate(z, valid, w, h, px, py, a, b, c):
     """Worst interior sample of the counter-clockwise triangle (a, b, c): (error, x, y); error -1 when it
     covers no candidate sample. Border samples (x = 0, w - 1 or y = 0, h - 1) are not candidates."""
@@ -267,7 +267,7 @@ def _candidate(z, valid, w, h, px, py, a, b, c):
     return best, bxo, byo
 
 
-@jit
+@leaf
 def _legalize(tri, half, px, py, pending, npend, stack, e0):
     """Lawson flips from half-edge e0 until every edge around is locally Delaunay; returns npend."""
     sp = 0
@@ -299,7 +299,7 @@ def _legalize(tri, half, px, py, pending, npend, stack, e0):
     return npend
 
 
-@jit
+@leaf
 def _split_edge(tri, half, px, py, pending, npend, stack, nt, e, p):
     """Insert p on half-edge e (and its opposite, if any); returns (npend, nt)."""
     b = half[e]
@@ -329,7 +329,7 @@ def _split_edge(tri, half, px, py, pending, npend, stack, nt, e, p):
     return npend, nt
 
 
-@jit
+@leaf
 def _split_triangle(tri, half, px, py, pending, npend, stack, nt, t, p):
     """Insert p strictly inside triangle t; returns (npend, nt)."""
     a = tri[3 * t]
@@ -350,7 +350,7 @@ def _split_triangle(tri, half, px, py, pending, npend, stack, nt, t, p):
     return npend, nt
 
 
-@jit
+@leaf
 def _insert(tri, half, px, py, pending, npend, stack, nt, t, p):
     """Insert vertex p, inside or on the border of triangle t; returns (npend, nt)."""
     for k in range(3):
@@ -362,7 +362,7 @@ def _insert(tri, half, px, py, pending, npend, stack, nt, t, p):
     return _split_triangle(tri, half, px, py, pending, npend, stack, nt, t, p)
 
 
-@jit
+@leaf
 def _border_edge(tri, half, px, py, nt, x, y):
     """A triangle with a border half-edge whose segment holds (x, y) strictly inside, or -1."""
     for e in range(3 * nt):
@@ -503,3 +503,51 @@ def tin_window(z, valid, bx, by, target, max_vertices):
         tris[t, 1] = tri[3 * t + 1]
         tris[t, 2] = tri[3 * t + 2]
     return px[:nv].copy(), py[:nv].copy(), tris, worst
+
+
+# -- the tile's arrays in the store's order ------------------------------------------------------------------
+
+
+@jit
+def raster_order(zw, px, py, tris, r0, c0):
+    """A window's TIN in the order the store codes best: vertices in raster order (row, then column),
+    triangles renumbered, flipped to counter-clockwise seen from above ((a, b, c) -> (a, c, b)) and sorted
+    by their indices (first, then second, then third).
+
+    The same arrays as ``np.lexsort`` of (px, py) and of the triangles' columns (vertex positions are
+    distinct and so are triangles, so every sort gives one order). Needs N^3 < 2^63 for N vertices (the
+    caller falls back to numpy beyond). Returns rows, cols, heights_m (float64, source frame), triangles
+    (int32).
+    """
+    n = px.shape[0]
+    w = np.int64(zw.shape[1])
+    key = np.empty(n, np.int64)
+    for i in range(n):
+        key[i] = py[i] * w + px[i]
+    order = np.argsort(key)
+    rank = np.empty(n, np.int64)
+    for i in range(n):
+        rank[order[i]] = i
+    k = tris.shape[0]
+    tkey = np.empty(k, np.int64)
+    for t in range(k):
+        a = rank[tris[t, 0]]
+        b = rank[tris[t, 2]]
+        c = rank[tris[t, 1]]
+        tkey[t] = (a * n + b) * n + c
+    torder = np.argsort(tkey)
+    out = np.empty((k, 3), np.int32)
+    for i in range(k):
+        t = torder[i]
+        out[i, 0] = rank[tris[t, 0]]
+        out[i, 1] = rank[tris[t, 2]]
+        out[i, 2] = rank[tris[t, 1]]
+    rows = np.empty(n, np.float64)
+    cols = np.empty(n, np.float64)
+    hz = np.empty(n, np.float64)
+    for i in range(n):
+        j = order[i]
+        rows[i] = np.float64(r0 + py[j])
+        cols[i] = np.float64(c0 + px[j])
+        hz[i] = np.float64(zw[py[j], px[j]])
+    return rows, cols, hz, out

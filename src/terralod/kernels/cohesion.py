@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from terralod.kernels import jit
+from terralod.kernels import jit, leaf
 from terralod.kernels.cohesion_measure import (
     ERR_EPS_M,
     WEIGHT_ERROR,
@@ -34,7 +34,7 @@ from terralod.kernels.cohesion_measure import (
 FRACS = (1.0, 0.5)
 
 
-@jit
+@leaf
 def _around_ok(pv, pu, i, j, cells, min_turn):
     """Every quad around vertex (i, j) keeps a valid diagonal (both triangles counter-clockwise, area above
     the epsilon). Then the final mesh, which only uses valid diagonals, has no fold-over: a triangulated
@@ -52,7 +52,7 @@ def _around_ok(pv, pu, i, j, cells, min_turn):
     return True
 
 
-@jit
+@leaf
 def _snapped(v, u, snap):
     """(v, u) rounded to the nearest sample when ``snap``, else unchanged."""
     if snap:
@@ -60,7 +60,7 @@ def _snapped(v, u, snap):
     return v, u
 
 
-@jit
+@leaf
 def _try_at(pv, pu, i, j, v, u, cells, min_turn):
     """Put vertex (i, j) at (v, u) (height not updated) and say whether its 4 quads pass :func:`_around_ok`."""
     pv[i, j] = v
@@ -166,7 +166,7 @@ def relax_edge(line_z, line_ok, feat, mode, s, m, limit, snap, n_iter, alpha, ta
     return t
 
 
-@jit
+@leaf
 def _side_bounds(t, j, m, s, gap):
     """Allowed range of side vertex j: ``gap`` from its neighbours, and for the vertices next to a corner
     less than 2 s from that corner. The corner quad (corner, two side vertices at a, b <= 2 s - gap from
@@ -251,7 +251,7 @@ def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, a
             break
 
 
-@jit
+@leaf
 def _put(pv, pu, hz, i, j, v, u, h):
     """Set vertex (i, j) to position (v, u) with height h (restores a saved vertex)."""
     pv[i, j] = v
@@ -259,7 +259,7 @@ def _put(pv, pu, hz, i, j, v, u, h):
     hz[i, j] = h
 
 
-@jit
+@leaf
 def _move(zw, pv, pu, hz, i, j, v, u, snap):
     """Move vertex (i, j) to (v, u) and give it the source height there."""
     _put(pv, pu, hz, i, j, v, u, height_at(zw, v, u, snap))
@@ -447,7 +447,7 @@ def _make_pairs():
 PAIRS = _make_pairs()
 
 
-@jit
+@leaf
 def _lattice(pv, pu, vi, vj, n_side):
     """(v0, u0, nv, nu, step_v, step_u): a lattice of at most (2 n_side + 1)^2 sample points over the box of
     vertex (vi, vj)'s 8 neighbours (step 1 sample when the box is small)."""
@@ -470,13 +470,13 @@ def _lattice(pv, pu, vi, vj, n_side):
     return v0, u0, nvv, nuu, step_v, step_u
 
 
-@jit
+@leaf
 def _has(qi, qj, vi, vj):
     """Quad (qi, qj) has vertex (vi, vj) as a corner."""
     return vi - 1 <= qi <= vi and vj - 1 <= qj <= vj
 
 
-@jit
+@leaf
 def _part_max(
     zw, vw, feat, pv, pu, hz, keep, ai, aj, ci, cj, with_a, with_c, bound, a0, a1, pl, min_area2, sxy
 ):
@@ -497,7 +497,7 @@ def _part_max(
     return loc
 
 
-@jit
+@leaf
 def _part_ok(pv, pu, ai, aj, ci, cj, with_a, with_c, cells, min_area2):
     """The quads (kept or not) with corner A iff ``with_a`` and corner C iff ``with_c`` (not both False) keep
     a valid diagonal (the test of :func:`_around_ok`, split by the vertices a quad depends on)."""
@@ -593,7 +593,7 @@ def _pair_search(zw, vw, feat, pv, pu, hz, keep, bi, bj, ai, aj, ci, cj, bound, 
     return best, bav, bau, bcv, bcu
 
 
-@jit
+@leaf
 def _local_max(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, a0, a1, pl, min_area2, sxy):
     """Max error of the (kept) quads around vertex (vi, vj), quad (bi, bj) first; stops at ``bound``."""
     cells = keep.shape[0]
@@ -611,7 +611,7 @@ def _local_max(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, a0, a1, pl
     return loc
 
 
-@jit
+@leaf
 def _star_search(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, n_side, snap, a0, a1, pl, min_area2,
                  min_turn, sxy):  # fmt: skip
     """Best position of vertex (vi, vj) over a lattice of at most (2 n_side + 1)^2 sample points covering the
@@ -645,7 +645,7 @@ def _star_search(zw, vw, feat, pv, pu, hz, keep, vi, vj, bi, bj, bound, n_side, 
     return best, bv, bu
 
 
-@jit
+@leaf
 def _kth_other_quad(vi, vj, bi, bj, k):
     """The k-th (1..3) of the 4 quads around vertex (vi, vj) other than quad (bi, bj)."""
     n = 0
@@ -661,7 +661,7 @@ def _kth_other_quad(vi, vj, bi, bj, k):
     return -1, -1
 
 
-@jit
+@leaf
 def _row_max(qmax, stuck, i, rowbest, rowarg):
     """Largest error of a quad of row i that is not stuck (0 if none) and its column."""
     best = 0.0

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from terralod.kernels import jit
+from terralod.kernels import jit, leaf
 
 #: Errors up to this many metres count as exact: no attraction, nothing to refine (rounding noise of a
 #: plane through float samples must not pull vertices).
@@ -52,7 +52,7 @@ WEIGHT_FEATURE = 1
 WEIGHT_NONE = 2
 
 
-@jit
+@leaf
 def height_at(zw, v, u, snap):
     """Source height at (v, u): the sample itself when ``snap`` (integer positions), else bilinear; the
     window is taken as edge-replicated past its last row and column (it may end at the data's edge).
@@ -82,7 +82,7 @@ def height_at(zw, v, u, snap):
     return top + fr * (bot - top)
 
 
-@jit
+@leaf
 def _plane(v0, u0, z0, v1, u1, z1, v2, u2, z2, out, k):
     """z = out[k, 0] + out[k, 1] * u + out[k, 2] * v through three points (zeros if degenerate)."""
     den = (u1 - u0) * (v2 - v0) - (u2 - u0) * (v1 - v0)
@@ -98,20 +98,20 @@ def _plane(v0, u0, z0, v1, u1, z1, v2, u2, z2, out, k):
     out[k, 2] = gv
 
 
-@jit
+@leaf
 def _side(va, ua, vb, ub, r, c):
     """Orientation of sample (r, c) against the directed line a -> b in the (u, v) frame."""
     return (ub - ua) * (r - va) - (vb - va) * (c - ua)
 
 
-@jit
+@leaf
 def _tri_area2(pv, pu, i0, j0, i1, j1, i2, j2):
     """Twice the signed area of a triangle seen from above (x = u east, y = -v north): > 0 counter-clockwise."""
     x0, y0 = pu[i0, j0], -pv[i0, j0]
     return (pu[i1, j1] - x0) * (-pv[i2, j2] - y0) - (-pv[i1, j1] - y0) * (pu[i2, j2] - x0)
 
 
-@jit
+@leaf
 def diagonal_ok(pv, pu, i, j, diag, min_area2):
     """True when both triangles of quad (i, j) along ``diag`` are counter-clockwise with twice their area
     above ``min_area2`` (diagonal 0: a-c-d, a-d-b; diagonal 1: a-c-b, b-c-d)."""
@@ -122,14 +122,14 @@ def diagonal_ok(pv, pu, i, j, diag, min_area2):
             and _tri_area2(pv, pu, i, j + 1, i + 1, j, i + 1, j + 1) > min_area2)  # fmt: skip
 
 
-@jit
+@leaf
 def _integral(va, ua, vb, ub, vc, uc, vd, ud):
     """All four corners on the sample lattice."""
     return (va == np.floor(va) and ua == np.floor(ua) and vb == np.floor(vb) and ub == np.floor(ub)
             and vc == np.floor(vc) and uc == np.floor(uc) and vd == np.floor(vd) and ud == np.floor(ud))  # fmt: skip
 
 
-@jit
+@leaf
 def _edge_start(E, k, vp, up, vq, uq, r):
     """Row state of edge k (p -> q, integer corners) in ``E[k]`` for row r: _side(p, q, r, c) is
     a - dv (c - up) with a = du (r - vp), kept as D = |dv|, sg = sign(dv), q = floor(sg a / D),
@@ -148,7 +148,7 @@ def _edge_start(E, k, vp, up, vq, uq, r):
     E[k, 0], E[k, 1], E[k, 3], E[k, 4], E[k, 5], E[k, 6] = d, sg, q, a * sg - q * d, qs, du * sg - qs * d
 
 
-@jit
+@leaf
 def _edge_next(E, k):
     """Step the row state of edge k to the next row (exact integer arithmetic, no division)."""
     E[k, 3] += E[k, 5]
@@ -160,7 +160,7 @@ def _edge_next(E, k):
         E[k, 4] -= E[k, 0]
 
 
-@jit
+@leaf
 def _edge_clip(E, k, g, lo, hi):
     """Columns of [lo, hi] where g * _side of edge k <= 0 on the current row: an interval (lo > hi: none)."""
     if E[k, 0] == 0:
@@ -170,7 +170,7 @@ def _edge_clip(E, k, g, lo, hi):
     return lo, min(hi, E[k, 2] + E[k, 3])  # c <= up + floor(a / dv)
 
 
-@jit
+@leaf
 def _tri_cols(E, e0, g0, e1, g1, e2, g2, lo, hi, ok):
     """Columns of the current row in [lo, hi] inside one triangle of :func:`_quad_eval2`: its three edges
     (row states in E) with their test signs g (+1: _side <= 0, -1: _side >= 0); (lo, lo - 1) when none or
@@ -423,13 +423,13 @@ def choose_diagonals_moved(zw, vw, feat, mode, pv, pu, hz, keep, diag, qmax, mom
     return worst
 
 
-@jit
+@leaf
 def _min_area2(pv):
     """Smallest accepted doubled triangle area, samples^2 (a scale-aware epsilon; lattice triangles have >= 1)."""
     return 1e-6 * (pv[pv.shape[0] - 1, 0] - pv[0, 0] + 1.0) ** 2 / (pv.shape[0] * pv.shape[0])
 
 
-@jit
+@leaf
 def _line_height(line_z, x, snap):
     """Height of the side's line at position x: the sample when ``snap``, else linear (see height_at)."""
     k = int(np.floor(x))
@@ -510,7 +510,7 @@ def assemble_diagonals(zw, pv, pu, keep, diag, r0, c0, snap):
     return rows, cols, heights, tris
 
 
-@jit
+@leaf
 def _best_quad(zw, vw, feat, pv, pu, hz, i, j, a0, a1, pl, min_area2, sxy, bound):
     """(max |err|, worst row, worst col, diagonal) of quad (i, j) with its better diagonal."""
     _quad_eval2(zw, vw, feat, WEIGHT_NONE, pv, pu, hz, i, j, a0, a1, min_area2, pl, sxy, bound)
@@ -602,7 +602,7 @@ def grid_error_bound(zw, vw, pv, pu, keep, grad_scale, side_m):
     return lb
 
 
-@jit
+@leaf
 def _seg_max(line_z, line_ok, t, hz, j0, j1):
     """Max |error| of the line samples between vertices j0 and j1 (> j0) of the polyline (t, hz)."""
     worst = 0.0
@@ -613,7 +613,7 @@ def _seg_max(line_z, line_ok, t, hz, j0, j1):
     return worst
 
 
-@jit
+@leaf
 def _seg_worst(line_z, line_ok, t, hz, j):
     """(max |error|, position of the worst sample) of segment j of the polyline (t, hz)."""
     n = line_z.shape[0]

@@ -57,7 +57,7 @@ import math
 
 import numpy as np
 
-from terralod.kernels import jit
+from terralod.kernels import jit, leaf
 
 #: Vertices within this many samples of a lattice point are put on it for the coverage test (their
 #: metric coordinates, used for every distance, are left alone): X / dx rounds, and a vertex made as
@@ -89,7 +89,7 @@ _KEEP_SAMPLES = 1 << 21
 _SEED_BUCKETS = 16
 
 
-@jit
+@leaf
 def _canonical_edge(ax, ay, bx, by):
     """Start point and direction of segment a-b, lexicographically smaller endpoint first."""
     if ax < bx or (ax == bx and ay <= by):
@@ -97,7 +97,7 @@ def _canonical_edge(ax, ay, bx, by):
     return bx, by, ax - bx, ay - by
 
 
-@jit
+@leaf
 def _side(px, py, ex, ey, ox, oy):
     """+1 / -1: side of point o of the canonical edge (p, e); 0 when o is on its line."""
     s = ex * (oy - py) - ey * (ox - px)
@@ -119,7 +119,7 @@ def _sample_units(verts, dx, dy):
     return uv
 
 
-@jit
+@leaf
 def _bucket_span(lo, hi, nb, ibs):
     """Bucket indices [b0, b1] covering the closed interval [lo, hi] samples, clamped to [0, nb - 1].
 
@@ -190,7 +190,7 @@ def _bin_centroids(uv, tris, nbr, nbc, bs):
     return start, items
 
 
-@jit
+@leaf
 def _sample_range(lo, hi, first, last):
     """Integer samples [a, b] (possibly empty, one wider than needed) around [lo, hi], within [first, last]."""
     a = min(max(math.floor(lo), first - 1.0), last + 1.0)
@@ -198,7 +198,7 @@ def _sample_range(lo, hi, first, last):
     return max(int(a), first), min(int(b), last)
 
 
-@jit
+@leaf
 def _row_span(a, px, ey, m, lo, hi):
     """Narrow the column interval [lo, hi] (samples, float) to where one edge may hold in this row.
 
@@ -213,7 +213,7 @@ def _row_span(a, px, ey, m, lo, hi):
     return max(lo, c), hi
 
 
-@jit
+@leaf
 def _end_height(l0, l1, l2, za, zb, zc):
     """Surface height at a row's first or last covered sample from its edge values l_i (>= 0).
 
@@ -226,7 +226,19 @@ def _end_height(l0, l1, l2, za, zb, zc):
     return zc if (l0 == 0.0 and l1 == 0.0) else zi
 
 
-@jit
+@leaf
+def _unit_lattice(ax, ay, bx, by, cx, cy):
+    """True for a triangle with its vertices on the sample lattice, a box of 1 x 1 samples and an XY area:
+    a half of a unit cell, which holds no lattice point but its 3 vertices."""
+    if not (ax == math.floor(ax) and ay == math.floor(ay) and bx == math.floor(bx) and by == math.floor(by)
+            and cx == math.floor(cx) and cy == math.floor(cy)):  # fmt: skip
+        return False
+    if max(ax, bx, cx) - min(ax, bx, cx) != 1.0 or max(ay, by, cy) - min(ay, by, cy) != 1.0:
+        return False
+    return (bx - ax) * (cy - ay) - (by - ay) * (cx - ax) != 0.0
+
+
+@leaf
 def _rasterise_bucket(uv, verts, tris, items, s0, s1, z, valid, r0, r1, c0, c1, vbuf):
     """Vertical error of the samples rows r0..r1, cols c0..c1 (min over covering triangles), into vbuf.
 
@@ -245,6 +257,21 @@ def _rasterise_bucket(uv, verts, tris, items, s0, s1, z, valid, r0, r1, c0, c1, 
         ax, ay, za = uv[a, 0], uv[a, 1], verts[a, 2]
         bx, by, zb = uv[b, 0], uv[b, 1], verts[b, 2]
         cx, cy, zc = uv[c, 0], uv[c, 1], verts[c, 2]
+        if _unit_lattice(ax, ay, bx, by, cx, cy):
+            # Its covered samples are its 3 vertices, each at its own height: what the general path below
+            # computes for them (two edge values exactly 0 there), without the edge set-up (the triangles of
+            # a full-resolution grid, every tile of stride 1).
+            # (inline: a kernel called with arrays pays their reference counts, which costs more here)
+            for k in range(3):
+                vx, vy, zv = (ax, ay, za) if k == 0 else ((bx, by, zb) if k == 1 else (cx, cy, zc))
+                r = int(vy)
+                cc = int(vx)
+                if r0 <= r <= r1 and c0 <= cc <= c1 and valid[r, cc]:
+                    v = abs(z[r, cc] - zv)
+                    q = (r - r0) * bw + (cc - c0)
+                    if v < vbuf[q]:  # NaN (no sample) never replaces
+                        vbuf[q] = v
+            continue
         ra, rb = _sample_range(min(ay, by, cy), max(ay, by, cy), r0, r1)
         ca, cb = _sample_range(min(ax, bx, cx), max(ax, bx, cx), c0, c1)
         if ra > rb or ca > cb:
@@ -340,7 +367,7 @@ def _rasterise_bucket(uv, verts, tris, items, s0, s1, z, valid, r0, r1, c0, c1, 
                 vbuf[qu + i] = v if v < old else old  # NaN (no sample) never replaces
 
 
-@jit
+@leaf
 def _segment_dist2(px, py, pz, ax, ay, az, bx, by, bz):
     """Squared distance from p to segment a-b (a point when a == b)."""
     ux, uy, uz = bx - ax, by - ay, bz - az
@@ -353,7 +380,7 @@ def _segment_dist2(px, py, pz, ax, ay, az, bx, by, bz):
     return dx * dx + dy * dy + dz * dz
 
 
-@jit
+@leaf
 def _point_triangle_dist2(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
     """Squared distance from p to triangle abc, Ericson's Voronoi-region walk (RTCD 5.1.5).
 
@@ -420,7 +447,7 @@ def _triangle_boxes(verts, tris):
     return box
 
 
-@jit
+@leaf
 def _search_bucket(b, start, items, verts, tris, box, px, py, pz, best2, stop2, stamp, sid):
     """Lower best2 with the triangles of bucket b not yet seen by search sid; stops early at stop2."""
     for it in range(start[b], start[b + 1]):
@@ -497,7 +524,7 @@ def _bucket_pyramid(box, start, items, nbr, nbc):
     return nodes, off, rows, cols
 
 
-@jit
+@leaf
 def _box_dist2(nodes, i, px, py, pz):
     """Squared distance from p to box i of nodes (inf for an empty box)."""
     gx = max(nodes[i, 0] - px, 0.0, px - nodes[i, 1])
@@ -506,7 +533,7 @@ def _box_dist2(nodes, i, px, py, pz):
     return gx * gx + gy * gy + gz * gz
 
 
-@jit
+@leaf
 def _sample_dist2(px, py, pz, v, pyramid, start, items, verts, tris, box, stop2, stamp, sid, stack):
     """Squared distance from p to the mesh, or any value <= stop2 once it cannot exceed it.
 
@@ -552,7 +579,7 @@ def _sample_dist2(px, py, pz, v, pyramid, start, items, verts, tris, box, stop2,
     return best2
 
 
-@jit
+@leaf
 def _bucket_stats(vbuf, r0, r1, c0, c1, w):
     """Count, sum of squares, max and where (window index r * w + c) of the finite entries of one bucket."""
     bw = c1 - c0 + 1

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from terralod.kernels.adaptive import simplify_line, tin_window
+from terralod.kernels.adaptive import raster_order, simplify_line, tin_window
 from terralod.tiles import TileCode, TilePyramid
 
 __all__ = ["AdaptiveOptions", "make_mesher", "mesh_tile", "mesher_for", "target_ladder"]
@@ -144,6 +144,19 @@ def mesh_tile_with(
     px, py, tris, _ = tin_window(zw, vw, bx.astype(np.int64), by.astype(np.int64), float(target), cap)
     # raster order of the vertices (coherent deltas for the store's coding), triangles renumbered and
     # flipped to counter-clockwise seen from above (y north: rows grow south)
+    if px.size < _KERNEL_ORDER_MAX_VERTICES:
+        return raster_order(zw, px, py, tris, r0, c0)
+    return _raster_order_numpy(zw, px, py, tris, r0, c0)
+
+
+#: :func:`raster_order` keys triangles by ``(a N + b) N + c``, which fits int64 below 2^21 vertices.
+_KERNEL_ORDER_MAX_VERTICES = 1 << 21
+
+
+def _raster_order_numpy(
+    zw: np.ndarray, px: np.ndarray, py: np.ndarray, tris: np.ndarray, r0: int, c0: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`terralod.kernels.adaptive.raster_order` with numpy's lexsort (any number of vertices)."""
     order = np.lexsort((px, py))
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)

@@ -9,12 +9,15 @@ tiles are byte-identical to an uninterrupted build (everything is deterministic)
 
 from __future__ import annotations
 
+import collections
+import dataclasses
 import logging
 import math
 import os
 import time
+import zlib
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,10 +28,12 @@ from terralod.error import measure_error_window
 from terralod.errors import BuildMismatchError, StoreError
 from terralod.heightfield import Heightfield
 from terralod.kernels import jit
+from terralod.kernels.codec import quantise_tile, triangle_codes16, triangle_codes32, vertex_codes
 from terralod.pyramid import adaptive, chunked, cohesion
 from terralod.pyramid.footprint import drop_nodata
 from terralod.store import (
     FORMAT_VERSION,
+    ZLIB_LEVEL,
     EncodedTile,
     LevelQuantisation,
     TileStore,
@@ -62,6 +67,8 @@ EPOCH_HEADROOM_M = 500.0
 #: Tiles committed per SQLite transaction (bounded by time as well, see ``_COMMIT_SECONDS``).
 _BATCH_TILES = 64
 _COMMIT_SECONDS = 0.5
+#: Tiles in flight per worker thread (submitted, not yet committed).
+_AHEAD_PER_WORKER = 8
 
 
 def register_method(name: str, fn: MeshFn) -> None:
@@ -202,6 +209,37 @@ def build_tile(
     child_errors: list[tuple[float, float]],
 ) -> EncodedTile:
     """Mesh, quantise, dequantise and measure one tile; monotone errors from its children."""
+    return with_child_errors(measure_tile(hf, pyramid, code, quant, mesh_fn), child_errors)
+
+
+def with_child_errors(enc: EncodedTile, child_errors: list[tuple[float, float]]) -> EncodedTile:
+    """The tile with its stored errors made monotone: ``error_m = max(measured, children's error_m)`` and
+    likewise the vertical error (the measured fields are left as measured)."""
+    if not child_errors:
+        return enc
+    err = max([enc.measured_error_m] + [e for e, _ in child_errors])
+    verr = max([enc.measured_vertical_error_m] + [v for _, v in child_errors])
+    return dataclasses.replace(enc, error_m=float(err), vertical_error_m=float(verr))
+
+
+def _encode_vertices(q: np.ndarray) -> bytes:
+    """:func:`terralod.store.encode_vertices`, byte for byte, with the deltas coded by a kernel (no GIL)."""
+    return zlib.compress(vertex_codes(q).tobytes(), ZLIB_LEVEL)
+
+
+def _encode_triangles(t: np.ndarray) -> bytes:
+    """:func:`terralod.store.encode_triangles`, byte for byte, with the deltas coded by a kernel."""
+    tt = np.ascontiguousarray(t, np.int64)
+    if tt.size == 0 or tt.max() < 65536:
+        return b"\x02" + zlib.compress(triangle_codes16(tt).tobytes(), ZLIB_LEVEL)
+    return b"\x04" + zlib.compress(triangle_codes32(tt).tobytes(), ZLIB_LEVEL)
+
+
+def measure_tile(
+    hf: Heightfield, pyramid: TilePyramid, code: TileCode, quant: LevelQuantisation, mesh_fn: MeshFn
+) -> EncodedTile:
+    """Mesh, quantise, dequantise and measure one tile, its stored errors its measured ones (the builder
+    makes them monotone with :func:`with_child_errors` once its children are done)."""
     r0, c0 = pyramid.origin_rc(code)
     if getattr(mesh_fn, "needs_spacing", False):
         spaced: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = mesh_fn
@@ -214,31 +252,29 @@ def build_tile(
     # The fill is for meshing only: triangles over nodata are not stored (terralod.pyramid.footprint).
     rows, cols, hz, tris = drop_nodata(rows, cols, hz, tris, hf.valid, hf.valid[r0 : r1 + 1, c0 : c1 + 1])
     if rows.shape[0] == 0:  # the tile lies wholly in nodata: stored empty, its error its children's
-        err = max([0.0] + [e for e, _ in child_errors])
-        verr = max([0.0] + [v for _, v in child_errors])
         zc = float(hf.elevation_m[r0, c0])
-        return EncodedTile(code=code, error_m=float(err), vertical_error_m=float(verr), measured_error_m=0.0,
+        return EncodedTile(code=code, error_m=0.0, vertical_error_m=0.0, measured_error_m=0.0,
                            measured_vertical_error_m=0.0, rms_error_m=0.0, n_samples=0, z_min_m=zc, z_max_m=zc,
                            n_vertices=0, n_triangles=0, z0_index=0,
                            vertices=encode_vertices(np.zeros((0, 3), np.uint16)),
                            triangles=encode_triangles(np.zeros((0, 3), np.int32)))  # fmt: skip
-    qv, z0 = _quantise(rows, cols, hz, r0, c0, quant)
-    # Measure on the geometry exactly as stored.
-    scale = 1.0 / (1 << quant.xy_frac_bits)
+    # Quantised, and dequantised to measure the geometry exactly as stored (one kernel: _quantise's numbers).
     dx, dy = hf.spacing_m
-    local = np.empty((qv.shape[0], 3), np.float64)
-    local[:, 0] = qv[:, 0] * scale * dx
-    local[:, 1] = qv[:, 1] * scale * dy
-    local[:, 2] = (z0 + qv[:, 2].astype(np.int64)) * quant.z_step_m
+    qv, z0_i, local, ok = quantise_tile(
+        np.ascontiguousarray(rows, np.float64), np.ascontiguousarray(cols, np.float64),
+        np.ascontiguousarray(hz, np.float64), int(r0), int(c0), int(quant.xy_frac_bits),
+        float(quant.z_step_m), float(dx), float(dy),
+    )  # fmt: skip
+    if not ok:
+        raise AssertionError("quantisation overflow")  # the plan makes this impossible
+    z0 = int(z0_i)
     rep = measure_error_window(
         local, tris, hf.elevation_m[r0 : r1 + 1, c0 : c1 + 1], hf.valid[r0 : r1 + 1, c0 : c1 + 1], dx, dy
     )
-    err = max([rep.hausdorff_m] + [e for e, _ in child_errors])
-    verr = max([rep.max_vertical_m] + [v for _, v in child_errors])
     return EncodedTile(
         code=code,
-        error_m=float(err),
-        vertical_error_m=float(verr),
+        error_m=float(rep.hausdorff_m),
+        vertical_error_m=float(rep.max_vertical_m),
         measured_error_m=float(rep.hausdorff_m),
         measured_vertical_error_m=float(rep.max_vertical_m),
         rms_error_m=float(rep.rms_vertical_m),
@@ -248,9 +284,32 @@ def build_tile(
         n_vertices=int(qv.shape[0]),
         n_triangles=int(tris.shape[0]),
         z0_index=z0,
-        vertices=encode_vertices(qv),
-        triangles=encode_triangles(tris),
+        vertices=_encode_vertices(qv),
+        triangles=_encode_triangles(tris),
     )
+
+
+def _ordered_map(
+    pool: ThreadPoolExecutor, fn: Callable[[TileCode], EncodedTile], items: list[TileCode], ahead: int
+) -> Iterable[EncodedTile]:
+    """``pool.map(fn, items)`` with at most ``ahead`` results pending (submitted, not yet consumed), so a
+    big build never holds more than that many finished tiles in memory."""
+    pending: collections.deque[Future[EncodedTile]] = collections.deque()
+    it = iter(items)
+    try:
+        for code in it:
+            pending.append(pool.submit(fn, code))
+            if len(pending) >= ahead:
+                break
+        while pending:
+            done = pending.popleft().result()
+            for code in it:
+                pending.append(pool.submit(fn, code))
+                break
+            yield done
+    finally:
+        for f in pending:
+            f.cancel()
 
 
 def commit_streamed(
@@ -369,22 +428,22 @@ def build_store(
         mesh_fn = METHODS[method]
         if progress:
             progress(n_skipped, total)
+        if stop_after is not None:
+            todo = todo[: max(0, stop_after)]
         with ThreadPoolExecutor(max_workers=n_workers) as pool:
-            for level in reversed(pyramid.levels):
-                level_codes = [c for c in todo if c[0] == level]
-                if stop_after is not None:
-                    level_codes = level_codes[: max(0, stop_after - built)]
-                if not level_codes:
-                    continue
+            # One stream over every level, finest first: a tile is meshed and measured without waiting for
+            # its children (only its stored errors need theirs), so the coarse tiles overlap the fine ones
+            # instead of a level's last tiles leaving cores idle; the tiles are committed in order, so a
+            # tile's children are recorded in ``errors`` before it is made monotone.
+            def one(code: TileCode) -> EncodedTile:
+                return measure_tile(hf, pyramid, code, quant[code[0]], mesh_fn)
 
-                def one(code: TileCode, _lvl: int = level) -> EncodedTile:
-                    kids = [errors[c] for c in pyramid.children(code)]
-                    return build_tile(hf, pyramid, code, quant[_lvl], mesh_fn, kids)
+            def monotone(encs: Iterable[EncodedTile]) -> Iterable[EncodedTile]:
+                for enc in encs:
+                    yield with_child_errors(enc, [errors[c] for c in pyramid.children(enc.code)])
 
-                built = commit_streamed(store, pool.map(one, level_codes), errors, built,
-                                        lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
-                if stop_after is not None and built >= stop_after:
-                    break
+            built = commit_streamed(store, monotone(_ordered_map(pool, one, todo, _AHEAD_PER_WORKER * n_workers)),
+                                    errors, built, lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
         if n_skipped + built == total:
             store.complete_first_epoch()
             store.set_meta("complete", True)
