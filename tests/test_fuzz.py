@@ -135,3 +135,19 @@ def test_laz_decoder_abort_is_one_line(tmp_path: Path, handler: str) -> None:
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, (p.returncode, p.stderr[-2000:])
     assert "ONE LINE:" in p.stdout and "fuzz_laz_lazrs_abort.laz" in p.stdout, p.stdout
+
+
+def test_npz_crs_with_an_impossible_code_point_is_one_line(tmp_path: Path) -> None:
+    """Found by atheris: a .npz whose ``crs`` string holds a code point beyond U+10FFFF (numpy's UCS-4
+    allows it) made rasterio raise SystemError; now one line."""
+    from terralod import read_heightfield
+
+    good = np.array("EPSG:32610")
+    raw = bytearray(good.tobytes())
+    raw[20:24] = (0x110000).to_bytes(4, "little")
+    crs = np.frombuffer(bytes(raw), dtype=good.dtype).reshape(())
+    p = tmp_path / "bad_crs.npz"
+    np.savez(p, elevation=np.full((8, 8), 100.0, np.float32), transform=np.array([5e5, 30, 0, 5.2e6, 0, -30.0]),
+             crs=crs)  # fmt: skip
+    with pytest.raises(TerralodError, match="bad_crs.npz: CRS .* is not understood"):
+        read_heightfield(p)

@@ -336,11 +336,10 @@ def georeferenced_heightfield(
     notes : notes carried into the Heightfield.
     """
     from rasterio.crs import CRS
-    from rasterio.errors import CRSError
 
     try:
         crs = CRS.from_user_input(crs)
-    except CRSError as exc:
+    except Exception as exc:  # noqa: BLE001 - CRSError, and a SystemError on text PROJ's decoder chokes on (fuzzing)
         raise InputError(f"CRS {str(crs)[:80]!r} is not understood ({error_line(exc)})", source) from None
     t = transform
     if t.b != 0 or t.d != 0:
