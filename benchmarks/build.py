@@ -23,7 +23,8 @@ mirror-tiling of Puget Sound) and each tile method (M = 65, all cores):
    down, 1920 x 1080): triangles drawn per frame, the worst drawn screen error, GPU MiB of the frame.
 
 Writes ``benchmarks/results/build.json`` and ``build.md``.
-Run: ``python benchmarks/build.py [--quick] [--big] [--reps N] [--frames N]``.
+Run: ``python benchmarks/build.py [--quick] [--big] [--reps N] [--frames N] [--methods a,b] [--terrains a,b]
+[--name build]`` (``--name`` writes ``benchmarks/results/<name>.json/.md``).
 """
 
 from __future__ import annotations
@@ -180,6 +181,8 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=3, help="builds per method (median)")
     ap.add_argument("--frames", type=int, default=24, help="frames of the camera path")
     ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--terrains", default="", help="comma-separated terrain names (default: all of the mode)")
+    ap.add_argument("--name", default="build", help="results file name under benchmarks/results/")
     args = ap.parse_args()
     if args.child:
         child_build(args.child[0], args.child[1], args.child[2], int(args.child[3]))
@@ -188,6 +191,8 @@ def main() -> None:
     reps = 1 if args.quick else args.reps
     names = ["puget_sound_1k"] if args.quick else ["pyrenees_srtm3_N42E001", "puget_sound_1k"]
     names += ["puget_sound_4k_mirror"] if args.big else []
+    if args.terrains:
+        names = args.terrains.split(",")
     results: dict = {"tile_size": TILE_SIZE, "targets_m": list(TARGETS_M), "reps": reps, "terrains": {}}
     build_rows, cut_rows, path_rows, ratio_rows = [], [], [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -282,7 +287,7 @@ def main() -> None:
     md += "\n## Camera path at 2 px (circle, 20 degrees down, 1920 x 1080)\n\n"
     md += md_table(["terrain", "method", "mean triangles", "median triangles", "worst drawn px", "mean GPU MiB"],
                    path_rows)  # fmt: skip
-    write_results("build", results, md)
+    write_results(args.name, results, md)
 
 
 if __name__ == "__main__":

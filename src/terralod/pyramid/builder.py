@@ -69,6 +69,8 @@ _BATCH_TILES = 64
 _COMMIT_SECONDS = 0.5
 #: Tiles in flight per worker thread (submitted, not yet committed).
 _AHEAD_PER_WORKER = 8
+#: Levels of at most this many tiles a worker are meshed first (their tiles are the largest).
+_EARLY_PER_WORKER = 2
 
 
 def register_method(name: str, fn: MeshFn) -> None:
@@ -290,25 +292,36 @@ def measure_tile(
 
 
 def _ordered_map(
-    pool: ThreadPoolExecutor, fn: Callable[[TileCode], EncodedTile], items: list[TileCode], ahead: int
+    pool: ThreadPoolExecutor,
+    fn: Callable[[TileCode], EncodedTile],
+    items: list[TileCode],
+    ahead: int,
+    early: Iterable[TileCode] = (),
 ) -> Iterable[EncodedTile]:
-    """``pool.map(fn, items)`` with at most ``ahead`` results pending (submitted, not yet consumed), so a
-    big build never holds more than that many finished tiles in memory."""
-    pending: collections.deque[Future[EncodedTile]] = collections.deque()
-    it = iter(items)
+    """``pool.map(fn, items)``: results in the order of ``items``, with at most ``ahead`` of them submitted
+    ahead of the one consumed (a big build never holds more finished tiles than that in memory), except
+    the ``early`` items, submitted first of all (the few largest tiles, so that no core waits alone for one
+    of them at the end of the build)."""
+    futs: dict[TileCode, Future[EncodedTile]] = {}
+    for code in early:
+        futs[code] = pool.submit(fn, code)
+    nxt = 0
+
+    def top_up(limit: int) -> None:
+        nonlocal nxt
+        while nxt < len(items) and nxt < limit:
+            if items[nxt] not in futs:
+                futs[items[nxt]] = pool.submit(fn, items[nxt])
+            nxt += 1
+
     try:
-        for code in it:
-            pending.append(pool.submit(fn, code))
-            if len(pending) >= ahead:
-                break
-        while pending:
-            done = pending.popleft().result()
-            for code in it:
-                pending.append(pool.submit(fn, code))
-                break
+        for i, code in enumerate(items):
+            top_up(i + ahead)
+            done = futs.pop(code).result()
+            top_up(i + 1 + ahead)
             yield done
     finally:
-        for f in pending:
+        for f in futs.values():
             f.cancel()
 
 
@@ -442,7 +455,11 @@ def build_store(
                 for enc in encs:
                     yield with_child_errors(enc, [errors[c] for c in pyramid.children(enc.code)])
 
-            built = commit_streamed(store, monotone(_ordered_map(pool, one, todo, _AHEAD_PER_WORKER * n_workers)),
+            # the tiles of the coarsest levels (at most _EARLY_PER_WORKER a worker) are the largest: first
+            counts = collections.Counter(c[0] for c in todo)
+            early = [c for c in todo if counts[c[0]] <= _EARLY_PER_WORKER * n_workers]
+            stream = _ordered_map(pool, one, todo, _AHEAD_PER_WORKER * n_workers, early)
+            built = commit_streamed(store, monotone(stream),
                                     errors, built, lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
         if n_skipped + built == total:
             store.complete_first_epoch()

@@ -15,11 +15,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from terralod.kernels import jit
+from terralod.kernels import jit, leaf
 from terralod.tiles import TileCode, TilePyramid
 
 
-@jit
+@leaf
 def _quad_errors(z, valid, r0, c0, s, zq, ra, ca):
     """Max and summed |vertical error| of both diagonals of the quad with corner heights zq (a, b, c, d).
 
