@@ -1049,3 +1049,30 @@ def edge_topology(tris, n_v):
                 outline[a] = True
                 outline[b] = True
     return repeated, outline
+
+
+@jit
+def block_corner_bounds(P, tris, tri_block, n_blocks):
+    """Per sub-block, the min and max of each coordinate over its triangles' corners ((B, 3) each; +inf /
+    -inf for a block with no triangle), and per vertex the smallest and largest block of its triangles
+    ((V,) int64 each; int32 max / -1 for an unused vertex). One pass (numpy's ``ufunc.at`` took seconds)."""
+    n_v = P.shape[0]
+    lo = np.full((n_blocks, 3), np.inf)
+    hi = np.full((n_blocks, 3), -np.inf)
+    bmin = np.full(n_v, np.iinfo(np.int32).max, np.int64)
+    bmax = np.full(n_v, -1, np.int64)
+    for t in range(tris.shape[0]):
+        b = tri_block[t]
+        for k in range(3):
+            w = tris[t, k]
+            for d in range(3):
+                x = P[w, d]
+                if x < lo[b, d]:
+                    lo[b, d] = x
+                if x > hi[b, d]:
+                    hi[b, d] = x
+            if b < bmin[w]:
+                bmin[w] = b
+            if b > bmax[w]:
+                bmax[w] = b
+    return lo, hi, bmin, bmax

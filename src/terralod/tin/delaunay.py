@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from terralod.errors import InputError
-from terralod.kernels.qem import FREE, LOCKED, edge_topology
+from terralod.kernels.qem import FREE, LOCKED, block_corner_bounds, edge_topology
 
 __all__ = ["SubBlocks", "delaunay_tin", "grid_tin", "mesh_boundary_vertices", "split_sub_blocks"]
 
@@ -255,15 +255,13 @@ def split_sub_blocks(vertices: np.ndarray, triangles: np.ndarray, k: int) -> Sub
 
     t = triangles.astype(np.int64).ravel()
     tb = np.repeat(tri_block, 3)
-    bmin = np.full(n, np.iinfo(np.int32).max, np.int64)
-    bmax = np.full(n, -1, np.int64)
-    np.minimum.at(bmin, t, tb)
-    np.maximum.at(bmax, t, tb)
+    nb = k * k
+    plo, phi, bmin, bmax = block_corner_bounds(np.ascontiguousarray(vertices, np.float64),
+                                               np.ascontiguousarray(triangles, np.int64), tri_block, nb)  # fmt: skip
     locked = (bmin != bmax) | mesh_boundary_vertices(triangles, n) | (bmax < 0)
     kind = np.where(locked, LOCKED, FREE).astype(np.uint8)
     vert_block = np.where(locked, -1, bmin).astype(np.int32)
 
-    nb = k * k
     r, c = np.divmod(np.arange(nb), k)
     bounds = np.stack(
         [
@@ -275,13 +273,9 @@ def split_sub_blocks(vertices: np.ndarray, triangles: np.ndarray, k: int) -> Sub
         axis=1,
     )
     # Centres from the triangle corners of each block (a vertex counts once per triangle using it).
-    p = vertices[t]
-    pmin = np.full((nb, 2), np.inf)
-    pmax = np.full((nb, 2), -np.inf)
-    np.minimum.at(pmin, tb, p[:, :2])
-    np.maximum.at(pmax, tb, p[:, :2])
+    pmin, pmax = plo[:, :2], phi[:, :2]
     cnt = np.bincount(tb, minlength=nb)
-    zsum = np.bincount(tb, weights=p[:, 2], minlength=nb)
+    zsum = np.bincount(tb, weights=vertices[t, 2], minlength=nb)
     centre = np.empty((nb, 3), np.float64)
     has = cnt > 0
     centre[has, :2] = 0.5 * (pmin[has] + pmax[has])

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from terralod.errors import CorruptStoreError, InputError
+from terralod.kernels.qem import block_corner_bounds
 from terralod.kernels.qem_replay import coarsen_records, refine_records
 from terralod.kernels.tincodec import V_ESCAPE, split_codes
 from terralod.tin.fileformat import (
@@ -306,18 +307,17 @@ class DetailIncrementModel:
         clock("qem")
         inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0], err)
         # a box around each block's triangles: every scale's surface lies inside it
-        t = np.asarray(tris, np.int64).ravel()
-        tb = np.repeat(sb.tri_block.astype(np.int64), 3)
+        t = np.asarray(tris, np.int64)
         lo = (
             np.repeat(vertices.min(axis=0)[None, :], sb.n_blocks, axis=0)
             if t.size
             else np.zeros((sb.n_blocks, 3))
         )
         hi = lo.copy()
-        has = np.bincount(tb, minlength=sb.n_blocks) > 0
-        lo[has], hi[has] = np.inf, -np.inf
-        np.minimum.at(lo, tb, vertices[t])
-        np.maximum.at(hi, tb, vertices[t])
+        has = np.bincount(sb.tri_block, minlength=sb.n_blocks) > 0
+        blo, bhi, _, _ = block_corner_bounds(np.ascontiguousarray(vertices, np.float64), t, sb.tri_block,
+                                             sb.n_blocks)  # fmt: skip
+        lo[has], hi[has] = blo[has], bhi[has]
         model = cls(
             vertices,
             base_tris,
