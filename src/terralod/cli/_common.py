@@ -485,14 +485,13 @@ def heightfield_info(hf) -> dict[str, Any]:
 
 def print_store_summary(summary: dict[str, Any]) -> None:
     state = "complete" if summary["complete"] else "INCOMPLETE (finish with --resume)"
-    bad = summary.get("checksum_failures")
-    if bad:
-        first = ", ".join(str(tuple(c)) for c in summary.get("checksum_failures_first", []))
-        state = (f"{state}, but {bad} tile(s) FAIL their checksums (e.g. {first}): run "
-                 f"`terralod check {summary['path']}`")  # fmt: skip
-    elif bad == 0:
-        state += ", every tile's checksum verified"
     console.print(f"{summary['path']}: {state}")
+    bad = summary.get("checksum_failures")
+    if bad:  # a line of its own: the path above may already fill the 80 columns
+        first = ", ".join(str(tuple(c)) for c in summary.get("checksum_failures_first", [])[:2])
+        console.print(f"{bad} tile(s) FAIL their checksums (e.g. {first}): run `terralod check`")
+    elif bad == 0:
+        console.print("every tile's checksum verified")
     from rich import box
 
     # compact (fits 80 columns with numbers of 10 digits): errors in metres, size in KiB
