@@ -81,25 +81,35 @@ def stiffness(a, tau_low, tau_up):
     return (a - 1.0) / (tau_up - 1.0)
 
 
-@jit
+@leaf
 def diamond_centroid(pv, pu, i, j):
     """Shoelace centroid (v, u) and area (samples^2) of the quad of the 4 edge neighbours of (i, j),
     in the order north, west, south, east (counter-clockwise seen from above)."""
-    xs = np.empty(4, np.float64)
-    ys = np.empty(4, np.float64)
-    xs[0], ys[0] = pu[i - 1, j], -pv[i - 1, j]
-    xs[1], ys[1] = pu[i, j - 1], -pv[i, j - 1]
-    xs[2], ys[2] = pu[i + 1, j], -pv[i + 1, j]
-    xs[3], ys[3] = pu[i, j + 1], -pv[i, j + 1]
+    # scalars, not 4-element arrays (an allocation a call, in the relaxation's inner loop); the same sums in
+    # the same order (k = 0..3, k + 1 mod 4)
+    x0, y0 = pu[i - 1, j], -pv[i - 1, j]
+    x1, y1 = pu[i, j - 1], -pv[i, j - 1]
+    x2, y2 = pu[i + 1, j], -pv[i + 1, j]
+    x3, y3 = pu[i, j + 1], -pv[i, j + 1]
     a2 = 0.0
     cx = 0.0
     cy = 0.0
-    for k in range(4):
-        k1 = (k + 1) % 4
-        cr = xs[k] * ys[k1] - xs[k1] * ys[k]
-        a2 += cr
-        cx += (xs[k] + xs[k1]) * cr
-        cy += (ys[k] + ys[k1]) * cr
+    cr = x0 * y1 - x1 * y0
+    a2 += cr
+    cx += (x0 + x1) * cr
+    cy += (y0 + y1) * cr
+    cr = x1 * y2 - x2 * y1
+    a2 += cr
+    cx += (x1 + x2) * cr
+    cy += (y1 + y2) * cr
+    cr = x2 * y3 - x3 * y2
+    a2 += cr
+    cx += (x2 + x3) * cr
+    cy += (y2 + y3) * cr
+    cr = x3 * y0 - x0 * y3
+    a2 += cr
+    cx += (x3 + x0) * cr
+    cy += (y3 + y0) * cr
     if a2 <= 0.0:
         return pv[i, j], pu[i, j], 0.0
     return -cy / (3.0 * a2), cx / (3.0 * a2), 0.5 * a2
