@@ -49,7 +49,7 @@ import numpy as np
 from affine import Affine
 
 from terralod.errors import CorruptStoreError, StoreError
-from terralod.kernels.codec import undo_zigzag_delta
+from terralod.kernels.codec import triangle_codes16, triangle_codes32, undo_zigzag_delta, vertex_codes
 from terralod.store_epochs import TILE_COLUMNS, EpochTables
 from terralod.tiles import TileCode, TilePyramid
 
@@ -283,20 +283,9 @@ CREATE TABLE IF NOT EXISTS tiles (
 
 
 # -- blob coding ---------------------------------------------------------------------------------------
-def _zigzag_delta16(a: np.ndarray) -> np.ndarray:
-    """uint16 values → zig-zag of their wrapped 16-bit deltas (small numbers for coherent data)."""
-    d = np.diff(a.astype(np.int64), prepend=np.int64(0)).astype(np.uint16).view(np.int16).astype(np.int32)
-    return ((d << 1) ^ (d >> 15)).astype(np.uint16)
-
-
 def _undo_zigzag_delta16(z: np.ndarray) -> np.ndarray:
     out: np.ndarray = undo_zigzag_delta(z, 0xFFFF).astype(np.uint16)
     return out
-
-
-def _zigzag_delta32(a: np.ndarray) -> np.ndarray:
-    d = np.diff(a.astype(np.int64), prepend=np.int64(0)).astype(np.uint32).view(np.int32).astype(np.int64)
-    return ((d << 1) ^ (d >> 31)).astype(np.uint32)
 
 
 def _undo_zigzag_delta32(z: np.ndarray) -> np.ndarray:
@@ -310,9 +299,10 @@ ZLIB_LEVEL = 3
 
 
 def encode_vertices(q: np.ndarray) -> bytes:
-    """(N, 3) uint16 quantised (u, v, h) → zlib of the zig-zag wrapped deltas of each column (uint16 LE)."""
-    cols = [_zigzag_delta16(q[:, k]) for k in range(3)]
-    return zlib.compress(np.concatenate(cols).astype("<u2").tobytes(), ZLIB_LEVEL)
+    """(N, 3) uint16 quantised (u, v, h) → zlib of the zig-zag wrapped deltas of each column (uint16 LE);
+    the codes by :func:`terralod.kernels.codec.vertex_codes` (no GIL: builder threads code in parallel)."""
+    codes = vertex_codes(np.ascontiguousarray(q, np.uint16))
+    return zlib.compress(codes.astype("<u2", copy=False).tobytes(), ZLIB_LEVEL)
 
 
 def _inflate(blob: bytes, n_bytes: int) -> bytes:
@@ -334,11 +324,12 @@ def decode_vertices(blob: bytes, n: int) -> np.ndarray:
 
 
 def encode_triangles(t: np.ndarray) -> bytes:
-    """(K, 3) indices → one width byte (2 or 4) + zlib of zig-zag wrapped deltas of the flat index list."""
-    flat = t.astype(np.int64).ravel()
-    if flat.size == 0 or flat.max() < 65536:
-        return b"\x02" + zlib.compress(_zigzag_delta16(flat).astype("<u2").tobytes(), ZLIB_LEVEL)
-    return b"\x04" + zlib.compress(_zigzag_delta32(flat).astype("<u4").tobytes(), ZLIB_LEVEL)
+    """(K, 3) indices → one width byte (2 or 4) + zlib of zig-zag wrapped deltas of the flat index list
+    (codes by :func:`terralod.kernels.codec.triangle_codes16` / ``32``)."""
+    tt = np.ascontiguousarray(t, np.int64)
+    if tt.size == 0 or tt.max() < 65536:
+        return b"\x02" + zlib.compress(triangle_codes16(tt).astype("<u2", copy=False).tobytes(), ZLIB_LEVEL)
+    return b"\x04" + zlib.compress(triangle_codes32(tt).astype("<u4", copy=False).tobytes(), ZLIB_LEVEL)
 
 
 def decode_triangles(blob: bytes, k: int) -> np.ndarray:

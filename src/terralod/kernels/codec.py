@@ -25,7 +25,8 @@ def zigzag_delta_codes(a, mask, out, at):
     """Zig-zag codes of the deltas of ``a`` wrapped to ``mask`` bits (0xFFFF or 0xFFFFFFFF), written to
     ``out[at : at + a.size]``: the delta of each value from the one before (0 before the first), read as a
     signed 16- or 32-bit number d, coded ``(d << 1) ^ (d >> bits - 1)`` (small numbers for coherent data).
-    The same numbers as the store's numpy coding (``terralod.store._zigzag_delta16`` / ``32``)."""
+    The store's tile coding (:func:`terralod.store.encode_vertices`); tests/test_build_speed.py checks it
+    against the numpy formula."""
     half = (mask >> 1) + 1  # 2^15 or 2^31
     sign = 15 if mask == 0xFFFF else 31
     prev = np.int64(0)

@@ -15,7 +15,6 @@ import logging
 import math
 import os
 import time
-import zlib
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -28,12 +27,11 @@ from terralod.error import measure_error_window
 from terralod.errors import BuildMismatchError, StoreError
 from terralod.heightfield import Heightfield
 from terralod.kernels import jit
-from terralod.kernels.codec import quantise_tile, triangle_codes16, triangle_codes32, vertex_codes
+from terralod.kernels.codec import quantise_tile
 from terralod.pyramid import adaptive, chunked, cohesion
 from terralod.pyramid.footprint import drop_nodata
 from terralod.store import (
     FORMAT_VERSION,
-    ZLIB_LEVEL,
     EncodedTile,
     LevelQuantisation,
     TileStore,
@@ -224,19 +222,6 @@ def with_child_errors(enc: EncodedTile, child_errors: list[tuple[float, float]])
     return dataclasses.replace(enc, error_m=float(err), vertical_error_m=float(verr))
 
 
-def _encode_vertices(q: np.ndarray) -> bytes:
-    """:func:`terralod.store.encode_vertices`, byte for byte, with the deltas coded by a kernel (no GIL)."""
-    return zlib.compress(vertex_codes(q).tobytes(), ZLIB_LEVEL)
-
-
-def _encode_triangles(t: np.ndarray) -> bytes:
-    """:func:`terralod.store.encode_triangles`, byte for byte, with the deltas coded by a kernel."""
-    tt = np.ascontiguousarray(t, np.int64)
-    if tt.size == 0 or tt.max() < 65536:
-        return b"\x02" + zlib.compress(triangle_codes16(tt).tobytes(), ZLIB_LEVEL)
-    return b"\x04" + zlib.compress(triangle_codes32(tt).tobytes(), ZLIB_LEVEL)
-
-
 def measure_tile(
     hf: Heightfield, pyramid: TilePyramid, code: TileCode, quant: LevelQuantisation, mesh_fn: MeshFn
 ) -> EncodedTile:
@@ -286,8 +271,8 @@ def measure_tile(
         n_vertices=int(qv.shape[0]),
         n_triangles=int(tris.shape[0]),
         z0_index=z0,
-        vertices=_encode_vertices(qv),
-        triangles=_encode_triangles(tris),
+        vertices=encode_vertices(qv),
+        triangles=encode_triangles(tris),
     )
 
 
