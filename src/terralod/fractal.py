@@ -818,7 +818,6 @@ def write_geotiff(detail: FractalDetail, output: str | os.PathLike[str], factor:
     out = Path(output)
     if not out.parent.is_dir():
         raise InputError(f"cannot write the output: folder {out.parent} does not exist", str(out))
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
     profile = {
         "driver": "GTiff", "height": nr, "width": nc, "count": 1, "dtype": "float32",
         "transform": detail.amplified_transform(factor), "nodata": NODATA, "tiled": True,
@@ -827,10 +826,11 @@ def write_geotiff(detail: FractalDetail, output: str | os.PathLike[str], factor:
     if detail.hf.crs:
         profile["crs"] = CRS.from_user_input(detail.hf.crs)
     invalid = 0
-    from terralod.io.raster import c_stderr_captured, error_line
+    from terralod.io.raster import atomic_file, c_stderr_captured, error_line
 
+    said: list[str] = []
     try:
-        with c_stderr_captured() as said, rasterio.open(tmp, "w", **profile) as dst:
+        with c_stderr_captured() as said, atomic_file(out) as tmp, rasterio.open(tmp, "w", **profile) as dst:
             for r0 in range(0, nr, STRIP_ROWS):
                 n = min(STRIP_ROWS, nr - r0)
                 z = detail.window(r0, 0, n, nc, factor)
@@ -838,9 +838,7 @@ def write_geotiff(detail: FractalDetail, output: str | os.PathLike[str], factor:
                 invalid += int((~ok).sum())
                 z[~ok] = NODATA
                 dst.write(z, 1, window=Window(0, r0, nc, n))
-        os.replace(tmp, out)
     except BaseException as exc:
-        _discard(tmp)
         if isinstance(exc, Exception) and not isinstance(exc, InputError):  # full disk, I/O: name the file
             text = error_line(exc) + (f"; {said[0]}" if said else "")
             raise OSError(getattr(exc, "errno", None), f"cannot write ({text})", str(out)) from exc
@@ -923,12 +921,3 @@ def amplify_command(
     }
     log.info("amplified %s x%d -> %s (%d x %d) in %.2f s", summary["input"], factor, output, nr, nc, dt)
     return summary
-
-
-def _discard(tmp: Path) -> None:
-    """Remove a temporary output if it is there; never raises (on a read-only file system even an unlink of
-    a missing file fails, and the error that matters is the write's)."""
-    try:
-        tmp.unlink(missing_ok=True)
-    except OSError:
-        pass

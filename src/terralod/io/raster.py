@@ -192,6 +192,23 @@ def read_raster(
 
 
 @contextmanager
+def atomic_file(out: Path) -> Iterator[Path]:
+    """A temporary path beside ``out`` (``.NAME.PID.tmp``), renamed over ``out`` when the block ends and
+    removed when it raises: a full disk or a kill never leaves a truncated output. The removal never
+    raises (on a read-only file system even unlinking a missing file fails; the write's error matters)."""
+    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+    try:
+        yield tmp
+        os.replace(tmp, out)
+    except BaseException:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass  # the error that propagates is the write's
+        raise
+
+
+@contextmanager
 def c_stderr_captured() -> Iterator[list[str]]:
     """Collect what C libraries write straight to file descriptor 2 (libtiff prints some errors itself,
     before any ``terralod:`` line could): yields a list filled with those lines on exit; they are logged at

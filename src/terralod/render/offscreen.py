@@ -367,21 +367,18 @@ class FrameRenderer:
 def save_png(img: np.ndarray, path: str | Path) -> None:
     """Write an image (format by suffix) atomically: to a temporary beside it, then renamed, so a full disk
     or a kill leaves no truncated file; errors name the file."""
-    import os
-
     from PIL import Image
 
+    from terralod.io.raster import atomic_file
+
     out = Path(path)
-    tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
     try:
-        Image.fromarray(img).save(tmp, format=Image.registered_extensions().get(out.suffix.lower(), "PNG"))
-        os.replace(tmp, out)
+        with atomic_file(out) as tmp:
+            Image.fromarray(img).save(
+                tmp, format=Image.registered_extensions().get(out.suffix.lower(), "PNG")
+            )
     except OSError as exc:
-        _discard(tmp)
         raise OSError(exc.errno, exc.strerror or str(exc), str(out)) from exc
-    except BaseException:
-        _discard(tmp)
-        raise
 
 
 def write_video(frames, path: str | Path, fps: int = 24) -> int:
@@ -394,12 +391,3 @@ def write_video(frames, path: str | Path, fps: int = 24) -> int:
             w.append_data(f)
             n += 1
     return n
-
-
-def _discard(tmp: Path) -> None:
-    """Remove a temporary output if it is there; never raises (on a read-only file system even an unlink of
-    a missing file fails, and the error that matters is the write's)."""
-    try:
-        tmp.unlink(missing_ok=True)
-    except OSError:
-        pass
