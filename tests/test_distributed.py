@@ -272,3 +272,73 @@ def test_windowed_overwrite_keeps_the_old_store_until_complete(tmp_path: Path) -
     build_store_windowed(RasterSource(tif), out, tile_size=9, method="chunked", workers=1, overwrite=True)
     build_store(read_heightfield(tif), tmp_path / "mem.terra", tile_size=9, method="chunked", workers=1)
     assert _rows(out) == _rows(tmp_path / "mem.terra") != old
+
+
+def test_tcp_scheduler_builds_dem_and_tin_as_the_local_build(tmp_path: Path) -> None:
+    """The contract scripts rely on, with a real cluster: ``dask scheduler`` and ``dask worker`` started as
+    their own processes (as on a cluster), then ``terralod build ... --dask tcp://HOST:PORT`` for a DEM and
+    for a LiDAR cloud: the DEM store's tile rows and the TIN store's model bytes are the local build's."""
+    pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
+    import json
+    import shutil
+    import subprocess
+    import sys
+    import time
+
+    from terralod.store import read_tin_store
+    from test_tin_cli import write_las
+
+    dask_cli = shutil.which("dask")
+    if dask_cli is None:
+        pytest.skip("the dask command (dask[distributed]) is not on PATH")
+    sf = tmp_path / "scheduler.json"
+    env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
+    procs = [subprocess.Popen([dask_cli, "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                               "--scheduler-file", str(sf)], env=env, cwd=tmp_path,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]  # fmt: skip
+    try:
+        for _ in range(600):
+            if sf.exists() and sf.stat().st_size:
+                break
+            time.sleep(0.1)
+        address = json.loads(sf.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        procs.append(subprocess.Popen([dask_cli, "worker", "--scheduler-file", str(sf), "--nworkers", "2",
+                                       "--nthreads", "1", "--no-dashboard"], env=env, cwd=tmp_path,
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))  # fmt: skip
+        from distributed import Client
+
+        with Client(address, timeout=60) as c:
+            c.wait_for_workers(2, timeout=120)
+
+        def build(src: Path, out: Path, *extra: str) -> None:
+            r = subprocess.run([sys.executable, "-m", "terralod", "build", str(src), "-o", str(out), *extra],
+                               capture_output=True, text=True, timeout=600)  # fmt: skip
+            assert r.returncode == 0, r.stdout + r.stderr
+
+        tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(129, 193, seed=11, relief_m=350.0))
+        common = ["--tile-size", "33", "--method", "chunked"]
+        build(tif, tmp_path / "local.terra", *common, "--workers", "1")
+        build(tif, tmp_path / "tcp.terra", *common, "--dask", address)
+        assert _rows(tmp_path / "tcp.terra") == _rows(tmp_path / "local.terra")
+        rng = np.random.default_rng(5)
+        xy = rng.uniform(0.0, 300.0, (3000, 2))
+        z = 40.0 * np.sin(xy[:, 0] / 37.0) * np.cos(xy[:, 1] / 53.0) + rng.normal(0.0, 0.3, 3000)
+        las = write_las(tmp_path / "c.las", np.column_stack([xy, z]))
+        build(las, tmp_path / "local_tin.terra", "--sub-blocks", "9", "--workers", "1")
+        build(las, tmp_path / "tcp_tin.terra", "--sub-blocks", "9", "--dask", address)
+        assert (
+            read_tin_store(tmp_path / "tcp_tin.terra")[1] == read_tin_store(tmp_path / "local_tin.terra")[1]
+        )
+        # and the work really ran on the cluster's workers: the scheduler has seen their tasks
+        with Client(address, timeout=60) as c:
+            done = c.run_on_scheduler(lambda dask_scheduler: dask_scheduler.transition_counter)
+        assert done >= 3 * (9 + 2), done  # >= 3 transitions per task
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
