@@ -34,7 +34,7 @@ import sys
 import tempfile
 import warnings
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -201,10 +201,8 @@ def atomic_file(out: Path) -> Iterator[Path]:
         yield tmp
         os.replace(tmp, out)
     except BaseException:
-        try:
+        with suppress(OSError):  # the error that propagates is the write's
             tmp.unlink(missing_ok=True)
-        except OSError:
-            pass  # the error that propagates is the write's
         raise
 
 

@@ -422,12 +422,11 @@ def write_container(
         len(payload),
         hashlib.sha256(payload).digest(),
     )
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    with open(tmp, "wb") as f:
+    from terralod.io.raster import atomic_file
+
+    with atomic_file(Path(path)) as tmp, open(tmp, "wb") as f:
         f.write(head)
         f.write(payload)
-    os.replace(tmp, p)
     return len(head) + len(payload)
 
 
