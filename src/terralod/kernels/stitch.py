@@ -79,20 +79,18 @@ def stitch_edge(t_f, t_c, h_c, tol):
 
 
 @jit
-def split_boundary_triangles(tris, seg_tri, seg_rot, seg_lo, ins_seg, ins_vid):
-    """Fan-split the boundary triangle of each fine segment that receives inserted vertices.
+def split_boundary_triangles(tris, n_t, seg_tri, seg_rot, seg_lo, ins_seg, ins_vid):
+    """In place: fan-split the boundary triangle of each fine segment that receives inserted vertices.
 
-    ``seg_tri[j]`` is the triangle holding boundary segment j, ``seg_rot[j]`` the corner r of that triangle
-    where the segment starts (its endpoints are corners r and r + 1, counter-clockwise) and ``seg_lo[j]``
-    the vertex index of the segment's lower-``t`` end; ``ins_seg`` (ascending) / ``ins_vid`` give the
-    inserted vertex indices in ascending ``t``. A triangle (a, b, o) with a-b on the boundary becomes
-    (a, q1, o), (q1, q2, o), ..., (qk, b, o): same orientation, same plane, no new interior vertex.
-    Returns the new (K', 3) uint32 triangle array.
+    ``tris`` holds ``n_t`` triangles and room for ``len(ins_seg)`` more; ``seg_tri[j]`` is the triangle
+    holding boundary segment j, ``seg_rot[j]`` the corner r of that triangle where the segment starts (its
+    endpoints are corners r and r + 1, counter-clockwise) and ``seg_lo[j]`` the vertex index of the
+    segment's lower-``t`` end; ``ins_seg`` (ascending) / ``ins_vid`` give the inserted vertex indices in
+    ascending ``t``. A triangle (a, b, o) with a-b on the boundary becomes (a, q1, o) in its row and
+    (q1, q2, o), ..., (qk, b, o) appended: same orientation, same plane, no new interior vertex.
+    Returns the new triangle count.
     """
-    k = tris.shape[0]
-    out = np.empty((k + ins_seg.shape[0], 3), np.uint32)
-    out[:k] = tris
-    nxt = k
+    nxt = n_t
     i = 0
     n = ins_seg.shape[0]
     while i < n:
@@ -113,18 +111,18 @@ def split_boundary_triangles(tris, seg_tri, seg_rot, seg_lo, ins_seg, ins_vid):
         for m in range(e - i):
             q = ins_vid[i + m] if forward else ins_vid[e - 1 - m]
             row = ti if m == 0 else nxt
-            out[row, 0] = prev
-            out[row, 1] = q
-            out[row, 2] = o
+            tris[row, 0] = prev
+            tris[row, 1] = q
+            tris[row, 2] = o
             if m > 0:
                 nxt += 1
             prev = q
-        out[nxt, 0] = prev
-        out[nxt, 1] = b
-        out[nxt, 2] = o
+        tris[nxt, 0] = prev
+        tris[nxt, 1] = b
+        tris[nxt, 2] = o
         nxt += 1
         i = e
-    return out[:nxt]
+    return nxt
 
 
 @jit
@@ -246,15 +244,24 @@ def add_edge_contributions(t_tab, s_tab, g_tab, t_q, rows, tol, acc):
 def segment_triangles(tris, edge_vid, n_vertices):
     """For each boundary segment (edge_vid[j], edge_vid[j + 1]) of one side: the triangle holding it and the
     corner r of that triangle where the directed edge (r, r + 1) starts; -1 / 0 where none holds it."""
+    rank = np.full(n_vertices, -1, np.int64)
+    return segment_triangles_among(tris, np.arange(tris.shape[0]), edge_vid, rank)
+
+
+@jit
+def segment_triangles_among(tris, ids, edge_vid, rank):
+    """:func:`segment_triangles` looking only at the triangles ``ids`` (ascending; they must include every
+    triangle holding a segment of the side, e.g. those touching the tile boundary). ``rank`` is a work
+    array of -1 with a row per vertex; it is -1 again on return."""
     m = edge_vid.shape[0]
     seg_tri = np.full(max(m - 1, 0), -1, np.int64)
     seg_rot = np.zeros(max(m - 1, 0), np.int64)
     if m < 2:
         return seg_tri, seg_rot
-    rank = np.full(n_vertices, -1, np.int64)
     for j in range(m):
         rank[edge_vid[j]] = j
-    for t in range(tris.shape[0]):
+    for i in range(ids.shape[0]):
+        t = ids[i]
         for r in range(3):
             ra = rank[tris[t, r]]
             if ra < 0:
@@ -266,4 +273,232 @@ def segment_triangles(tris, edge_vid, n_vertices):
                 j = min(ra, rb)
                 seg_tri[j] = t
                 seg_rot[j] = r
+    for j in range(m):
+        rank[edge_vid[j]] = -1
     return seg_tri, seg_rot
+
+
+@jit
+def _boundary_ids(btris, k0, k):
+    """The triangles that may hold a boundary segment after insertions: the stored ones touching the
+    boundary, then the rows k0..k-1 that insertions appended."""
+    return np.concatenate((btris, np.arange(k0, k).astype(np.int64)))
+
+
+@jit
+def _insert_on_side(verts, n_v, tris, n_t, vid, t, ins_seg, ins_t, ins_h, side, geo, btris, k0, rank):
+    """Add the positions ``ins_t`` (heights ``ins_h``) inside segments ``ins_seg`` of side ``side`` as new
+    vertices, fan-splitting the boundary triangles that hold those segments, in place: ``verts`` holds
+    ``n_v`` vertices and ``tris`` ``n_t`` triangles, both with room for ``len(ins_t)`` more. ``geo`` = (x0,
+    y0, dx, dy, c0, c1, r0, r1): the world position of sample (0, 0), the sample spacing and the tile
+    square; ``btris`` the stored triangles touching the boundary and ``k0`` the stored triangle count;
+    ``rank`` as in :func:`segment_triangles_among`. Returns ``(n_v, n_t, vid, t)`` with the side's vertices
+    still ascending along it."""
+    k = ins_t.shape[0]
+    x0, y0, dx, dy = geo[0], geo[1], geo[2], geo[3]
+    for i in range(k):
+        if side == 0 or side == 2:
+            verts[n_v + i, 0] = x0 + (geo[4] if side == 0 else geo[5]) * dx
+            verts[n_v + i, 1] = y0 + ins_t[i] * dy
+        else:
+            verts[n_v + i, 0] = x0 + ins_t[i] * dx
+            verts[n_v + i, 1] = y0 + (geo[6] if side == 1 else geo[7]) * dy
+        verts[n_v + i, 2] = ins_h[i]
+    new_vid = np.arange(n_v, n_v + k).astype(np.int64)
+    seg_tri, seg_rot = segment_triangles_among(tris, _boundary_ids(btris, k0, n_t), vid, rank)
+    n_t = split_boundary_triangles(tris, n_t, seg_tri, seg_rot, vid[:-1], ins_seg, new_vid)
+    all_t = np.concatenate((t, ins_t))
+    order = np.argsort(all_t, kind="mergesort")
+    return n_v + k, n_t, np.concatenate((vid, new_vid))[order], all_t[order]
+
+
+@jit
+def stitch_tile(
+    verts0, tris0, base_sums, base_normals, btris, btouched, ev, et, eoff, seg0, segoff, corner_vid,
+    fit_t, fit_h, fitoff, fit_on, corner_h, corner_on, fine_t, fineoff, fine_on, geo, tol,
+):  # fmt: skip
+    """Paper 002 §3.3 for one tile in one call: fit its sides and corners to coarser visible neighbours,
+    insert their bend points and the finer neighbours' boundary positions (no T-junction remains), and
+    recompute its own-triangle normals and the edge tables its neighbours read (§3.4).
+
+    Inputs: the prepared tile (vertices (N, 3), triangles (K, 3) uint32, own normal sums / normals, the
+    triangles touching the boundary and their vertices), its sides' vertex ids ``ev`` and positions ``et``
+    concatenated side after side (side e is ``eoff[e]:eoff[e + 1]``) and the triangles holding its side
+    segments (:func:`segment_triangles`, at ``segoff``), its corner vertex ids (-1: none); per side, the
+    coarse polyline to fit to (``fit_t``/``fit_h`` at ``fitoff``, used where ``fit_on``) and the finer
+    neighbours' boundary positions (``fine_t`` at ``fineoff``, used where ``fine_on``); per corner the
+    height it takes (where ``corner_on``); ``geo`` as in :func:`_insert_on_side`; a position tolerance.
+
+    Returns ``(changed, verts, tris, sums, normals, vid, t, h, off, S, G, goff, boundary_vid, rows)``.
+    With ``changed`` false the tile keeps its stored geometry and the other outputs are empty; ``tris`` is
+    empty also where no vertex was inserted (the stored triangles stand). Otherwise the side arrays are
+    concatenated side after side at ``off`` (``vid``, positions ``t``, heights ``h``, the vertex sums
+    ``S``) and at ``goff`` (the segment-triangle terms ``G`` of :func:`add_edge_contributions`);
+    ``boundary_vid`` the sorted boundary vertex ids and ``rows`` each side vertex's row in it.
+    Normal sums are patched, not recomputed: the stored triangles touching the boundary are taken out as
+    stored and put back as they are now (fan pieces and appended rows included); interior sums and
+    normals stay the stored ones.
+    """
+    n0 = verts0.shape[0]
+    k0 = tris0.shape[0]
+    zs = verts0[:, 2]
+    changed = False
+    room = 0
+    h_fit = []
+    i_seg = []
+    i_t = []
+    i_h = []
+    for e in range(4):
+        vid = ev[eoff[e] : eoff[e + 1]]
+        if fit_on[e]:
+            h_f, ins_seg, ins_t, ins_h = stitch_edge(
+                et[eoff[e] : eoff[e + 1]],
+                fit_t[fitoff[e] : fitoff[e + 1]],
+                fit_h[fitoff[e] : fitoff[e + 1]],
+                tol,
+            )
+            for i in range(vid.shape[0]):
+                if not zs[vid[i]] == h_f[i]:
+                    changed = True
+        else:
+            h_f = np.empty(0, np.float64)
+            ins_seg = np.empty(0, np.int64)
+            ins_t = np.empty(0, np.float64)
+            ins_h = np.empty(0, np.float64)
+        room += ins_t.shape[0]
+        if fine_on[e]:
+            room += fineoff[e + 1] - fineoff[e]
+        h_fit.append(h_f)
+        i_seg.append(ins_seg)
+        i_t.append(ins_t)
+        i_h.append(ins_h)
+    for c in range(4):
+        if corner_on[c] and not zs[corner_vid[c]] == corner_h[c]:
+            changed = True
+    e0 = np.empty(0, np.int64)
+    f0 = np.empty(0, np.float64)
+    g0 = np.empty((0, 3), np.float64)
+    no_fine = not (fine_on[0] or fine_on[1] or fine_on[2] or fine_on[3])
+    if not changed and no_fine and i_seg[0].size + i_seg[1].size + i_seg[2].size + i_seg[3].size == 0:
+        return (
+            False,
+            g0,
+            np.empty((0, 3), np.uint32),
+            g0,
+            np.empty((0, 3), np.float32),
+            e0,
+            f0,
+            f0,
+            e0,
+            g0,
+            g0,
+            e0,
+            e0,
+            e0,
+        )
+    verts = np.empty((n0 + room, 3), np.float64)
+    verts[:n0] = verts0
+    for e in range(4):
+        if fit_on[e]:
+            vid = ev[eoff[e] : eoff[e + 1]]
+            for i in range(vid.shape[0]):
+                verts[vid[i], 2] = h_fit[e][i]
+    for c in range(4):
+        if corner_on[c]:
+            verts[corner_vid[c], 2] = corner_h[c]
+    n_v = n0
+    # the stored (read-only) triangles stand until a vertex is inserted: copied once into tris then
+    tris = np.empty((0, 3), np.uint32)
+    n_t = k0
+    rank = np.full(n0 + room, -1, np.int64)
+    fvid = [ev[eoff[e] : eoff[e + 1]].copy() for e in range(4)]
+    ft = [et[eoff[e] : eoff[e + 1]].copy() for e in range(4)]
+    for e in range(4):
+        if i_seg[e].shape[0] > 0:
+            if tris.shape[0] == 0:
+                tris = np.empty((k0 + room, 3), np.uint32)
+                tris[:k0] = tris0
+            n_v, n_t, fvid[e], ft[e] = _insert_on_side(
+                verts, n_v, tris, n_t, fvid[e], ft[e], i_seg[e], i_t[e], i_h[e], e, geo, btris, k0, rank
+            )
+    for e in range(4):
+        if not fine_on[e] or ft[e].shape[0] < 2:
+            continue
+        t = ft[e]
+        cand = np.unique(fine_t[fineoff[e] : fineoff[e + 1]])
+        keep = (cand > t[0] + tol) & (cand < t[-1] - tol)
+        cand = cand[keep]
+        j = np.searchsorted(t, cand, side="right") - 1
+        far = np.ones(cand.shape[0], np.bool_)
+        for i in range(cand.shape[0]):
+            jn = min(j[i] + 1, t.shape[0] - 1)
+            if abs(cand[i] - t[j[i]]) <= tol or abs(t[jn] - cand[i]) <= tol:
+                far[i] = False
+        cand = cand[far]
+        j = j[far]
+        if cand.shape[0] > 0:
+            hz = np.empty(fvid[e].shape[0], np.float64)
+            for i in range(hz.shape[0]):
+                hz[i] = verts[fvid[e][i], 2]
+            h = polyline_at(t, hz, cand)  # on the edge: the geometry does not change
+            if tris.shape[0] == 0:
+                tris = np.empty((k0 + room, 3), np.uint32)
+                tris[:k0] = tris0
+            n_v, n_t, fvid[e], ft[e] = _insert_on_side(
+                verts, n_v, tris, n_t, fvid[e], ft[e], j, cand, h, e, geo, btris, k0, rank
+            )
+    topo = tris.shape[0] > 0
+    verts = verts[:n_v]
+    sums = np.zeros((n_v, 3), np.float64)
+    sums[:n0] = base_sums
+    normals = np.empty((n_v, 3), np.float32)
+    normals[:n0] = base_normals
+    if topo:
+        tris = tris[:n_t]
+        ids = _boundary_ids(btris, k0, n_t)
+        old = triangle_cross(verts0, tris0, btris)
+        for i in range(btris.shape[0]):
+            for r in range(3):
+                p = tris0[btris[i], r]
+                for a in range(3):
+                    sums[p, a] -= old[i, a]
+        new = triangle_cross(verts, tris, ids)
+        for i in range(ids.shape[0]):
+            for r in range(3):
+                p = tris[ids[i], r]
+                for a in range(3):
+                    sums[p, a] += new[i, a]
+        normalize_rows(sums, np.concatenate((btouched, np.arange(n0, n_v).astype(np.int64))), normals)
+    else:
+        patch_normal_sums(sums, verts0, verts, tris0, btris)
+        normalize_rows(sums, btouched, normals)
+        ids = btris
+    off = np.zeros(5, np.int64)
+    goff = np.zeros(5, np.int64)
+    for e in range(4):
+        off[e + 1] = off[e] + fvid[e].shape[0]
+        goff[e + 1] = goff[e] + max(fvid[e].shape[0] - 1, 0)
+    n_b = off[4]
+    vid_all = np.empty(n_b, np.int64)
+    t_all = np.empty(n_b, np.float64)
+    h_all = np.empty(n_b, np.float64)
+    s_all = np.empty((n_b, 3), np.float64)
+    g_all = np.empty((goff[4], 3), np.float64)
+    for e in range(4):
+        m = fvid[e].shape[0]
+        if m >= 2:
+            if topo:
+                seg_tri = segment_triangles_among(tris, ids, fvid[e], rank)[0]
+                g_all[goff[e] : goff[e + 1]] = triangle_cross(verts, tris, seg_tri)
+            else:
+                g_all[goff[e] : goff[e + 1]] = triangle_cross(verts, tris0, seg0[segoff[e] : segoff[e + 1]])
+        for i in range(m):
+            p = fvid[e][i]
+            vid_all[off[e] + i] = p
+            t_all[off[e] + i] = ft[e][i]
+            h_all[off[e] + i] = verts[p, 2]
+            for a in range(3):
+                s_all[off[e] + i, a] = sums[p, a]
+    bvid = np.unique(vid_all)
+    rows = np.searchsorted(bvid, vid_all)
+    return True, verts, tris, sums, normals, vid_all, t_all, h_all, off, s_all, g_all, goff, bvid, rows

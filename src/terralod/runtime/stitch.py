@@ -47,11 +47,8 @@ import numpy as np
 from terralod.kernels.stitch import (
     normal_sums,
     normalize_all,
-    normalize_rows,
-    patch_normal_sums,
     polyline_at,
-    split_boundary_triangles,
-    stitch_edge,
+    stitch_tile,
 )
 from terralod.kernels.stitch import segment_triangles as _segment_triangles
 from terralod.runtime.adjacency import CULLED, OPPOSITE, VISIBLE, Adjacency, QuadIndex
@@ -122,6 +119,9 @@ class TilePrep:
     base_normals: np.ndarray
     base_S: list[np.ndarray] = field(default_factory=list)
     base_G: list[np.ndarray] = field(default_factory=list)
+    #: the sides' vertex ids, positions and segment triangles concatenated side after side with their
+    #: offsets (ev, et, eoff, seg, segoff) and the corner ids as an array: what the stitch kernel reads
+    packed: tuple = ()
 
     @property
     def nbytes(self) -> int:
@@ -183,29 +183,29 @@ class TilePrep:
             s_tab, g_tab = edge_tables(v, tris, sums, edge_vid[e], prep.seg_tri[e])
             prep.base_S.append(s_tab)
             prep.base_G.append(g_tab)
+        prep.packed = (
+            np.concatenate(edge_vid),
+            np.concatenate(edge_t),
+            _offsets(edge_vid),
+            np.concatenate(prep.seg_tri),
+            _offsets(prep.seg_tri),
+            np.array(corners, np.int64),
+        )
         for a in (prep.vertices, prep.triangles, prep.base_sums, prep.base_normals):
             a.flags.writeable = False
         return prep
 
 
-def geometry_normals(
-    prep: TilePrep, vertices: np.ndarray, triangles: np.ndarray, topology_changed: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """Own-triangle normal sums (N, 3) float64 and normals (N, 3) float32 of a (stitched) tile.
+def _offsets(arrays: Sequence[np.ndarray]) -> np.ndarray:
+    """(len + 1,) int64 start offsets of ``arrays`` concatenated (the last is the total length)."""
+    return np.concatenate([[0], np.cumsum([a.shape[0] for a in arrays])]).astype(np.int64)
 
-    Shares the prepared arrays when the geometry is the stored one; re-sums only the boundary-touching
-    triangles when just boundary heights moved; recomputes everything when triangles were inserted.
-    """
-    if vertices is prep.vertices and triangles is prep.triangles:
-        return prep.base_sums, prep.base_normals
-    if topology_changed:
-        sums = normal_sums(vertices, triangles)
-        return sums, normalize_all(sums)
-    sums = prep.base_sums.copy()
-    patch_normal_sums(sums, prep.vertices, vertices, triangles, prep.boundary_triangles)
-    normals = prep.base_normals.copy()
-    normalize_rows(sums, prep.boundary_touched, normals)
-    return sums, normals
+
+def _pack(arrays: Sequence[np.ndarray | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Four optional float arrays as (concatenation, offsets (5,), present (4,) bool) for a kernel."""
+    parts = [np.zeros(0) if a is None else a for a in arrays]
+    cat = np.concatenate(parts).astype(np.float64, copy=False)
+    return cat, _offsets(parts), np.array([a is not None for a in arrays])
 
 
 def segment_triangles(tris: np.ndarray, edge_vid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -485,116 +485,46 @@ class Stitcher:
         self, prep: TilePrep, signature: tuple, fit_to: list[int], corner_h: list[float | None],
         fine_t: list[np.ndarray | None] | None = None,
     ) -> StitchedTile:  # fmt: skip
+        """Stitch one tile (:func:`terralod.kernels.stitch.stitch_tile` does the work in one call)."""
+        polylines = [None if q < 0 else self.states[q] for q in fit_to]
+        oe = [int(OPPOSITE[e]) for e in range(4)]
+        fit_t, fitoff, fit_on = _pack(
+            [None if u is None else u.final_t[oe[e]] for e, u in enumerate(polylines)]
+        )
+        fit_h = _pack([None if u is None else u.final_h[oe[e]] for e, u in enumerate(polylines)])[0]
+        fine, fineoff, fine_on = _pack(fine_t or [None, None, None, None])
+        ch = np.array([math.nan if h is None else h for h in corner_h], np.float64)
+        c_on = np.array([h is not None for h in corner_h])
+        ev, et, eoff, seg0, segoff, cvid = prep.packed
+        geo = np.array([self._x0, self._y0, self._dx, self._dy, prep.c0, prep.c1, prep.r0, prep.r1])
         zs = prep.vertices[:, 2]
-        moves: list[tuple[np.ndarray, np.ndarray]] = []
-        inserts: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
-        for e in range(4):
-            q = fit_to[e]
-            if q < 0:
-                continue
-            cst = self.states[q]
-            oe = int(OPPOSITE[e])
-            h_f, ins_seg, ins_t, ins_h = stitch_edge(
-                prep.edge_t[e], cst.final_t[oe], cst.final_h[oe], POS_TOL
-            )
-            moves.append((prep.edge_vid[e], h_f))
-            if ins_seg.size:
-                inserts.append((e, ins_seg, ins_t, ins_h))
-        for c in range(4):
-            if corner_h[c] is not None:
-                moves.append((np.array([prep.corner_vid[c]]), np.array([corner_h[c]])))
-        changed = any(not np.array_equal(zs[i], h) for i, h in moves)
         final_corners = tuple(
             None if prep.corner_vid[c] < 0 else (corner_h[c] if corner_h[c] is not None else float(zs[prep.corner_vid[c]]))
             for c in range(4)
         )  # fmt: skip
-        fine_t = fine_t or [None, None, None, None]
-        if not changed and not inserts and all(f is None for f in fine_t):
-            verts, tris = prep.vertices, prep.triangles
-            fvid, ft = prep.edge_vid, prep.edge_t
-            seg_tri = prep.seg_tri
-        else:
-            verts = prep.vertices.copy()
-            for i, h in moves:
-                verts[i, 2] = h
+        changed, verts, tris, sums, gnormals, vid, t, h, off, s_all, g_all, goff, bvid, rows = stitch_tile(
+            prep.vertices, prep.triangles, prep.base_sums, prep.base_normals, prep.boundary_triangles,
+            prep.boundary_touched, ev, et, eoff, seg0, segoff, cvid, fit_t, fit_h, fitoff, fit_on, ch, c_on,
+            fine, fineoff, fine_on, geo, POS_TOL,
+        )  # fmt: skip
+        if not changed:
+            bvid = np.unique(ev)
+            return StitchedTile(
+                prep, signature, prep.vertices, prep.triangles, prep.base_sums, prep.base_normals,
+                prep.edge_t, prep.edge_vid, [zs[v] for v in prep.edge_vid], prep.base_S, prep.base_G,
+                final_corners, bvid, [np.searchsorted(bvid, v) for v in prep.edge_vid],
+            )  # fmt: skip
+        if tris.shape[0] == 0:
             tris = prep.triangles
-            fvid, ft = list(prep.edge_vid), list(prep.edge_t)
-            seg_tri = list(prep.seg_tri)
-            for e, ins_seg, ins_t, ins_h in inserts:
-                verts, tris, fvid[e], ft[e] = self._insert(
-                    prep, e, verts, tris, fvid[e], ft[e], ins_seg, ins_t, ins_h
-                )
-            tj = 0
-            for e in range(4):
-                if fine_t[e] is None or ft[e].size < 2:
-                    continue
-                t = ft[e]
-                cand = np.unique(fine_t[e])
-                cand = cand[(cand > t[0] + POS_TOL) & (cand < t[-1] - POS_TOL)]
-                j = np.searchsorted(t, cand, side="right") - 1
-                near = (np.abs(cand - t[j]) <= POS_TOL) | (
-                    np.abs(t[np.minimum(j + 1, t.size - 1)] - cand) <= POS_TOL
-                )
-                cand, j = cand[~near], j[~near]
-                if cand.size:
-                    h = polyline_at(t, verts[fvid[e], 2], cand)  # on the edge: geometry unchanged
-                    verts, tris, fvid[e], ft[e] = self._insert(
-                        prep, e, verts, tris, fvid[e], ft[e], j, cand, h
-                    )
-                    tj += cand.size
-            if inserts or tj:
-                seg_tri = [segment_triangles(tris, fvid[e])[0] for e in range(4)]
-        topo = tris is not prep.triangles
-        sums, gnormals = geometry_normals(prep, verts, tris, topo)
-        if verts is prep.vertices:
-            s_tabs, g_tabs = prep.base_S, prep.base_G
-        else:
-            tabs = [edge_tables(verts, tris, sums, fvid[e], seg_tri[e]) for e in range(4)]
-            s_tabs, g_tabs = [a for a, _ in tabs], [b for _, b in tabs]
-        fh = [verts[fvid[e], 2] for e in range(4)]
-        bvid = np.unique(np.concatenate(fvid))
-        rows = [np.searchsorted(bvid, fvid[e]) for e in range(4)]
-        for a in (verts, tris, sums, gnormals):
+        sides = [slice(off[e], off[e + 1]) for e in range(4)]
+        segs = [slice(goff[e], goff[e + 1]) for e in range(4)]
+        for a in (verts, tris, sums, gnormals, vid, t, h, s_all, g_all, bvid, rows):
             a.flags.writeable = False
         return StitchedTile(
-            prep,
-            signature,
-            verts,
-            tris,
-            sums,
-            gnormals,
-            ft,
-            fvid,
-            fh,
-            s_tabs,
-            g_tabs,
-            final_corners,
-            bvid,
-            rows,
-        )
-
-    def _insert(
-        self, prep: TilePrep, e: int, verts: np.ndarray, tris: np.ndarray, vid: np.ndarray, t: np.ndarray,
-        ins_seg: np.ndarray, ins_t: np.ndarray, ins_h: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
-        """Add the coarse nodes lying inside fine segments of side e as vertices; fan-split their triangles."""
-        n0 = verts.shape[0]
-        new = np.empty((ins_t.size, 3))
-        if e in (0, 2):
-            col = prep.c0 if e == 0 else prep.c1
-            new[:, 0] = self._x0 + col * self._dx
-            new[:, 1] = self._y0 + ins_t * self._dy
-        else:
-            row = prep.r0 if e == 1 else prep.r1
-            new[:, 0] = self._x0 + ins_t * self._dx
-            new[:, 1] = self._y0 + row * self._dy
-        new[:, 2] = ins_h
-        new_vid = np.arange(n0, n0 + ins_t.size, dtype=np.int64)
-        seg_tri, seg_rot = segment_triangles(tris, vid)
-        tris = split_boundary_triangles(tris, seg_tri, seg_rot, vid[:-1], ins_seg, new_vid)
-        verts = np.concatenate([verts, new])
-        order = np.argsort(np.concatenate([t, ins_t]), kind="stable")
-        return verts, tris, np.concatenate([vid, new_vid])[order], np.concatenate([t, ins_t])[order]
+            prep, signature, verts, tris, sums, gnormals, [t[k] for k in sides], [vid[k] for k in sides],
+            [h[k] for k in sides], [s_all[k] for k in sides], [g_all[k] for k in segs], final_corners, bvid,
+            [rows[k] for k in sides],
+        )  # fmt: skip
 
     # -- normals ---------------------------------------------------------------------------------------
     def _normals(self, s: int) -> None:
