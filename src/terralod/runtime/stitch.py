@@ -198,14 +198,19 @@ class TilePrep:
 
 def _offsets(arrays: Sequence[np.ndarray]) -> np.ndarray:
     """(len + 1,) int64 start offsets of ``arrays`` concatenated (the last is the total length)."""
-    return np.concatenate([[0], np.cumsum([a.shape[0] for a in arrays])]).astype(np.int64)
+    off = [0]
+    for a in arrays:
+        off.append(off[-1] + a.shape[0])
+    return np.array(off, np.int64)
+
+
+_NONE = np.zeros(0)
 
 
 def _pack(arrays: Sequence[np.ndarray | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Four optional float arrays as (concatenation, offsets (5,), present (4,) bool) for a kernel."""
-    parts = [np.zeros(0) if a is None else a for a in arrays]
-    cat = np.concatenate(parts).astype(np.float64, copy=False)
-    return cat, _offsets(parts), np.array([a is not None for a in arrays])
+    """Four optional float64 arrays as (concatenation, offsets (5,), present (4,) bool) for a kernel."""
+    parts = [_NONE if a is None else a for a in arrays]
+    return np.concatenate(parts), _offsets(parts), np.array([a is not None for a in arrays])
 
 
 def segment_triangles(tris: np.ndarray, edge_vid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
