@@ -140,6 +140,15 @@ def test_relocated_boundary_vertices(store_ns, seed: int) -> None:
         assert (cross > 0).all()
         assert np.array_equal(np.unique(t), np.arange(len(v)))
         assert np.all(np.isfinite(nrm)) and np.allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-6)
+        # off the border a normal is the tile's own (patched after the fan splits, not recomputed): it must
+        # equal the normal recomputed from every triangle of the stitched tile
+        rows_all = (v[:, 1] - (tr.f + 0.5 * tr.e)) / tr.e
+        cols_all = (v[:, 0] - (tr.c + 0.5 * tr.a)) / tr.a
+        inner = (
+            (np.abs(rows_all - r0) > 1e-6) & (np.abs(rows_all - r1) > 1e-6)
+            & (np.abs(cols_all - c0) > 1e-6) & (np.abs(cols_all - c1) > 1e-6)
+        )  # fmt: skip
+        assert np.abs(nrm[inner] - tile_local_normals(v, t)[inner]).max(initial=0.0) < 1e-5
     assert inserted > 0  # relocated coarse vertices fell inside fine segments and were inserted
 
 
