@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 import signal
 import sqlite3
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -175,6 +177,15 @@ def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
         rest = build_store_windowed(RasterSource(tif), out, tile_size=33, method="chunked", client=client,
                                     resume=True)  # fmt: skip
         assert rest.tiles_skipped == first.tiles_built
+
+        def malloc_state() -> tuple[bool, bool | None]:
+            import terralod.pyramid.distributed as d
+
+            return "MALLOC_TRIM_THRESHOLD_" in os.environ, d._malloc_tuned
+
+        # a worker that built units has glibc's adaptive thresholds back where its nanny fixed one
+        for has_env, tuned in client.run(malloc_state).values():
+            assert tuned is (has_env and sys.platform.startswith("linux"))
         # a worker killed (SIGKILL) once the first tiles are committed: its units are rebuilt elsewhere
         pids = list(client.run(os.getpid).values())
         killed = []
@@ -199,6 +210,41 @@ def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
     assert _rows(hit) == _rows(tmp_path / "mem9.terra")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
         dask_client("tcp://127.0.0.1:9", timeout_s=1.0)
+
+
+_FAULTS = """
+import resource, sys
+import numpy as np
+from terralod.pyramid.distributed import tune_worker_malloc
+tuned = tune_worker_malloc() if sys.argv[1] == "tune" else False
+a = np.ones(1 << 18); del a
+f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(50):
+    a = np.ones(1 << 18); del a  # 2 MiB allocated, touched and freed
+print(tuned, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc thresholds: Linux only")
+def test_fixed_malloc_threshold_is_undone_where_set() -> None:
+    """With MALLOC_TRIM_THRESHOLD_ set (as Dask's nanny sets it) every freed 2 MiB array goes back to the
+    kernel and the next one faults its 512 pages in again; tune_worker_malloc stops that, and does nothing
+    in a process started without the variable."""
+
+    def run(mode: str, env_set: bool) -> tuple[str, int]:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+        if env_set:
+            env["MALLOC_TRIM_THRESHOLD_"] = "65536"
+        out = subprocess.run([sys.executable, "-c", _FAULTS, mode], env=env, capture_output=True, text=True,
+                             check=True).stdout.split()  # fmt: skip
+        return out[0], int(out[1])
+
+    fixed_flag, fixed = run("none", True)
+    tuned_flag, tuned = run("tune", True)
+    plain_flag, plain = run("tune", False)
+    assert (fixed_flag, tuned_flag, plain_flag) == ("False", "True", "False")
+    assert fixed >= 50 * 256  # about 512 page faults per array
+    assert tuned < fixed / 20 and plain < fixed / 20
 
 
 def _die_on_every_unit():

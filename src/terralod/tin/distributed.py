@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from terralod.pyramid.distributed import dask_client
+from terralod.pyramid.distributed import dask_client, tune_worker_malloc
 from terralod.tin.qem import BlockJob, BlockResult, run_block
 
 __all__ = ["close_client", "dask_executor", "open_client"]
@@ -47,12 +47,19 @@ def close_client(client: Any) -> None:
         cluster.close()
 
 
+def _run_block(job: BlockJob) -> BlockResult:
+    """:func:`terralod.tin.qem.run_block` on a worker, with glibc's adaptive thresholds back
+    (:func:`terralod.pyramid.distributed.tune_worker_malloc`)."""
+    tune_worker_malloc()
+    return run_block(job)
+
+
 def dask_executor(client: Any, retries: int = 2):
     """An ``executor`` for :func:`terralod.tin.qem.simplify_blocks`: each job a task on the cluster
     (biggest first, as given; retried elsewhere when a worker dies), results gathered in job order."""
 
     def run(jobs: list[BlockJob]) -> list[BlockResult]:
-        futures = [client.submit(run_block, j, pure=False, retries=retries) for j in jobs]
+        futures = [client.submit(_run_block, j, pure=False, retries=retries) for j in jobs]
         try:
             return list(client.gather(futures))
         finally:
