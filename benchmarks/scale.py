@@ -95,8 +95,10 @@ def child(config: str, dem: str, out: str) -> None:
     from terralod.pyramid.builder import build_store
     from terralod.pyramid.distributed import build_store_windowed, dask_client
 
+    config, _, method = config.partition("@")
+    method = method or METHOD
     # warm the numba caches (compile time is not build time)
-    build_store(Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0), out + ".warm", method=METHOD)
+    build_store(Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0), out + ".warm", method=method)
     kind, _, rest = config.partition("-")
     n = int(rest.split("-")[0][1:])
     info: dict = {}
@@ -107,18 +109,18 @@ def child(config: str, dem: str, out: str) -> None:
         hf = read_heightfield(dem)
         info["read_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        rep = build_store(hf, out, method=METHOD, workers=n, overwrite=True)
+        rep = build_store(hf, out, method=method, workers=n, overwrite=True)
     elif kind == "window":
         t = time.perf_counter()
-        rep = build_store_windowed(RasterSource(dem), out, method=METHOD, workers=n, overwrite=True)
+        rep = build_store_windowed(RasterSource(dem), out, method=method, workers=n, overwrite=True)
     else:
         client = dask_client("local", n_workers=n, threads=1)
         client.run(lambda: build_store(Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0),
-                                       out + f".warm{os.getpid()}", method=METHOD))  # fmt: skip
+                                       out + f".warm{os.getpid()}", method=method))  # fmt: skip
         if config.endswith("kill"):
             _kill_later(client, out)
         t = time.perf_counter()
-        rep = build_store_windowed(RasterSource(dem), out, method=METHOD, client=client, overwrite=True)
+        rep = build_store_windowed(RasterSource(dem), out, method=method, client=client, overwrite=True)
         info["workers_at_end"] = len(client.scheduler_info()["workers"])
         client.close()
     secs = time.perf_counter() - t
@@ -216,6 +218,7 @@ def main() -> None:
     )
     ap.add_argument("--big-only", action="store_true",
                     help="only the 16385² build, the 4097² figures kept from the last run's JSON")  # fmt: skip
+    ap.add_argument("--big-method", default=METHOD, help="method of the --big-only build (chunked)")
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--child", nargs=3, metavar=("CONFIG", "DEM", "OUT"))
     ap.add_argument(
@@ -229,7 +232,7 @@ def main() -> None:
         print(f"skipped: {DEM} not present (../shared/data beside the repository)")
         return
     if args.big_only:
-        big_only()
+        big_only(args.big_method)
         return
     with tempfile.TemporaryDirectory(prefix="terralod-scale-") as tmp:
         folder = Path(tmp)
@@ -255,21 +258,27 @@ def main() -> None:
             if big:
                 big["note"] = "from an earlier --big run of this script (busier machine)"
         payload["big_16385"] = big
+        if RESULTS_JSON.exists():  # and the other methods' 16385² builds (--big-only --big-method)
+            last = json.loads(RESULTS_JSON.read_text())
+            payload.update({k: v for k, v in last.items() if k.startswith("big_16385_")})
         write_results("scale", payload, report(rows, payload))
 
 
-def big_only() -> None:
-    """The 16385² build alone; the 4097² rows, ratios and writer ceiling re-rendered from the last JSON."""
+def big_only(method: str = METHOD) -> None:
+    """The 16385² build alone (``method``); the 4097² rows, ratios, writer ceiling and the other methods'
+    16385² builds re-rendered from the last JSON."""
     payload = json.loads(RESULTS_JSON.read_text())
     rows = [[c, d["seconds"], d["samples_per_s"] / 1e6, d["peak_rss_mib"], d["same_tiles_as_window_t1"],
              f"killed worker after {d['runs'][0]['after_tiles']} tiles" if "killed_pid" in d["runs"][0] else ""]
             for c, d in payload["configs"].items()]  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="terralod-scale-") as tmp:
         dems = write_terrains(Path(tmp), True)
-        big = run_config("window-t2", dems["16385"], Path(tmp), 3000)
+        config = "window-t2" if method == METHOD else f"window-t2@{method}"
+        big = run_config(config, dems["16385"], Path(tmp), 3000)
     big["samples_per_s"] = big.get("samples", 0) / big["seconds"] if "seconds" in big else None
+    big["method"] = method
     print(json.dumps(big))
-    payload["big_16385"] = big
+    payload["big_16385" if method == METHOD else f"big_16385_{method}"] = big
     write_results("scale", payload, report(rows, payload))
 
 
@@ -323,6 +332,16 @@ def report(rows: list[list], payload: dict) -> str:
         )
     elif big:
         md.append(f"- 16385²: {big.get('error')}")
+    for key in sorted(k for k in payload if k.startswith("big_16385_")):
+        b = payload[key]
+        if "seconds" in b:
+            md.append(
+                f"- 16385², method {b['method']} (tiled GeoTIFF, window-t2, once, `--big-only --big-method "
+                f"{b['method']}`): {b['seconds']:.0f} s, {b['samples_per_s'] / 1e6:.2f} M samples/s, "
+                f"peak RSS {b['peak_rss_mib']:.0f} MiB"
+            )
+        else:
+            md.append(f"- 16385², method {b.get('method')}: {b.get('error')}")
     md.append(projection(payload))
     return "\n".join(md) + "\n"
 

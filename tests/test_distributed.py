@@ -56,7 +56,9 @@ def _meta(path: Path) -> dict:
         return dict(s.meta)
 
 
-@pytest.mark.parametrize(("method", "shape"), [("chunked", (257, 301)), ("cohesion", (161, 201))])
+@pytest.mark.parametrize(
+    ("method", "shape"), [("chunked", (257, 301)), ("cohesion", (161, 201)), ("adaptive", (257, 301))]
+)
 def test_windowed_build_is_the_in_memory_build(tmp_path: Path, method: str, shape: tuple[int, int]) -> None:
     """A tiled GeoTIFF read window by window (units of 2 x 2 and more tiles, data edges that cut tiles)
     gives the in-memory build's tiles and metadata byte for byte."""
@@ -68,6 +70,28 @@ def test_windowed_build_is_the_in_memory_build(tmp_path: Path, method: str, shap
     assert rep.tiles_built == rep.tiles_total == len(_rows(tmp_path / "mem.terra"))
     assert _rows(tmp_path / "win.terra") == _rows(tmp_path / "mem.terra")
     assert _meta(tmp_path / "win.terra") == _meta(tmp_path / "mem.terra")
+
+
+def test_adaptive_ladder_from_a_decimated_root_window_is_the_same_in_and_out_of_core(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Adaptive's default ladder comes from the root's window decimated to LADDER_MAX_SIDE a side (a
+    terrain over 4097² in practice; 100 here): the out-of-core build reads that decimated window and gets
+    the in-memory build's ladder and tiles."""
+    from terralod.pyramid import adaptive
+
+    tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(257, 301, seed=5, relief_m=600.0))
+    hf = read_heightfield(tif)
+    build_store(hf, tmp_path / "full.terra", method="adaptive", workers=1)
+    monkeypatch.setattr(adaptive, "LADDER_MAX_SIDE", 100)
+    assert adaptive.ladder_window(257, 301, TilePyramid(301, 257, 65))[2] == 4
+    build_store(hf, tmp_path / "mem.terra", method="adaptive", workers=1)
+    build_store_windowed(RasterSource(tif), tmp_path / "win.terra", method="adaptive", workers=2,
+                         unit_span_samples=128)  # fmt: skip
+    ladder = _meta(tmp_path / "mem.terra")["build_options"]["target_error_m"]
+    assert ladder != _meta(tmp_path / "full.terra")["build_options"]["target_error_m"]  # decimated: another
+    assert _meta(tmp_path / "win.terra") == _meta(tmp_path / "mem.terra")
+    assert _rows(tmp_path / "win.terra") == _rows(tmp_path / "mem.terra")
 
 
 @settings(max_examples=12, deadline=None)

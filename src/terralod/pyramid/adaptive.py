@@ -8,7 +8,9 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
 - the error ladder: level k is refined to ``target_m[k] = root_error_m / 2^k`` of vertical error over every
   source sample of the tile (its window of the full-resolution source, not the level's grid), stated in
   the store's metadata (``build_options.target_error_m``). By default ``root_error_m`` is the error the
-  greedy insertion reaches on the whole terrain with as many vertices as a regular tile has (M^2), so the
+  greedy insertion reaches on the whole terrain (decimated to at most 4097² samples, every f-th row and
+  column, so that an out-of-core build computes it from one decimated read: :func:`ladder_window`) with
+  as many vertices as a regular tile has (M^2), so the
   root weighs about what a regular root weighs, and each level below about the same per tile wherever the
   terrain's roughness is alike across scales (a flat plain costs 2 triangles a tile). The finest level is
   then not lossless, as a regular grid's is: it is within ``root_error_m / 2^L``, stated and measured
@@ -38,7 +40,15 @@ import numpy as np
 from terralod.kernels.adaptive import raster_order, simplify_line, tin_window
 from terralod.tiles import TileCode, TilePyramid
 
-__all__ = ["AdaptiveOptions", "make_mesher", "mesh_tile", "mesher_for", "target_ladder"]
+__all__ = [
+    "LADDER_MAX_SIDE",
+    "AdaptiveOptions",
+    "ladder_window",
+    "make_mesher",
+    "mesh_tile",
+    "mesher_for",
+    "target_ladder",
+]
 
 
 @dataclass(frozen=True)
@@ -91,7 +101,7 @@ def target_ladder(
     else:
         if z is None or valid is None:
             raise ValueError("Expected the terrain (z, valid) for a ladder from root_vertices")
-        key = (id(z), z.shape, pyramid, opt)
+        key = (id(z), z.shape, pyramid, opt, ladder_window(*z.shape, pyramid))
         with _LADDERS_LOCK:
             hit = _LADDERS.get(key)
             if hit is not None and hit[0]() is z:
@@ -103,12 +113,29 @@ def target_ladder(
     return [root / 2.0**k for k in range(top + 1)]
 
 
+#: The default ladder's root error is measured on the root's window decimated to at most this many samples
+#: a side (every f-th row and column, f a power of two), so that an out-of-core build, which never holds
+#: the DEM whole, computes the same ladder from a decimated read (:func:`ladder_window`).
+LADDER_MAX_SIDE = 4097
+
+
+def ladder_window(height: int, width: int, pyramid: TilePyramid) -> tuple[int, int, int]:
+    """``(rows, cols, f)``: the default ladder reads rows ``0, f, 2f, ... < rows`` and the same columns of
+    a ``height`` x ``width`` source (the root's window, decimated to at most :data:`LADDER_MAX_SIDE`)."""
+    hh, ww = min(height, pyramid.span(0) + 1), min(width, pyramid.span(0) + 1)
+    f = 1
+    while (max(hh, ww) - 1) // f + 1 > LADDER_MAX_SIDE:
+        f *= 2
+    return hh, ww, f
+
+
 def _budget_error(z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, n_vertices: int) -> float:
-    """Max vertical error of the greedy TIN of the whole source (the root's window) with ``n_vertices``
-    vertices, metres (at least 1 mm, so that the ladder is never 0)."""
-    h, w = z.shape
-    zw = np.ascontiguousarray(z[: min(h, pyramid.span(0) + 1), : min(w, pyramid.span(0) + 1)])
-    vw = np.ascontiguousarray(valid[: zw.shape[0], : zw.shape[1]])
+    """Max vertical error of the greedy TIN of the whole source (the root's window, decimated by
+    :func:`ladder_window`) with ``n_vertices`` vertices, metres (at least 1 mm, so that the ladder is never
+    0). A source already decimated (an out-of-core build's read) is taken as it is."""
+    hh, ww, f = ladder_window(*z.shape, pyramid)
+    zw = np.ascontiguousarray(z[:hh:f, :ww:f])
+    vw = np.ascontiguousarray(valid[:hh:f, :ww:f])
     empty = np.zeros(0, np.int64)
     _, _, _, worst = tin_window(zw, vw, empty, empty, 0.0, int(n_vertices))
     return max(float(worst), 1e-3)
@@ -178,6 +205,8 @@ def make_mesher(**options):
 
     mesher.options = opt  # type: ignore[attr-defined]
     mesher.window_margin = _no_margin  # type: ignore[attr-defined]
+    mesher.ladder_window = ladder_window  # type: ignore[attr-defined]
+    mesher.with_build_options = mesher_for  # type: ignore[attr-defined]
     mesher.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, opt)  # type: ignore[attr-defined]
     return mesher
 
@@ -231,4 +260,8 @@ def mesh_tile(
 
 mesh_tile.options = _DEFAULT  # type: ignore[attr-defined]
 mesh_tile.window_margin = _no_margin  # type: ignore[attr-defined]
+#: an out-of-core build reads this decimated window for ``build_meta`` and meshes its work units with
+#: ``with_build_options(the stated build_options)``: the ladder fixed, never recomputed from a window
+mesh_tile.ladder_window = ladder_window  # type: ignore[attr-defined]
+mesh_tile.with_build_options = mesher_for  # type: ignore[attr-defined]
 mesh_tile.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, _DEFAULT)  # type: ignore[attr-defined]

@@ -272,6 +272,18 @@ def scan_source(
     return StreamPlan(hz.hexdigest(), lattices(rng_grid), lattices(rng_all), n_invalid, h * w)
 
 
+def _ladder_read(src: WindowSource, pyramid: TilePyramid, method: str) -> tuple | None:
+    """(elevations, valid) of the decimated window a mesher's ``ladder_window`` asks for (adaptive's
+    default ladder: the root's window, every f-th row and column), read in strips; None for others."""
+    window = getattr(builder.METHODS[method], "ladder_window", None)
+    if window is None:
+        return None
+    hh, ww, f = window(src.height, src.width, pyramid)
+    z, _, own = _decimated_window(src, 0, 0, hh - 1, ww - 1, f, SCAN_STRIP_SAMPLES)
+    nr, nc = len(range(0, hh, f)), len(range(0, ww, f))  # without the last row/column appended
+    return np.ascontiguousarray(z[:nr, :nc]), np.ascontiguousarray(own[:nr, :nc])
+
+
 def _file_bytes(f) -> bytes:
     f.seek(0)
     return f.read()
@@ -280,7 +292,7 @@ def _file_bytes(f) -> bytes:
 class _FrameMeta:
     """The frame attributes :func:`terralod.pyramid.builder._store_meta` reads, for a streamed source."""
 
-    def __init__(self, src: WindowSource, plan: StreamPlan) -> None:
+    def __init__(self, src: WindowSource, plan: StreamPlan, ladder: tuple | None = None) -> None:
         from terralod.io.windowed import FILL_BLOCK, FILL_HALO
 
         self.source, self.crs, self.transform = src.source, src.crs, src.transform
@@ -294,8 +306,9 @@ class _FrameMeta:
                 f"{FILL_BLOCK}-sample block (halo {FILL_HALO}) with the nearest valid sample, then relaxed"
             )
         self._digest = plan.digest
-        # a mesher's ``build_meta(z, valid, pyramid)`` gets no arrays here: the DEM is never held whole
-        self.elevation_m = self.valid = None
+        # a mesher's ``build_meta(z, valid, pyramid)`` gets no arrays here (the DEM is never held whole),
+        # or, for a mesher with ``ladder_window`` (adaptive), the decimated read that window asks for
+        self.elevation_m, self.valid = ladder if ladder is not None else (None, None)
 
     def digest(self) -> str:
         return self._digest
@@ -387,12 +400,17 @@ def build_unit(
     quant: LevelQuantisation,
     child_errors: dict[TileCode, list[tuple[float, float]]],
     max_window_samples: int | None = MAX_WINDOW_SAMPLES,
+    build_options: dict | None = None,
 ) -> list[EncodedTile]:
     """Build the tiles ``codes`` (one level, one block) from their window of ``src``: the work unit of
-    threads and Dask workers alike (module-level, picklable arguments)."""
+    threads and Dask workers alike (module-level, picklable arguments). A mesher whose options come from
+    the whole terrain (adaptive's ladder) meshes with the store's stated ``build_options``."""
     tune_worker_malloc()
     pyramid = TilePyramid(src.width, src.height, tile_size)
     mesh_fn = builder.METHODS[method]
+    fixed = getattr(mesh_fn, "with_build_options", None)
+    if fixed is not None and build_options is not None:
+        mesh_fn = fixed(build_options)
     level = codes[0][0]
     span = pyramid.span(level)
     h, w = src.height, src.width
@@ -632,7 +650,8 @@ def build_store_windowed(
     pyramid = TilePyramid(src.width, src.height, tile_size)
     plan = scan_source(src, pyramid)
     quant = plan.quant(grid_vertices=(method == "chunked"))
-    meta = builder._store_meta(_FrameMeta(src, plan), pyramid, method, quant)  # type: ignore[arg-type]
+    meta = builder._store_meta(_FrameMeta(src, plan, _ladder_read(src, pyramid, method)), pyramid, method,
+                               quant)  # type: ignore[arg-type]  # fmt: skip
     store, target = _open_or_create(p, meta, resume, overwrite)
     runner = (
         _DaskRunner(client, retries)
@@ -659,7 +678,16 @@ def build_store_windowed(
             for unit in _units(pyramid, level, level_codes, unit_span_samples):
                 kids = {c: [errors[k] for k in pyramid.children(c)] for c in unit}
                 futures.append(
-                    runner.submit(shared, tile_size, method, unit, quant[level], kids, max_window_samples)
+                    runner.submit(
+                        shared,
+                        tile_size,
+                        method,
+                        unit,
+                        quant[level],
+                        kids,
+                        max_window_samples,
+                        meta["build_options"],
+                    )  # fmt: skip
                 )
             streamed = (enc for tiles in runner.completed(futures) for enc in tiles)
             built = builder.commit_streamed(store, streamed, errors, built,

@@ -24,7 +24,11 @@ Incremental work (the paper's CrackTileVector): only tiles with an active Dirty 
 keeps its stitched result with a *neighbourhood signature* (the coarser leaves its sides were fitted to and
 the final heights its corners took); a tile whose signature did not change is not touched; a tile whose
 corner heights changed re-queues its finer neighbours (who read its polyline). The "full traversal"
-baseline of table 3 recomputes every visible tile every frame.
+baseline of table 3 recomputes every visible tile every frame. This module gathers each tile's
+neighbourhood (the coarser polylines, the corner heights, the finer neighbours' boundary positions) and its
+signature; the geometry of one tile is one kernel call (:func:`terralod.kernels.stitch.stitch_tile`: fit,
+insertions, the normal-sum patch and the edge tables neighbours read, with one copy of the vertices and
+one of the triangles).
 
 Deviations (and why): the paper takes the finer tile as reference for same-level neighbours and copies its
 heights to the neighbour; our same-level tiles are identical by construction (the builder shares boundary
