@@ -185,7 +185,7 @@ def test_geographic_rasters_are_refused_in_one_line(tmp_path: Path) -> None:
     assert "\n" not in str(exc.value)
 
 
-def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
+def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A LocalCluster of 2 worker processes builds the in-memory build's tiles; an interrupted Dask build
     (stopped after some tiles, as a dead client leaves it) finishes with resume; a build during which a
     worker is killed gives the same tiles; an unreachable scheduler is refused."""
@@ -225,6 +225,26 @@ def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
         rep = build_store_windowed(RasterSource(small), hit, tile_size=9, method="chunked", client=client,
                                    unit_span_samples=8, progress=kill_once)  # fmt: skip
         assert killed and killed[0] < 8 * 12 and rep.tiles_total == rep.tiles_built
+        # units whose futures the scheduler cancels (a lost scattered copy, a reconnect) are resubmitted:
+        # here the first unit's future is cancelled as soon as it is submitted
+        import terralod.pyramid.distributed as d
+
+        cancelled: list[str] = []
+        submit = d._DaskRunner.submit
+
+        def submit_then_cancel(self, *args):
+            fut = submit(self, *args)
+            if not cancelled:
+                cancelled.append(fut.key)
+                self.client.cancel([fut])
+            return fut
+
+        monkeypatch.setattr(d._DaskRunner, "submit", submit_then_cancel)
+        again = tmp_path / "cancelled.terra"
+        rep = build_store_windowed(RasterSource(small), again, tile_size=9, method="chunked", client=client,
+                                   unit_span_samples=8)  # fmt: skip
+        monkeypatch.undo()
+        assert cancelled and rep.tiles_total == rep.tiles_built
     finally:
         cluster = client.cluster
         client.close()
@@ -232,6 +252,7 @@ def test_dask_build_is_the_local_build_and_resumes(tmp_path: Path) -> None:
     assert _rows(out) == _rows(tmp_path / "mem.terra")
     build_store(read_heightfield(small), tmp_path / "mem9.terra", tile_size=9, method="chunked", workers=1)
     assert _rows(hit) == _rows(tmp_path / "mem9.terra")
+    assert _rows(again) == _rows(tmp_path / "mem9.terra")
     with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
         dask_client("tcp://127.0.0.1:9", timeout_s=1.0)
 

@@ -577,23 +577,47 @@ class _ThreadRunner:
         self.pool.shutdown()
 
 
+#: A source that pickles to at most this many bytes (a RasterSource: its paths) travels inside every task;
+#: a larger one (an in-memory ArraySource) is scattered to every worker once.
+_INLINE_SOURCE_BYTES = 1 << 16
+#: Units resubmitted after their futures were cancelled (a scattered source lost with a dead worker, a
+#: client that reconnected to its scheduler) before the build gives up in one line.
+_RESUBMITS = 64
+
+
 class _DaskRunner:
     """Units as Dask tasks (retried on another worker when one dies), results as they complete."""
 
     def __init__(self, client, retries: int) -> None:
         self.client, self.retries = client, retries
+        self._src: Any = None
+        self._shared: Any = None
+        self._args: dict[str, tuple] = {}
 
     def share(self, src):
-        return self.client.scatter(src, broadcast=True, hash=False)
+        import pickle
+
+        self._src = src
+        if len(pickle.dumps(src)) <= _INLINE_SOURCE_BYTES:
+            self._shared = src  # in each task: nothing a dead worker can take with it
+        else:
+            self._shared = self.client.scatter(src, broadcast=True, hash=False)
+        return self._shared
 
     def submit(self, *args):
-        return self.client.submit(build_unit, *args, retries=self.retries, pure=False)
+        fut = self.client.submit(build_unit, *args, retries=self.retries, pure=False)
+        self._args[fut.key] = args
+        return fut
 
     def completed(self, futures):
+        from concurrent.futures import CancelledError
+
         from dask.distributed import as_completed
         from distributed import KilledWorker
 
-        for fut in as_completed(futures):
+        resubmits = 0
+        pending = as_completed(futures)
+        for fut in pending:
             try:
                 res = fut.result()
             except KilledWorker as exc:  # the unit's workers died, retries included: memory, usually
@@ -602,6 +626,20 @@ class _DaskRunner:
                     "memory or fewer threads (--workers), or use a smaller --tile-size; the tiles committed "
                     "so far are kept: run the same command with --resume"
                 ) from None
+            except CancelledError as exc:  # the scheduler dropped it: a lost scattered source, a reconnect
+                resubmits += 1
+                if resubmits > _RESUBMITS:
+                    raise WorkerLostError(
+                        f"Dask cancelled work units {resubmits} times ({exc}); is the scheduler overloaded or "
+                        "its workers restarting? the tiles committed so far are kept: run the same command "
+                        "with --resume"
+                    ) from None
+                args = self._args.pop(fut.key)
+                if args[0] is self._shared and self._shared is not self._src:
+                    self.share(self._src)  # the scattered copy may be what was lost: scatter it again
+                pending.add(self.submit(self._shared, *args[1:]))
+                continue
+            self._args.pop(fut.key, None)
             yield res
             fut.release()
 
