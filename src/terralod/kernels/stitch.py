@@ -173,6 +173,17 @@ def triangle_cross(v, tris, ids):
 
 
 @jit
+def add_triangle_sums(sums, v, tris, ids, sign):
+    """In place: add ``sign`` x cross(b - a, c - a) / 2 of the triangles ``ids`` to their vertices' sums."""
+    c = triangle_cross(v, tris, ids)
+    for i in range(ids.shape[0]):
+        for r in range(3):
+            p = tris[ids[i], r]
+            for a in range(3):
+                sums[p, a] += sign * c[i, a]
+
+
+@jit
 def patch_normal_sums(sums, v_old, v_new, tris, ids):
     """In place: replace the contribution of triangles ``ids`` computed on ``v_old`` by that on ``v_new``."""
     old = triangle_cross(v_old, tris, ids)
@@ -456,18 +467,8 @@ def stitch_tile(
     if topo:
         tris = tris[:n_t]
         ids = _boundary_ids(btris, k0, n_t)
-        old = triangle_cross(verts0, tris0, btris)
-        for i in range(btris.shape[0]):
-            for r in range(3):
-                p = tris0[btris[i], r]
-                for a in range(3):
-                    sums[p, a] -= old[i, a]
-        new = triangle_cross(verts, tris, ids)
-        for i in range(ids.shape[0]):
-            for r in range(3):
-                p = tris[ids[i], r]
-                for a in range(3):
-                    sums[p, a] += new[i, a]
+        add_triangle_sums(sums, verts0, tris0, btris, -1.0)  # out as stored
+        add_triangle_sums(sums, verts, tris, ids, 1.0)  # back as they are now
         normalize_rows(sums, np.concatenate((btouched, np.arange(n0, n_v).astype(np.int64))), normals)
     else:
         patch_normal_sums(sums, verts0, verts, tris0, btris)

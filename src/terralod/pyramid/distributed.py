@@ -40,10 +40,12 @@ Heightfield behind the same interface) without ever holding the whole DEM:
 
 Dask (:func:`dask_client`): ``"local"`` starts a LocalCluster of worker processes (``threads`` each), an
 address ``tcp://HOST:PORT`` connects to a running scheduler (refused in one line, before anything is
-written, when it cannot be reached). The source is scattered to every worker once (a
-:class:`~terralod.io.windowed.RasterSource` pickles as its paths: each worker opens the file itself; an
-in-memory source ships its arrays), each unit is a task with ``retries``, and a worker that dies has its
-units rebuilt elsewhere by the scheduler; a client that dies leaves a store that ``resume=True`` finishes.
+written, when it cannot be reached). A :class:`~terralod.io.windowed.RasterSource` travels inside each
+task (it pickles as its paths: each worker opens the file itself); an in-memory source is scattered to
+every worker once. Each unit is a task with ``retries``; a worker that dies has its units rebuilt
+elsewhere by the scheduler, a unit whose future the scheduler cancels (its scattered source lost with a
+worker, a client reconnect) is resubmitted; a client that dies leaves a store that ``resume=True``
+finishes.
 Meshers are looked up by name on the workers (:data:`~terralod.pyramid.builder.METHODS` as imported there).
 
 Beyond one SQLite writer. SQLite takes one writer; the writer's ceiling (tiles/s, measured by
@@ -577,9 +579,6 @@ class _ThreadRunner:
         self.pool.shutdown()
 
 
-#: A source that pickles to at most this many bytes (a RasterSource: its paths) travels inside every task;
-#: a larger one (an in-memory ArraySource) is scattered to every worker once.
-_INLINE_SOURCE_BYTES = 1 << 16
 #: Units resubmitted after their futures were cancelled (a scattered source lost with a dead worker, a
 #: client that reconnected to its scheduler) before the build gives up in one line.
 _RESUBMITS = 64
@@ -595,13 +594,13 @@ class _DaskRunner:
         self._args: dict[str, tuple] = {}
 
     def share(self, src):
-        import pickle
-
+        """A file source (it pickles as its paths) travels inside each task, so no scattered copy dies with
+        a worker; an in-memory ArraySource is scattered to every worker once."""
         self._src = src
-        if len(pickle.dumps(src)) <= _INLINE_SOURCE_BYTES:
-            self._shared = src  # in each task: nothing a dead worker can take with it
-        else:
+        if isinstance(src, ArraySource):
             self._shared = self.client.scatter(src, broadcast=True, hash=False)
+        else:
+            self._shared = src
         return self._shared
 
     def submit(self, *args):

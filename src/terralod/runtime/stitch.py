@@ -126,11 +126,16 @@ class TilePrep:
     #: the sides' vertex ids, positions and segment triangles concatenated side after side with their
     #: offsets (ev, et, eoff, seg, segoff) and the corner ids as an array: what the stitch kernel reads
     packed: tuple = ()
+    #: as stored: the sorted boundary vertex ids, each side's rows in them and each side's heights
+    base_bvid: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    base_rows: list[np.ndarray] = field(default_factory=list)
+    base_h: list[np.ndarray] = field(default_factory=list)
 
     @property
     def nbytes(self) -> int:
         arrays = [self.vertices, self.triangles, self.grid_rc, self.base_sums, self.base_normals]
         arrays += self.edge_vid + self.edge_t + self.seg_tri + self.base_S + self.base_G
+        arrays += list(self.packed) + [self.base_bvid] + self.base_rows + self.base_h
         return int(sum(a.nbytes for a in arrays))
 
     def corner_rc(self, c: int) -> tuple[float, float]:
@@ -195,6 +200,11 @@ class TilePrep:
             _offsets(prep.seg_tri),
             np.array(corners, np.int64),
         )
+        prep.base_bvid = np.unique(prep.packed[0])
+        prep.base_rows = [np.searchsorted(prep.base_bvid, ev) for ev in edge_vid]
+        prep.base_h = [v[ev, 2] for ev in edge_vid]
+        for a in [prep.base_bvid, *prep.base_rows, *prep.base_h]:
+            a.flags.writeable = False  # shared by every unchanged stitched state of this tile
         for a in (prep.vertices, prep.triangles, prep.base_sums, prep.base_normals):
             a.flags.writeable = False
         return prep
@@ -517,11 +527,10 @@ class Stitcher:
             fine, fineoff, fine_on, geo, POS_TOL,
         )  # fmt: skip
         if not changed:
-            bvid = np.unique(ev)
             return StitchedTile(
                 prep, signature, prep.vertices, prep.triangles, prep.base_sums, prep.base_normals,
-                prep.edge_t, prep.edge_vid, [zs[v] for v in prep.edge_vid], prep.base_S, prep.base_G,
-                final_corners, bvid, [np.searchsorted(bvid, v) for v in prep.edge_vid],
+                prep.edge_t, prep.edge_vid, prep.base_h, prep.base_S, prep.base_G, final_corners,
+                prep.base_bvid, prep.base_rows,
             )  # fmt: skip
         if tris.shape[0] == 0:
             tris = prep.triangles
