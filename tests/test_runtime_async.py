@@ -97,3 +97,55 @@ def test_a_jump_draws_a_coarse_frame_at_once_and_reports_its_error(store_path: P
             assert max(c[0] for c in sel.tiles) > max(c[0] for c in first.tiles)
         finally:
             a.close()
+
+
+def _refined(sel) -> set:
+    """Tiles a frame split: proper ancestors of its leaves (drawn and culled) and of its fallback tiles
+    (drawn instead of their children, which its first pass selected)."""
+    out = set()
+    for lvl, x, y in [*sel.tiles, *sel.culled, *sel.fallback]:
+        while lvl > 0:
+            lvl, x, y = lvl - 1, x >> 1, y >> 1
+            out.add((lvl, x, y))
+    return out | set(sel.fallback)
+
+
+def _new_tiles_per_frame(store: terralod.TileStore, budget: int) -> list[int]:
+    """Near view, far view, near view again (its fine tiles still decoded), each until settled: per frame,
+    the drawn tiles whose parent the previous frame did not split; every frame watertight and the settled
+    frame the synchronous engine's."""
+    a = Engine(store, async_loads=True, max_new_tiles=budget)
+    b = Engine(store)
+    try:
+        new_per_frame, prev = [], None
+        for u, v, h, az in ((0.3, 0.3, 0.02, 0.8), (0.8, 0.9, 0.05, 4.0), (0.3, 0.3, 0.02, 0.8)):
+            cam = _camera(store, u, v, h, az)
+            for _ in range(200):
+                sel = a.update(cam)
+                if prev is not None:
+                    split = _refined(prev)
+                    new_per_frame.append(sum(c[0] > 0 and (c[0] - 1, c[1] >> 1, c[2] >> 1) not in split
+                                             for c in sel.tiles if c not in prev.tiles))  # fmt: skip
+                rep = find_cracks(sel.mesh_dict(), store.pyramid, store.transform, tol_m=1e-4)
+                assert rep.total_cracked == 0
+                prev = sel
+                if sel.stats.pending_loads == 0 and a.wait_loads(30) and a.update(cam) is sel:
+                    break
+                a.wait_loads(30)
+            assert sel.tiles == b.update(cam).tiles
+        return new_per_frame
+    finally:
+        a.close()
+        b.close()
+
+
+@pytest.mark.parametrize("budget", [4, 8])
+def test_a_jump_back_to_cached_tiles_stitches_a_bounded_number_of_new_tiles_per_frame(
+    store_path: Path, budget: int
+) -> None:
+    """After a jump to a view whose fine tiles are all still decoded, the engine does not draw them all in
+    one frame: every frame draws at most ``max_new_tiles`` tiles (whole sibling groups, at least one) whose
+    parent the previous frame did not split, and settles on the synchronous frame."""
+    with terralod.open_store(store_path) as s:
+        assert max(_new_tiles_per_frame(s, budget)) <= max(budget, 4)
+        assert max(_new_tiles_per_frame(s, 10**6)) > budget  # unbounded, the same views spike past it

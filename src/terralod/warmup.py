@@ -74,16 +74,18 @@ def _frames(terrain) -> None:
     from terralod.runtime import Camera
 
     pose = overview_pose(terrain)
-    for cull in ((), ("backface", "region")):
-        eng = terrain.engine(threshold_px=1.0, cull=cull)
+    for cull, async_loads in (((), False), (("backface", "region"), True)):  # async: as the viewer runs
+        eng = terrain.engine(threshold_px=1.0, cull=cull, async_loads=async_loads)
         try:
-            for d in (1.0, 0.3):
+            for d in (1.0, 0.3, 0.3):
                 eye = np.asarray(pose.target) + (np.asarray(pose.eye) - np.asarray(pose.target)) * d
                 frame = eng.update(
                     Camera(tuple(eye), pose.target, (0.0, 0.0, 1.0), 45.0, 320, 180, near_m=1.0)
                 )
                 for _ in frame.meshes():
                     pass
+                if async_loads and hasattr(eng, "wait_loads"):  # the TIN engine holds its model in memory
+                    eng.wait_loads(10.0)
         finally:
             eng.close()
 

@@ -420,6 +420,31 @@ def _fallback(leaves, states, boxes, meas, eye, k_px, tau, lvl, tx, ty, off, nx,
 
 
 @jit
+def _wanted_errors(cand, boxes, err, planes, eye, k_px, tau):
+    """Projected error (px) of each tile in ``cand`` where it is visible and over ``tau``, else 0."""
+    out = np.zeros(cand.shape[0], np.float64)
+    for i in range(cand.shape[0]):
+        s = cand[i]
+        if _box_visible(boxes[s], planes):
+            rho = err[s] * k_px / _box_distance(boxes[s], eye)
+            if rho > tau:
+                out[i] = rho
+    return out
+
+
+@jit
+def _ancestors(leaves, n, lvl, tx, ty, off, nx, ny):
+    """Mask over the ``n`` slots of every proper ancestor of ``leaves`` (the tiles a selection split)."""
+    out = np.zeros(n, np.bool_)
+    for i in range(leaves.shape[0]):
+        p = _parent(leaves[i], lvl, tx, ty, off, nx, ny)
+        while p >= 0 and not out[p]:
+            out[p] = True
+            p = _parent(p, lvl, tx, ty, off, nx, ny)
+    return out
+
+
+@jit
 def _screen_errors(leaves, boxes, err, eye, k_px):
     """Projected error (px) of each leaf; ``err`` is aligned with ``leaves``."""
     out = np.empty(leaves.shape[0], np.float64)
@@ -529,9 +554,10 @@ class Engine:
         (:mod:`terralod.runtime.loader`): a tile is refined only once all its children are decoded, the
         resident tiles are drawn meanwhile, and the frame reports ``pending_loads``; when the loads settle
         the selection is the synchronous one. ``wait_loads()`` blocks until they have.
-    max_new_tiles : with ``async_loads``, the most newly decoded tiles one frame refines into (whole
-        sibling groups, largest projected error first; at least one group), which bounds a frame's
-        stitching work
+    max_new_tiles : with ``async_loads``, the most tiles one frame refines into that its last frame did
+        not split towards: newly decoded ones, or ones cached from an earlier view after a jump (whole
+        sibling groups, largest projected error first; at least one group). This bounds a frame's stitching
+        work.
 
     Culling only removes leaves from drawing: the partition, adjacency and stitching are unchanged, so
     the drawn surface stays watertight wherever two drawn tiles meet.
@@ -582,11 +608,9 @@ class Engine:
         # resident (decoded) tiles, for asynchronous loads: selection refines only into them
         self.async_loads = bool(async_loads)
         self._resident = np.zeros(self.index.n, bool)
-        self._admitted = np.zeros(self.index.n, bool)
-        self._waiting_groups = 0
-        self._priority = np.zeros(
-            self.index.n
-        )  # projected error (px) of a parent when its children were asked for
+        self._refined = np.zeros(self.index.n, bool)  # tiles the last frame refined (split into children)
+        self._n_kids = np.zeros(self.index.n, np.int64)  # children in the store, per tile
+        self._waiting_groups = 0  # wanted sibling groups the last frame's stitch budget left out
         self.max_new_tiles = int(max_new_tiles)
         self._generation = 0  # bumped by every finished asynchronous load
         self._gen_lock = threading.Lock()
@@ -596,8 +620,9 @@ class Engine:
             self.cache.on_put = self._on_put
             self.cache.on_evict = self._on_evict
             self._levels = self._level_parents()
+            for off, _, _, n_kids in self._levels:
+                self._n_kids[off : off + n_kids.size] = n_kids
             self.cache.load([(0, 0, 0)])  # the root, before the first frame
-            self._admitted[0] = True
             self._loader = TileLoader(self.cache, self.cache.io_lock, self._on_loaded)
         n = self.index.n
         self._memo = np.zeros(n, np.int64)
@@ -637,48 +662,42 @@ class Engine:
             out.append((int(ix.off[lev - 1]), ch, par, np.bincount(par - ix.off[lev - 1], minlength=m)))
         return out
 
-    def _kids_resident(self) -> np.ndarray:
-        """``kids_ok`` restricted to tiles whose children are all decoded and admitted (refinable without a
-        read). At most ``max_new_tiles`` newly decoded tiles are admitted per frame, whole sibling groups,
-        those asked for with the largest projected error first, so no frame stitches an unbounded number
-        of new tiles."""
+    def _kids_resident(self, planes: np.ndarray, eye: np.ndarray, k_px: float) -> np.ndarray:
+        """``kids_ok`` restricted to what this frame may refine into without a read and within its stitch
+        budget. A tile refines only once all its children are decoded. Refining a tile that the last frame
+        refined too is free (its children were in that frame's cut); every other refinement adds a whole
+        sibling group of tiles not drawn before (a newly decoded group, or one cached from an earlier view
+        after a jump) and is charged against ``max_new_tiles``: the groups this camera wants (visible,
+        projected error over the threshold), largest projected error first (a parent before its
+        children: errors and boxes nest), at least one group. So no frame stitches more than a bounded
+        number of tiles its last frame did not draw; the rest wait for the next frames."""
         kids = self.table.kids_ok.copy()
-        res, adm = self._resident, self._admitted
-        adm &= res
-        budget = self.max_new_tiles
-        groups: list[tuple[float, np.ndarray]] = []
+        res = self._resident
         for off, ch, par, n_kids in self._levels:
-            new = res[ch] & ~adm[ch]
-            if new.any():
-                n_res = np.bincount(par[res[ch]] - off, minlength=n_kids.size)
-                full = (
-                    np.flatnonzero((n_res == n_kids) & (n_kids > 0)) + off
-                )  # parents with every child decoded
-                has_new = np.zeros(self.index.n, bool)
-                has_new[par[new]] = True
-                for q in full[has_new[full]].tolist():
-                    groups.append((float(self._priority[q]), ch[par == q]))
-        groups.sort(key=lambda g: -g[0])
-        left = 0
-        for _, members in groups:
-            if budget <= 0:
-                left += 1
-                continue
-            budget -= int((~adm[members]).sum())
-            adm[members] = True
-        self._waiting_groups = left
-        for off, ch, par, n_kids in self._levels:
-            n_adm = np.bincount(par[adm[ch]] - off, minlength=n_kids.size)
-            kids[off : off + n_kids.size] &= n_adm == n_kids
+            n_res = np.bincount(par[res[ch]] - off, minlength=n_kids.size)
+            kids[off : off + n_kids.size] &= n_res == n_kids  # every child decoded
+        cand = np.flatnonzero(kids & ~self._refined)
+        self._waiting_groups = 0
+        if cand.size:
+            rho = _wanted_errors(
+                cand, self.table.boxes, self.table.error_m, planes, eye, k_px, self.threshold_px
+            )
+            want = rho > 0.0
+            kids[cand[~want]] = False  # would not refine this frame anyway
+            cand, rho = cand[want], rho[want]
+            order = np.argsort(-rho, kind="stable")
+            cost = np.cumsum(self._n_kids[cand[order]])
+            admit = cost <= self.max_new_tiles
+            admit[:1] = True
+            kids[cand[order[~admit]]] = False
+            self._waiting_groups = int((~admit).sum())
         return kids
 
     def _on_put(self, code: TileCode) -> None:
         self._resident[self.index.slot(code)] = True
 
     def _on_evict(self, code: TileCode) -> None:
-        s = self.index.slot(code)
-        self._resident[s] = False
-        self._admitted[s] = False
+        self._resident[self.index.slot(code)] = False
 
     def _on_loaded(self, codes: list[TileCode]) -> None:
         with self._gen_lock:
@@ -705,7 +724,6 @@ class Engine:
         codes: list[TileCode] = []
         prio: list[float] = []
         for s, r in zip(vis[want].tolist(), rho[want].tolist(), strict=True):
-            self._priority[s] = r
             for c in self.index.pyramid.children(self.index.code(s)):
                 codes.append(c)
                 prio.append(r)
@@ -737,7 +755,7 @@ class Engine:
         k_px = camera.screen_factor_px
         tau = self.threshold_px
         generation = self._generation
-        kids_ok = self._kids_resident() if self.async_loads else tb.kids_ok
+        kids_ok = self._kids_resident(planes, eye, k_px) if self.async_loads else tb.kids_ok
         if self.triangle_budget is not None:
             leaves, states = _select_budget(
                 tb.boxes,
@@ -762,6 +780,8 @@ class Engine:
         order = np.argsort(leaves, kind="stable")
         leaves, states = leaves[order], states[order]
         self._stage1 = leaves
+        if self.async_loads:  # a tile the fallback draws instead of its children counts as refined
+            self._refined = _ancestors(leaves, self.index.n, *ia)
         self._stamp += 1
         leaves, states, fb = _fallback(
             leaves,
