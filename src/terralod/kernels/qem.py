@@ -459,10 +459,30 @@ def _carried_gap2(w, P, sa, sb, n, geo, pxyz, ps, npts, tri, glim):
         tri[i, 4] = 0.0 if sa[i] == w or sb[i] == w else tri[i, 0] * tri[i, 3] - tri[i, 1] * tri[i, 2]
         tri[i, 5] = geo[i, 2] - wz
         tri[i, 6] = geo[i, 5] - wz
+    # Level ground (sea, a lake, a platform) around w: the rewritten triangles at w's height are level, so a
+    # point at that height that falls in one is exactly on the surface (distance 0). A point at w's height
+    # strictly outside the xy box of every other (non-level) rewritten triangle can only fall in a level
+    # one: it is skipped without being located. This is what made flat fans slow: a coast vertex carries
+    # the thousands of sea points its fan covers, and every candidate located each of them.
+    bx0 = by0 = np.inf
+    bx1 = by1 = -np.inf
+    n_level = 0
+    for i in range(n):
+        if tri[i, 4] == 0.0:
+            continue  # deleted by the collapse, or degenerate: never picked
+        if tri[i, 5] == 0.0 and tri[i, 6] == 0.0:
+            n_level += 1
+            continue
+        bx0 = min(bx0, 0.0, tri[i, 0], tri[i, 2])
+        bx1 = max(bx1, 0.0, tri[i, 0], tri[i, 2])
+        by0 = min(by0, 0.0, tri[i, 1], tri[i, 3])
+        by1 = max(by1, 0.0, tri[i, 1], tri[i, 3])
     g = 0.0
     for j in range(npts):
         qx = pxyz[j, 0] - wx
         qy = pxyz[j, 1] - wy
+        if n_level > 0 and pxyz[j, 2] == wz and (qx < bx0 or qx > bx1 or qy < by0 or qy > by1):
+            continue  # on a level triangle: distance 0, never the largest (g >= 0)
         # the first triangle that holds q (its own slot first), by signs alone: det·l1, det·l2 and
         # det·(1 - l1 - l2) all >= 0 with det > 0; one division pair for the height
         s0 = ps[j]
@@ -504,7 +524,6 @@ def _carried_gap2(w, P, sa, sb, n, geo, pxyz, ps, npts, tri, glim):
             g = d
             if g >= glim:
                 return g
-    return g
     return g
 
 
