@@ -15,10 +15,13 @@ mirror-tiling of Puget Sound) and each tile method (M = 65, all cores):
    mesh's true max vertical and Hausdorff error is re-measured at every source sample by
    :func:`terralod.measure_error` (the cut: all its tiles as stored, one mesh). GPU memory per triangle
    is the renderer's layout: 24 bytes a vertex (float32 position + normal) and 12 a triangle (uint32);
-   ``adaptive`` is the default ladder (root error from a regular tile's vertex count, halving per level);
-   ``adaptive_fine`` the ladder from a near-lossless finest level (0.5 m) with every tile capped at M^2
-   vertices (``--methods adaptive_dense,adaptive`` runs the default ladder with a root of 4 M^2 vertices:
-   ``benchmarks/results/build_adaptive_dense.md``, renamed from that run's ``build.md``);
+   ``adaptive`` is the default (root error from a regular tile's vertex count, halving per level, the
+   finest level the lossless grid); ``adaptive_ladder`` the halving ladder down to the finest level too;
+   ``adaptive_lossless`` the default ladder with a greedy finest level at 0.5 m instead of the grid;
+   ``--methods adaptive_fine`` runs the ladder from a near-lossless finest level (0.5 m) halving upward with
+   every tile capped at M^2 vertices, ``--methods adaptive_dense`` the ladder with a root of 4 M^2 vertices
+   down to the finest level (``benchmarks/results/build_adaptive_dense.md``, renamed from that run's
+   ``build.md``);
 3. the 2 px camera path of ``benchmarks/cohesion_vs_chunked.py`` (a circle over the terrain, 20 degrees
    down, 1920 x 1080): triangles drawn per frame, the worst drawn screen error, GPU MiB of the frame.
 
@@ -52,13 +55,17 @@ from _common import SHARED, md_table, puget_sound_1k, puget_sound_4k, write_resu
 
 #: Max vertical error targets, metres, at which triangle counts are compared.
 TARGETS_M = (5.0, 10.0, 20.0, 40.0, 80.0)
-METHODS = ("adaptive", "adaptive_fine", "cohesion", "chunked")
+METHODS = ("adaptive", "adaptive_ladder", "adaptive_lossless", "cohesion", "chunked")
 TILE_SIZE = 65
 #: The adaptive ladder from the other end: a near-lossless finest level (0.5 m), halving upward, every tile
 #: capped at a regular tile's M^2 vertices (coarse tiles then stop above their target, measured).
 register_method("adaptive_fine", adaptive.make_mesher(finest_error_m=0.5, max_tile_vertices=TILE_SIZE**2))
+#: The default ladder with a near-lossless greedy finest level (0.5 m) instead of the grid.
+register_method("adaptive_lossless", adaptive.make_mesher(finest_level_error_m=0.5))
 #: The default ladder with a root of 4 M^2 vertices (every level's target halved).
-register_method("adaptive_dense", adaptive.make_mesher(root_vertices=4 * TILE_SIZE**2))
+register_method(
+    "adaptive_dense", adaptive.make_mesher(root_vertices=4 * TILE_SIZE**2, finest_level_error_m=None)
+)
 #: GPU bytes of the renderer (terralod.render.renderer): per vertex, per triangle.
 GPU_VERTEX_BYTES = 24
 GPU_TRIANGLE_BYTES = 12

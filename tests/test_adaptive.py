@@ -37,9 +37,13 @@ def _rows_cols(store, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _check_store(store, z: np.ndarray) -> None:
     pyr = store.pyramid
     h, w = z.shape
-    ladder = store.meta["build_options"]["target_error_m"]
+    opts = store.meta["build_options"]
+    ladder = opts["target_error_m"]
     assert len(ladder) == pyr.max_level + 1
-    assert all(a == 2.0 * b for a, b in zip(ladder, ladder[1:], strict=False))  # halving from the root
+    halving = ladder if opts["finest_level_error_m"] is None else ladder[:-1]
+    assert all(a == 2.0 * b for a, b in zip(halving, halving[1:], strict=False))  # halving from the root
+    if opts["finest_level_error_m"] == 0.0:
+        assert ladder[-1] == 0.0
     errs = store.tile_errors()
     lines: dict[tuple, dict] = {}
     for code in pyr.all_codes():
@@ -68,6 +72,9 @@ def _check_store(store, z: np.ndarray) -> None:
         r1, c1 = min(r0 + span, h - 1), min(c0 + span, w - 1)
         assert rows.min() == r0 and rows.max() == r1 and cols.min() == c0 and cols.max() == c1
         assert np.isclose(cross.sum() / 2.0 / (SPACING_M * SPACING_M), (r1 - r0) * (c1 - c0))
+        if ladder[code[0]] == 0.0:  # a lossless finest level: the regular grid of the tile's samples
+            assert len(v) == (r1 - r0 + 1) * (c1 - c0 + 1) and len(t) == 2 * (r1 - r0) * (c1 - c0)
+            assert raw.measured_vertical_error_m <= store.quantisation[code[0]].z_step_m
         # border vertices, per line of the level (to compare with the neighbour's)
         for key, on in (
             (("row", code[0], r0), rows == r0),
@@ -96,18 +103,20 @@ def _check_store(store, z: np.ndarray) -> None:
     st.floats(5.0, 800.0),
     st.sampled_from([0.0, 0.4]),
     st.sampled_from([5, 9, 17]),
+    st.sampled_from(["adaptive", "adaptive_ladder"]),
 )
-def test_adaptive_store_invariants(tmp_path_factory, rows, cols, seed, relief_m, sea, m) -> None:
+def test_adaptive_store_invariants(tmp_path_factory, rows, cols, seed, relief_m, sea, m, method) -> None:
+    """The default (grid finest level) and the ladder down to the finest level both obey every invariant."""
     z = _terrain(rows, cols, seed, relief_m, sea)
     hf = Heightfield.from_array(z, SPACING_M, origin_m=(500000.0, 4600000.0))
     d = tmp_path_factory.mktemp("ad")
-    build_store(hf, d / "a.terra", tile_size=m, method="adaptive", workers=2)
+    build_store(hf, d / "a.terra", tile_size=m, method=method, workers=2)
     with open_store(d / "a.terra") as store:
         _check_store(store, z)
         first = {c: store.raw_tile(*c) for c in store.pyramid.all_codes()}
         meta = store.meta
     # byte-identical rebuild (one worker this time: the order tiles are meshed in does not matter)
-    build_store(hf, d / "b.terra", tile_size=m, method="adaptive", workers=1)
+    build_store(hf, d / "b.terra", tile_size=m, method=method, workers=1)
     with open_store(d / "b.terra") as again:
         assert again.meta["build_options"] == meta["build_options"]
         assert all(again.raw_tile(*c) == first[c] for c in first)
@@ -118,15 +127,20 @@ def test_flat_tiles_are_two_triangles_and_ladder_options(tmp_path) -> None:
     hf = Heightfield.from_array(z, SPACING_M)
     build_store(hf, tmp_path / "f.terra", tile_size=17, method="adaptive")
     with open_store(tmp_path / "f.terra") as store:
+        top = store.pyramid.max_level
+        rows = store.tile_summaries()
+        assert all(r["n_triangles"] == 2 and r["error_m"] == 0.0 for r in rows if r["level"] < top)
+        assert all(r["n_triangles"] == 2 * 16 * 16 for r in rows if r["level"] == top)  # the grid
+    build_store(hf, tmp_path / "g.terra", tile_size=17, method="adaptive_ladder")
+    with open_store(tmp_path / "g.terra") as store:
         assert all(r["n_triangles"] == 2 and r["error_m"] == 0.0 for r in store.tile_summaries())
     pyr = TilePyramid(97, 65, 17)
     assert adaptive.target_ladder(pyr, adaptive.AdaptiveOptions(finest_error_m=1.5)) == [
         1.5 * 2**k for k in range(pyr.max_level, -1, -1)
     ]
-    assert (
-        adaptive.target_ladder(pyr, adaptive.AdaptiveOptions(root_error_m=64.0))[-1]
-        == 64.0 / 2**pyr.max_level
-    )
+    assert adaptive.target_ladder(pyr, adaptive.AdaptiveOptions(root_error_m=64.0)) == [64.0, 32.0, 16.0, 0.0]
+    ladder_only = adaptive.AdaptiveOptions(root_error_m=64.0, finest_level_error_m=None)
+    assert adaptive.target_ladder(pyr, ladder_only)[-1] == 64.0 / 2**pyr.max_level
     with pytest.raises(ValueError, match="root_error_m"):
         adaptive.AdaptiveOptions(root_error_m=0.0)
 

@@ -91,7 +91,8 @@ def test_info_and_build(tmp_path: Path) -> None:
     p = run_cli("info", str(tmp_path / "dem.terra"))
     assert p.returncode == 0 and "complete" in p.stdout and "max error m" in p.stdout
     with open_store(tmp_path / "dem.terra") as s:
-        assert s.meta["method"] == "cohesion"  # the default mesher: the vertex cohesion map (paper 000)
+        assert s.meta["method"] == "adaptive"  # the default mesher (benchmarks/results/build.md)
+        assert s.meta["build_options"]["target_error_m"][-1] == 0.0  # the lossless grid finest level
 
 
 def test_demo_runs(tmp_path: Path) -> None:
@@ -102,7 +103,7 @@ def test_demo_runs(tmp_path: Path) -> None:
     with open_store(tmp_path / "demo.terra") as s:
         assert s.complete and len(s.tile_codes()) == len(s.pyramid.all_codes())
         assert "UTM zone 16N" in (s.crs or "")
-        assert s.meta["method"] == "cohesion"
+        assert s.meta["method"] == "adaptive"
 
 
 # The kill-and-resume test that lived here (a 1500x1400 build killed by polling wall-clock deadlines,

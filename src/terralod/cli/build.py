@@ -25,9 +25,11 @@ from terralod.cli._common import (
 @click.option("-o", "--output", required=True, help="Output .terra store.")
 @click.option("--tile-size", default=65, show_default=True, help="Vertices per tile side (2^n + 1).")
 @click.option(
-    "--method", default="cohesion", show_default=True,
-    help="Tile mesher: cohesion (paper 000, the vertex cohesion map) or chunked (Chunked LOD); tin builds a "
-    "detail-increment TIN (paper 003), the default for LAS/LAZ input.",
+    "--method", default="adaptive", show_default=True,
+    help="Tile mesher: adaptive (a greedy-insertion TIN per tile on a halving error ladder, the finest "
+    "level the lossless grid; adaptive_ladder: the ladder down to the finest level too), cohesion (paper "
+    "000, the vertex cohesion map) or chunked (Chunked LOD); tin builds a detail-increment TIN (paper 003), "
+    "the default for LAS/LAZ input.",
 )  # fmt: skip
 @click.option(
     "--sub-blocks", default="4", show_default=True, help="TIN: sub-blocks, a square number or auto."

@@ -54,10 +54,12 @@ METHODS: dict[str, MeshFn] = {
     "chunked": chunked.mesh_tile,
     "cohesion": cohesion.mesh_tile,
     "adaptive": adaptive.mesh_tile,
+    "adaptive_ladder": adaptive.make_mesher(finest_level_error_m=None),
 }
-# The vertex cohesion map (paper 000) is the default: at the same measured screen error it draws 0.40-0.49x
-# Chunked LOD's triangles on mountainous DEMs (benchmarks/results/cohesion_vs_chunked.md).
-DEFAULT_METHOD = "cohesion"
+# Adaptive tiles (halving ladder from the root, a lossless grid finest level) are the default: along the 2 px
+# camera paths they draw 0.72-0.76x the vertex cohesion map's triangles (paper 000; itself 0.40-0.49x
+# Chunked LOD's) and build 2.1-2.4x faster (benchmarks/results/build.md).
+DEFAULT_METHOD = "adaptive"
 
 #: Extra relief (metres) the fixed quantisation of a store of epochs leaves at least (plan_quantisation).
 EPOCH_HEADROOM_M = 500.0
