@@ -65,7 +65,7 @@ def local_edits(tmp: Path, quick: bool) -> dict | None:
     if hf is None:
         return None
     store = tmp / "puget.terra"
-    build_store(hf, store, tile_size=65, epoch="2020-01-01", workers=1)
+    build_store(hf, store, tile_size=65, epoch="2020-01-01", workers=1, method="cohesion")
     out = []
     w, s_, e, n = hf.bounds_m
     pits = [(0.3, 0.6), (0.7, 0.4), (0.5, 0.25)][: 2 if quick else 3]
@@ -89,7 +89,9 @@ def local_edits(tmp: Path, quick: bool) -> dict | None:
 
     fresh = tmp / "puget_fresh.terra"
     t0, c0 = time.perf_counter(), time.process_time()
-    build_store(epoch_heightfield(store, last), fresh, tile_size=65, quantisation=quant, workers=1)
+    build_store(
+        epoch_heightfield(store, last), fresh, tile_size=65, quantisation=quant, workers=1, method="cohesion"
+    )
     full_wall, full_cpu = time.perf_counter() - t0, time.process_time() - c0
     identical = rows(store, last) == rows(fresh)
     med = statistics.median
@@ -117,7 +119,7 @@ def main() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="epochs_bench_"))
     store = tmp / "st_helens_27.terra"
     t0, c0 = time.perf_counter(), time.process_time()
-    first = build_store(series[0][1], store, tile_size=65, epoch=series[0][0], workers=1)
+    first = build_store(series[0][1], store, tile_size=65, epoch=series[0][0], workers=1, method="cohesion")
     build0 = {
         "wall_s": time.perf_counter() - t0,
         "cpu_s": time.process_time() - c0,
@@ -128,7 +130,7 @@ def main() -> None:
     per_epoch = []
     separate_bytes = 0
     sep0 = tmp / "separate_00.terra"
-    build_store(series[0][1], sep0, tile_size=65, quantisation=quant, workers=1)
+    build_store(series[0][1], sep0, tile_size=65, quantisation=quant, workers=1, method="cohesion")
     separate_bytes += sep0.stat().st_size
     for i, (date, hf) in enumerate(series[1:], start=1):
         t0, c0 = time.perf_counter(), time.process_time()
@@ -136,7 +138,7 @@ def main() -> None:
         up_wall, up_cpu = time.perf_counter() - t0, time.process_time() - c0
         sep = tmp / f"separate_{i:02d}.terra"
         t0, c0 = time.perf_counter(), time.process_time()
-        full = build_store(hf, sep, tile_size=65, quantisation=quant, workers=1)
+        full = build_store(hf, sep, tile_size=65, quantisation=quant, workers=1, method="cohesion")
         full_wall, full_cpu = time.perf_counter() - t0, time.process_time() - c0
         separate_bytes += sep.stat().st_size
         identical = rows(store, date) == rows(sep)

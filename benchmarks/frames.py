@@ -1,8 +1,8 @@
 """Frames without spikes: per-frame ``engine.update`` cost with tile loads on the frame path (the default)
 and off it (``Engine(async_loads=True)``, :mod:`terralod.runtime.loader`), side by side in one run.
 
-Two scenarios on the 4097² terrain (Puget Sound mirror-tiled 4 x 4 at 160 m, the store of
-``benchmarks/runtime.py``): the smooth 300-frame flight of that benchmark (60 fps, 2000 m/s, 1500 m above
+Two scenarios on the 4097² terrain (Puget Sound mirror-tiled 4 x 4 at 160 m, built with ``--method``,
+default the build's default, cached as ``benchmarks/runtime.py`` caches its stores): the smooth 300-frame flight of that benchmark (60 fps, 2000 m/s, 1500 m above
 the highest point), and 20 random jumps (eye anywhere over the terrain, 300-3000 m above it, any heading)
 — the time to the first frame after a jump, and, for the asynchronous engine, how many frames it takes for
 the selection to settle (all refinement loads done) with the loader left to work for one 16.7 ms frame
@@ -10,7 +10,7 @@ between updates, as a 60 fps viewer would. Each scenario runs ``--repeats`` time
 over the runs of each run's p50 / p95 / p99 / max. Also the worst projected error drawn while loading (the
 async engine draws resident, coarser tiles meanwhile; it settles on the synchronous frame).
 
-    python benchmarks/frames.py [--frames 300] [--repeats 3]
+    python benchmarks/frames.py [--frames 300] [--repeats 3] [--method adaptive]
 
 Writes ``benchmarks/results/frames.json`` and ``frames.md``.
 """
@@ -29,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from runtime import THRESHOLD_PX, cached_store, flight  # noqa: E402
 from terralod import open_store  # noqa: E402
+from terralod.pyramid.builder import DEFAULT_METHOD  # noqa: E402
 from terralod.runtime import Camera, Engine  # noqa: E402
 
 from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
@@ -130,14 +131,18 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--jumps", type=int, default=20)
     ap.add_argument("--quick", action="store_true", help="Puget Sound 1k instead of the 4097² terrain")
+    ap.add_argument(
+        "--method", default=DEFAULT_METHOD, help="tile method of the store (default: the build's)"
+    )
     args = ap.parse_args()
     hf = puget_sound_1k() if args.quick else puget_sound_4k()
     if hf is None:
         print("skipping: ../shared/data/dem/puget_sound_1k_u16.png not present")
         return
     name = "puget_sound_1k" if args.quick else "puget_sound_4k"
-    path = cached_store(name, hf)
-    rows, payload = [], {"terrain": name, "frames": args.frames, "repeats": args.repeats, "results": {}}
+    path = cached_store(name, hf, args.method)
+    rows, payload = [], {"terrain": name, "method": args.method, "frames": args.frames,
+                         "repeats": args.repeats, "results": {}}  # fmt: skip
     with open_store(path) as store:
         cams = flight(store, args.frames, speed_mps=2000.0, agl_m=1500.0)
         jcams = jumps(store, args.jumps, seed=11)
@@ -159,7 +164,7 @@ def main() -> None:
                 int(fl["frame_thread_loads"]), jp["first_p50"], jp["first_max"], jp["settle_frames_p50"],
             ])  # fmt: skip
     md = (
-        f"# Frames without spikes ({name}, {args.frames}-frame flight, {args.jumps} random jumps, "
+        f"# Frames without spikes ({name}, {args.method} tiles, {args.frames}-frame flight, {args.jumps} random jumps, "
         f"medians of {args.repeats} runs, 1920x1080, {THRESHOLD_PX} px)\n\n"
         + md_table(
             [

@@ -57,21 +57,27 @@ def fbm_4097(seed: int = 7) -> Heightfield:
     return Heightfield.from_array(z.astype(np.float32), 30.0, source="spectral fBm 4097² (seed 7)")
 
 
-def cached_store(name: str, hf: Heightfield) -> Path:
+def cached_store(name: str, hf: Heightfield, method: str = "cohesion") -> Path:
+    """The cached store of ``hf`` built with ``method`` (this benchmark's tables: cohesion)."""
     CACHE.mkdir(parents=True, exist_ok=True)
-    p = CACHE / f"{name}_m{TILE_SIZE}.terra"
+    p = CACHE / f"{name}_{method}_m{TILE_SIZE}.terra"
     digest = hf.digest()
     if p.exists():
         try:
             with open_store(p) as s:
-                if s.complete and s.meta.get("source_digest") == digest and s.tile_size == TILE_SIZE:
+                if (
+                    s.complete
+                    and s.meta.get("source_digest") == digest
+                    and s.tile_size == TILE_SIZE
+                    and s.meta.get("method") == method
+                ):
                     return p
         except Exception:
             pass
         for suffix in ("", "-wal", "-shm"):
             Path(f"{p}{suffix}").unlink(missing_ok=True)
     t = time.perf_counter()
-    build_store(hf, p, tile_size=TILE_SIZE)
+    build_store(hf, p, tile_size=TILE_SIZE, method=method)
     print(f"built {p.name} in {time.perf_counter() - t:.1f} s", flush=True)
     return p
 

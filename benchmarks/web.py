@@ -36,12 +36,12 @@ def stores(tmp: Path) -> dict[str, Path]:
 
     out = {}
     p = tmp / "sample.terra"
-    build_store(sample_heightfield(), p, workers=2)
+    build_store(sample_heightfield(), p, workers=2, method="cohesion")  # as recorded in results/web.md
     out["sample (Jacksboro 416x440)"] = p
     alp = SHARED / "dem" / "srtm1_crop256_alpine.tif"
     if alp.exists():
         p = tmp / "alpine.terra"
-        build_store(read_heightfield(alp), p, workers=2)
+        build_store(read_heightfield(alp), p, workers=2, method="cohesion")
         out["SRTM Mt Rainier 256x378"] = p
     return out
 
