@@ -201,6 +201,18 @@ def test_pieced_lzma_stream_is_one_stream_for_any_thread_count(pieces: float, mo
         assert out == lzma.compress(raw, format=lzma.FORMAT_RAW, filters=filters)
 
 
+def test_writer_codes_a_whole_piece_as_preset_9_does() -> None:
+    """The writer's one-piece dictionary gives preset 9's bytes: no match reaches beyond a piece."""
+    import terralod.tin.fileformat as ff
+
+    rng = np.random.default_rng(5)
+    walk = np.cumsum(rng.integers(-3, 4, LZMA_PIECE_BYTES // 4)).astype("<i4")  # a coded column's like
+    raw = walk.tobytes()
+    assert len(raw) == LZMA_PIECE_BYTES
+    filters = [{"id": lzma.FILTER_LZMA2, "preset": 9}]
+    assert ff._pack(raw, 1) == lzma.compress(raw, format=lzma.FORMAT_RAW, filters=filters)
+
+
 def test_two_distinct_points_are_refused() -> None:
     with pytest.raises(InputError, match="got 2"):
         delaunay_tin(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 2.0], [1.0, 0.0, 3.0]]))
