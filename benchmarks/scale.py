@@ -220,6 +220,8 @@ def main() -> None:
                     help="only the 16385² build, the 4097² figures kept from the last run's JSON")  # fmt: skip
     ap.add_argument("--big-method", default=METHOD, help="method of the --big-only build (chunked)")
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--method", default=METHOD, help="method of the 4097² builds (chunked)")
+    ap.add_argument("--name", default="scale", help="results file name under benchmarks/results/")
     ap.add_argument("--child", nargs=3, metavar=("CONFIG", "DEM", "OUT"))
     ap.add_argument(
         "--configs", default="memory-t1,memory-t2,window-t1,window-t2,dask-p1,dask-p2,dask-p2-kill"
@@ -244,10 +246,15 @@ def main() -> None:
         results: dict[str, list[dict]] = {}
         for config in args.configs.split(","):
             for _ in range(1 if config.endswith("kill") else args.repeat):
-                r = run_config(config, dems["4097"], folder, 1200)
+                run = config if args.method == METHOD else f"{config}@{args.method}"
+                r = run_config(run, dems["4097"], folder, 1200)
                 print(json.dumps(r))
                 results.setdefault(config, []).append(r)
         rows, payload = summarise(results, folder)
+        payload["method"] = args.method
+        if args.name != "scale":  # a side run (another method): its table alone
+            write_results(args.name, payload, report(rows, payload))
+            return
         big = None
         if args.big:
             big = run_config("window-t2", dems["16385"], folder, 3000)
@@ -311,7 +318,8 @@ def ratio(per: dict, a: str, b: str) -> float | None:
 def report(rows: list[list], payload: dict) -> str:
     per = payload["configs"]
     md = ["# Out-of-core and Dask builds (issue 20)\n",
-          f"4097² mirror-tiled Pyrenees (srtm3_N42E001, UTM), COG, method {METHOD}, tile size 65 (5461 tiles); "
+          f"4097² mirror-tiled Pyrenees (srtm3_N42E001, UTM), COG, method {payload.get('method', METHOD)}, tile "
+          "size 65 (5461 tiles); "
           "one subprocess per configuration, peak RSS of its whole process tree. Machine: 2 cores shared with "
           "other users (load varies between runs).\n",
           md_table(["config", "build s", "M samples/s", "peak RSS MiB", "same tiles as window-t1", "note"], rows)]  # fmt: skip
@@ -358,7 +366,7 @@ def projection(payload: dict) -> str:
     tiles = n_samples / 64**2 * 4 / 3
     writer_s = tiles / w["tiles_per_s"]
     lines = ["\n## Projection: a 10^12-sample national DEM (1 m over 10^6 km²)\n",
-             f"Measured here: one worker process builds {core_rate / 1e6:.2f} M samples/s ({METHOD}, one thread, "
+             f"Measured here: one worker process builds {core_rate / 1e6:.2f} M samples/s ({payload.get('method', METHOD)}, one thread, "
              f"plan and measurement included); the writer commits {w['tiles_per_s']:,.0f} tiles/s. The store "
              f"would hold about {tiles:.2e} tiles (M = 65).\n",
              md_table(["machines (16 cores each)", "build hours (compute)", "writer hours", "bound by"],
