@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from terralod.errors import CorruptStoreError, InputError, StoreError
 from terralod.store import TIN_METHOD, open_store, read_tin_store, store_method
@@ -128,6 +130,41 @@ def test_read_las_keeps_ground_and_refuses_bad_points(tmp_path: Path) -> None:
     assert "two.las" in str(e.value)
     with pytest.raises(InputError, match="no ground points"):
         read_las(write_las(tmp_path / "unc.las", xyz[:10], np.ones(10, np.uint8)), ground_only=True)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    n=st.integers(1, 300),
+    chunk=st.integers(1, 64),
+    first_ground=st.integers(0, 320),  # the first class-2 point (past n: none)
+    ground_only=st.sampled_from([None, True, False]),
+    laz=st.booleans(),
+)
+def test_chunked_las_read_keeps_what_a_whole_read_keeps(
+    tmp_path: Path, monkeypatch, n, chunk, first_ground, ground_only, laz
+) -> None:
+    """read_las streams the file in chunks (laspy's chunk iterator): the points kept, their order and
+    coordinates are those of the whole file read at once, wherever the first ground point falls."""
+    import laspy
+
+    import terralod.tin.pointcloud as pc_mod
+
+    xyz = _points(n, n)
+    rng = np.random.default_rng(n)
+    cls = np.where(rng.random(n) < 0.6, 2, 1).astype(np.uint8)
+    cls[: min(first_ground, n)] = 1
+    p = write_las(tmp_path / f"c{n}_{chunk}.{'laz' if laz else 'las'}", xyz, cls)
+    whole = laspy.read(str(p))
+    wx = np.c_[np.asarray(whole.x), np.asarray(whole.y), np.asarray(whole.z)]
+    ground = np.asarray(whole.classification) == 2
+    monkeypatch.setattr(pc_mod, "LAS_CHUNK_POINTS", chunk)
+    if ground_only is True and not ground.any():
+        with pytest.raises(InputError, match="no ground points"):
+            read_las(p, ground_only=True)
+        return
+    got = read_las(p, ground_only=ground_only)
+    want = wx[ground] if ground.any() and ground_only is not False else wx
+    assert np.array_equal(got.xyz_m, want) and got.n_read == n and got.classified == bool(ground.any())
 
 
 def test_cli_build_and_info_of_a_cloud(tmp_path: Path) -> None:

@@ -36,6 +36,9 @@ __all__ = ["PointCloud", "check_points", "read_las", "thin_duplicates", "unit_fa
 
 log = logging.getLogger(__name__)
 
+#: Points per chunk of a LAS/LAZ read (laspy's chunk iterator): about 60 MB of records and xyz at a time.
+LAS_CHUNK_POINTS = 1 << 20
+
 #: EPSG unit codes of the GeoTIFF keys → metres per unit.
 _GEOKEY_UNITS = {9001: ("metre", 1.0), 9002: ("foot", 0.3048), 9003: ("US survey foot", 1200.0 / 3937.0)}
 #: Names accepted by ``units=``.
@@ -394,14 +397,42 @@ def read_las(
         raise InputNotFoundError("file not found", src)
     check_las_header(p)
     compressed = _probe_laz_decoding(p)
+    # Points are read in chunks of LAS_CHUNK_POINTS (laspy's chunk iterator): only the kept points' xyz
+    # (24 bytes a point) outlive a chunk, never the whole file's records and dimensions.
+    backend = {"laz_backend": laspy.LazBackend.Lazrs} if compressed else {}
+    kept: list[np.ndarray] = []  # xyz of the points kept so far, file units
+    unclassified: list[np.ndarray] = []  # every point's xyz until a ground point shows up (ground_only None)
+    n_read = n_ground = 0
     try:  # the decoder the probe proved on this file (the parallel one may fail differently)
-        las = laspy.read(src, laz_backend=laspy.LazBackend.Lazrs) if compressed else laspy.read(src)
+        with laspy.open(src, **backend) as f:
+            header = f.header
+            has_cls = "classification" in header.point_format.dimension_names
+            for pts in f.chunk_iterator(LAS_CHUNK_POINTS):
+                n = len(pts)
+                if n == 0:
+                    break
+                n_read += n
+                xyz_c = np.empty((n, 3), np.float64)
+                xyz_c[:, 0] = np.asarray(pts.x, dtype=np.float64)
+                xyz_c[:, 1] = np.asarray(pts.y, dtype=np.float64)
+                xyz_c[:, 2] = np.asarray(pts.z, dtype=np.float64)
+                ground = (np.asarray(pts.classification) == GROUND) if has_cls else np.zeros(n, np.bool_)
+                g = int(np.count_nonzero(ground))
+                if ground_only is False:
+                    kept.append(xyz_c)
+                    n_ground += g
+                    continue
+                if g:
+                    if n_ground == 0:
+                        unclassified.clear()  # the cloud is classified: ground points only from here
+                    n_ground += g
+                    kept.append(xyz_c[ground])
+                elif n_ground == 0 and ground_only is None:
+                    unclassified.append(xyz_c)
     except (KeyboardInterrupt, SystemExit):
         raise
     except BaseException as exc:  # laspy raises its own, OSError/ValueError, and lazrs pyo3 PanicException
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
-    header = las.header
-    n_read = len(las.points)
     notes: list[str] = []
     n_file = _records_in_file(p, header)
     if n_read != int(header.point_count) or (n_file is not None and n_file != n_read):
@@ -448,22 +479,20 @@ def read_las(
             if fh != 1.0 or fv != 1.0:
                 notes.append(f"coordinates in {name}: x, y scaled by {fh}, z by {fv} to metres")
 
-    xyz = np.empty((n_read, 3), np.float64)
-    xyz[:, 0] = np.asarray(las.x, dtype=np.float64) * fh
-    xyz[:, 1] = np.asarray(las.y, dtype=np.float64) * fh
-    xyz[:, 2] = np.asarray(las.z, dtype=np.float64) * fv
-
     # Ground class.
-    cls = np.asarray(las.classification) if "classification" in las.point_format.dimension_names else None
-    classified = cls is not None and bool((cls == GROUND).any())
+    classified = n_ground > 0
     if ground_only is True and not classified:
         raise InputError(
             "no ground points (class 2) in the cloud; pass ground_only=False to use all points", src
         )
+    parts = kept if classified or ground_only is False else unclassified
+    xyz = np.concatenate(parts) if parts else np.zeros((0, 3), np.float64)
+    del kept, unclassified, parts
+    xyz[:, 0] *= fh
+    xyz[:, 1] *= fh
+    xyz[:, 2] *= fv
     if classified and ground_only is not False:
-        keep = cls == GROUND
-        xyz = xyz[keep]
-        notes.append(f"kept {int(keep.sum())} ground points (class 2) of {n_read}")
+        notes.append(f"kept {xyz.shape[0]} ground points (class 2) of {n_read}")
     if xyz.shape[0] == 0:
         raise InputError("the file has no points", src)
     xyz = check_points(xyz, src)
