@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from terralod import Heightfield, build_store, open_store
 from terralod.error import measure_error_window
-from terralod.kernels.adaptive import simplify_line, tin_window
+from terralod.kernels.adaptive import simplify_line, tin_window, tin_window_seeded
 from terralod.pyramid import adaptive
 from terralod.runtime import Engine, find_cracks, stitch_leaves
 from terralod.tiles import TilePyramid, parent
@@ -178,6 +178,36 @@ def test_tin_window_meets_target_without_fold_over(h, w, seed, target) -> None:
     assert len({(x, y) for x, y in zip(px.tolist(), py.tolist(), strict=True)}) == len(px)
     verts = np.stack([px, py, z[py, px]], 1).astype(np.float64)
     rep = measure_error_window(verts, tris[:, [0, 2, 1]], z, valid, 1.0, 1.0)
+    assert worst <= target and rep.max_vertical_m <= target + 1e-4
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    st.integers(3, 90), st.integers(3, 90), st.integers(0, 2**20), st.floats(0.0, 30.0), st.integers(0, 400)
+)
+def test_seeded_tin_window_keeps_its_seeds_and_meets_target(h, w, seed, target, n_seeds) -> None:
+    """Seeds (any distinct interior samples, as a decimated pass gives them) are vertices of the result,
+    which still meets the target at every interior sample, covers the window exactly, never folds."""
+    rng = np.random.default_rng(seed)
+    z = np.ascontiguousarray(rng.normal(0.0, 20.0, (h, w)).astype(np.float32))
+    z[:, : w // 3] = 5.0  # level ground too: seeds on flat runs, co-circular samples
+    valid = np.ones((h, w), np.bool_)
+    valid[0, :] = valid[-1, :] = valid[:, 0] = valid[:, -1] = False
+    interior = np.flatnonzero(np.ones((h - 2, w - 2), np.bool_))
+    pick = np.sort(rng.choice(interior.size, min(n_seeds, interior.size), replace=False))
+    sy, sx = np.divmod(interior[pick], w - 2)
+    sx, sy = (sx + 1).astype(np.int64), (sy + 1).astype(np.int64)
+    e = np.zeros(0, np.int64)
+    px, py, tris, worst = tin_window_seeded(z, valid, e, e, sx, sy, target, h * w)
+    a = np.stack([px, py], 1)[tris.astype(np.int64)]
+    cross = (a[:, 1, 0] - a[:, 0, 0]) * (a[:, 2, 1] - a[:, 0, 1]) - (a[:, 1, 1] - a[:, 0, 1]) * (
+        a[:, 2, 0] - a[:, 0, 0]
+    )
+    assert (cross > 0).all() and cross.sum() == 2 * (h - 1) * (w - 1)
+    verts = {(x, y) for x, y in zip(px.tolist(), py.tolist(), strict=True)}
+    assert len(verts) == len(px) and {(x, y) for x, y in zip(sx.tolist(), sy.tolist(), strict=True)} <= verts
+    pts = np.stack([px, py, z[py, px]], 1).astype(np.float64)
+    rep = measure_error_window(pts, tris[:, [0, 2, 1]], z, valid, 1.0, 1.0)
     assert worst <= target and rep.max_vertical_m <= target + 1e-4
 
 

@@ -401,8 +401,39 @@ def tin_window(z, valid, bx, by, target, max_vertices):
     px, py : (N,) int64 vertex columns and rows; tris : (K, 3) int32, counter-clockwise in (x, y);
     max_error : the largest vertical error left over the interior candidates (metres; 0 when none)
     """
+    empty = np.zeros(0, np.int64)
+    return tin_window_seeded(z, valid, bx, by, empty, empty, target, max_vertices)
+
+
+@leaf
+def _locate(tri, half, px, py, t, x, y, max_steps):
+    """The triangle holding (x, y) (inside or on its border), by a visibility walk from triangle t; -1
+    when the walk leaves the mesh or exceeds ``max_steps``."""
+    for _ in range(max_steps):
+        moved = False
+        for k in range(3):
+            e = 3 * t + k
+            a = tri[e]
+            b = tri[_nxt(e)]
+            if _orient(px[a], py[a], px[b], py[b], x, y) < 0:
+                h = half[e]
+                if h < 0:
+                    return -1
+                t = h // 3
+                moved = True
+                break
+        if not moved:
+            return t
+    return -1
+
+
+@jit
+def tin_window_seeded(z, valid, bx, by, sx, sy, target, max_vertices):
+    """:func:`tin_window` that first inserts the interior vertices ``sx, sy`` (distinct valid samples,
+    strictly inside the window) after the border, then refines greedily from there: what a coarse tile
+    meshes on the full source after a pass on a decimated copy found most of its vertices."""
     h, w = z.shape
-    cap_v = 64 + bx.shape[0]
+    cap_v = 64 + bx.shape[0] + sx.shape[0]
     cap_t = 2 * cap_v
     px = np.empty(cap_v, np.int64)
     py = np.empty(cap_v, np.int64)
@@ -437,6 +468,27 @@ def tin_window(z, valid, bx, by, target, max_vertices):
         if e >= 0:  # (always, for a border vertex strictly between two others)
             npend, nt = _split_edge(tri, half, px, py, pending, 0, stack, nt, e, nv)
             nv += 1
+    # the seeds, located by a walk from the last one's triangle (they come in raster order)
+    hint = 0
+    for i in range(sx.shape[0]):
+        if nv >= max_vertices:
+            break
+        t = _locate(tri, half, px, py, hint, sx[i], sy[i], nt + 16)
+        if t < 0:
+            for tt in range(nt):  # (a walk never fails on a Delaunay mesh; a full search if it did)
+                a, b, c = tri[3 * tt], tri[3 * tt + 1], tri[3 * tt + 2]
+                if (
+                    _orient(px[a], py[a], px[b], py[b], sx[i], sy[i]) >= 0
+                    and _orient(px[b], py[b], px[c], py[c], sx[i], sy[i]) >= 0
+                    and _orient(px[c], py[c], px[a], py[a], sx[i], sy[i]) >= 0
+                ):
+                    t = tt
+                    break
+        px[nv] = sx[i]
+        py[nv] = sy[i]
+        npend, nt = _insert(tri, half, px, py, pending, 0, stack, nt, t, nv)
+        nv += 1
+        hint = t
     npend = 0
     for t in range(nt):
         pending[npend] = t

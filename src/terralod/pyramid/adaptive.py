@@ -32,8 +32,11 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
 - partial tiles at the data's edge end at the last sample (no padding apron, no replicated heights): every
   level ends at the same place.
 
-Deviations from Delatin: border fixed first (above), invalid samples never inserted nor measured, and
-triangles within the target never queued (see the kernel module).
+Deviations from Delatin: border fixed first (above), invalid samples never inserted nor measured,
+triangles within the target never queued (see the kernel module), and a tile of stride >= 8 seeded from a
+pass on every (stride / 2)-th sample of its window (:data:`SEED_MIN_STRIDE`): the greedy insertion on the
+full source starts from that pass's interior vertices, so it no longer rescans the huge early triangles of
+a coarse window, and still refines until the target holds at every sample.
 """
 
 from __future__ import annotations
@@ -44,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from terralod.kernels.adaptive import raster_order, simplify_line, tin_window
+from terralod.kernels.adaptive import raster_order, simplify_line, tin_window, tin_window_seeded
 from terralod.pyramid import chunked
 from terralod.tiles import TileCode, TilePyramid
 
@@ -197,12 +200,52 @@ def mesh_tile_with(
     bx = np.concatenate([north, np.full(east.size, ww - 1), south, np.zeros(west.size, np.int64)])
     by = np.concatenate([np.zeros(north.size, np.int64), east, np.full(south.size, hh - 1), west])
     cap = hh * ww if opt.max_tile_vertices is None else max(4 + bx.size, opt.max_tile_vertices)
-    px, py, tris, _ = tin_window(zw, vw, bx.astype(np.int64), by.astype(np.int64), float(target), cap)
+    stride = pyramid.stride(level)
+    sx, sy = _seeds(zw, vw, stride // 2 if stride >= SEED_MIN_STRIDE else 1, float(target), cap)
+    px, py, tris, _ = tin_window_seeded(
+        zw, vw, bx.astype(np.int64), by.astype(np.int64), sx, sy, float(target), cap
+    )
     # raster order of the vertices (coherent deltas for the store's coding), triangles renumbered and
     # flipped to counter-clockwise seen from above (y north: rows grow south)
     if px.size < _KERNEL_ORDER_MAX_VERTICES:
         return raster_order(zw, px, py, tris, r0, c0)
     return _raster_order_numpy(zw, px, py, tris, r0, c0)
+
+
+#: A tile of stride s >= SEED_MIN_STRIDE is first meshed on every (s / 2)-th sample of its window; its
+#: interior vertices then seed the greedy insertion on the full source, which goes on until the target holds
+#: at every sample. Measured on Puget Sound 1k (levels 0-3, one thread): levels 0 and 1 (strides 16, 8)
+#: mesh in 0.019 / 0.036 s instead of 0.055 / 0.078 s with 3,836 / 14,088 vertices instead of 3,987 /
+#: 13,948; at stride 4 it saved 18 % of the time for 5 % more vertices, at stride 2 (from every 2nd
+#: sample) 8 % for 13 % more: not done there.
+SEED_MIN_STRIDE = 8
+
+
+def _seeds(zw: np.ndarray, vw: np.ndarray, f: int, target: float, cap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Interior vertices (full-window x, y, raster order) of the greedy TIN of every f-th sample of the
+    window to ``target`` (none when f < 2)."""
+    if f < 2:
+        empty = np.zeros(0, np.int64)
+        return empty, empty
+    zd = np.ascontiguousarray(zw[::f, ::f])
+    vd = np.ascontiguousarray(vw[::f, ::f])
+    hd, wd = zd.shape
+    if hd < 3 or wd < 3:
+        empty = np.zeros(0, np.int64)
+        return empty, empty
+    sides = [_side(zd[0], vd[0], target)[1:-1], _side(zd[:, -1], vd[:, -1], target)[1:-1],
+             _side(zd[-1], vd[-1], target)[1:-1], _side(zd[:, 0], vd[:, 0], target)[1:-1]]  # fmt: skip
+    bx = np.concatenate(
+        [sides[0], np.full(sides[1].size, wd - 1), sides[2], np.zeros(sides[3].size, np.int64)]
+    )
+    by = np.concatenate(
+        [np.zeros(sides[0].size, np.int64), sides[1], np.full(sides[2].size, hd - 1), sides[3]]
+    )
+    px, py, _, _ = tin_window(zd, vd, bx.astype(np.int64), by.astype(np.int64), target, min(cap, hd * wd))
+    inner = (px > 0) & (px < wd - 1) & (py > 0) & (py < hd - 1)
+    px, py = px[inner] * f, py[inner] * f
+    order = np.lexsort((px, py))
+    return np.ascontiguousarray(px[order]), np.ascontiguousarray(py[order])
 
 
 #: :func:`raster_order` keys triangles by ``(a N + b) N + c``, which fits int64 below 2^21 vertices.
