@@ -34,7 +34,7 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
 
 Deviations from Delatin: border fixed first (above), invalid samples never inserted nor measured,
 triangles within the target never queued (see the kernel module), and a tile of stride >= 8 seeded from a
-pass on every (stride / 2)-th sample of its window (:data:`SEED_MIN_STRIDE`): the greedy insertion on the
+pass on every (stride / 4)-th sample of its window (:data:`SEED_MIN_STRIDE`): the greedy insertion on the
 full source starts from that pass's interior vertices, so it no longer rescans the huge early triangles of
 a coarse window, and still refines until the target holds at every sample.
 """
@@ -201,7 +201,7 @@ def mesh_tile_with(
     by = np.concatenate([np.zeros(north.size, np.int64), east, np.full(south.size, hh - 1), west])
     cap = hh * ww if opt.max_tile_vertices is None else max(4 + bx.size, opt.max_tile_vertices)
     stride = pyramid.stride(level)
-    sx, sy = _seeds(zw, vw, stride // 2 if stride >= SEED_MIN_STRIDE else 1, float(target), cap)
+    sx, sy = _seeds(zw, vw, stride // SEED_DIV if stride >= SEED_MIN_STRIDE else 1, float(target), cap)
     px, py, tris, _ = tin_window_seeded(
         zw, vw, bx.astype(np.int64), by.astype(np.int64), sx, sy, float(target), cap
     )
@@ -212,13 +212,15 @@ def mesh_tile_with(
     return _raster_order_numpy(zw, px, py, tris, r0, c0)
 
 
-#: A tile of stride s >= SEED_MIN_STRIDE is first meshed on every (s / 2)-th sample of its window; its
-#: interior vertices then seed the greedy insertion on the full source, which goes on until the target holds
-#: at every sample. Measured on Puget Sound 1k (levels 0-3, one thread): levels 0 and 1 (strides 16, 8)
-#: mesh in 0.019 / 0.036 s instead of 0.055 / 0.078 s with 3,836 / 14,088 vertices instead of 3,987 /
-#: 13,948; at stride 4 it saved 18 % of the time for 5 % more vertices, at stride 2 (from every 2nd
-#: sample) 8 % for 13 % more: not done there.
+#: A tile of stride s >= SEED_MIN_STRIDE is first meshed on every (s / SEED_DIV)-th sample of its window;
+#: its interior vertices then seed the greedy insertion on the full source, which goes on until the target
+#: holds at every sample. Measured per level (one thread; seeded / full-source insertion alone):
+#: Pyrenees N42E001 strides 32, 16, 8: 0.031 / 0.265, 0.057 / 0.137, 0.129 / 0.177 s with 3,787 / 4,146,
+#: 12,889 / 12,970, 36,131 / 35,363 vertices; Puget Sound 1k strides 16, 8: 0.019 / 0.113, 0.050 / 0.073 s
+#: with 3,755 / 3,987, 13,610 / 13,948 vertices. Seeding from every (s / 2)-th sample cost up to 10 % more
+#: vertices (Pyrenees stride 8); at stride 4 (from every 2nd sample) it saved 18 % of the time for 5 % more.
 SEED_MIN_STRIDE = 8
+SEED_DIV = 4
 
 
 def _seeds(zw: np.ndarray, vw: np.ndarray, f: int, target: float, cap: int) -> tuple[np.ndarray, np.ndarray]:
