@@ -18,7 +18,8 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
   root spans only L + 1 levels (Puget Sound 1k: 302 m to 18.9 m), and a finest level at 18.9 m cannot hold
   2 px near the eye (4.2 px measured along the benchmark's camera path). Greedy insertion down to a
   near-lossless 0.5 m instead keeps only 14 % fewer triangles than the grid there (Puget Sound 1k) at
-  2.3x the build time, and the grid codes in a quarter of the bytes a triangle. The runtime never draws a
+  2.0-2.7x the build time (``benchmarks/results/build.md``), and the grid codes in about a third of the
+  bytes a triangle. The runtime never draws a
   finest tile whose parent is exact, so a flat plain still draws its 2-triangle parents.
   ``finest_level_error_m=None`` keeps the ladder down to L (``root_error_m / 2^L``, stated and measured);
   ``finest_error_m`` sets the ladder from that end instead. The stored errors are measured on the stored
