@@ -202,7 +202,10 @@ def mesh_tile_with(
     by = np.concatenate([np.zeros(north.size, np.int64), east, np.full(south.size, hh - 1), west])
     cap = hh * ww if opt.max_tile_vertices is None else max(4 + bx.size, opt.max_tile_vertices)
     stride = pyramid.stride(level)
-    sx, sy = _seeds(zw, vw, stride // SEED_DIV if stride >= SEED_MIN_STRIDE else 1, float(target), cap)
+    # seeded from a decimated pass (coarse tiles), unless a vertex cap makes every vertex count: the
+    # decimated pass's vertices would then take the cap's places before the full source's worst samples
+    f = stride // SEED_DIV if stride >= SEED_MIN_STRIDE and opt.max_tile_vertices is None else 1
+    sx, sy = _seeds(zw, vw, f, float(target), cap)
     px, py, tris, _ = tin_window_seeded(
         zw, vw, bx.astype(np.int64), by.astype(np.int64), sx, sy, float(target), cap
     )
