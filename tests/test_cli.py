@@ -92,7 +92,11 @@ def test_info_and_build(tmp_path: Path) -> None:
     assert p.returncode == 0 and "complete" in p.stdout and "max error m" in p.stdout
     with open_store(tmp_path / "dem.terra") as s:
         assert s.meta["method"] == "adaptive"  # the default mesher (benchmarks/results/build.md)
-        assert s.meta["build_options"]["target_error_m"][-1] == 0.0  # the lossless grid finest level
+        ladder = s.meta["build_options"]["target_error_m"]
+        assert ladder[-1] == 0.0  # the lossless grid finest level
+    # info states the ladder, the finest level as the grid
+    line = next(x for x in p.stdout.splitlines() if x.startswith("target max vertical error per level"))
+    assert line.endswith("0 (grid)") and line.split(": ", 1)[1].count(", ") == len(ladder) - 1
 
 
 def test_demo_runs(tmp_path: Path) -> None:

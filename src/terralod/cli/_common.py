@@ -504,6 +504,10 @@ def print_store_summary(summary: dict[str, Any]) -> None:
             _g(d["max_vertical_error_m"]), _g(d["rms_error_m"]), f"{d['bytes'] / 1024:,.0f}",
         )  # fmt: skip
     console.print(t)
+    ladder = summary.get("target_error_m")
+    if ladder:  # adaptive tiles: what each level was refined to (the measured errors are above)
+        steps = ", ".join("0 (grid)" if v == 0 else f"{v:.4g}" for v in ladder)
+        console.print(f"target max vertical error per level, m: {steps}")
     console.print(
         f"{summary['levels']} levels, {summary['tiles']}/{summary['tiles_planned']} tiles, tile size "
         f"{summary['tile_size']}, {summary['size_bytes'] / 1024 / 1024:.2f} MiB on disk"

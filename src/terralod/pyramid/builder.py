@@ -495,4 +495,6 @@ def store_summary(store: TileStore) -> dict[str, Any]:
         "tiles_planned": len(store.pyramid.all_codes()),
         "size_bytes": store.size_bytes(),
         "per_level": dict(sorted(per.items())),
+        # the adaptive error ladder the store states (target max vertical error per level, metres)
+        "target_error_m": (store.meta.get("build_options") or {}).get("target_error_m"),
     }
