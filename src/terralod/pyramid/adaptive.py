@@ -177,6 +177,19 @@ def _side(z: np.ndarray, valid: np.ndarray, target: float) -> np.ndarray:
     return simplify_line(np.ascontiguousarray(z), np.ascontiguousarray(valid), float(target))
 
 
+def _border(zw: np.ndarray, vw: np.ndarray, target: float) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) int64 of a window's border vertices other than its corners: each side simplified from its
+    own line of samples to ``target``."""
+    hh, ww = zw.shape
+    north = _side(zw[0], vw[0], target)[1:-1]
+    south = _side(zw[-1], vw[-1], target)[1:-1]
+    west = _side(zw[:, 0], vw[:, 0], target)[1:-1]
+    east = _side(zw[:, -1], vw[:, -1], target)[1:-1]
+    bx = np.concatenate([north, np.full(east.size, ww - 1), south, np.zeros(west.size, np.int64)])
+    by = np.concatenate([np.zeros(north.size, np.int64), east, np.full(south.size, hh - 1), west])
+    return bx.astype(np.int64), by.astype(np.int64)
+
+
 def mesh_tile_with(
     z: np.ndarray, valid: np.ndarray, pyramid: TilePyramid, code: TileCode, opt: AdaptiveOptions
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -194,21 +207,14 @@ def mesh_tile_with(
     vw = np.ascontiguousarray(valid[r0 : r1 + 1, c0 : c1 + 1])
     hh, ww = zw.shape
     # the four sides, each from its own line of samples (what the neighbour across it computes too)
-    north = _side(zw[0], vw[0], target)[1:-1]
-    south = _side(zw[-1], vw[-1], target)[1:-1]
-    west = _side(zw[:, 0], vw[:, 0], target)[1:-1]
-    east = _side(zw[:, -1], vw[:, -1], target)[1:-1]
-    bx = np.concatenate([north, np.full(east.size, ww - 1), south, np.zeros(west.size, np.int64)])
-    by = np.concatenate([np.zeros(north.size, np.int64), east, np.full(south.size, hh - 1), west])
+    bx, by = _border(zw, vw, target)
     cap = hh * ww if opt.max_tile_vertices is None else max(4 + bx.size, opt.max_tile_vertices)
     stride = pyramid.stride(level)
     # seeded from a decimated pass (coarse tiles), unless a vertex cap makes every vertex count: the
     # decimated pass's vertices would then take the cap's places before the full source's worst samples
     f = stride // SEED_DIV if stride >= SEED_MIN_STRIDE and opt.max_tile_vertices is None else 1
-    sx, sy = _seeds(zw, vw, f, float(target), cap)
-    px, py, tris, _ = tin_window_seeded(
-        zw, vw, bx.astype(np.int64), by.astype(np.int64), sx, sy, float(target), cap
-    )
+    sx, sy = _seeds(zw, vw, f, float(target))
+    px, py, tris, _ = tin_window_seeded(zw, vw, bx, by, sx, sy, float(target), cap)
     # raster order of the vertices (coherent deltas for the store's coding), triangles renumbered and
     # flipped to counter-clockwise seen from above (y north: rows grow south)
     if px.size < _KERNEL_ORDER_MAX_VERTICES:
@@ -227,7 +233,7 @@ SEED_MIN_STRIDE = 8
 SEED_DIV = 4
 
 
-def _seeds(zw: np.ndarray, vw: np.ndarray, f: int, target: float, cap: int) -> tuple[np.ndarray, np.ndarray]:
+def _seeds(zw: np.ndarray, vw: np.ndarray, f: int, target: float) -> tuple[np.ndarray, np.ndarray]:
     """Interior vertices (full-window x, y, raster order) of the greedy TIN of every f-th sample of the
     window to ``target`` (none when f < 2)."""
     if f < 2:
@@ -239,15 +245,8 @@ def _seeds(zw: np.ndarray, vw: np.ndarray, f: int, target: float, cap: int) -> t
     if hd < 3 or wd < 3:
         empty = np.zeros(0, np.int64)
         return empty, empty
-    sides = [_side(zd[0], vd[0], target)[1:-1], _side(zd[:, -1], vd[:, -1], target)[1:-1],
-             _side(zd[-1], vd[-1], target)[1:-1], _side(zd[:, 0], vd[:, 0], target)[1:-1]]  # fmt: skip
-    bx = np.concatenate(
-        [sides[0], np.full(sides[1].size, wd - 1), sides[2], np.zeros(sides[3].size, np.int64)]
-    )
-    by = np.concatenate(
-        [np.zeros(sides[0].size, np.int64), sides[1], np.full(sides[2].size, hd - 1), sides[3]]
-    )
-    px, py, _, _ = tin_window(zd, vd, bx.astype(np.int64), by.astype(np.int64), target, min(cap, hd * wd))
+    bx, by = _border(zd, vd, target)
+    px, py, _, _ = tin_window(zd, vd, bx, by, target, hd * wd)
     inner = (px > 0) & (px < wd - 1) & (py > 0) & (py < hd - 1)
     px, py = px[inner] * f, py[inner] * f
     order = np.lexsort((px, py))

@@ -58,7 +58,7 @@ METHODS: dict[str, MeshFn] = {
 }
 # Adaptive tiles (halving ladder from the root, a lossless grid finest level) are the default: along the 2 px
 # camera paths they draw 0.72-0.76x the vertex cohesion map's triangles (paper 000; itself 0.40-0.49x
-# Chunked LOD's) and build 2.1-2.4x faster (benchmarks/results/build.md).
+# Chunked LOD's) and build 2.2-2.8x faster (benchmarks/results/build.md).
 DEFAULT_METHOD = "adaptive"
 
 #: Extra relief (metres) the fixed quantisation of a store of epochs leaves at least (plan_quantisation).
