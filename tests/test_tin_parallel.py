@@ -218,3 +218,58 @@ def test_two_distinct_points_are_refused() -> None:
         delaunay_tin(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 2.0], [1.0, 0.0, 3.0]]))
     with pytest.raises(InputError, match="got 1"):
         delaunay_tin(np.zeros((4, 3)))
+
+
+def _tri_set(v: np.ndarray, t: np.ndarray) -> set[tuple[tuple[float, ...], ...]]:
+    return {tuple(sorted(tuple(v[i, :2]) for i in tri)) for tri in t}
+
+
+triangle_missing = pytest.mark.skipif(
+    not __import__("terralod.tin.delaunay", fromlist=["_triangle_available"])._triangle_available(),
+    reason="Shewchuk's Triangle is not installed (the fast-tin extra); Qhull alone is in use",
+)
+
+
+@triangle_missing
+@HYP
+@given(seed=st.integers(0, 10_000), n=st.integers(3, 800), grid=st.booleans())
+def test_triangle_and_qhull_give_the_same_tin(seed: int, n: int, grid: bool) -> None:
+    """Points in general position have one Delaunay triangulation: Triangle and Qhull find it (same
+    vertices, same triangles, all counter-clockwise). On a lattice (cocircular quads) the diagonals may
+    differ; both still cover the same hull with the same vertices and no fold-over."""
+    import terralod.tin.delaunay as dl
+
+    pts = _cloud(seed, n)
+    if grid:  # a lattice: the cocircular case
+        pts[:, :2] = np.round(pts[:, :2] / 100.0) * 100.0
+    out = {}
+    try:
+        for engine in ("triangle", "qhull"):
+            dl.ENGINE = engine
+            try:
+                out[engine] = delaunay_tin(pts)
+            except InputError as exc:
+                out[engine] = str(exc)
+    finally:
+        dl.ENGINE = "triangle"
+    a, b = out["triangle"], out["qhull"]
+    if isinstance(a, str) or isinstance(b, str):
+        assert isinstance(a, str) and isinstance(b, str), (a, b)  # both refuse (too few / collinear)
+        return
+    (va, ta, _), (vb, tb, _) = a, b
+    assert (_area2(va, ta) > 0).all() and (_area2(vb, tb) > 0).all()
+    assert np.isclose(_area2(va, ta).sum(), _area2(vb, tb).sum(), rtol=1e-12)
+    assert {tuple(p) for p in va[:, :2]} == {tuple(p) for p in vb[:, :2]} or grid
+    if not grid:
+        assert _tri_set(va, ta) == _tri_set(vb, tb)
+
+
+@triangle_missing
+@pytest.mark.parametrize("engine", ["triangle", "qhull"])
+def test_collinear_points_are_refused_by_both_engines(engine: str, monkeypatch) -> None:
+    import terralod.tin.delaunay as dl
+
+    monkeypatch.setattr(dl, "ENGINE", engine)
+    line = np.c_[np.arange(50.0), 3.0 * np.arange(50.0) + 7.0, np.ones(50)]
+    with pytest.raises(InputError, match="collinear"):
+        delaunay_tin(line, source="line.laz")

@@ -13,6 +13,12 @@ Deviations, and why:
   centroid. The sub-blocks then join exactly along shared edges (a polyline of the TIN, not a straight
   line) and the seam vertices, those used by triangles of two or more sub-blocks, are locked. Same
   guarantee, better triangles, no special seam code.
+- **Triangulator.** Shewchuk's Triangle (the ``triangle`` package: divide and conquer, exact predicates)
+  when it is installed, as the default set-up does; scipy's Qhull otherwise. The two give the same
+  triangles for points in general position (tested); Triangle is about 10x faster (1 M points in 0.9 s
+  against 8.4 s here), and Qhull was most of a cloud's build time. Triangle's licence forbids selling it
+  or putting it in a commercial product without the author's permission: ``pip uninstall triangle`` (or
+  :data:`ENGINE` = "qhull") gives the same TINs through Qhull alone.
 - **k × k sub-blocks.** The paper uses 2 × 2; big clouds want more (each sub-block then holds fewer
   triangles, so a scale change rebuilds less). ``sub_blocks`` must be a square number. Block index
   ``row * k + col``, row 0 at the north edge, col 0 at the west edge (raster order, DESIGN.md).
@@ -36,6 +42,34 @@ from terralod.errors import InputError
 from terralod.kernels.qem import FREE, LOCKED, block_corner_bounds, edge_topology
 
 __all__ = ["SubBlocks", "delaunay_tin", "grid_tin", "mesh_boundary_vertices", "split_sub_blocks"]
+
+#: The triangulator of :func:`delaunay_tin`: "triangle" (Shewchuk's Triangle, when installed) or "qhull".
+ENGINE = "triangle"
+
+
+def _triangle_available() -> bool:
+    try:
+        import triangle  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _simplices(local: np.ndarray) -> np.ndarray:
+    """Delaunay triangles (M, 3) int64 of distinct-enough xy points (centred), any orientation; empty when
+    they are collinear."""
+    if ENGINE == "triangle" and _triangle_available():
+        import triangle
+
+        out = triangle.triangulate({"vertices": local}, "Q")  # Q: quiet
+        tris = out.get("triangles")
+        return np.zeros((0, 3), np.int64) if tris is None else np.asarray(tris, np.int64)
+    from scipy.spatial import Delaunay, QhullError
+
+    try:
+        return Delaunay(local).simplices.astype(np.int64)
+    except QhullError:
+        return np.zeros((0, 3), np.int64)
 
 
 def _orient_ccw(xy: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,8 +129,6 @@ def delaunay_tin(
     InputError
         Fewer than 3 distinct points, or all points collinear.
     """
-    from scipy.spatial import Delaunay, QhullError
-
     n = points_m.shape[0]
     if n < 3:
         raise InputError(f"Expected at least 3 points with distinct xy to triangulate, got {n}", source)
@@ -111,13 +143,12 @@ def delaunay_tin(
             f"Expected at least 3 points with distinct xy to triangulate, got {1 + min(other.size, 1)}",
             source,
         )
-    try:
-        tri = Delaunay(local)
-    except QhullError as exc:
+    simplices = _simplices(np.ascontiguousarray(local))
+    if simplices.shape[0] == 0:
         raise InputError(
             "the points are collinear (or nearly so) in xy: a TIN needs points spanning an area", source
-        ) from exc
-    tris, _ = _orient_ccw(local, tri.simplices.astype(np.int64))
+        )
+    tris, _ = _orient_ccw(local, simplices)
     if tris.shape[0] == 0:
         raise InputError("the points are collinear in xy: a TIN needs points spanning an area", source)
     vertices, tris, used = _compact(points_m, tris)

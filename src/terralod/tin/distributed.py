@@ -13,8 +13,9 @@ its bytes are those of a local build with any number of threads.
 
 Deviation: the triangulation is not distributed. Per-block Delaunay triangulations stitched along the
 seams (the paper) give long thin gap triangles, and a distributed exact Delaunay needs a merge step of its
-own; the global TIN keeps the seams on shared edges (see :mod:`terralod.tin.delaunay`). Qhull's time is
-then the floor of a distributed build (``benchmarks/tin_build.py``).
+own; the global TIN keeps the seams on shared edges (see :mod:`terralod.tin.delaunay`). The one
+triangulation on the client is then the floor of a distributed build: about 1 M points/s with Triangle,
+0.13-0.33 M with Qhull (``benchmarks/tin_build.py``).
 
 Clients come from :func:`terralod.pyramid.distributed.dask_client` (``"local"``: a LocalCluster of worker
 processes; ``tcp://HOST:PORT``: a running scheduler, refused in one line when it cannot be reached).
