@@ -48,6 +48,44 @@ def test_footprint_mask_is_the_majority_of_covered_samples(seed: int, n: int) ->
             assert keep[k] == (2 * valid[cov].sum() >= cov.sum())
 
 
+def _mask_reference(rows, cols, tris, valid) -> np.ndarray:
+    """The footprint rule sample by sample: the majority of covered samples, or the centroid's sample."""
+    h, w = valid.shape
+    out = np.zeros(tris.shape[0], bool)
+    for k, tri in enumerate(tris):
+        cov = _covered(rows, cols, tri, valid.shape)
+        if cov.any():
+            out[k] = 2 * valid[cov].sum() >= cov.sum()
+        else:
+            r = min(max(int(round(rows[tri].sum() / 3.0)), 0), h - 1)
+            c = min(max(int(round(cols[tri].sum() / 3.0)), 0), w - 1)
+            out[k] = valid[r, c]
+    return out
+
+
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 60), big=st.floats(0.5, 30.0), holes=st.floats(0, 1))
+@settings(max_examples=40, deadline=None)
+def test_footprint_mask_shortcut_is_the_sample_count(seed: int, n: int, big: float, holes: float) -> None:
+    """Triangles of every size over a mask of blobs (so that many boxes are wholly valid or wholly nodata,
+    the summed-area shortcut's case), inside and across the grid's edges, slivers included: the kernel
+    gives the sample-by-sample rule's answer for every one."""
+    rng = np.random.default_rng(seed)
+    shape = (41, 53)
+    r, c = np.mgrid[0 : shape[0], 0 : shape[1]]
+    blobs = np.zeros(shape)
+    for _ in range(4):
+        cy, cx, rad = rng.uniform(0, 41), rng.uniform(0, 53), rng.uniform(3, 15)
+        blobs += np.exp(-((r - cy) ** 2 + (c - cx) ** 2) / rad**2)
+    valid = blobs < holes * blobs.max()
+    centre = rng.uniform(-3, [44, 56], (n, 2))
+    pts = centre[:, None, :] + rng.normal(0, big, (n, 3, 2))
+    sliver = rng.random(n) < 0.2  # the third corner near the first two's line
+    pts[sliver, 2] = 0.5 * (pts[sliver, 0] + pts[sliver, 1]) + rng.normal(0, 0.05, (int(sliver.sum()), 2))
+    rows, cols = pts[..., 0].ravel(), pts[..., 1].ravel()
+    tris = np.arange(3 * n).reshape(n, 3)
+    assert np.array_equal(footprint_mask(rows, cols, tris, valid), _mask_reference(rows, cols, tris, valid))
+
+
 def _holed(seed: int) -> Heightfield:
     z = fractal_terrain(97, 113, seed, relief_m=600.0)
     r, c = np.mgrid[0:97, 0:113]

@@ -195,9 +195,9 @@ def mesh_tile_with(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Adaptive TIN of tile ``code`` with settings ``opt`` (see :func:`mesh_tile`)."""
     level = code[0]
-    target = target_ladder(pyramid, opt, z, valid)[level]
-    if target == 0.0 and level == pyramid.max_level:
+    if level == pyramid.max_level and _finest_is_grid(opt):  # whatever the ladder (so without it)
         return chunked.mesh_tile(z, valid, pyramid, code)
+    target = target_ladder(pyramid, opt, z, valid)[level]
     h, w = z.shape
     r0, c0 = pyramid.origin_rc(code)
     span = pyramid.span(level)
@@ -284,6 +284,7 @@ def make_mesher(**options):
     mesher.window_margin = _no_margin  # type: ignore[attr-defined]
     mesher.ladder_window = ladder_window  # type: ignore[attr-defined]
     mesher.with_build_options = mesher_for  # type: ignore[attr-defined]
+    mesher.levels_without_options = lambda pyramid: _levels_without_options(opt, pyramid)  # type: ignore[attr-defined]
     mesher.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, opt)  # type: ignore[attr-defined]
     return mesher
 
@@ -303,6 +304,17 @@ def mesher_for(build_options: dict):
         max_tile_vertices=build_options.get("max_tile_vertices"),
         finest_level_error_m=None if finest is None else float(finest),
     )
+
+
+def _finest_is_grid(opt: AdaptiveOptions) -> bool:
+    """True when the finest level's target is 0 for any ladder (it is the regular grid of its samples)."""
+    return opt.finest_error_m is None and opt.finest_level_error_m == 0.0
+
+
+def _levels_without_options(opt: AdaptiveOptions, pyramid: TilePyramid) -> set[int]:
+    """Levels whose tiles do not depend on the store's stated build options (the ladder): the finest when
+    it is the grid. A build meshes them while it computes the ladder."""
+    return {pyramid.max_level} if _finest_is_grid(opt) else set()
 
 
 def _no_margin(stride: int) -> int:
@@ -345,4 +357,5 @@ mesh_tile.window_margin = _no_margin  # type: ignore[attr-defined]
 #: ``with_build_options(the stated build_options)``: the ladder fixed, never recomputed from a window
 mesh_tile.ladder_window = ladder_window  # type: ignore[attr-defined]
 mesh_tile.with_build_options = mesher_for  # type: ignore[attr-defined]
+mesh_tile.levels_without_options = lambda pyramid: _levels_without_options(_DEFAULT, pyramid)  # type: ignore[attr-defined]
 mesh_tile.build_meta = lambda z, valid, pyramid: _build_meta(z, valid, pyramid, _DEFAULT)  # type: ignore[attr-defined]

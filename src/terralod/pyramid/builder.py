@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import itertools
 import logging
 import math
 import os
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,6 +72,8 @@ _COMMIT_SECONDS = 0.5
 _AHEAD_PER_WORKER = 8
 #: Levels of at most this many tiles a worker are meshed first (their tiles are the largest).
 _EARLY_PER_WORKER = 2
+#: Tiles built before the store exists (while its meta is computed) held at most; then the build waits.
+_HELD_TILES = 4096
 
 
 def register_method(name: str, fn: MeshFn) -> None:
@@ -284,26 +287,40 @@ def _ordered_map(
     items: list[TileCode],
     ahead: int,
     early: Iterable[TileCode] = (),
-) -> Iterable[EncodedTile]:
+    early_after: Callable[[], bool] | None = None,
+    hold: Callable[[TileCode], bool] | None = None,
+) -> Iterator[EncodedTile]:
     """``pool.map(fn, items)``: results in the order of ``items``, with at most ``ahead`` of them submitted
     ahead of the one consumed (a big build never holds more finished tiles than that in memory), except
-    the ``early`` items, submitted first of all (the few largest tiles, so that no core waits alone for one
-    of them at the end of the build)."""
+    the ``early`` items, submitted before the others (the few largest tiles, so that no core waits alone
+    for one of them at the end of the build) as soon as ``early_after()`` is true. An item for which
+    ``hold(item)`` is true is not submitted ahead (nor any after it) until it is the one consumed."""
     futs: dict[TileCode, Future[EncodedTile]] = {}
-    for code in early:
-        futs[code] = pool.submit(fn, code)
+    submitted: set[TileCode] = set()
+    waiting = list(early)
     nxt = 0
 
+    def submit(code: TileCode) -> None:
+        if code not in submitted:
+            submitted.add(code)
+            futs[code] = pool.submit(fn, code)
+
     def top_up(limit: int) -> None:
-        nonlocal nxt
+        nonlocal nxt, waiting
+        if waiting and (early_after is None or early_after()):
+            for code in waiting:
+                submit(code)
+            waiting = []
         while nxt < len(items) and nxt < limit:
-            if items[nxt] not in futs:
-                futs[items[nxt]] = pool.submit(fn, items[nxt])
+            if hold is not None and items[nxt] not in submitted and hold(items[nxt]):
+                break
+            submit(items[nxt])
             nxt += 1
 
     try:
         for i, code in enumerate(items):
             top_up(i + ahead)
+            submit(code)  # the one consumed now, held or not
             done = futs.pop(code).result()
             top_up(i + 1 + ahead)
             yield done
@@ -385,10 +402,11 @@ def build_store(
     quant = quantisation or plan_quantisation(
         hf, pyramid, grid_vertices=(method == "chunked"), headroom=epoch is not None
     )
-    meta = _store_meta(hf, pyramid, method, quant)
-
+    fresh = not (p.exists() and resume)
     target = p  # where tiles go: p itself, or (--overwrite) a temporary renamed over p once complete
-    if p.exists() and resume:
+    store: TileStore | None = None
+    if not fresh:
+        meta = _store_meta(hf, pyramid, method, quant)
         with TileStore.open(p) as old:  # read-only first: a complete store needs no write access
             for key in ("source_digest", "build_options", "quantisation", "width", "height", "tile_size"):
                 if old.meta.get(key) != meta[key]:
@@ -402,30 +420,31 @@ def build_store(
                 log.info("%s is complete; nothing to resume", p)
                 return BuildReport(p, n_total, 0, n_done, time.perf_counter() - t_start, hf.width * hf.height)
         store = TileStore.open(p, writable=True)
-    else:
-        if p.exists() or p.is_symlink():
-            if not overwrite:
-                raise StoreError(
-                    "already exists; use --resume to finish it or --overwrite to replace it", str(p)
-                )
-            if p.is_dir():
-                raise StoreError("is a directory, not a tile store", str(p))
-            target = replacement_path(p)  # the old store stays whole until the new one is complete
-            remove_store_files(target)
-        store = TileStore.create(target, meta)
-    if epoch is not None:  # the first epoch of a store of epochs: its map and source samples
-        store.start_first_epoch(str(epoch), hf)
+        if epoch is not None:  # the first epoch of a store of epochs: its map and source samples
+            store.start_first_epoch(str(epoch), hf)
+    elif p.exists() or p.is_symlink():
+        if not overwrite:
+            raise StoreError("already exists; use --resume to finish it or --overwrite to replace it", str(p))
+        if p.is_dir():
+            raise StoreError("is a directory, not a tile store", str(p))
+        target = replacement_path(p)  # the old store stays whole until the new one is complete
+    mesh_fn = METHODS[method]
+    # A fresh build meshes the levels that need no stated options (adaptive's finest level, the grid)
+    # while the store's meta is computed beside them (the source digest; adaptive's ladder, a TIN of the
+    # whole terrain), and creates the store once it is known; the levels that need the ladder start then.
+    free: set[int] = getattr(mesh_fn, "levels_without_options", lambda _: set())(pyramid) if fresh else set()
+    side = ThreadPoolExecutor(max_workers=1)
+    meta_f = side.submit(_store_meta, hf, pyramid, method, quant)
 
     codes = pyramid.all_codes(finest_first=True)
+    built = 0
     try:
-        errors = store.tile_errors()
+        errors = store.tile_errors() if store is not None else {}
         done = set(errors)
         total = len(codes)
         todo = [c for c in codes if c not in done]
         n_skipped = total - len(todo)
-        built = 0
         n_workers = max(1, workers or os.cpu_count() or 1)
-        mesh_fn = METHODS[method]
         if progress:
             progress(n_skipped, total)
         if stop_after is not None:
@@ -438,24 +457,43 @@ def build_store(
             def one(code: TileCode) -> EncodedTile:
                 return measure_tile(hf, pyramid, code, quant[code[0]], mesh_fn)
 
-            def monotone(encs: Iterable[EncodedTile]) -> Iterable[EncodedTile]:
+            def monotone(encs: Iterable[EncodedTile]) -> Iterator[EncodedTile]:
                 for enc in encs:
                     yield with_child_errors(enc, [errors[c] for c in pyramid.children(enc.code)])
 
-            # the tiles of the coarsest levels (at most _EARLY_PER_WORKER a worker) are the largest: first
+            # the tiles of the coarsest levels (at most _EARLY_PER_WORKER a worker) are the largest: first,
+            # once the meta (the ladder they mesh to) is known
             counts = collections.Counter(c[0] for c in todo)
-            early = [c for c in todo if counts[c[0]] <= _EARLY_PER_WORKER * n_workers]
-            stream = _ordered_map(pool, one, todo, _AHEAD_PER_WORKER * n_workers, early)
-            built = commit_streamed(store, monotone(stream),
+            early = [c for c in todo if counts[c[0]] <= _EARLY_PER_WORKER * n_workers and c[0] not in free]
+            stream = monotone(_ordered_map(pool, one, todo, _AHEAD_PER_WORKER * n_workers, early,
+                                           early_after=meta_f.done, hold=lambda c: c[0] not in free and
+                                           not meta_f.done()))  # fmt: skip
+            held: list[EncodedTile] = []
+            if store is None:  # tiles built before the store exists wait here (errors recorded for parents)
+                while not meta_f.done() and len(held) < _HELD_TILES:
+                    enc = next(stream, None)
+                    if enc is None:
+                        break
+                    errors[enc.code] = (enc.error_m, enc.vertical_error_m)
+                    held.append(enc)
+                if target != p:
+                    remove_store_files(target)
+                store = TileStore.create(target, meta_f.result())
+                if epoch is not None:  # the first epoch of a store of epochs: its map and source samples
+                    store.start_first_epoch(str(epoch), hf)
+            built = commit_streamed(store, itertools.chain(held, stream),
                                     errors, built, lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
         if n_skipped + built == total:
             store.complete_first_epoch()
             store.set_meta("complete", True)
     except BaseException:
-        store.close()
+        side.shutdown(cancel_futures=True)
+        if store is not None:
+            store.close()
         if target != p:
             remove_store_files(target)
         raise
+    side.shutdown()
     store.close()
     if target != p:
         if n_skipped + built == total:

@@ -35,8 +35,13 @@ Heightfield behind the same interface) without ever holding the whole DEM:
    source) and one plan strip (at most ``SCAN_STRIP_SAMPLES``).
 4. **One writer**: results stream back (threads or Dask futures, as they complete) to the caller's
    process, which commits them in transactions of at most ``_BATCH_TILES`` tiles or
-   ``_COMMIT_SECONDS`` (the builder's policy). Levels run finest first with a barrier between levels
-   (a parent needs its children's errors for the monotone error); ``resume=True`` skips committed tiles.
+   ``_COMMIT_SECONDS`` (the builder's policy). No barrier between levels: the units of the coarsest
+   levels (the largest tiles: the root reads a decimated copy of the whole DEM) are submitted first, the
+   rest finest first, at most ``_AHEAD_UNITS_PER_SLOT`` per worker thread in flight; a unit returns its
+   tiles' *measured* errors, and the writer takes a tile once its children's errors are recorded,
+   making its stored errors monotone there (:func:`_monotone`, the same numbers as before); the tiles
+   waiting for their children are bounded by the units in flight plus the early ones.
+   ``resume=True`` skips committed tiles.
 
 Dask (:func:`dask_client`): ``"local"`` starts a LocalCluster of worker processes (``threads`` each), an
 address ``tcp://HOST:PORT`` connects to a running scheduler (refused in one line, before anything is
@@ -69,12 +74,13 @@ column, where that row falls between two decimated rows, sits on the decimated l
 from __future__ import annotations
 
 import hashlib
+import itertools
 import logging
 import math
 import os
 import tempfile
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,7 +106,7 @@ from terralod.store import (
     remove_store_files,
     replacement_path,
 )
-from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size
+from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size, parent
 
 log = logging.getLogger(__name__)
 
@@ -560,23 +566,41 @@ class _ThreadRunner:
     """Units on a thread pool of this process (the numba kernels release the GIL)."""
 
     def __init__(self, threads: int) -> None:
+        self.threads = threads
         self.pool = ThreadPoolExecutor(max_workers=threads)
 
     def share(self, src):
         return src
 
-    def submit(self, *args):
-        return self.pool.submit(build_unit, *args)
+    def slots(self) -> int:
+        return self.threads
 
-    def completed(self, futures):
-        pending = set(futures)
-        while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in done:
-                yield fut.result()
+    def stream(self, jobs: Iterable[tuple], ahead: int) -> Iterator[list[EncodedTile]]:
+        """Results of ``build_unit(*job)`` as they complete, at most ``ahead`` units in flight."""
+        it = iter(jobs)
+        pending: set = set()
+
+        def top_up() -> None:
+            while len(pending) < ahead:
+                job = next(it, None)
+                if job is None:
+                    return
+                pending.add(self.pool.submit(build_unit, *job))
+
+        top_up()
+        try:
+            while pending:
+                done, rest = wait(pending, return_when=FIRST_COMPLETED)
+                pending.intersection_update(rest)
+                top_up()
+                for fut in done:
+                    yield fut.result()
+        finally:
+            for fut in pending:
+                fut.cancel()
 
     def close(self) -> None:
-        self.pool.shutdown()
+        self.pool.shutdown(cancel_futures=True)
 
 
 #: Units resubmitted after their futures were cancelled (a scattered source lost with a dead worker, a
@@ -603,20 +627,39 @@ class _DaskRunner:
             self._shared = src
         return self._shared
 
+    def slots(self) -> int:
+        return max(1, sum(self.client.nthreads().values()))
+
     def submit(self, *args):
         fut = self.client.submit(build_unit, *args, retries=self.retries, pure=False)
         self._args[fut.key] = args
         return fut
 
-    def completed(self, futures):
+    def stream(self, jobs: Iterable[tuple], ahead: int) -> Iterator[list[EncodedTile]]:
+        """Results of the units ``jobs`` as they complete, at most ``ahead`` in flight (see the module doc
+        for retries and resubmission)."""
         from concurrent.futures import CancelledError
 
         from dask.distributed import as_completed
         from distributed import KilledWorker
 
+        it = iter(jobs)
+        pending = as_completed()
+        in_flight = 0
+
+        def top_up() -> None:
+            nonlocal in_flight
+            while in_flight < ahead:
+                job = next(it, None)
+                if job is None:
+                    return
+                pending.add(self.submit(*job))
+                in_flight += 1
+
+        top_up()
         resubmits = 0
-        pending = as_completed(futures)
         for fut in pending:
+            in_flight -= 1
             try:
                 res = fut.result()
             except KilledWorker as exc:  # the unit's workers died, retries included: memory, usually
@@ -637,13 +680,64 @@ class _DaskRunner:
                 if args[0] is self._shared and self._shared is not self._src:
                     self.share(self._src)  # the scattered copy may be what was lost: scatter it again
                 pending.add(self.submit(self._shared, *args[1:]))
+                in_flight += 1
                 continue
             self._args.pop(fut.key, None)
-            yield res
             fut.release()
+            top_up()
+            yield res
 
     def close(self) -> None:
         pass
+
+
+#: Units in flight per worker thread (a bound on the finished tiles held for their parents' errors).
+_AHEAD_UNITS_PER_SLOT = 4
+#: Tiles built before the store exists (while the build options are computed) held at most; then the
+#: build waits for the options.
+_HELD_TILES = 4096
+#: The levels with at most this many units per worker thread (the coarsest, whose tiles are the largest)
+#: are submitted first, so that no core waits alone for the root at the end of a build.
+_EARLY_UNITS_PER_SLOT = 2
+
+
+def _unit_order(
+    pyramid: TilePyramid, todo: list[TileCode], unit_span: int, early_units: int
+) -> tuple[list[list[TileCode]], list[list[TileCode]]]:
+    """The work units of ``todo`` in submission order: (those of the levels with at most ``early_units``
+    units, coarsest first; the others, finest first)."""
+    per_level: dict[int, list[list[TileCode]]] = {}
+    for level in sorted({c[0] for c in todo}, reverse=True):
+        per_level[level] = _units(pyramid, level, [c for c in todo if c[0] == level], unit_span)
+    early = [lv for lv in sorted(per_level) if len(per_level[lv]) <= early_units]
+    rest = [lv for lv in sorted(per_level, reverse=True) if lv not in early]
+    return [u for lv in early for u in per_level[lv]], [u for lv in rest for u in per_level[lv]]
+
+
+def _monotone(
+    tiles: Iterable[EncodedTile], pyramid: TilePyramid, errors: dict[TileCode, tuple[float, float]]
+) -> Iterator[EncodedTile]:
+    """Measured tiles, in any order, to the writer's order: a tile leaves once every child's errors are in
+    ``errors`` (the writer records them as it takes each tile), with its stored errors made monotone by
+    :func:`~terralod.pyramid.builder.with_child_errors`. No level waits for the one before it to finish:
+    the coarse tiles are meshed and measured alongside the fine ones, and wait only for their stored
+    errors (the in-memory builder's policy)."""
+    waiting: dict[TileCode, EncodedTile] = {}
+    for enc in tiles:
+        waiting[enc.code] = enc
+        ready = [enc.code]
+        while ready:
+            code = ready.pop()
+            tile = waiting.get(code)
+            if tile is None or any(k not in errors for k in pyramid.children(code)):
+                continue
+            del waiting[code]
+            yield builder.with_child_errors(tile, [errors[k] for k in pyramid.children(code)])
+            up = parent(code)
+            if up is not None:
+                ready.append(up)
+    if waiting:  # pragma: no cover - every tile's children are built before the stream ends
+        raise AssertionError(f"{len(waiting)} tiles never had their children's errors")
 
 
 # -- the driver ----------------------------------------------------------------------------------------
@@ -687,9 +781,24 @@ def build_store_windowed(
     pyramid = TilePyramid(src.width, src.height, tile_size)
     plan = scan_source(src, pyramid)
     quant = plan.quant(grid_vertices=(method == "chunked"))
-    meta = builder._store_meta(_FrameMeta(src, plan, _ladder_read(src, pyramid, method)), pyramid, method,
-                               quant)  # type: ignore[arg-type]  # fmt: skip
-    store, target = _open_or_create(p, meta, resume, overwrite)
+
+    def make_meta() -> dict:
+        return builder._store_meta(_FrameMeta(src, plan, _ladder_read(src, pyramid, method)), pyramid,
+                                   method, quant)  # type: ignore[arg-type]  # fmt: skip
+
+    fresh = not (resume and p.exists())
+    if fresh:
+        _check_new_target(p, overwrite)  # refused in one line before any work
+    # A fresh build meshes the levels that need no stated options (adaptive's finest level, the grid)
+    # while the options are computed beside them (adaptive's ladder: a read of the root's window and a
+    # TIN of it, serial), and creates the store once they are known.
+    free = (
+        getattr(builder.METHODS[method], "levels_without_options", lambda _: set())(pyramid)
+        if fresh
+        else set()
+    )
+    side = ThreadPoolExecutor(max_workers=1)
+    meta_f = side.submit(make_meta)
     runner = (
         _DaskRunner(client, retries)
         if client is not None
@@ -697,49 +806,66 @@ def build_store_windowed(
     )
     codes = pyramid.all_codes(finest_first=True)
     built = n_skipped = total = 0
+    store: TileStore | None = None
+    target = p
     try:
-        errors = store.tile_errors()
+        errors: dict[TileCode, tuple[float, float]] = {}
+        if not fresh:
+            store, target = _open_or_create(p, meta_f.result(), resume, overwrite)
+            errors = store.tile_errors()
         total = len(codes)
         todo = [c for c in codes if c not in errors]
         n_skipped = total - len(todo)
         if progress:
             progress(n_skipped, total)
         shared = runner.share(src)
-        for level in reversed(pyramid.levels):
-            level_codes = [c for c in todo if c[0] == level]
-            if stop_after is not None:
-                level_codes = level_codes[: max(0, stop_after - built)]
-            if not level_codes:
-                continue
-            futures = []
-            for unit in _units(pyramid, level, level_codes, unit_span_samples):
-                kids = {c: [errors[k] for k in pyramid.children(c)] for c in unit}
-                futures.append(
-                    runner.submit(
-                        shared,
-                        tile_size,
-                        method,
-                        unit,
-                        quant[level],
-                        kids,
-                        max_window_samples,
-                        meta["build_options"],
-                    )  # fmt: skip
-                )
-            streamed = (enc for tiles in runner.completed(futures) for enc in tiles)
-            built = builder.commit_streamed(store, streamed, errors, built,
-                                            lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
-            if stop_after is not None and built >= stop_after:
-                break
+        if stop_after is not None:
+            todo = todo[: max(0, stop_after)]  # finest first: a tile's children come before it
+        slots = runner.slots()
+
+        def job(unit: list[TileCode], options: dict | None) -> tuple:
+            return (shared, tile_size, method, unit, quant[unit[0][0]], {c: [] for c in unit},
+                    max_window_samples, options)  # fmt: skip
+
+        def jobs() -> Iterator[tuple]:
+            _, now = _unit_order(pyramid, [c for c in todo if c[0] in free], unit_span_samples, 0)
+            i = 0
+            while i < len(now) and not meta_f.done():
+                yield job(now[i], None)
+                i += 1
+            options = meta_f.result()["build_options"]
+            early, rest = _unit_order(pyramid, [c for c in todo if c[0] not in free], unit_span_samples,
+                                      _EARLY_UNITS_PER_SLOT * slots)  # fmt: skip
+            yield from (job(u, options) for u in early)
+            yield from (job(u, None) for u in now[i:])
+            yield from (job(u, options) for u in rest)
+
+        measured = (enc for tiles in runner.stream(jobs(), _AHEAD_UNITS_PER_SLOT * slots) for enc in tiles)
+        ordered = _monotone(measured, pyramid, errors)
+        held: list[EncodedTile] = []
+        if store is None:  # tiles built before the store exists wait here (errors recorded for parents)
+            while not meta_f.done() and len(held) < _HELD_TILES:
+                enc = next(ordered, None)
+                if enc is None:
+                    break
+                errors[enc.code] = (enc.error_m, enc.vertical_error_m)
+                held.append(enc)
+            store, target = _open_or_create(p, meta_f.result(), resume, overwrite)
+        built = builder.commit_streamed(store, itertools.chain(held, ordered), errors, built,
+                                        lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
         if n_skipped + built == total:
             store.set_meta("complete", True)
     except BaseException:
         runner.close()
-        store.close()
-        if target != p:  # --overwrite: the old store was never touched
-            remove_store_files(target)
+        side.shutdown(cancel_futures=True)
+        if store is not None:
+            store.close()
+            if target != p:  # --overwrite: the old store was never touched
+                remove_store_files(target)
         raise
+    side.shutdown()
     runner.close()
+    assert store is not None  # made in the try block, or it raised
     store.close()
     if target != p:
         if n_skipped + built == total:
@@ -749,6 +875,15 @@ def build_store_windowed(
     seconds = time.perf_counter() - t_start
     log.info("built %d tiles (%d already present) in %.2f s, out of core", built, n_skipped, seconds)
     return builder.BuildReport(p, total, built, n_skipped, seconds, src.width * src.height)
+
+
+def _check_new_target(p: Path, overwrite: bool) -> None:
+    """The refusals of :func:`_open_or_create` for a new store, made before any work."""
+    if p.exists() or p.is_symlink():
+        if not overwrite:
+            raise StoreError("already exists; use --resume to finish it or --overwrite to replace it", str(p))
+        if p.is_dir():
+            raise StoreError("is a directory, not a tile store", str(p))
 
 
 def _open_or_create(p: Path, meta: dict, resume: bool, overwrite: bool) -> tuple[TileStore, Path]:
@@ -767,10 +902,7 @@ def _open_or_create(p: Path, meta: dict, resume: bool, overwrite: bool) -> tuple
                 )
         return store, p
     if p.exists() or p.is_symlink():
-        if not overwrite:
-            raise StoreError("already exists; use --resume to finish it or --overwrite to replace it", str(p))
-        if p.is_dir():
-            raise StoreError("is a directory, not a tile store", str(p))
+        _check_new_target(p, overwrite)
         target = replacement_path(p)
         remove_store_files(target)
         return TileStore.create(target, meta), target
