@@ -329,6 +329,21 @@ def _ordered_map(
             f.cancel()
 
 
+def hold_until(
+    tiles: Iterator[EncodedTile], ready: Future[Any], errors: dict[TileCode, tuple[float, float]]
+) -> list[EncodedTile]:
+    """The tiles a build finishes before its store exists: taken from ``tiles`` until ``ready`` (the
+    store's meta) is done or :data:`_HELD_TILES` are held, each one's errors recorded for its parent."""
+    held: list[EncodedTile] = []
+    while not ready.done() and len(held) < _HELD_TILES:
+        enc = next(tiles, None)
+        if enc is None:
+            break
+        errors[enc.code] = (enc.error_m, enc.vertical_error_m)
+        held.append(enc)
+    return held
+
+
 def commit_streamed(
     store: TileStore,
     tiles: Iterable[EncodedTile],
@@ -470,12 +485,7 @@ def build_store(
                                            not meta_f.done()))  # fmt: skip
             held: list[EncodedTile] = []
             if store is None:  # tiles built before the store exists wait here (errors recorded for parents)
-                while not meta_f.done() and len(held) < _HELD_TILES:
-                    enc = next(stream, None)
-                    if enc is None:
-                        break
-                    errors[enc.code] = (enc.error_m, enc.vertical_error_m)
-                    held.append(enc)
+                held = hold_until(stream, meta_f, errors)
                 if target != p:
                     remove_store_files(target)
                 store = TileStore.create(target, meta_f.result())

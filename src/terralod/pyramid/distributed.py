@@ -693,9 +693,6 @@ class _DaskRunner:
 
 #: Units in flight per worker thread (a bound on the finished tiles held for their parents' errors).
 _AHEAD_UNITS_PER_SLOT = 4
-#: Tiles built before the store exists (while the build options are computed) held at most; then the
-#: build waits for the options.
-_HELD_TILES = 4096
 #: The levels with at most this many units per worker thread (the coarsest, whose tiles are the largest)
 #: are submitted first, so that no core waits alone for the root at the end of a build.
 _EARLY_UNITS_PER_SLOT = 2
@@ -844,12 +841,7 @@ def build_store_windowed(
         ordered = _monotone(measured, pyramid, errors)
         held: list[EncodedTile] = []
         if store is None:  # tiles built before the store exists wait here (errors recorded for parents)
-            while not meta_f.done() and len(held) < _HELD_TILES:
-                enc = next(ordered, None)
-                if enc is None:
-                    break
-                errors[enc.code] = (enc.error_m, enc.vertical_error_m)
-                held.append(enc)
+            held = builder.hold_until(ordered, meta_f, errors)
             store, target = _open_or_create(p, meta_f.result(), resume, overwrite)
         built = builder.commit_streamed(store, itertools.chain(held, ordered), errors, built,
                                         lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
