@@ -508,3 +508,45 @@ def test_split_coder_roundtrips_with_any_geometry(seed: int, n: int, blocks: int
     assert status == 0 and n_dec == n_esc
     for a, b in zip(out, (u, v, x1, mm), strict=True):
         assert np.array_equal(a, b)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(12, 600), blocks=st.sampled_from([1, 4, 9]))
+def test_splits_coded_beside_the_build_give_the_same_file(
+    tmp_path_factory, seed: int, n: int, blocks: int
+) -> None:
+    """A built model's file, whose split codes were computed on a thread beside the records' replay, has
+    the bytes of the same model coded after the build (the save's own pass), for any thread count."""
+    d = tmp_path_factory.mktemp("ahead")
+    m = DetailIncrementModel.from_points(_cloud(seed, n), sub_blocks=blocks)
+    assert m._splits_ahead is not None
+    m.save(d / "ahead.tdim", workers=2)
+    m._splits_ahead = None
+    m.save(d / "after.tdim", workers=1)
+    assert (d / "ahead.tdim").read_bytes() == (d / "after.tdim").read_bytes()
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), sizes=st.lists(st.integers(0, 400_000), min_size=1, max_size=5),
+       workers=st.sampled_from([None, 1, 2, 3]))  # fmt: skip
+def test_streamed_container_has_the_bytes_of_the_whole_one(tmp_path_factory, seed: int, sizes: list[int],
+                                                           workers: int | None) -> None:  # fmt: skip
+    """write_container_stream (arrays one by one, whole LZMA2 pieces coded as they are known) writes the
+    bytes of write_container, including payloads of several pieces and a piece boundary inside an array;
+    a wrong array count raises and writes nothing."""
+    from terralod.tin import fileformat as F
+
+    d = tmp_path_factory.mktemp("stream")
+    rng = np.random.default_rng(seed)
+    arrays = {f"a{i}": rng.integers(0, 1 << 20, s).astype(np.int64) for i, s in enumerate(sizes)}
+    whole = d / "whole.bin"
+    F.write_container(whole, {"k": 1}, arrays, workers=1)
+    plain = F._uvarint(len(b'{"k":1}')) + b'{"k":1}' + F._array_section(arrays)
+    assert whole.read_bytes()[F._HEADER.size :] == F._pack(plain, 1)  # the one-shot coder's bytes
+    streamed = d / "streamed.bin"
+    F.write_container_stream(streamed, {"k": 1}, len(arrays), iter(arrays.items()), workers=workers)
+    assert streamed.read_bytes() == whole.read_bytes()
+    assert np.array_equal(F.read_container(streamed)[1][f"a{len(sizes) - 1}"], arrays[f"a{len(sizes) - 1}"])
+    with pytest.raises(ValueError, match="Expected 9 arrays"):
+        F.write_container_stream(d / "wrong.bin", {"k": 1}, 9, iter(arrays.items()))
+    assert not (d / "wrong.bin").exists()

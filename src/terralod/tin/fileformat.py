@@ -40,6 +40,7 @@ import math
 import os
 import struct
 import zlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,7 @@ __all__ = [
     "read_container",
     "read_text",
     "write_container",
+    "write_container_stream",
     "write_text",
 ]
 
@@ -310,26 +312,29 @@ def _decode_floats(buf: bytes, shape: tuple[int, ...], src: str) -> np.ndarray:
 
 
 def _array_section(arrays: dict[str, np.ndarray]) -> bytes:
-    """Named arrays, uncoded: per array its name, dtype, stored dtype, shape, byte length and bytes
-    (integers narrowed and shuffled; large float arrays by :func:`_encode_floats`)."""
-    out = io.BytesIO()
-    out.write(struct.pack("<I", len(arrays)))
-    for name, arr in arrays.items():
-        a = np.ascontiguousarray(arr)
-        if a.dtype == np.float64 and a.ndim in (1, 2) and a.size > 256:  # small ones: as they are
-            stored_str = _FLOAT_CODED
-            raw = _encode_floats(a)
-        else:
-            stored = _narrow(a)
-            stored_str = stored.dtype.str
-            raw = _shuffle(stored)
-        nm = name.encode()
-        out.write(struct.pack("<B", len(nm)) + nm)
-        for dt in (a.dtype.newbyteorder("<").str, stored_str):
-            out.write(struct.pack("<B", len(dt)) + dt.encode())
-        out.write(struct.pack("<B", a.ndim) + b"".join(_uvarint(s) for s in a.shape))
-        out.write(_uvarint(len(raw)) + raw)
-    return out.getvalue()
+    """Named arrays, uncoded: their count, then per array its name, dtype, stored dtype, shape, byte length
+    and bytes (integers narrowed and shuffled; large float arrays by :func:`_encode_floats`)."""
+    return struct.pack("<I", len(arrays)) + b"".join(_array_bytes(n, a) for n, a in arrays.items())
+
+
+def _array_bytes(name: str, arr: np.ndarray) -> bytes:
+    """One array's part of :func:`_array_section`."""
+    a = np.ascontiguousarray(arr)
+    if a.dtype == np.float64 and a.ndim in (1, 2) and a.size > 256:  # small ones: as they are
+        stored_str = _FLOAT_CODED
+        raw = _encode_floats(a)
+    else:
+        stored = _narrow(a)
+        stored_str = stored.dtype.str
+        raw = _shuffle(stored)
+    nm = name.encode()
+    out = [struct.pack("<B", len(nm)) + nm]
+    for dt in (a.dtype.newbyteorder("<").str, stored_str):
+        out.append(struct.pack("<B", len(dt)) + dt.encode())
+    out.append(struct.pack("<B", a.ndim) + b"".join(_uvarint(s) for s in a.shape))
+    out.append(_uvarint(len(raw)))
+    out.append(raw)
+    return b"".join(out)
 
 
 def _uvarint(x: int) -> bytes:
@@ -416,9 +421,49 @@ def write_container(
     :data:`LZMA_PIECE_BYTES` compressed on ``workers`` threads, the same bytes for any number). Written
     to ``path + '.tmp'`` then renamed, so an interrupted write never leaves a half file.
     """
+    return write_container_stream(path, meta, len(arrays), iter(arrays.items()), compress=compress,
+                                  workers=workers)  # fmt: skip
+
+
+def write_container_stream(
+    path: str | os.PathLike[str],
+    meta: dict[str, Any],
+    n_arrays: int,
+    arrays: Iterator[tuple[str, np.ndarray]],
+    *,
+    compress: bool = True,
+    workers: int | None = None,
+) -> int:
+    """:func:`write_container` of ``n_arrays`` named arrays that arrive one by one, in order, the same
+    bytes: each whole piece of :data:`LZMA_PIECE_BYTES` is compressed on a thread as soon as its bytes
+    are known, so the coder runs beside whatever computes the later arrays (the splits' codes of
+    :meth:`terralod.tin.increments.DetailIncrementModel.save`). ValueError when the iterator yields other
+    than ``n_arrays`` arrays; nothing is written then, nor when it raises."""
     body = json.dumps(meta, sort_keys=True, separators=(",", ":")).encode()
-    plain = _uvarint(len(body)) + body + _array_section(arrays)
-    payload = _pack(plain, workers) if compress else plain
+    buf = bytearray(_uvarint(len(body)) + body + struct.pack("<I", n_arrays))
+    count = 0
+    if not compress:
+        for name, arr in arrays:
+            buf += _array_bytes(name, arr)
+            count += 1
+        payload = bytes(buf)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        n = max(1, workers if workers is not None else min(os.cpu_count() or 1, 8))
+        coded = []
+        done = 0  # bytes of buf handed to the coder
+        with ThreadPoolExecutor(n) as pool:  # liblzma runs without the GIL
+            for name, arr in arrays:
+                buf += _array_bytes(name, arr)
+                count += 1
+                while len(buf) - done > LZMA_PIECE_BYTES:  # a whole piece, and more after it
+                    coded.append(pool.submit(_pack_piece, bytes(buf[done : done + LZMA_PIECE_BYTES])))
+                    done += LZMA_PIECE_BYTES
+            coded.append(pool.submit(_pack_piece, bytes(buf[done:])))  # the last piece: 1 to a whole
+            payload = b"".join(f.result() for f in coded) + b"\x00"
+    if count != n_arrays:
+        raise ValueError(f"Expected {n_arrays} arrays, got {count}")
     head = _HEADER.pack(
         MAGIC,
         FORMAT_VERSION,

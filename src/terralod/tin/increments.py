@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -32,7 +32,7 @@ from terralod.tin.fileformat import (
     decode_mesh_rows,
     encode_mesh_rows,
     read_container,
-    write_container,
+    write_container_stream,
     write_text,
 )
 from terralod.tin.records import DeltaT, Increments
@@ -99,6 +99,49 @@ class _Clock:
 
 
 # -- the model -------------------------------------------------------------------------------------------
+def _split_arrays(qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_v, wing, rec_m) -> dict[str, np.ndarray]:  # fmt: skip
+    """The file's arrays of the vertex splits: :func:`terralod.kernels.tincodec.split_codes` (one sequential
+    pass, without the GIL) of records ``rec_u, rec_v`` (int64), wings ``wing`` (x1) and fan sizes ``rec_m``
+    over the base ``base`` and each vertex's inserting block ``label``."""
+    sym = [np.zeros(rec_u.shape[0], np.int64) for _ in range(6)]
+    status, n_esc = split_codes(True, qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_v, wing,
+                                rec_m, *sym)  # fmt: skip
+    if status != 0:
+        raise RuntimeError(f"vertex splits do not code (record {status - 1})")
+    sym_u, sym_v, sym_j, after, esc_v, esc_x = sym
+    return {
+        "split_u": sym_u,
+        "split_v": sym_v,
+        "split_j": sym_j,
+        "split_after": after,
+        "escape_v": esc_v[:n_esc],
+        "escape_x1": esc_x[:n_esc],
+    }
+
+
+def _splits_beside(vertices_m: np.ndarray, n_blocks: int) -> tuple[Callable[..., None], list]:
+    """An ``on_compact`` hook for :meth:`Increments.from_log` that starts :func:`_split_arrays` on a thread
+    of its own with the compact records (they are all it needs), and the list it puts the future in: the
+    file's sequential split coder then runs beside the records' sequential replay instead of after it."""
+    box: list = []
+
+    def hook(base_tri, block_records, u, v, x1, m) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        block_ptr = np.concatenate([[0], np.cumsum(block_records)]).astype(np.int64)
+        label = np.full(vertices_m.shape[0], n_blocks, np.int64)
+        label[u] = np.repeat(np.arange(n_blocks, dtype=np.int64), block_records)
+        vpos, vat, lo, hi = _insert_order(label, n_blocks)
+        args = (_grid_xy(vertices_m), vertices_m[:, 2].copy(), label, np.ascontiguousarray(base_tri, np.int32),
+                block_ptr, vpos, vat, lo, hi, np.ascontiguousarray(u, np.int64), np.ascontiguousarray(v, np.int64),
+                np.ascontiguousarray(x1, np.int64), np.ascontiguousarray(m, np.int64))  # fmt: skip
+        pool = ThreadPoolExecutor(1)
+        box.append(pool.submit(_split_arrays, *args))
+        pool.shutdown(wait=False)  # the thread ends with its one task
+
+    return hook, box
+
+
 def _auto_sub_blocks(n_points: int) -> int:
     """k * k sub-blocks for a cloud of ``n_points``: about 32 k points (64 k triangles) a block, k >= 2."""
     k = max(2, math.ceil(math.sqrt(n_points / 32768)))
@@ -168,6 +211,8 @@ class DetailIncrementModel:
         self._alive = self._base_alive.copy()
         self._scales = np.zeros(increments.n_blocks, np.int64)
         self._full_tris: np.ndarray | None = None  # the input TIN when built here (for checks)
+        # (the raw increments, the future of their split arrays) when built here (see _splits_beside)
+        self._splits_ahead: tuple[Any, Any] | None = None
 
     # -- builders ----------------------------------------------------------------------------------------
     @classmethod
@@ -305,7 +350,10 @@ class DetailIncrementModel:
         log, err = simplify_blocks(vertices, tris, sb.kind, sb.tri_block, base_fraction=base_fraction,
                                    n_blocks=sb.n_blocks, workers=workers, executor=executor)  # fmt: skip
         clock("qem")
-        inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0], err)
+        # the file's split codes are computed beside the replay (kept for save; a model never saved
+        # wastes one thread's second)
+        hook, ahead = _splits_beside(np.asarray(vertices, np.float64), sb.n_blocks)
+        inc, base_tris, base_alive = Increments.from_log(log, sb.n_blocks, vertices.shape[0], err, hook)
         # a box around each block's triangles: every scale's surface lies inside it
         t = np.asarray(tris, np.int64)
         lo = (
@@ -334,6 +382,8 @@ class DetailIncrementModel:
         # the input TIN, kept for checks: the full scale holds the same triangles (in other slots, a
         # triple possibly rotated)
         model._full_tris = np.ascontiguousarray(tris, np.int32)
+        if ahead:
+            model._splits_ahead = (inc.raw if inc.raw is not None else inc, ahead[0])
         clock("records")
         return model
 
@@ -575,6 +625,18 @@ class DetailIncrementModel:
 
     # -- files -------------------------------------------------------------------------------------------
     def _payload(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """The file's metadata and named arrays, in the file's order (what :meth:`save` writes)."""
+        meta, head, splits, tail = self._payload_parts()
+        return meta, {**head, **splits(), **tail}
+
+    def _payload_parts(
+        self,
+    ) -> tuple[
+        dict[str, Any], dict[str, np.ndarray], Callable[[], dict[str, np.ndarray]], dict[str, np.ndarray]
+    ]:
+        """(meta, the arrays before the splits, a function computing the splits' arrays, the arrays after):
+        the splits' codes are one sequential pass (:func:`terralod.kernels.tincodec.split_codes`), which
+        :meth:`save` runs beside the compression of the arrays before them."""
         inc = self.increments
         raw = inc.raw if inc.raw is not None else inc
         if raw.rec_u is None or raw.rec_v is None or raw.mmqe_code is None or raw.error_code is None:
@@ -589,8 +651,8 @@ class DetailIncrementModel:
         ecode = raw.error_code
         edrop = np.delete(-np.diff(ecode), raw.mmqe_ptr[1:-1] - 1)
         # the splits as symbols predicted from geometry (terralod.kernels.tincodec)
-        n_rec = raw.n_records
         rec_u = raw.rec_u.astype(np.int64)
+        rec_v = raw.rec_v.astype(np.int64)
         rec_m = np.diff(raw.rep_ptr)
         label = np.full(self.vertices_m.shape[0], nb, np.int64)
         label[rec_u] = raw.record_block
@@ -600,14 +662,19 @@ class DetailIncrementModel:
         out[self._base_tris[:n_base].ravel()] = False
         cell = _block_cells(self.vertices_m, self.k)[out]
         label_escape = np.where(label[out] == cell, 0, label[out] + 1)
-        sym = [np.zeros(n_rec, np.int64) for _ in range(6)]
-        status, n_esc = split_codes(True, _grid_xy(self.vertices_m), self.vertices_m[:, 2].copy(), label,
-                                    self._base_tris[:n_base], raw.block_ptr, vpos, vat, lo, hi, rec_u,
-                                    raw.rec_v.astype(np.int64),
-                                    raw.del_tri[0::2, 2].astype(np.int64), rec_m, *sym)  # fmt: skip
-        if status != 0:
-            raise RuntimeError(f"vertex splits do not code (record {status - 1})")
-        sym_u, sym_v, sym_j, after, esc_v, esc_x = sym
+        qxy = _grid_xy(self.vertices_m)
+        zs = self.vertices_m[:, 2].copy()
+        base = self._base_tris[:n_base]
+
+        pre = self._splits_ahead
+        if pre is not None and pre[0] is raw:  # coded beside the build's replay (same inputs)
+            splits = pre[1].result
+        else:
+
+            def splits() -> dict[str, np.ndarray]:
+                return _split_arrays(qxy, zs, label, base, raw.block_ptr, vpos, vat, lo, hi, rec_u, rec_v,
+                                     raw.del_tri[0::2, 2].astype(np.int64), rec_m)  # fmt: skip
+
         meta = {
             "format": "terralod detail-increment model (paper 003)",
             "k": self.k,
@@ -618,32 +685,40 @@ class DetailIncrementModel:
             "notes": list(self.notes),
             "units": "metres; x east, y north, z up",
         }
-        arrays = {
+        head = {
             "vertices_m": self.vertices_m,
-            "base_rows": encode_mesh_rows(self._base_tris[:n_base]),
+            "base_rows": encode_mesh_rows(base),
             "block_centres_m": self.block_centres_m,
             "block_bounds_m": self.block_bounds_m,
             "block_boxes_m": self.block_boxes_m,
             "block_records": np.diff(raw.block_ptr),
             "vertex_block_escape": label_escape,
-            "split_u": sym_u,
-            "split_v": sym_v,
-            "split_j": sym_j,
-            "split_after": after,
-            "escape_v": esc_v[:n_esc],
-            "escape_x1": esc_x[:n_esc],
+        }
+        tail = {
             "mmqe_first": first,
             "mmqe_drop": drop,
             "error_first": ecode[raw.mmqe_ptr[:-1]],
             "error_drop": edrop,
         }
-        return meta, arrays
+        return meta, head, splits, tail
 
     def save(self, path: str | os.PathLike[str], *, compress: bool = True, workers: int | None = None) -> int:
         """Write the model (base mesh + increments + MMQE) to one checksummed file; returns its size, bytes
-        (``workers`` threads compress it; the bytes are the same for any number)."""
-        meta, arrays = self._payload()
-        return write_container(path, meta, arrays, compress=compress, workers=workers)
+        (``workers`` threads compress it; the bytes are the same for any number). The splits are coded on
+        a thread of their own while the arrays before them (the vertices, most of the file) are compressed."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        meta, head, splits, tail = self._payload_parts()
+        with ThreadPoolExecutor(1) as pool:
+            coded = pool.submit(splits)  # split_codes releases the GIL
+
+            def arrays() -> Iterator[tuple[str, np.ndarray]]:
+                yield from head.items()
+                yield from coded.result().items()
+                yield from tail.items()
+
+            return write_container_stream(path, meta, len(head) + 6 + len(tail), arrays(), compress=compress,
+                                          workers=workers)  # fmt: skip
 
     def export_text(self, path: str | os.PathLike[str]) -> None:
         """Write the increments in the paper's text scheme (:func:`write_text`)."""

@@ -39,7 +39,7 @@ Deviations, and why:
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -269,7 +269,12 @@ class Increments:
     # -- construction ----------------------------------------------------------------------------------
     @classmethod
     def from_log(
-        cls, log: Any, n_blocks: int, n_vertices: int, error_m: np.ndarray
+        cls,
+        log: Any,
+        n_blocks: int,
+        n_vertices: int,
+        error_m: np.ndarray,
+        on_compact: Callable[..., None] | None = None,
     ) -> tuple[Increments, np.ndarray, np.ndarray]:
         """Records from a :class:`terralod.tin.qem.CollapseLog` (collapse order → refinement order).
 
@@ -278,7 +283,8 @@ class Increments:
         The log is encoded to the compact vertex splits a file stores and decoded back
         (:meth:`from_compact`), so a model built here is exactly the model its file loads (slots
         included). Returns (increments, base triples (S, 3), base alive (S,)) in the decoded slot order:
-        the base triangles first, in their input order.
+        the base triangles first, in their input order. ``on_compact(base_tri, block_records, u, v, x1, m)``
+        is called with the compact records before they are replayed (what a file's coder needs).
         """
         c = log.n_collapses
         block = log.block.astype(np.int64)
@@ -311,6 +317,8 @@ class Increments:
                 np.concatenate([log.mmqe_m2[perm[lo:hi]], [log.mmqe0_m2[b]]])
             )
             ee[lo + b : hi + b + 1] = monotone_mmqe(np.concatenate([err[perm[lo:hi]], [0.0]]))
+        if on_compact is not None:
+            on_compact(base_tri, block_records, u, v, x1, m)
         return cls.from_compact(
             n_vertices,
             base_tri,
