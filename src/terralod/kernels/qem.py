@@ -971,7 +971,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                 esum[bx] += ex - emin[x]
                 emin[x] = ex
                 cheapest[x] = True
-                if vx == best[x] and cx == bestc[x] and hpos[x] >= 0:
+                if vx == best[x] and cx == bestc[x]:
                     continue  # same best collapse: its heap entry stands
                 best[x] = vx
                 bestc[x] = cx

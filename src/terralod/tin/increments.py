@@ -119,6 +119,20 @@ def _split_arrays(qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_
     }
 
 
+def _vertex_labels(n_vertices: int, n_blocks: int, rec_u: np.ndarray, block_ptr: np.ndarray) -> np.ndarray:
+    """(V,) int64: the sub-block whose records insert each vertex (``n_blocks`` for the base's)."""
+    label = np.full(n_vertices, n_blocks, np.int64)
+    label[rec_u] = np.repeat(np.arange(n_blocks, dtype=np.int64), np.diff(block_ptr))
+    return label
+
+
+def _split_args(vertices_m, label, n_blocks, base, block_ptr, rec_u, rec_v, wing, rec_m) -> tuple:  # fmt: skip
+    """The arguments of :func:`_split_arrays` for compact records (block-major, refinement order)."""
+    vpos, vat, lo, hi = _insert_order(label, n_blocks)
+    i64 = [np.ascontiguousarray(a, np.int64) for a in (block_ptr, rec_u, rec_v, wing, rec_m)]
+    return (_grid_xy(vertices_m), vertices_m[:, 2].copy(), label, base, i64[0], vpos, vat, lo, hi, *i64[1:])
+
+
 def _splits_beside(vertices_m: np.ndarray, n_blocks: int) -> tuple[Callable[..., None], list]:
     """An ``on_compact`` hook for :meth:`Increments.from_log` that starts :func:`_split_arrays` on a thread
     of its own with the compact records (they are all it needs), and the list it puts the future in: the
@@ -128,13 +142,10 @@ def _splits_beside(vertices_m: np.ndarray, n_blocks: int) -> tuple[Callable[...,
     def hook(base_tri, block_records, u, v, x1, m) -> None:
         from concurrent.futures import ThreadPoolExecutor
 
-        block_ptr = np.concatenate([[0], np.cumsum(block_records)]).astype(np.int64)
-        label = np.full(vertices_m.shape[0], n_blocks, np.int64)
-        label[u] = np.repeat(np.arange(n_blocks, dtype=np.int64), block_records)
-        vpos, vat, lo, hi = _insert_order(label, n_blocks)
-        args = (_grid_xy(vertices_m), vertices_m[:, 2].copy(), label, np.ascontiguousarray(base_tri, np.int32),
-                block_ptr, vpos, vat, lo, hi, np.ascontiguousarray(u, np.int64), np.ascontiguousarray(v, np.int64),
-                np.ascontiguousarray(x1, np.int64), np.ascontiguousarray(m, np.int64))  # fmt: skip
+        block_ptr = np.concatenate([[0], np.cumsum(block_records)])
+        label = _vertex_labels(vertices_m.shape[0], n_blocks, u, block_ptr)
+        args = _split_args(vertices_m, label, n_blocks, np.ascontiguousarray(base_tri, np.int32), block_ptr, u,
+                           v, x1, m)  # fmt: skip
         pool = ThreadPoolExecutor(1)
         box.append(pool.submit(_split_arrays, *args))
         pool.shutdown(wait=False)  # the thread ends with its one task
@@ -651,29 +662,22 @@ class DetailIncrementModel:
         ecode = raw.error_code
         edrop = np.delete(-np.diff(ecode), raw.mmqe_ptr[1:-1] - 1)
         # the splits as symbols predicted from geometry (terralod.kernels.tincodec)
-        rec_u = raw.rec_u.astype(np.int64)
-        rec_v = raw.rec_v.astype(np.int64)
-        rec_m = np.diff(raw.rep_ptr)
-        label = np.full(self.vertices_m.shape[0], nb, np.int64)
-        label[rec_u] = raw.record_block
-        vpos, vat, lo, hi = _insert_order(label, nb)
+        label = _vertex_labels(self.vertices_m.shape[0], nb, raw.rec_u, raw.block_ptr)
         # a vertex out of the base is mostly inserted by the sub-block whose cell holds it: 0, else label + 1
         out = np.ones(label.size, np.bool_)
         out[self._base_tris[:n_base].ravel()] = False
         cell = _block_cells(self.vertices_m, self.k)[out]
         label_escape = np.where(label[out] == cell, 0, label[out] + 1)
-        qxy = _grid_xy(self.vertices_m)
-        zs = self.vertices_m[:, 2].copy()
         base = self._base_tris[:n_base]
-
         pre = self._splits_ahead
         if pre is not None and pre[0] is raw:  # coded beside the build's replay (same inputs)
             splits = pre[1].result
         else:
+            args = _split_args(self.vertices_m, label, nb, base, raw.block_ptr, raw.rec_u, raw.rec_v,
+                               raw.del_tri[0::2, 2], np.diff(raw.rep_ptr))  # fmt: skip
 
             def splits() -> dict[str, np.ndarray]:
-                return _split_arrays(qxy, zs, label, base, raw.block_ptr, vpos, vat, lo, hi, rec_u, rec_v,
-                                     raw.del_tri[0::2, 2].astype(np.int64), rec_m)  # fmt: skip
+                return _split_arrays(*args)
 
         meta = {
             "format": "terralod detail-increment model (paper 003)",
