@@ -169,7 +169,7 @@ def test_tin_window_meets_target_without_fold_over(h, w, seed, target) -> None:
     valid = np.ones((h, w), np.bool_)
     valid[0, :] = valid[-1, :] = valid[:, 0] = valid[:, -1] = False  # the border is not measured here
     e = np.zeros(0, np.int64)
-    px, py, tris, worst = tin_window(z, valid, e, e, target, h * w)
+    px, py, tris, worst, best = tin_window(z, valid, e, e, target, h * w)
     a = np.stack([px, py], 1)[tris.astype(np.int64)]
     cross = (a[:, 1, 0] - a[:, 0, 0]) * (a[:, 2, 1] - a[:, 0, 1]) - (a[:, 1, 1] - a[:, 0, 1]) * (
         a[:, 2, 0] - a[:, 0, 0]
@@ -179,6 +179,29 @@ def test_tin_window_meets_target_without_fold_over(h, w, seed, target) -> None:
     verts = np.stack([px, py, z[py, px]], 1).astype(np.float64)
     rep = measure_error_window(verts, tris[:, [0, 2, 1]], z, valid, 1.0, 1.0)
     assert worst <= target and rep.max_vertical_m <= target + 1e-4
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(4, 24), st.integers(4, 24), st.integers(0, 2**20))
+def test_tin_window_best_error_is_the_running_minimum_of_measured_max_errors(h, w, seed) -> None:
+    """``best_error`` with a cap of n vertices is the lowest measured max error of the meshes the insertion
+    made with at most n vertices (so it never rises with n), while ``max_error`` is that cap's mesh's own
+    measured max error (which may rise: a flip can make a worse triangle)."""
+    rng = np.random.default_rng(seed)
+    z = np.ascontiguousarray(np.cumsum(rng.normal(0.0, 20.0, (h, w)), axis=1).astype(np.float32))
+    valid = np.ones((h, w), np.bool_)
+    valid[0, :] = valid[-1, :] = valid[:, 0] = valid[:, -1] = False
+    e = np.zeros(0, np.int64)
+    running = np.inf
+    for cap in range(4, min(h * w, 4 + 3 * (h - 2) * (w - 2) // 4) + 1):
+        px, py, tris, worst, best = tin_window(z, valid, e, e, 0.0, cap)
+        verts = np.stack([px, py, z[py, px]], 1).astype(np.float64)
+        measured = measure_error_window(verts, tris[:, [0, 2, 1]], z, valid, 1.0, 1.0).max_vertical_m
+        assert abs(worst - measured) <= 1e-4 * max(1.0, measured)
+        if len(px) == cap:  # (the insertion stopped at the cap, not because every sample was exact)
+            running = min(running, worst)
+            assert best == pytest.approx(running, abs=1e-9)
+        assert best <= worst
 
 
 @settings(max_examples=20, deadline=None)
@@ -198,7 +221,7 @@ def test_seeded_tin_window_keeps_its_seeds_and_meets_target(h, w, seed, target, 
     sy, sx = np.divmod(interior[pick], w - 2)
     sx, sy = (sx + 1).astype(np.int64), (sy + 1).astype(np.int64)
     e = np.zeros(0, np.int64)
-    px, py, tris, worst = tin_window_seeded(z, valid, e, e, sx, sy, target, h * w)
+    px, py, tris, worst, best = tin_window_seeded(z, valid, e, e, sx, sy, target, h * w)
     a = np.stack([px, py], 1)[tris.astype(np.int64)]
     cross = (a[:, 1, 0] - a[:, 0, 0]) * (a[:, 2, 1] - a[:, 0, 1]) - (a[:, 1, 1] - a[:, 0, 1]) * (
         a[:, 2, 0] - a[:, 0, 0]

@@ -400,6 +400,10 @@ def tin_window(z, valid, bx, by, target, max_vertices):
     -------
     px, py : (N,) int64 vertex columns and rows; tris : (K, 3) int32, counter-clockwise in (x, y);
     max_error : the largest vertical error left over the interior candidates (metres; 0 when none)
+    best_error : the lowest such largest error of any mesh the insertion went through (metres): the error
+        the greedy insertion reaches within ``max_vertices`` vertices, never above ``max_error`` (a flip
+        can make a triangle whose worst sample is worse than the one just inserted, so ``max_error`` is
+        not monotone in ``max_vertices``; ``best_error`` is)
     """
     empty = np.zeros(0, np.int64)
     return tin_window_seeded(z, valid, bx, by, empty, empty, target, max_vertices)
@@ -500,6 +504,7 @@ def tin_window_seeded(z, valid, bx, by, sx, sy, target, max_vertices):
     heap = np.empty(cap_t, np.int64)
     seen = np.full(cap_t, -1, np.int64)
     step = 0
+    best = np.inf
     while True:
         # candidates of the triangles made since the last step (a triangle may be listed twice)
         for i in range(npend):
@@ -522,6 +527,9 @@ def tin_window_seeded(z, valid, bx, by, sx, sy, target, max_vertices):
                 _heap_up(err, heap, pos, nheap - 1)
         npend = 0
         step += 1
+        top = err[heap[0]] if nheap > 0 else 0.0
+        if top < best:
+            best = top
         if nheap == 0 or nv >= max_vertices:
             break
         if nv + 1 > cap_v or nt + 2 > cap_t:
@@ -554,7 +562,7 @@ def tin_window_seeded(z, valid, bx, by, sx, sy, target, max_vertices):
         tris[t, 0] = tri[3 * t]
         tris[t, 1] = tri[3 * t + 1]
         tris[t, 2] = tri[3 * t + 2]
-    return px[:nv].copy(), py[:nv].copy(), tris, worst
+    return px[:nv].copy(), py[:nv].copy(), tris, worst, min(best, worst)
 
 
 # -- the tile's arrays in the store's order ------------------------------------------------------------------
