@@ -31,9 +31,12 @@ def footprint_mask(rows, cols, tris, valid):
     tris : (K, 3) integer vertex indices
     valid : (H, W) bool over the whole source (samples outside it are not counted)
 
-    A triangle inside the grid whose box of samples is all valid (or all nodata) and whose inscribed circle
-    has a radius of at least sqrt(2)/2 samples (so it covers a sample) is decided from a summed-area table
-    of the mask without visiting its samples: the same answer as the count, which the others get.
+    A triangle whose box of samples widened to whole samples (floor of its least row and column to ceil
+    of its largest, clipped to the grid) is all valid or all nodata is decided from a summed-area table of
+    the mask without visiting its samples: that box holds every sample it covers and the sample nearest
+    its centroid, so the count would say the same. So is a triangle inside the grid whose own box of
+    samples is all valid or all nodata and whose inscribed circle has a radius of at least sqrt(2)/2
+    samples (so it covers a sample). The others are counted.
     """
     h, w = valid.shape
     k = tris.shape[0]
@@ -43,10 +46,10 @@ def footprint_mask(rows, cols, tris, valid):
     n_v = rows.shape[0]
     g_r0, g_r1, g_c0, g_c1 = h, -1, w, -1
     for i in range(n_v):
-        g_r0 = min(g_r0, max(0, int(math.ceil(rows[i] - eps))))
-        g_r1 = max(g_r1, min(h - 1, int(math.floor(rows[i] + eps))))
-        g_c0 = min(g_c0, max(0, int(math.ceil(cols[i] - eps))))
-        g_c1 = max(g_c1, min(w - 1, int(math.floor(cols[i] + eps))))
+        g_r0 = min(g_r0, max(0, int(math.floor(rows[i]))))
+        g_r1 = max(g_r1, min(h - 1, int(math.ceil(rows[i]))))
+        g_c0 = min(g_c0, max(0, int(math.floor(cols[i]))))
+        g_c1 = max(g_c1, min(w - 1, int(math.ceil(cols[i]))))
     sh = max(g_r1 - g_r0 + 2, 1)
     sw = max(g_c1 - g_c0 + 2, 1)
     sat = np.zeros((sh, sw), np.int64)
@@ -66,6 +69,19 @@ def footprint_mask(rows, cols, tris, valid):
         r_hi = min(h - 1, int(math.floor(max(ra, rb, rc) + eps)))
         c_lo = max(0, int(math.ceil(min(ca, cb, cc) - eps)))
         c_hi = min(w - 1, int(math.floor(max(ca, cb, cc) + eps)))
+        # the widened box: every covered sample and the centroid's nearest (clamped) sample lie in it
+        wr0 = max(0, int(math.floor(min(ra, rb, rc))))
+        wr1 = min(h - 1, int(math.ceil(max(ra, rb, rc))))
+        wc0 = max(0, int(math.floor(min(ca, cb, cc))))
+        wc1 = min(w - 1, int(math.ceil(max(ca, cb, cc))))
+        if wr0 <= wr1 and wc0 <= wc1:
+            y0, y1, x0, x1 = wr0 - g_r0, wr1 - g_r0 + 1, wc0 - g_c0, wc1 - g_c0 + 1
+            nv_box = sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
+            if nv_box == (y1 - y0) * (x1 - x0):
+                keep[t] = True
+                continue
+            if nv_box == 0:
+                continue  # keep[t] stays False
         inside = (
             min(ra, rb, rc) >= 0.0
             and max(ra, rb, rc) <= h - 1
