@@ -100,13 +100,10 @@ def child_build(name: str, method: str, out: str, reps: int) -> None:
 def _own_peak_rss_kib() -> int:
     """This process's peak resident set, KiB: the VmHWM of its own address space (getrusage's ru_maxrss is
     not: Linux carries the parent's high-water mark across fork and exec into the child's)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1])
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    status = Path("/proc/self/status")
+    lines = status.read_text().splitlines() if status.exists() else []
+    hwm = [int(line.split()[1]) for line in lines if line.startswith("VmHWM:")]
+    return hwm[0] if hwm else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 
 
 def uniform_cut(store, target_m: float) -> list[tuple[int, int, int]] | None:

@@ -20,7 +20,18 @@ import math
 
 import numpy as np
 
-from terralod.kernels import jit
+from terralod.kernels import jit, leaf
+
+
+@leaf
+def _box_verdict(sat, r0, r1, c0, c1, g_r0, g_c0):
+    """1 when samples rows r0..r1 x cols c0..c1 are all valid, 0 when all nodata, -1 when mixed (from the
+    summed-area table ``sat`` whose origin is sample (g_r0, g_c0))."""
+    y0, y1, x0, x1 = r0 - g_r0, r1 - g_r0 + 1, c0 - g_c0, c1 - g_c0 + 1
+    nv = sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
+    if nv == (y1 - y0) * (x1 - x0):
+        return 1
+    return 0 if nv == 0 else -1
 
 
 @jit
@@ -75,13 +86,10 @@ def footprint_mask(rows, cols, tris, valid):
         wc0 = max(0, int(math.floor(min(ca, cb, cc))))
         wc1 = min(w - 1, int(math.ceil(max(ca, cb, cc))))
         if wr0 <= wr1 and wc0 <= wc1:
-            y0, y1, x0, x1 = wr0 - g_r0, wr1 - g_r0 + 1, wc0 - g_c0, wc1 - g_c0 + 1
-            nv_box = sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
-            if nv_box == (y1 - y0) * (x1 - x0):
-                keep[t] = True
+            verdict = _box_verdict(sat, wr0, wr1, wc0, wc1, g_r0, g_c0)
+            if verdict >= 0:
+                keep[t] = verdict == 1
                 continue
-            if nv_box == 0:
-                continue  # keep[t] stays False
         inside = (
             min(ra, rb, rc) >= 0.0
             and max(ra, rb, rc) <= h - 1
@@ -91,13 +99,10 @@ def footprint_mask(rows, cols, tris, valid):
         if inside and r_lo <= r_hi and c_lo <= c_hi:
             perim = math.hypot(rb - ra, cb - ca) + math.hypot(rc - rb, cc - cb) + math.hypot(ra - rc, ca - cc)
             if abs(area) >= 0.7072 * perim:  # inradius = |area2| / perimeter >= sqrt(2) / 2
-                y0, y1, x0, x1 = r_lo - g_r0, r_hi - g_r0 + 1, c_lo - g_c0, c_hi - g_c0 + 1
-                nv_box = sat[y1, x1] - sat[y0, x1] - sat[y1, x0] + sat[y0, x0]
-                if nv_box == (y1 - y0) * (x1 - x0):
-                    keep[t] = True
+                verdict = _box_verdict(sat, r_lo, r_hi, c_lo, c_hi, g_r0, g_c0)
+                if verdict >= 0:
+                    keep[t] = verdict == 1
                     continue
-                if nv_box == 0:
-                    continue  # keep[t] stays False
         n = 0
         nv = 0
         for r in range(r_lo, r_hi + 1):
