@@ -177,6 +177,25 @@ def test_block_fill_is_the_same_whichever_window_reads_it(tmp_path: Path) -> Non
     assert np.isfinite(a).all() and a[~va].min() > 0.0
 
 
+def test_unpickled_copies_share_the_process_datasets_until_the_file_changes(tmp_path: Path) -> None:
+    """Every copy of a source a process unpickles (one per Dask task) reads through the same open dataset
+    and fill cache; a file rewritten at the same path is another source, read afresh."""
+    import pickle
+
+    z = fractal_terrain(200, 180, seed=4)
+    path = _write_tif(tmp_path / "a.tif", z)
+    src = RasterSource(path)
+    blob = pickle.dumps(src)
+    a, b = pickle.loads(blob), pickle.loads(blob)
+    np.testing.assert_array_equal(a.read(0, 0, 50, 60)[0], z[:50, :60])
+    assert b._dataset() is a._dataset() and b._cache is a._cache
+    assert src._local is not a._local  # the original keeps its own
+    _write_tif(path, z + 100.0)  # rewritten in place: new size or mtime, new identity
+    fresh = pickle.loads(pickle.dumps(RasterSource(path)))
+    assert fresh._dataset() is not a._dataset()
+    np.testing.assert_array_equal(fresh.read(0, 0, 50, 60)[0], (z + 100.0)[:50, :60].astype(np.float32))
+
+
 def test_geographic_rasters_are_refused_in_one_line(tmp_path: Path) -> None:
     tif = _write_tif(tmp_path / "geo.tif", fractal_terrain(20, 20, seed=1), x0=1.0, y0=43.0, res=0.001,
                      crs="EPSG:4326")  # fmt: skip

@@ -14,6 +14,7 @@ that fall in the padding (only on the far side of such a quad) take the edge-rep
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -58,9 +59,9 @@ class TilePyramid:
         """M - 1: quads per tile side."""
         return self.tile_size - 1
 
-    @property
+    @functools.cached_property
     def max_level(self) -> int:
-        """L, the finest level (stride 1)."""
+        """L, the finest level (stride 1); computed once (every stride, span and child asks for it)."""
         need = (max(self.width, self.height) - 1) / self.cells
         return max(0, math.ceil(math.log2(need))) if need > 1 else 0
 

@@ -608,6 +608,26 @@ class _ThreadRunner:
 _RESUBMITS = 64
 
 
+class _Packed:
+    """Arguments Dask passes through as one opaque object (see :meth:`_DaskRunner.submit`)."""
+
+    __slots__ = ("args",)
+
+    def __init__(self, args: tuple) -> None:
+        self.args = args
+
+    def __getstate__(self) -> tuple:
+        return self.args
+
+    def __setstate__(self, args: tuple) -> None:
+        self.args = args
+
+
+def _build_unit_packed(src: WindowSource, packed: _Packed) -> list[EncodedTile]:
+    """:func:`build_unit` of a Dask task (its arguments after the source packed)."""
+    return build_unit(src, *packed.args)
+
+
 class _DaskRunner:
     """Units as Dask tasks (retried on another worker when one dies), results as they complete."""
 
@@ -631,7 +651,11 @@ class _DaskRunner:
         return max(1, sum(self.client.nthreads().values()))
 
     def submit(self, *args):
-        fut = self.client.submit(build_unit, *args, retries=self.retries, pure=False)
+        # The source goes as its own argument (a scattered one is a future the scheduler resolves); the
+        # rest (codes, errors, lattice, options) goes packed, so Dask does not walk its lists and dicts
+        # looking for futures on every submit.
+        fut = self.client.submit(_build_unit_packed, args[0], _Packed(args[1:]), retries=self.retries,
+                                 pure=False)  # fmt: skip
         self._args[fut.key] = args
         return fut
 
@@ -644,7 +668,8 @@ class _DaskRunner:
         from distributed import KilledWorker
 
         it = iter(jobs)
-        pending = as_completed()
+        # results gathered on the client's event loop as units finish, not one blocking round trip each
+        pending = as_completed(with_results=True, raise_errors=False)
         in_flight = 0
 
         def top_up() -> None:
@@ -658,10 +683,14 @@ class _DaskRunner:
 
         top_up()
         resubmits = 0
-        for fut in pending:
+        for fut, res in pending:
             in_flight -= 1
             try:
-                res = fut.result()
+                if isinstance(res, CancelledError):
+                    raise res
+                if fut.status == "error":
+                    _, exc, tb = res
+                    raise exc.with_traceback(tb)
             except KilledWorker as exc:  # the unit's workers died, retries included: memory, usually
                 raise WorkerLostError(
                     f"Dask workers died building a work unit ({exc}); out of memory? give each worker more "
