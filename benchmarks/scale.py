@@ -17,8 +17,8 @@ for RSS every 0.1 s:
 
 Samples/s = source samples / build seconds (the streamed plan and the error measurement included). The
 writer's ceiling: every tile of the built store re-committed into a new store by ``TileStore.write_tiles``
-in the builder's batches of 64, tiles/s. Medians of ``--repeat`` runs. Writes
-``benchmarks/results/scale.json`` and ``scale.md``. Run: ``python benchmarks/scale.py [--big] [--repeat N]``.
+in the builder's batches of 64, tiles/s. Medians of ``--repeat`` runs, interleaved across the configurations.
+Writes ``benchmarks/results/scale.json`` and ``scale.md``. Run: ``python benchmarks/scale.py [--big] [--repeat N]``.
 """
 
 from __future__ import annotations
@@ -244,8 +244,12 @@ def main() -> None:
             f"terrains written in {time.perf_counter() - t:.1f} s: {', '.join(str(p) for p in dems.values())}"
         )
         results: dict[str, list[dict]] = {}
-        for config in args.configs.split(","):
-            for _ in range(1 if config.endswith("kill") else args.repeat):
+        # repeats interleaved (every configuration once, then again): a spell of load from the machine's
+        # other users slows one run of each configuration, not every run of one of them
+        for rep in range(args.repeat):
+            for config in args.configs.split(","):
+                if rep and config.endswith("kill"):
+                    continue  # once
                 run = config if args.method == METHOD else f"{config}@{args.method}"
                 r = run_config(run, dems["4097"], folder, 1200)
                 print(json.dumps(r))

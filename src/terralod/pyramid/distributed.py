@@ -123,7 +123,7 @@ __all__ = [
 #: Samples of one full-width strip of the planning scan (float32 + bool: 5 bytes a sample).
 SCAN_STRIP_SAMPLES = 1 << 25
 #: A work unit groups g x g tiles of a level so that g * span is about this many samples.
-UNIT_SPAN_SAMPLES = 512
+UNIT_SPAN_SAMPLES = 1024
 #: Largest tile window (samples) read whole; larger (coarse) tiles are meshed from a decimated copy.
 MAX_WINDOW_SAMPLES = 4097 * 4097
 #: Samples per strip when a coarse tile streams its full-resolution window.
