@@ -148,13 +148,22 @@ def _kill_later(client, out: str) -> None:
     threading.Thread(target=watch, daemon=True).start()
 
 
-def run_config(config: str, dem: Path, folder: Path, timeout_s: float) -> dict:
-    """Run one configuration in a subprocess; sample the RSS of its whole process tree."""
+def config_cores(config: str) -> int:
+    """The workers of a configuration (threads or processes): ``window-t2`` 2, ``dask-p1`` 1."""
+    return int(config.partition("@")[0].split("-")[1][1:])
+
+
+def run_config(config: str, dem: Path, folder: Path, timeout_s: float, pin: bool = False) -> dict:
+    """Run one configuration in a subprocess; sample the RSS of its whole process tree. With ``pin`` the
+    subprocess and everything it starts (Dask's scheduler and workers included) run on as many CPUs as the
+    configuration has workers (``os.sched_setaffinity``, inherited by children)."""
     out = folder / f"{config}.terra"
     for p in folder.glob(f"{config}.terra*"):
         p.unlink()
+    cpus = sorted(os.sched_getaffinity(0))[: config_cores(config)] if pin else None
     proc = subprocess.Popen([sys.executable, __file__, "--child", config, str(dem), str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=(lambda: os.sched_setaffinity(0, cpus)) if cpus else None)  # fmt: skip
     root = psutil.Process(proc.pid)
     peak = 0
     t0 = time.perf_counter()
@@ -222,11 +231,15 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1)
     ap.add_argument("--method", default=METHOD, help="method of the 4097² builds (chunked)")
     ap.add_argument("--name", default="scale", help="results file name under benchmarks/results/")
+    ap.add_argument("--pin", action="store_true",
+                    help="run each configuration on as many CPUs as it has workers (client included)")  # fmt: skip
     ap.add_argument("--child", nargs=3, metavar=("CONFIG", "DEM", "OUT"))
     ap.add_argument(
         "--configs", default="memory-t1,memory-t2,window-t1,window-t2,dask-p1,dask-p2,dask-p2-kill"
     )
     args = ap.parse_args()
+    if args.pin and args.name == "scale":
+        ap.error("--pin needs --name (a side table): scale.md keeps the unpinned figures")
     if args.child:
         child(*args.child)
         return
@@ -251,12 +264,13 @@ def main() -> None:
                 if rep and config.endswith("kill"):
                     continue  # once
                 run = config if args.method == METHOD else f"{config}@{args.method}"
-                r = run_config(run, dems["4097"], folder, 1200)
+                r = run_config(run, dems["4097"], folder, 1200, pin=args.pin)
                 print(json.dumps(r))
                 results.setdefault(config, []).append(r)
         rows, payload = summarise(results, folder)
         payload["method"] = args.method
-        if args.name != "scale":  # a side run (another method): its table alone
+        payload["pinned"] = args.pin
+        if args.name != "scale":  # a side run (another method, pinned CPUs): its table alone
             write_results(args.name, payload, report(rows, payload))
             return
         big = None
@@ -324,7 +338,11 @@ def report(rows: list[list], payload: dict) -> str:
     md = ["# Out-of-core and Dask builds (issue 20)\n",
           f"4097² mirror-tiled Pyrenees (srtm3_N42E001, UTM), COG, method {payload.get('method', METHOD)}, tile "
           "size 65 (5461 tiles); "
-          "one subprocess per configuration, peak RSS of its whole process tree. Machine: 2 cores shared with "
+          "one subprocess per configuration, peak RSS of its whole process tree. "
+          + ("**Pinned:** each configuration's process tree (client, Dask scheduler and workers) ran on as many "
+             "CPUs as it has workers (`--pin`), so 1 worker had 1 core for everything and 2 workers 2. "
+             if payload.get("pinned") else "")
+          + "Machine: 2 cores shared with "
           "other users (load varies between runs).\n",
           md_table(["config", "build s", "M samples/s", "peak RSS MiB", "same tiles as window-t1", "note"], rows)]  # fmt: skip
     for a, b, what in (("window-t1", "window-t2", "threads"), ("dask-p1", "dask-p2", "processes"),
