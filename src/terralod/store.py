@@ -323,11 +323,12 @@ def decode_vertices(blob: bytes, n: int) -> np.ndarray:
     return np.stack([_undo_zigzag_delta16(raw[k * n : (k + 1) * n]) for k in range(3)], axis=1)
 
 
-def encode_triangles(t: np.ndarray) -> bytes:
+def encode_triangles(t: np.ndarray, n_vertices: int | None = None) -> bytes:
     """(K, 3) indices → one width byte (2 or 4) + zlib of zig-zag wrapped deltas of the flat index list
-    (codes by :func:`terralod.kernels.codec.triangle_codes16` / ``32``)."""
-    tt = np.ascontiguousarray(t, np.int64)
-    if tt.size == 0 or tt.max() < 65536:
+    (codes by :func:`terralod.kernels.codec.triangle_codes16` / ``32``). ``n_vertices``, when given, bounds
+    the indices (every index < n_vertices), so their largest need not be looked for."""
+    tt = t if t.dtype in (np.int32, np.int64) and t.flags.c_contiguous else np.ascontiguousarray(t, np.int64)
+    if tt.size == 0 or (n_vertices if n_vertices is not None else int(tt.max()) + 1) <= 65536:
         return b"\x02" + zlib.compress(triangle_codes16(tt).astype("<u2", copy=False).tobytes(), ZLIB_LEVEL)
     return b"\x04" + zlib.compress(triangle_codes32(tt).astype("<u4", copy=False).tobytes(), ZLIB_LEVEL)
 

@@ -74,6 +74,11 @@ _AHEAD_PER_WORKER = 8
 _EARLY_PER_WORKER = 2
 #: Tiles built before the store exists (while its meta is computed) held at most; then the build waits.
 _HELD_TILES = 4096
+#: Source samples a task of the thread pool covers at least: consecutive tiles of one level go together
+#: (16 tiles of stride 1, 4 of stride 2, one from stride 4 up), so the pool's hand-off and the Python
+#: around a task, held under the GIL, are paid once per about 65 k samples rather than per 65² tile
+#: (a stride-1 tile is measured in about half a millisecond).
+_TASK_SAMPLES = 16 * 64 * 64
 
 
 def register_method(name: str, fn: MeshFn) -> None:
@@ -260,9 +265,14 @@ def measure_tile(
     if not ok:
         raise AssertionError("quantisation overflow")  # the plan makes this impossible
     z0 = int(z0_i)
+    tris = np.ascontiguousarray(tris)
+    if tris.dtype not in (np.int32, np.int64):
+        tris = tris.astype(np.int64)
+    # made here (quantise_tile's float64 vertices, a mesher's triangles): measured without the API's checks
     rep = measure_error_window(
-        local, tris, hf.elevation_m[r0 : r1 + 1, c0 : c1 + 1], hf.valid[r0 : r1 + 1, c0 : c1 + 1], dx, dy
-    )
+        local, tris, hf.elevation_m[r0 : r1 + 1, c0 : c1 + 1], hf.valid[r0 : r1 + 1, c0 : c1 + 1], dx, dy,
+        check=False,
+    )  # fmt: skip
     return EncodedTile(
         code=code,
         error_m=float(rep.hausdorff_m),
@@ -277,33 +287,48 @@ def measure_tile(
         n_triangles=int(tris.shape[0]),
         z0_index=z0,
         vertices=encode_vertices(qv),
-        triangles=encode_triangles(tris),
+        triangles=encode_triangles(tris, n_vertices=int(qv.shape[0])),
     )
+
+
+def _tasks(pyramid: TilePyramid, codes: list[TileCode]) -> list[tuple[TileCode, ...]]:
+    """``codes`` in order, cut into tasks: runs of consecutive tiles of one level covering at least
+    :data:`_TASK_SAMPLES` source samples (a tile of level k covers ``span(k)^2``)."""
+    tasks: list[tuple[TileCode, ...]] = []
+    run: list[TileCode] = []
+    for code in codes:
+        if run and (run[0][0] != code[0] or len(run) * pyramid.span(code[0]) ** 2 >= _TASK_SAMPLES):
+            tasks.append(tuple(run))
+            run = []
+        run.append(code)
+    if run:
+        tasks.append(tuple(run))
+    return tasks
 
 
 def _ordered_map(
     pool: ThreadPoolExecutor,
-    fn: Callable[[TileCode], EncodedTile],
-    items: list[TileCode],
+    fn: Callable[[Any], Any],
+    items: list[Any],
     ahead: int,
-    early: Iterable[TileCode] = (),
+    early: Iterable[Any] = (),
     early_after: Callable[[], bool] | None = None,
-    hold: Callable[[TileCode], bool] | None = None,
-) -> Iterator[EncodedTile]:
+    hold: Callable[[Any], bool] | None = None,
+) -> Iterator[Any]:
     """``pool.map(fn, items)``: results in the order of ``items``, with at most ``ahead`` of them submitted
     ahead of the one consumed (a big build never holds more finished tiles than that in memory), except
     the ``early`` items, submitted before the others (the few largest tiles, so that no core waits alone
     for one of them at the end of the build) as soon as ``early_after()`` is true. An item for which
     ``hold(item)`` is true is not submitted ahead (nor any after it) until it is the one consumed."""
-    futs: dict[TileCode, Future[EncodedTile]] = {}
-    submitted: set[TileCode] = set()
+    futs: dict[Any, Future[Any]] = {}
+    submitted: set[Any] = set()
     waiting = list(early)
     nxt = 0
 
-    def submit(code: TileCode) -> None:
-        if code not in submitted:
-            submitted.add(code)
-            futs[code] = pool.submit(fn, code)
+    def submit(item: Any) -> None:
+        if item not in submitted:
+            submitted.add(item)
+            futs[item] = pool.submit(fn, item)
 
     def top_up(limit: int) -> None:
         nonlocal nxt, waiting
@@ -469,8 +494,8 @@ def build_store(
             # its children (only its stored errors need theirs), so the coarse tiles overlap the fine ones
             # instead of a level's last tiles leaving cores idle; the tiles are committed in order, so a
             # tile's children are recorded in ``errors`` before it is made monotone.
-            def one(code: TileCode) -> EncodedTile:
-                return measure_tile(hf, pyramid, code, quant[code[0]], mesh_fn)
+            def one(task: tuple[TileCode, ...]) -> list[EncodedTile]:
+                return [measure_tile(hf, pyramid, code, quant[code[0]], mesh_fn) for code in task]
 
             def monotone(encs: Iterable[EncodedTile]) -> Iterator[EncodedTile]:
                 for enc in encs:
@@ -479,10 +504,12 @@ def build_store(
             # the tiles of the coarsest levels (at most _EARLY_PER_WORKER a worker) are the largest: first,
             # once the meta (the ladder they mesh to) is known
             counts = collections.Counter(c[0] for c in todo)
-            early = [c for c in todo if counts[c[0]] <= _EARLY_PER_WORKER * n_workers and c[0] not in free]
-            stream = monotone(_ordered_map(pool, one, todo, _AHEAD_PER_WORKER * n_workers, early,
-                                           early_after=meta_f.done, hold=lambda c: c[0] not in free and
-                                           not meta_f.done()))  # fmt: skip
+            early = {c[0] for c in todo if counts[c[0]] <= _EARLY_PER_WORKER * n_workers and c[0] not in free}
+            tasks = _tasks(pyramid, todo)
+            stream = monotone(itertools.chain.from_iterable(
+                _ordered_map(pool, one, tasks, _AHEAD_PER_WORKER * n_workers, [t for t in tasks if t[0][0] in early],
+                             early_after=meta_f.done, hold=lambda t: t[0][0] not in free and not meta_f.done())
+            ))  # fmt: skip
             held: list[EncodedTile] = []
             if store is None:  # tiles built before the store exists wait here (errors recorded for parents)
                 held = hold_until(stream, meta_f, errors)

@@ -123,6 +123,18 @@ def footprint_mask(rows, cols, tris, valid):
     return keep
 
 
+@jit
+def _all_true(mask):
+    """``mask.all()`` of a 2-D bool array (a strided window of the source's mask), without the GIL (a
+    coarse tile's window holds millions of samples) and stopping at the first False."""
+    h, w = mask.shape
+    for r in range(h):
+        for c in range(w):
+            if not mask[r, c]:
+                return False
+    return True
+
+
 def drop_nodata(
     rows: np.ndarray, cols: np.ndarray, heights_m: np.ndarray, tris: np.ndarray, valid: np.ndarray,
     window_valid: np.ndarray,
@@ -132,7 +144,7 @@ def drop_nodata(
     ``window_valid`` is the source's mask over the tile's window: when it is all True nothing can be
     dropped and the arrays are returned as they are (the tile is bit-identical to an unfiltered build).
     """
-    if window_valid.all() or tris.shape[0] == 0:
+    if tris.shape[0] == 0 or _all_true(window_valid):
         return rows, cols, heights_m, tris
     keep = footprint_mask(
         np.ascontiguousarray(rows, np.float64), np.ascontiguousarray(cols, np.float64),
