@@ -25,15 +25,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from terralod import build_store, open_store
+from terralod.error import measure_error_window
 from terralod.heightfield import Heightfield
 from terralod.kernels.codec import quantise_tile, triangle_codes16, triangle_codes32, vertex_codes
 from terralod.pyramid import adaptive
 from terralod.pyramid.builder import (
+    _TASK_SAMPLES,
     METHODS,
     _quantise,
+    _tasks,
     build_tile,
     plan_quantisation,
 )
+from terralod.pyramid.footprint import _all_true
 from terralod.store import (
     ZLIB_LEVEL,
     LevelQuantisation,
@@ -88,6 +92,44 @@ def test_coding_kernels_match_the_store(seed: int, n: int, spread: int) -> None:
         assert np.array_equal(triangle_codes32(t), _zigzag_delta32(flat))
         assert _encode_triangles(t) == encode_triangles(t)
         assert _encode_triangles(t.astype(np.int32) if top <= 2**31 else t) == encode_triangles(t)
+        # the builder's call: the vertex count bounds the indices (any count above the largest index)
+        n_vertices = int(t.max()) + 1 + int(rng.integers(0, 3)) if t.size else 0
+        assert encode_triangles(t, n_vertices=n_vertices) == _encode_triangles(t)
+        if top <= 2**31:
+            assert encode_triangles(t.astype(np.int32), n_vertices=n_vertices) == _encode_triangles(t)
+
+
+@given(seed=st.integers(0, 2**32 - 1), shape=st.tuples(st.integers(1, 40), st.integers(1, 40)),
+       p_false=st.sampled_from([0.0, 0.001, 0.3, 1.0]), step=st.integers(1, 3))  # fmt: skip
+@SETTINGS
+def test_all_true_kernel_is_numpy_all(seed: int, shape: tuple[int, int], p_false: float, step: int) -> None:
+    """drop_nodata's GIL-free all-valid test equals ``ndarray.all()``, on strided windows of a mask too."""
+    rng = np.random.default_rng(seed)
+    mask = rng.random(shape) >= p_false
+    for win in (mask, mask[::step, ::step], mask[1:, :-1], mask[:, ::-1]):
+        assert _all_true(win) == bool(win.all())
+
+
+@given(
+    size=st.tuples(st.integers(2, 700), st.integers(2, 700)),
+    m=st.sampled_from([3, 5, 17, 65]),
+    skip=st.integers(0, 400),
+)
+@SETTINGS
+def test_tasks_cut_the_stream_in_order(size: tuple[int, int], m: int, skip: int) -> None:
+    """The builder's tasks: the codes in order, each task one level, at least _TASK_SAMPLES samples unless it
+    ends its level's run, and never a tile more than needed to reach that."""
+    pyr = TilePyramid(size[1], size[0], m)
+    codes = pyr.all_codes(finest_first=True)[skip:]  # a resumed build's remaining tiles
+    tasks = _tasks(pyr, codes)
+    assert [c for t in tasks for c in t] == codes
+    for i, t in enumerate(tasks):
+        level = t[0][0]
+        assert all(c[0] == level for c in t)
+        per_tile = pyr.span(level) ** 2
+        assert (len(t) - 1) * per_tile < _TASK_SAMPLES  # no tile beyond the one that reaches it
+        last_of_run = i + 1 == len(tasks) or tasks[i + 1][0][0] != level
+        assert last_of_run or len(t) * per_tile >= _TASK_SAMPLES
 
 
 @given(
@@ -162,10 +204,13 @@ def lattice_meshes(draw):
 @given(case=lattice_meshes())
 @SETTINGS
 def test_unit_lattice_triangles_match_brute_force(case) -> None:
-    from terralod.error import measure_error_window
-
     verts, tris, z, valid, dx, dy = case
     rep = measure_error_window(verts, tris, z, valid, dx, dy)
+    # the builder's call (its own float64 vertices, int32 triangles, no checks) measures the same, bit for bit
+    unchecked = measure_error_window(
+        verts, np.ascontiguousarray(tris, np.int32), z, valid, dx, dy, check=False
+    )
+    assert unchecked == rep
     vert, dist = reference(verts, tris, z, valid, dx, dy)
     cov = np.isfinite(vert)
     assert rep.n_samples == int(cov.sum())
