@@ -2,8 +2,9 @@
 
 Order: finest level first, so each tile's stored error can be made monotone at once
 (``error_m = max(measured, children's error_m)``) and an interrupted build never needs a second pass.
-Tiles are meshed on a thread pool (the numba kernels release the GIL) and committed to SQLite in
-batches, each batch one transaction; ``resume=True`` skips the committed tiles and produces a store whose
+Tiles are meshed on a thread pool (the numba kernels release the GIL), handed to it in tasks of
+consecutive tiles of one level (:data:`_TASK_SAMPLES`), and committed to SQLite in batches, each batch one
+transaction; ``resume=True`` skips the committed tiles and produces a store whose
 tiles are byte-identical to an uninterrupted build (everything is deterministic).
 """
 
@@ -315,11 +316,12 @@ def _ordered_map(
     early_after: Callable[[], bool] | None = None,
     hold: Callable[[Any], bool] | None = None,
 ) -> Iterator[Any]:
-    """``pool.map(fn, items)``: results in the order of ``items``, with at most ``ahead`` of them submitted
-    ahead of the one consumed (a big build never holds more finished tiles than that in memory), except
-    the ``early`` items, submitted before the others (the few largest tiles, so that no core waits alone
-    for one of them at the end of the build) as soon as ``early_after()`` is true. An item for which
-    ``hold(item)`` is true is not submitted ahead (nor any after it) until it is the one consumed."""
+    """``pool.map(fn, items)``: results in the order of ``items`` (the builder's tasks), with at most
+    ``ahead`` of them submitted ahead of the one consumed (a big build never holds more finished tasks than
+    that in memory), except the ``early`` items, submitted before the others (the few largest tiles, so
+    that no core waits alone for one of them at the end of the build) as soon as ``early_after()`` is true.
+    An item for which ``hold(item)`` is true is not submitted ahead (nor any after it) until it is the one
+    consumed."""
     futs: dict[Any, Future[Any]] = {}
     submitted: set[Any] = set()
     waiting = list(early)
