@@ -325,10 +325,11 @@ def decode_vertices(blob: bytes, n: int) -> np.ndarray:
 
 def encode_triangles(t: np.ndarray, n_vertices: int | None = None) -> bytes:
     """(K, 3) indices → one width byte (2 or 4) + zlib of zig-zag wrapped deltas of the flat index list
-    (codes by :func:`terralod.kernels.codec.triangle_codes16` / ``32``). ``n_vertices``, when given, bounds
-    the indices (every index < n_vertices), so their largest need not be looked for."""
+    (codes by :func:`terralod.kernels.codec.triangle_codes16` / ``32``). ``n_vertices``, when given and at
+    most 2^16, bounds the indices (every index < n_vertices), so their largest need not be looked for; the
+    width is the same as without it."""
     tt = t if t.dtype in (np.int32, np.int64) and t.flags.c_contiguous else np.ascontiguousarray(t, np.int64)
-    if tt.size == 0 or (n_vertices if n_vertices is not None else int(tt.max()) + 1) <= 65536:
+    if tt.size == 0 or (n_vertices is not None and n_vertices <= 65536) or int(tt.max()) < 65536:
         return b"\x02" + zlib.compress(triangle_codes16(tt).astype("<u2", copy=False).tobytes(), ZLIB_LEVEL)
     return b"\x04" + zlib.compress(triangle_codes32(tt).astype("<u4", copy=False).tobytes(), ZLIB_LEVEL)
 
