@@ -123,9 +123,15 @@ def warm_up(report: Callable[[str], None] | None = None) -> dict[str, float]:
         try:
             from terralod.terrain import open_terrain
             from terralod.tin import DetailIncrementModel
+            from terralod.tin import delaunay_blocks as db
+            from terralod.tin.delaunay import delaunay_tin
             from terralod.tin.terra import save_model_to_store
 
             model = DetailIncrementModel.from_heightfield(_terrain(48, 2), sub_blocks=4, base_fraction=0.2)
+            # a point cloud's Delaunay step, in one piece and in blocks (big clouds)
+            xy = np.random.default_rng(3).uniform(0.0, 100.0, (400, 2))
+            delaunay_tin(np.c_[xy, np.zeros(400)])
+            db.fill_holes(xy, [db.block_triangles(j) for j in db.block_jobs(xy, db.block_layout(xy, 100))])
             save_model_to_store(model, Path(tmp) / "tin.terra", overwrite=True)
             with open_terrain(Path(tmp) / "tin.terra") as t:
                 _frames(t)

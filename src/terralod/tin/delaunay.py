@@ -34,7 +34,10 @@ removed.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -73,15 +76,11 @@ def _simplices(local: np.ndarray) -> np.ndarray:
 
 
 def _orient_ccw(xy: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles made counter-clockwise; returns (tris, twice the signed xy area) with area > 0 kept."""
-    a, b, c = xy[tris[:, 0]], xy[tris[:, 1]], xy[tris[:, 2]]
-    area2 = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    flip = area2 < 0
-    tris = tris.copy()
-    tris[flip, 1], tris[flip, 2] = tris[flip, 2], tris[flip, 1].copy()
-    area2 = np.abs(area2)
-    keep = area2 > 0
-    return tris[keep], area2[keep]
+    """Triangles made counter-clockwise; returns (tris, twice the xy area) with area > 0 kept
+    (:func:`terralod.kernels.delaunay.orient_ccw`)."""
+    from terralod.kernels.delaunay import orient_ccw
+
+    return orient_ccw(np.ascontiguousarray(xy, np.float64), np.ascontiguousarray(tris, np.int64))
 
 
 def _compact(vertices: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -103,10 +102,35 @@ def _check_manifold(tris: np.ndarray, source: str | None) -> None:
         )
 
 
+def _block_simplices(local: np.ndarray, workers: int | None, executor: Any) -> np.ndarray | None:
+    """The triangulation computed block by block (:mod:`terralod.tin.delaunay_blocks`) when the cloud is
+    big enough for more than one block and Triangle is in use; None otherwise (one call)."""
+    if not (ENGINE == "triangle" and _triangle_available()):
+        return None
+    from terralod.tin.delaunay_blocks import block_jobs, block_layout, block_triangles, fill_holes
+
+    layout = block_layout(local)
+    if layout.m == 1:
+        return None
+    jobs = block_jobs(local, layout)
+    if executor is not None:
+        results = list(executor(jobs, block_triangles))
+    else:
+        n_threads = max(1, min(workers or os.cpu_count() or 1, len(jobs)))
+        with ThreadPoolExecutor(n_threads) as pool:  # Triangle runs without the GIL (ctypes)
+            results = list(pool.map(block_triangles, jobs))
+    return fill_holes(local, results)
+
+
 def delaunay_tin(
-    points_m: np.ndarray, *, source: str | None = None
+    points_m: np.ndarray, *, source: str | None = None, workers: int | None = None, executor: Any = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Delaunay TIN of points (x, y, z metres) in xy.
+
+    A cloud of more than about 100 k points is triangulated block by block on ``workers`` threads, or on
+    ``executor(jobs, fn)`` (Dask: :func:`terralod.tin.distributed.dask_executor`), and the blocks' pieces
+    joined into the one Delaunay triangulation (:mod:`terralod.tin.delaunay_blocks`); the triangles do not
+    depend on ``workers`` or ``executor``.
 
     Parameters
     ----------
@@ -114,6 +138,10 @@ def delaunay_tin(
         Finite points, metres, already thinned of duplicates (remaining coincident points are skipped).
     source : str, optional
         Named in error messages.
+    workers : int, optional
+        Threads for the blocks (default: the cores).
+    executor : callable, optional
+        ``executor(jobs, fn)`` returns ``[fn(job) for job in jobs]``, computed elsewhere.
 
     Returns
     -------
@@ -143,7 +171,10 @@ def delaunay_tin(
             f"Expected at least 3 points with distinct xy to triangulate, got {1 + min(other.size, 1)}",
             source,
         )
-    simplices = _simplices(np.ascontiguousarray(local))
+    local = np.ascontiguousarray(local)
+    simplices = _block_simplices(local, workers, executor)
+    if simplices is None:
+        simplices = _simplices(local)
     if simplices.shape[0] == 0:
         raise InputError(
             "the points are collinear (or nearly so) in xy: a TIN needs points spanning an area", source

@@ -1,21 +1,22 @@
-"""Detail-increment TIN builds (paper 003) on Dask: the sub-blocks simplified on the workers.
+"""Detail-increment TIN builds (paper 003) on Dask: triangulated and simplified on the workers.
 
 Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §2.1 (the sub-blocks are simplified independently,
 in the paper by parallel threads).
 
-The client reads the cloud, thins it and triangulates it (one Delaunay TIN, as a local build:
-:mod:`terralod.tin.delaunay`), cuts one job per sub-block (:func:`terralod.tin.qem.block_jobs`: its
-triangles, its seam and outline LOCKED, the quadrics of the whole TIN) and sends the jobs to the workers;
-each worker simplifies its block and measures its errors (:func:`terralod.tin.qem.run_block`, a pure
-function of the job). The client merges the results block by block, in the order the file format needs
-(block-major records, :class:`terralod.tin.records.Increments`), and writes the one file: the model and
-its bytes are those of a local build with any number of threads.
+The client reads the cloud and thins it. The Delaunay triangulation is computed block by block on the
+workers (:func:`terralod.tin.delaunay_blocks.block_triangles`: each block triangulates its core and a
+halo and keeps the triangles whose circumcircle it has seen whole and whose centre is its own); the client
+joins the pieces and fills the narrow gaps none could keep with a constrained Delaunay triangulation
+(:func:`terralod.tin.delaunay_blocks.fill_holes`). The client then cuts one job per sub-block
+(:func:`terralod.tin.qem.block_jobs`: its triangles, its seam and outline LOCKED, the quadrics of the
+whole TIN) and sends the jobs to the workers; each worker simplifies its block and measures its errors
+(:func:`terralod.tin.qem.run_block`, a pure function of the job). The client merges the results block by
+block, in the order the file format needs (block-major records, :class:`terralod.tin.records.Increments`),
+and writes the one file: the model and its bytes are those of a local build with any number of threads
+(the local build computes the same blocks on threads).
 
-Deviation: the triangulation is not distributed. Per-block Delaunay triangulations stitched along the
-seams (the paper) give long thin gap triangles, and a distributed exact Delaunay needs a merge step of its
-own; the global TIN keeps the seams on shared edges (see :mod:`terralod.tin.delaunay`). The one
-triangulation on the client is then the floor of a distributed build: about 1 M points/s with Triangle,
-0.13-0.33 M with Qhull (``benchmarks/tin_build.py``).
+Deviation: the cloud is read and thinned on the client (one pass, laspy's chunked reader), and the
+blocks' points are sent to the workers with their tasks, so no shared file system is needed.
 
 Clients come from :func:`terralod.pyramid.distributed.dask_client` (``"local"``: a LocalCluster of worker
 processes; ``tcp://HOST:PORT``: a running scheduler, refused in one line when it cannot be reached).
@@ -23,10 +24,10 @@ processes; ``tcp://HOST:PORT``: a running scheduler, refused in one line when it
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from terralod.pyramid.distributed import dask_client, tune_worker_malloc
-from terralod.tin.qem import BlockJob, BlockResult, run_block
 
 __all__ = ["close_client", "dask_executor", "open_client"]
 
@@ -48,19 +49,21 @@ def close_client(client: Any) -> None:
         cluster.close()
 
 
-def _run_block(job: BlockJob) -> BlockResult:
-    """:func:`terralod.tin.qem.run_block` on a worker, with glibc's adaptive thresholds back
+def _on_worker(fn: Callable[[Any], Any], job: Any) -> Any:
+    """``fn(job)`` on a worker, with glibc's adaptive thresholds back
     (:func:`terralod.pyramid.distributed.tune_worker_malloc`)."""
     tune_worker_malloc()
-    return run_block(job)
+    return fn(job)
 
 
-def dask_executor(client: Any, retries: int = 2):
-    """An ``executor`` for :func:`terralod.tin.qem.simplify_blocks`: each job a task on the cluster
-    (biggest first, as given; retried elsewhere when a worker dies), results gathered in job order."""
+def dask_executor(client: Any, retries: int = 2) -> Callable[[list[Any], Callable[[Any], Any]], list[Any]]:
+    """An ``executor(jobs, fn)`` for :meth:`terralod.tin.increments.DetailIncrementModel.from_points`: each
+    ``fn(job)`` a task on the cluster (Delaunay blocks, :func:`terralod.tin.delaunay_blocks.block_triangles`;
+    sub-block simplification, :func:`terralod.tin.qem.run_block`), in the order given (biggest first for
+    the sub-blocks), retried elsewhere when a worker dies; results gathered in job order."""
 
-    def run(jobs: list[BlockJob]) -> list[BlockResult]:
-        futures = [client.submit(_run_block, j, pure=False, retries=retries) for j in jobs]
+    def run(jobs: list[Any], fn: Callable[[Any], Any]) -> list[Any]:
+        futures = [client.submit(_on_worker, fn, j, pure=False, retries=retries) for j in jobs]
         try:
             return list(client.gather(futures))
         finally:

@@ -258,12 +258,13 @@ class DetailIncrementModel:
         source, crs, notes
             Provenance, kept with the model.
         workers : int, optional
-            Threads simplifying the sub-blocks in parallel (default: the cores, at most 8); the model is
-            the same for any number.
+            Threads triangulating the cloud's blocks and simplifying the sub-blocks in parallel (default:
+            the cores, at most 8); the model is the same for any number.
         timings : dict, optional
             Filled with the seconds of each stage (dedup, delaunay, split, qem, records).
         executor : callable, optional
-            ``executor(fn, blocks)`` runs ``fn`` on each sub-block instead of the thread pool (Dask:
+            ``executor(jobs, fn)`` returns ``[fn(job) for job in jobs]`` computed elsewhere, instead of the
+            thread pools: the Delaunay blocks and the sub-blocks' simplification (Dask:
             :func:`terralod.tin.distributed.dask_executor`).
 
         Raises
@@ -284,7 +285,7 @@ class DetailIncrementModel:
         k = blocks_per_side(_auto_sub_blocks(keep.size) if sub_blocks == "auto" else sub_blocks)  # type: ignore[arg-type]
         pts = pts[keep]
         clock("dedup")
-        vertices, tris, _ = delaunay_tin(pts, source=src)
+        vertices, tris, _ = delaunay_tin(pts, source=src, workers=workers, executor=executor)
         clock("delaunay")
         return cls._build(vertices, tris, k, base_fraction, source, crs, (*notes, *extra),
                           workers=workers, clock=clock, executor=executor)  # fmt: skip

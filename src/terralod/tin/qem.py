@@ -297,13 +297,13 @@ def simplify_blocks(
     n_blocks: int | None = None,
     vertical_weight: float | None = None,
     workers: int | None = None,
-    executor: Callable[[list[BlockJob]], list[BlockResult]] | None = None,
+    executor: Callable[[list[BlockJob], Callable[[BlockJob], BlockResult]], list[BlockResult]] | None = None,
 ) -> tuple[CollapseLog, np.ndarray]:
     """Each sub-block simplified on its own (its seam LOCKED), ``workers`` threads, and merged: (log,
     measured errors (C,), the per-block running max of :func:`measured_errors`).
 
     The result does not depend on ``workers`` (each block's collapses are a function of its job);
-    ``executor(jobs)`` may replace the thread pool: it returns :func:`run_block` of each job, in order
+    ``executor(jobs, run_block)`` may replace the thread pool: it returns :func:`run_block` of each job, in order
     (Dask workers, :func:`terralod.tin.distributed.dask_executor`).
     """
     nb, make = block_jobs(vertices_m, triangles, kind, tri_block, base_fraction=base_fraction,
@@ -323,7 +323,7 @@ def simplify_blocks(
         made = [make(b) for b in blocks]
         for b, job in zip(blocks, made, strict=True):
             jobs[b] = job
-        ran = iter(executor([j for j in made if j is not None]))
+        ran = iter(executor([j for j in made if j is not None], run_block))
         got = [None if j is None else next(ran) for j in made]
     elif n_threads == 1 or nb == 1:
         got = [one(b) for b in blocks]
