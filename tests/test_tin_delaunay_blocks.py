@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 pytest.importorskip("triangle", reason="Shewchuk's Triangle is not installed: the blocks need it")
 
-from terralod.kernels.delaunay import orient_ccw  # noqa: E402
+from terralod.kernels.delaunay import canonical_order, orient_ccw  # noqa: E402
 from terralod.kernels.qem import edge_topology  # noqa: E402
 from terralod.tin import delaunay_blocks as db  # noqa: E402
 from terralod.tin.delaunay import delaunay_tin  # noqa: E402
@@ -205,7 +205,7 @@ def test_orient_ccw_kernel_matches_the_numpy_rule(seed, n) -> None:
 
 
 def test_delaunay_tin_uses_blocks_on_threads_and_on_dask_workers(monkeypatch) -> None:
-    """delaunay_tin with small blocks: the single call's triangles (general position), the same bytes on
+    """delaunay_tin with small blocks: the single call's arrays (general position), the same bytes on
     1 and 2 threads, and on a LocalCluster's worker processes through the Dask executor."""
     pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
     from terralod.tin.distributed import close_client, dask_executor, open_client
@@ -216,7 +216,8 @@ def test_delaunay_tin_uses_blocks_on_threads_and_on_dask_workers(monkeypatch) ->
     monkeypatch.setattr(db, "POINTS_PER_BLOCK", 600)
     one = delaunay_tin(pts, workers=1)
     two = delaunay_tin(pts, workers=2)
-    assert _tri_set(one[1]) == _tri_set(single[1]) and np.array_equal(one[0], single[0])
+    # general position: the same triangles, and (canonical order) the same arrays
+    assert all(np.array_equal(x, y) for x, y in zip(one, single, strict=True))
     assert all(np.array_equal(x, y) for x, y in zip(one, two, strict=True))
     client = open_client("local", 2)
     try:
@@ -224,3 +225,26 @@ def test_delaunay_tin_uses_blocks_on_threads_and_on_dask_workers(monkeypatch) ->
     finally:
         close_client(client)
     assert all(np.array_equal(x, y) for x, y in zip(one, on_dask, strict=True))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(3, 2000))
+def test_canonical_order_depends_on_the_triangle_set_only(seed, n) -> None:
+    """Shuffled and rotated copies of a triangulation give the same array: each triangle starts at its
+    smallest vertex with its orientation kept, sorted by its first two vertices."""
+    import triangle
+
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.0, 100.0, (n, 2))
+    t = np.asarray(triangle.triangulate({"vertices": xy}, "Q").get("triangles", np.zeros((0, 3))), np.int32)
+    if t.shape[0] == 0:
+        return
+    a = canonical_order(t, n)
+    shuffled = t[rng.permutation(t.shape[0])]
+    shuffled = np.take_along_axis(shuffled, (rng.integers(0, 3, (t.shape[0], 1)) + np.arange(3)) % 3, 1)
+    b = canonical_order(shuffled, n)
+    assert a.dtype == t.dtype and np.array_equal(a, b)
+    assert (a[:, 0] < a[:, 1]).all() and (a[:, 0] < a[:, 2]).all()
+    assert _tri_set(a) == _tri_set(t) and (_area2(xy, a) > 0).all()
+    key = a[:, 0].astype(np.int64) * n + a[:, 1]
+    assert (np.diff(key) > 0).all()

@@ -260,8 +260,9 @@ def test_triangle_and_qhull_give_the_same_tin(seed: int, n: int, grid: bool) -> 
     assert (_area2(va, ta) > 0).all() and (_area2(vb, tb) > 0).all()
     assert np.isclose(_area2(va, ta).sum(), _area2(vb, tb).sum(), rtol=1e-12)
     assert {tuple(p) for p in va[:, :2]} == {tuple(p) for p in vb[:, :2]} or grid
-    if not grid:
+    if not grid:  # the same triangles, in the same (canonical) order: the same arrays
         assert _tri_set(va, ta) == _tri_set(vb, tb)
+        assert np.array_equal(va, vb) and np.array_equal(ta, tb)
 
 
 @triangle_missing

@@ -148,7 +148,9 @@ def delaunay_tin(
     vertices : (V, 3) float64
         The points used by the TIN, metres (a subset of ``points_m``, in input order).
     triangles : (M, 3) int32
-        Counter-clockwise vertex triples, positive xy area.
+        Counter-clockwise vertex triples, positive xy area, each starting at its smallest vertex, sorted
+        (:func:`terralod.kernels.delaunay.canonical_order`): the same array for the same triangles,
+        whichever way they were found.
     index : (V,) int64
         Row of ``points_m`` of each vertex.
 
@@ -184,6 +186,10 @@ def delaunay_tin(
         raise InputError("the points are collinear in xy: a TIN needs points spanning an area", source)
     vertices, tris, used = _compact(points_m, tris)
     _check_manifold(tris, source)
+    # one order for one set of triangles, whichever way they were found (one call, blocks, Qhull)
+    from terralod.kernels.delaunay import canonical_order
+
+    tris = canonical_order(tris, vertices.shape[0])
     return np.ascontiguousarray(vertices), tris, used
 
 
