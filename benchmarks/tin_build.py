@@ -103,46 +103,23 @@ def build_once(src: str, k: int, workers: int | None, executor: Any, out: Path) 
 
 
 _BASELINE = r"""
-import hashlib, json, sys, time
-import numpy as np
-import terralod.tin.delaunay as D
-import terralod.tin.qem as Q
-import terralod.tin.records as R
-from terralod.tin import DetailIncrementModel
-src, k, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
-T = time.perf_counter
-t = {}
-
-def timed(name, fn):  # the stages of the old _build, timed where it calls them
-    def f(*a, **kw):
-        s = T(); r = fn(*a, **kw); t[name] = t.get(name, 0.0) + T() - s; return r
-    return f
-
-D.split_sub_blocks = timed("split", D.split_sub_blocks)
-Q.simplify = timed("qem", Q.simplify)
-Q.measured_errors = timed("qem", Q.measured_errors)
-D.delaunay_tin = timed("delaunay", D.delaunay_tin)
-t0 = T()
-if src.endswith(".npy"):
-    xyz = np.load(src); t["read"] = T() - t0
-    m = DetailIncrementModel.from_points(xyz, sub_blocks=k * k)
-else:
-    import terralod.tin.pointcloud as P
-    P.read_las = timed("read", P.read_las)
-    m = DetailIncrementModel.from_las(src, sub_blocks=k * k)
-t_model = T() - t0
-t["records"] = t_model - sum(t.values())  # dedup is in here too (not timed apart in the old build)
-a = T(); size = m.save(out); t["save"] = T() - a
-t["total"] = T() - t0
-print(json.dumps({"s": t, "bytes": size, "sha256": hashlib.sha256(open(out, "rb").read()).hexdigest(),
-                  "vertices": int(m.vertices_m.shape[0]), "records": int(m.increments.n_records)}))
+import json, sys
+from pathlib import Path
+sys.path.insert(0, sys.argv[5])
+import tin_build as B
+src, k, out, workers = sys.argv[1], int(sys.argv[2]), Path(sys.argv[3]), int(sys.argv[4])
+B.build_once(str(B.AUTZEN), 2, workers, None, out)  # warm up: numba's cache loaded outside the time
+print(json.dumps(B.build_once(src, k, workers, None, out)))
 """
 
 
-def build_baseline(baseline_src: str, src: str, k: int, out: Path) -> dict[str, Any]:
+def build_baseline(baseline_src: str, src: str, k: int, out: Path, workers: int = 2) -> dict[str, Any]:
+    """:func:`build_once` with the terralod of ``baseline_src`` (a subprocess that warms up first, so the
+    timed build is as warm as this process's), ``workers`` threads."""
     env = {**os.environ, "PYTHONPATH": baseline_src}
-    r = subprocess.run([sys.executable, "-c", _BASELINE, src, str(k), str(out)], env=env, capture_output=True,
-                       text=True, check=True)  # fmt: skip
+    here = str(Path(__file__).resolve().parent)
+    r = subprocess.run([sys.executable, "-c", _BASELINE, src, str(k), str(out), str(workers), here], env=env,
+                       capture_output=True, text=True, check=True)  # fmt: skip
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
@@ -165,8 +142,7 @@ def pyfqmr_s(src: str, k: int) -> float | None:
     return time.perf_counter() - a
 
 
-def median_runs(fn, reps: int) -> dict[str, Any]:
-    runs = [fn() for _ in range(reps)]
+def median_of(runs: list[dict[str, Any]]) -> dict[str, Any]:
     keys = sorted({k for r in runs for k in r["s"]})
     med = {k: float(np.median([r["s"].get(k, 0.0) for r in runs])) for k in keys}
     return {
@@ -180,6 +156,7 @@ def median_runs(fn, reps: int) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--baseline-src", default=None, help="src folder of the build to compare with")
+    ap.add_argument("--baseline-label", default="before", help="its row's name in the table")
     ap.add_argument("--quick", action="store_true", help="1 run each, Autzen only")
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--no-dask", action="store_true")
@@ -209,7 +186,7 @@ def main() -> None:
         if args.baseline_src:
             configs.append(
                 (
-                    "before (single heap)",
+                    args.baseline_label,
                     lambda s=src, k=k: build_baseline(args.baseline_src, s, k, tmp / "b.tin"),
                 )
             )
@@ -219,9 +196,16 @@ def main() -> None:
             configs.append(
                 ("dask local, 2 workers", lambda s=src, k=k: build_once(s, k, 2, executor, tmp / "d2.tin"))
             )
-        peer = pyfqmr_s(src, k)
-        for label, fn in configs:
-            r = median_runs(fn, reps)
+        # the configurations interleaved, run by run: a busy spell of this shared machine hits them all
+        runs: dict[str, list[dict[str, Any]]] = {label: [] for label, _ in configs}
+        peer_runs = []
+        for _ in range(reps):
+            for label, fn in configs:
+                runs[label].append(fn())
+            peer_runs.append(pyfqmr_s(src, k))
+        peer = None if peer_runs[0] is None else float(np.median(peer_runs))
+        for label, _ in configs:
+            r = median_of(runs[label])
             n_in = r["vertices"]
             r.update(case=name, config=label, k=k, pyfqmr_s=peer)
             results.append(r)
@@ -229,19 +213,20 @@ def main() -> None:
             rows.append([name, label, n_in, round(s["total"], 2)]
                         + [f"{n_in / s[st] / 1e3:,.0f}" if s.get(st, 0) > 0 else "-" for st in STAGES]
                         + [f"{n_in / s['total'] / 1e3:,.1f}", r["bytes"], r["sha256"][:10]])  # fmt: skip
-        print(rows[-1], flush=True)
+            print(rows[-1], flush=True)
     head = (
         ["cloud", "build", "points", "total s"]
         + [f"{st} k/s" for st in STAGES]
         + ["total k pts/s", "bytes", "sha256"]
     )
     md = ("# Detail-increment TIN build, end to end (paper 003)\n\n"
-          f"Input points (TIN vertices) per second per stage, thousands; medians of {reps} runs; "
-          f"{os.cpu_count()} cores, shared machine. QEM includes the per-block measured errors. "
-          "'before': the single-heap build of the commit before this work (its QEM and measured errors "
-          "timed apart from its records). Same sha256: the same file.\n\n") + md_table(head, rows)  # fmt: skip
+          f"Input points (TIN vertices) per second per stage, thousands; medians of {reps} runs, the "
+          f"configurations interleaved run by run; {os.cpu_count()} cores, shared machine. QEM includes the "
+          f"per-block measured errors. {args.baseline_label!r}, where present: the same timed build with "
+          f"the terralod of ``--baseline-src``, 2 threads (in a subprocess, after a warm-up build there). Same sha256: the same file "
+          "(the file names its source, so it differs between runs of this script).\n\n") + md_table(head, rows)  # fmt: skip
     peers = {r["case"]: r["pyfqmr_s"] for r in results}
-    md += "\npyfqmr (same TIN, to 20 % of its triangles, 1 thread), seconds: " + ", ".join(
+    md += "\npyfqmr (same TIN, to 20 % of its triangles, 1 thread, median), seconds: " + ", ".join(
         f"{c}: {s:.2f}" for c, s in peers.items() if s is not None) + "\n"  # fmt: skip
     if client is not None:
         close_client(client)

@@ -189,7 +189,6 @@ class BlockLayout:
     xs: np.ndarray  # (m + 1,) core edges along x (xs[0] = -inf, xs[m] = +inf)
     ys: np.ndarray  # (m + 1,)
     halo: float
-    scale: float  # the largest coordinate magnitude: bounds the rounding of centres and radii
 
     @property
     def n_blocks(self) -> int:
@@ -205,7 +204,6 @@ class BlockJob:
     index: np.ndarray  # (n,) int64, ascending: rows of the cloud
     core: tuple[float, float, float, float]  # x0, x1, y0, y1 (infinite outwards at the cloud's edge)
     known: tuple[float, float, float, float]  # core plus halo (infinite outwards)
-    scale: float
 
 
 @dataclass(frozen=True)
@@ -238,8 +236,7 @@ def block_layout(xy: np.ndarray, points_per_block: int | None = None) -> BlockLa
     ys = lo[1] + span[1] * np.arange(m + 1) / m
     xs[0] = ys[0] = -np.inf
     xs[m] = ys[m] = np.inf
-    scale = float(np.abs(np.concatenate([lo, hi])).max()) + float(span.max())
-    return BlockLayout(m, xs, ys, float(halo), scale)
+    return BlockLayout(m, xs, ys, float(halo))
 
 
 def block_jobs(xy: np.ndarray, layout: BlockLayout) -> list[BlockJob]:
@@ -255,7 +252,7 @@ def block_jobs(xy: np.ndarray, layout: BlockLayout) -> list[BlockJob]:
         idx = pid[starts[b] : starts[b + 1]]
         core = (float(layout.xs[c]), float(layout.xs[c + 1]), float(layout.ys[r]), float(layout.ys[r + 1]))
         known = (core[0] - h, core[1] + h, core[2] - h, core[3] + h)
-        jobs.append(BlockJob(b, np.ascontiguousarray(xy[idx]), idx, core, known, layout.scale))
+        jobs.append(BlockJob(b, np.ascontiguousarray(xy[idx]), idx, core, known))
     return jobs
 
 
