@@ -15,6 +15,13 @@ for RSS every 0.1 s:
 - ``dask-p2-kill``: dask-p2 with one worker killed (SIGKILL) after 30 % of the tiles: its units are
   rebuilt by the scheduler on the other (then restarted) worker; tiles compared with ``window-t1``.
 
+``--tin``: the detail-increment TIN build (paper 003) of Autzen's ground points tiled ``--tin-tiles`` ×
+``--tin-tiles`` (copies offset in xy, ``benchmarks/tin_build.py``), ``terralod build cloud.las`` as the
+command runs it (read, thin, Delaunay blocks, sub-blocks simplified, records, file written): ``tin-tN``
+on N threads, ``tin-pN`` on a LocalCluster of N worker processes x 1 thread (cluster start and warm-up not
+counted); points/s, peak RSS of the process tree, the file's sha256 against ``tin-t1``. Writes
+``scale_tin.{json,md}``.
+
 Samples/s = source samples / build seconds (the streamed plan and the error measurement included). The
 writer's ceiling: every tile of the built store re-committed into a new store by ``TileStore.write_tiles``
 in the builder's batches of 64, tiles/s. Medians of ``--repeat`` runs, interleaved across the configurations.
@@ -88,8 +95,35 @@ def write_terrains(folder: Path, big: bool) -> dict[str, Path]:
 
 
 # -- one configuration, in its own process ---------------------------------------------------------------
+def child_tin(config: str, cloud: str, out: str) -> None:
+    """Build the TIN of ``cloud`` (LAS) into ``out`` with ``config`` (tin-tN, tin-pN); print one JSON line."""
+    import hashlib
+
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.distributed import close_client, dask_executor, open_client
+    from tin_build import AUTZEN
+
+    n = config_cores(config)
+    procs = config.split("-")[1].startswith("p")
+    client = open_client("local", n) if procs else None
+    executor = dask_executor(client) if client is not None else None
+    opts = {"workers": None if procs else n, "executor": executor, "sub_blocks": "auto"}
+    DetailIncrementModel.from_las(AUTZEN, **opts).save(out + ".warm", workers=n)  # numba caches, workers up
+    t = time.perf_counter()
+    model = DetailIncrementModel.from_las(cloud, **opts)
+    model.save(out, workers=n)
+    secs = time.perf_counter() - t
+    if client is not None:
+        close_client(client)
+    print(json.dumps({"seconds": secs, "points": int(model.vertices_m.shape[0]),
+                      "sha256": hashlib.sha256(Path(out).read_bytes()).hexdigest()}))  # fmt: skip
+
+
 def child(config: str, dem: str, out: str) -> None:
     """Build ``dem`` into ``out`` with ``config``; print one JSON line."""
+    if config.startswith("tin-"):
+        child_tin(config, dem, out)
+        return
     from terralod.heightfield import Heightfield
     from terralod.io.windowed import RasterSource
     from terralod.pyramid.builder import build_store
@@ -234,6 +268,8 @@ def main() -> None:
     ap.add_argument("--pin", action="store_true",
                     help="run each configuration on as many CPUs as it has workers (client included)")  # fmt: skip
     ap.add_argument("--child", nargs=3, metavar=("CONFIG", "DEM", "OUT"))
+    ap.add_argument("--tin", action="store_true", help="the TIN build of a tiled Autzen cloud (scale_tin)")
+    ap.add_argument("--tin-tiles", type=int, default=8, help="Autzen copies per side for --tin (8)")
     ap.add_argument(
         "--configs", default="memory-t1,memory-t2,window-t1,window-t2,dask-p1,dask-p2,dask-p2-kill"
     )
@@ -248,6 +284,9 @@ def main() -> None:
         return
     if args.big_only:
         big_only(args.big_method)
+        return
+    if args.tin:
+        tin_scaling(args.tin_tiles, args.repeat, args.pin, args.name if args.name != "scale" else "scale_tin")
         return
     with tempfile.TemporaryDirectory(prefix="terralod-scale-") as tmp:
         folder = Path(tmp)
@@ -287,6 +326,54 @@ def main() -> None:
             last = json.loads(RESULTS_JSON.read_text())
             payload.update({k: v for k, v in last.items() if k.startswith("big_16385_")})
         write_results("scale", payload, report(rows, payload))
+
+
+def tin_scaling(tiles: int, repeat: int, pin: bool, name: str) -> None:
+    """The TIN configurations (tin-t1, tin-t2, tin-p1, tin-p2), interleaved ``repeat`` times."""
+    from tin_build import AUTZEN, autzen_tiled
+
+    if not AUTZEN.exists():
+        print(f"skipped: {AUTZEN} not present (../shared/data beside the repository)")
+        return
+    configs = ["tin-t1", "tin-t2", "tin-p1", "tin-p2"]
+    with tempfile.TemporaryDirectory(prefix="terralod-scale-tin-") as tmp:
+        folder = Path(tmp)
+        cloud = autzen_tiled(tiles, folder / f"autzen{tiles}x{tiles}.las")
+        results: dict[str, list[dict]] = {c: [] for c in configs}
+        for _ in range(repeat):
+            for config in configs:
+                r = run_config(config, cloud, folder, 1800, pin=pin)
+                print(json.dumps(r))
+                results[config].append(r)
+    rows, per = [], {}
+    ref = next((r["sha256"] for r in results["tin-t1"] if "sha256" in r), None)
+    for config, runs in results.items():
+        ok = [r for r in runs if "seconds" in r]
+        if not ok:
+            rows.append([config, "-", "-", "-", "-", runs[0].get("error", "")])
+            continue
+        secs = statistics.median(r["seconds"] for r in ok)
+        same = all(r["sha256"] == ref for r in ok)
+        per[config] = {"seconds": secs, "points_per_s": ok[0]["points"] / secs, "points": ok[0]["points"],
+                       "peak_rss_mib": max(r["peak_rss_mib"] for r in ok), "same_file_as_tin_t1": same,
+                       "runs": ok}  # fmt: skip
+        rows.append([config, secs, f"{ok[0]['points'] / secs / 1e3:,.1f}", per[config]["peak_rss_mib"],
+                     "yes" if same else "NO", f"{len(ok)} runs"])  # fmt: skip
+    md = ["# Detail-increment TIN builds: threads and Dask processes (issue 20)\n",
+          f"Autzen's ground points tiled {tiles} x {tiles} (copies offset in xy; "
+          f"{next(iter(per.values()))['points'] if per else 0:,} points after thinning), sub-blocks 'auto', the "
+          "whole build (read, thin, Delaunay blocks, simplification with measured errors, records, file). One "
+          "subprocess per configuration, peak RSS of its whole process tree (Dask workers included), medians "
+          f"of {repeat} interleaved runs. "
+          + ("**Pinned:** each configuration's process tree on as many CPUs as it has workers. " if pin else "")
+          + "Machine: 2 cores shared with other users.\n",
+          md_table(["config", "build s", "k points/s", "peak RSS MiB", "same file as tin-t1", "note"], rows)]  # fmt: skip
+    for a, b, what in (("tin-t1", "tin-t2", "threads"), ("tin-p1", "tin-p2", "processes")):
+        if a in per and b in per:
+            md.append(
+                f"- scaling {b} / {a} ({what}): **{per[b]['points_per_s'] / per[a]['points_per_s']:.2f}x**"
+            )
+    write_results(name, {"tiles": tiles, "pinned": pin, "configs": per}, "\n".join(md) + "\n")
 
 
 def big_only(method: str = METHOD) -> None:

@@ -359,6 +359,24 @@ def test_dask_workers_lost_on_every_try_is_one_clear_line(tmp_path: Path) -> Non
     assert _rows(out) == _rows(tmp_path / "mem.terra")
 
 
+def test_tin_tasks_whose_workers_die_end_in_one_clear_line() -> None:
+    """A TIN task (a Delaunay block, a sub-block's simplification) whose worker dies on every try ends the
+    build with WorkerLostError, one line naming the likely cause and what to change, not a traceback."""
+    pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
+    import dask
+
+    from terralod.errors import WorkerLostError
+    from terralod.tin.distributed import close_client, dask_executor
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        client = dask_client("local", n_workers=1, threads=1)
+    try:
+        with pytest.raises(WorkerLostError, match="out of memory.*--sub-blocks"):
+            dask_executor(client, retries=0)([1], os._exit)  # the task kills its worker process
+    finally:
+        close_client(client)
+
+
 def test_windowed_overwrite_keeps_the_old_store_until_complete(tmp_path: Path) -> None:
     """``overwrite`` of an out-of-core build builds beside the old store: stopped early (or killed) it
     leaves the old store whole; complete, it replaces it."""

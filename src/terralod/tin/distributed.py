@@ -27,6 +27,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from terralod.errors import WorkerLostError
 from terralod.pyramid.distributed import dask_client, tune_worker_malloc
 
 __all__ = ["close_client", "dask_executor", "open_client"]
@@ -63,9 +64,17 @@ def dask_executor(client: Any, retries: int = 2) -> Callable[[list[Any], Callabl
     the sub-blocks), retried elsewhere when a worker dies; results gathered in job order."""
 
     def run(jobs: list[Any], fn: Callable[[Any], Any]) -> list[Any]:
+        from distributed import KilledWorker
+
         futures = [client.submit(_on_worker, fn, j, pure=False, retries=retries) for j in jobs]
         try:
             return list(client.gather(futures))
+        except KilledWorker as exc:  # the task's workers died, retries included: memory, usually
+            raise WorkerLostError(
+                f"Dask workers died running {getattr(fn, '__name__', 'a task')} ({exc}); out of memory? give "
+                "each worker more memory, or split the cloud into more sub-blocks (--sub-blocks); nothing "
+                "was written"
+            ) from None
         finally:
             for f in futures:
                 f.release()
