@@ -127,10 +127,10 @@ def delaunay_tin(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Delaunay TIN of points (x, y, z metres) in xy.
 
-    A cloud of more than about 100 k points is triangulated block by block on ``workers`` threads, or on
-    ``executor(jobs, fn)`` (Dask: :func:`terralod.tin.distributed.dask_executor`), and the blocks' pieces
-    joined into the one Delaunay triangulation (:mod:`terralod.tin.delaunay_blocks`); the triangles do not
-    depend on ``workers`` or ``executor``.
+    A cloud of 150 k points or more is triangulated (with Triangle) block by block on ``workers``
+    threads, or on ``executor(jobs, fn)`` (Dask: :func:`terralod.tin.distributed.dask_executor`), and the
+    blocks' pieces joined into the one Delaunay triangulation (:mod:`terralod.tin.delaunay_blocks`); the
+    triangles do not depend on ``workers`` or ``executor``.
 
     Parameters
     ----------
