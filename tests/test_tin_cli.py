@@ -173,6 +173,12 @@ def test_cli_build_and_info_of_a_cloud(tmp_path: Path) -> None:
     r = run_cli("build", str(las), "-o", str(out), "--sub-blocks", "9")
     assert r.returncode == 0, r.stderr
     assert "detail-increment TIN" in r.stdout and "9 sub-blocks" in r.stdout
+    # the points/s of the whole command and the seconds of each stage, read to save
+    stages = next(line for line in r.stdout.splitlines() if line.strip().startswith("stages"))
+    assert "k points/s" in r.stdout
+    assert [part.split()[0] for part in stages.split(None, 1)[1].split(", ")] == [
+        "read", "dedup", "delaunay", "split", "qem", "records", "save"
+    ]  # fmt: skip
     r = run_cli("info", str(out), "--json")
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)

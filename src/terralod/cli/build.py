@@ -167,10 +167,11 @@ def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: floa
         client = open_client(dask_address, dask_workers)  # InputError (one line) when unreachable
         executor = dask_executor(client)
     t0 = time.perf_counter()
+    stages: dict[str, float] = {}
     try:
         if Path(input_path).suffix.lower() in (".las", ".laz"):
             model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction,
-                                                  workers=workers, executor=executor)  # fmt: skip
+                                                  workers=workers, executor=executor, timings=stages)  # fmt: skip
         else:
             model = DetailIncrementModel.from_heightfield(load(input_path, **read), sub_blocks=blocks,
                                                           base_fraction=base_fraction, workers=workers,
@@ -178,6 +179,13 @@ def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: floa
     finally:
         if client is not None:
             close_client(client)
+    t_save = time.perf_counter()
     summary = save_model_to_store(model, output, overwrite=overwrite, workers=workers)
-    console.print(f"built a detail-increment TIN (paper 003) in {time.perf_counter() - t0:.2f} s")
+    total_s = time.perf_counter() - t0
+    n_points = int(model.vertices_m.shape[0])
+    console.print(f"built a detail-increment TIN (paper 003) in {total_s:.2f} s, "
+                  f"{n_points / max(total_s, 1e-9) / 1e3:,.1f} k points/s")  # fmt: skip
+    if stages:
+        stages["save"] = time.perf_counter() - t_save
+        console.print("  stages       " + ", ".join(f"{k} {v:.2f} s" for k, v in stages.items()))
     print_tin_summary(summary)
