@@ -9,10 +9,11 @@ Deviations, and why:
 
 - **One global Delaunay, split afterwards.** Triangulating each sub-block alone and stitching the hulls
   (the paper) gives long thin gap triangles along the seams. Here the whole cloud gets one Delaunay
-  triangulation (scipy.spatial.Delaunay, Qhull) and each triangle goes to the sub-block holding its
+  triangulation (Triangle, or Qhull; see below) and each triangle goes to the sub-block holding its
   centroid. The sub-blocks then join exactly along shared edges (a polyline of the TIN, not a straight
   line) and the seam vertices, those used by triangles of two or more sub-blocks, are locked. Same
-  guarantee, better triangles, no special seam code.
+  guarantee, better triangles, no special seam code. A big cloud's one triangulation is itself computed
+  in blocks, in parallel (threads or Dask workers), and joined exactly: :mod:`terralod.tin.delaunay_blocks`.
 - **Triangulator.** Shewchuk's Triangle (the ``triangle`` package: divide and conquer, exact predicates)
   when it is installed, as the default set-up does; scipy's Qhull otherwise. The two give the same
   triangles for points in general position (tested); Triangle is about 10x faster (1 M points in 0.9 s
