@@ -348,9 +348,8 @@ def tin_scaling(tiles: int, repeat: int, pin: bool, name: str) -> None:
     rows, per = [], {}
     ref = next((r["sha256"] for r in results["tin-t1"] if "sha256" in r), None)
     for config, runs in results.items():
-        ok = [r for r in runs if "seconds" in r]
+        ok = _completed(config, runs, rows)
         if not ok:
-            rows.append([config, "-", "-", "-", "-", runs[0].get("error", "")])
             continue
         secs = statistics.median(r["seconds"] for r in ok)
         same = all(r["sha256"] == ref for r in ok)
@@ -394,14 +393,21 @@ def big_only(method: str = METHOD) -> None:
     write_results("scale", payload, report(rows, payload))
 
 
+def _completed(config: str, runs: list[dict], rows: list[list]) -> list[dict]:
+    """The runs of ``config`` that finished; none: an error row is added to ``rows``."""
+    ok = [r for r in runs if "seconds" in r]
+    if not ok:
+        rows.append([config, "-", "-", "-", "-", runs[0].get("error", "")])
+    return ok
+
+
 def summarise(results: dict[str, list[dict]], folder: Path) -> tuple[list[list], dict]:
     rows = []
     per = {}
     ref = results.get("window-t1", [{}])[0].get("store")
     for config, runs in results.items():
-        ok = [r for r in runs if "seconds" in r]
+        ok = _completed(config, runs, rows)
         if not ok:
-            rows.append([config, "-", "-", "-", "-", runs[0].get("error", "")])
             continue
         secs = statistics.median(r["seconds"] for r in ok)
         rss = max(r["peak_rss_mib"] for r in ok)
