@@ -24,7 +24,7 @@ processes; ``tcp://HOST:PORT``: a running scheduler, refused in one line when it
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from terralod.errors import WorkerLostError
@@ -57,13 +57,16 @@ def _on_worker(fn: Callable[[Any], Any], job: Any) -> Any:
     return fn(job)
 
 
-def dask_executor(client: Any, retries: int = 2) -> Callable[[list[Any], Callable[[Any], Any]], list[Any]]:
+def dask_executor(
+    client: Any, retries: int = 2
+) -> Callable[[Iterable[Any], Callable[[Any], Any]], list[Any]]:
     """An ``executor(jobs, fn)`` for :meth:`terralod.tin.increments.DetailIncrementModel.from_points`: each
-    ``fn(job)`` a task on the cluster (Delaunay blocks, :func:`terralod.tin.delaunay_blocks.block_triangles`;
-    sub-block simplification, :func:`terralod.tin.qem.run_block`), in the order given (biggest first for
-    the sub-blocks), retried elsewhere when a worker dies; results gathered in job order."""
+    ``fn(job)`` a task on the cluster, submitted as the iterable ``jobs`` yields it, in that order
+    (Delaunay blocks, :func:`terralod.tin.delaunay_blocks.block_triangles`; sub-block simplification,
+    :func:`terralod.tin.qem.run_block`, biggest first, cut while the first ones run), retried elsewhere
+    when a worker dies; results gathered in job order."""
 
-    def run(jobs: list[Any], fn: Callable[[Any], Any]) -> list[Any]:
+    def run(jobs: Iterable[Any], fn: Callable[[Any], Any]) -> list[Any]:
         from distributed import KilledWorker
 
         futures = [client.submit(_on_worker, fn, j, pure=False, retries=retries) for j in jobs]

@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -297,13 +297,15 @@ def simplify_blocks(
     n_blocks: int | None = None,
     vertical_weight: float | None = None,
     workers: int | None = None,
-    executor: Callable[[list[BlockJob], Callable[[BlockJob], BlockResult]], list[BlockResult]] | None = None,
+    executor: Callable[[Iterable[BlockJob], Callable[[BlockJob], BlockResult]], list[BlockResult]]
+    | None = None,
 ) -> tuple[CollapseLog, np.ndarray]:
     """Each sub-block simplified on its own (its seam LOCKED), ``workers`` threads, and merged: (log,
     measured errors (C,), the per-block running max of :func:`measured_errors`).
 
     The result does not depend on ``workers`` (each block's collapses are a function of its job);
-    ``executor(jobs, run_block)`` may replace the thread pool: it returns :func:`run_block` of each job, in order
+    ``executor(jobs, run_block)`` may replace the thread pool: it takes the jobs as they are cut (an
+    iterable) and returns :func:`run_block` of each job, in order
     (Dask workers, :func:`terralod.tin.distributed.dask_executor`).
     """
     nb, make = block_jobs(vertices_m, triangles, kind, tri_block, base_fraction=base_fraction,
@@ -320,11 +322,15 @@ def simplify_blocks(
     blocks = [int(b) for b in np.argsort(-size, kind="stable")]
     n_threads = _workers(workers)
     if executor is not None:
-        made = [make(b) for b in blocks]
-        for b, job in zip(blocks, made, strict=True):
-            jobs[b] = job
-        ran = iter(executor([j for j in made if j is not None], run_block))
-        got = [None if j is None else next(ran) for j in made]
+
+        def cut() -> Iterator[BlockJob]:  # each job handed over as soon as it is cut: the first ones run
+            for b in blocks:  # while the client cuts the rest
+                jobs[b] = make(b)
+                if jobs[b] is not None:
+                    yield jobs[b]
+
+        ran = iter(executor(cut(), run_block))
+        got = [None if jobs[b] is None else next(ran) for b in blocks]
     elif n_threads == 1 or nb == 1:
         got = [one(b) for b in blocks]
     else:
