@@ -204,10 +204,12 @@ def test_orient_ccw_kernel_matches_the_numpy_rule(seed, n) -> None:
     assert np.array_equal(out, want[keep]) and np.array_equal(area2, np.abs(a)[keep])
 
 
-def test_delaunay_tin_uses_blocks_on_threads_and_on_dask_workers(monkeypatch) -> None:
+def test_delaunay_tin_uses_blocks_on_threads_and_on_dask_workers(monkeypatch, tmp_path) -> None:
     """delaunay_tin with small blocks: the single call's arrays (general position), the same bytes on
-    1 and 2 threads, and on a LocalCluster's worker processes through the Dask executor."""
+    1 and 2 threads, and on a LocalCluster's worker processes through the Dask executor; a whole model
+    built on the workers saves the local model's bytes."""
     pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
+    from terralod.tin import DetailIncrementModel
     from terralod.tin.distributed import close_client, dask_executor, open_client
 
     rng = np.random.default_rng(8)
@@ -219,12 +221,18 @@ def test_delaunay_tin_uses_blocks_on_threads_and_on_dask_workers(monkeypatch) ->
     # general position: the same triangles, and (canonical order) the same arrays
     assert all(np.array_equal(x, y) for x, y in zip(one, single, strict=True))
     assert all(np.array_equal(x, y) for x, y in zip(one, two, strict=True))
+    local_model = DetailIncrementModel.from_points(pts, sub_blocks=9, workers=2)
     client = open_client("local", 2)
     try:
         on_dask = delaunay_tin(pts, executor=dask_executor(client))
+        dask_model = DetailIncrementModel.from_points(pts, sub_blocks=9, executor=dask_executor(client))
     finally:
         close_client(client)
     assert all(np.array_equal(x, y) for x, y in zip(one, on_dask, strict=True))
+    # the whole model (blocks' Delaunay, then the sub-blocks simplified on the workers): the same file
+    local_model.save(tmp_path / "local.tin")
+    dask_model.save(tmp_path / "dask.tin")
+    assert (tmp_path / "local.tin").read_bytes() == (tmp_path / "dask.tin").read_bytes()
 
 
 @settings(max_examples=30, deadline=None)
