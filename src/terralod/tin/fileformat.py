@@ -239,11 +239,25 @@ def decode_mesh_rows(rows: np.ndarray) -> np.ndarray:
     return np.stack([a, a + d[:, 1], a + d[:, 2]], axis=1)
 
 
+#: :func:`_estimate` compresses at most this many bytes of a column: evenly spaced chunks of it.
+_ESTIMATE_BYTES = 1 << 19
+_ESTIMATE_CHUNKS = 8
+
+
 def _estimate(raw: bytes) -> int:
-    """Cheap stand-in for the coded size, to choose between two codings of a float column. zlib level 1:
-    2.4x faster than level 6 on the Puget crop's columns (0.14 s against 0.33 s a save) and the same
-    choice on every column of the Puget crop, Autzen and Autzen 4x4."""
-    return len(zlib.compress(raw, 1))
+    """Cheap stand-in for the coded size, to choose between two codings of a float column: zlib level 1
+    of the column, or of :data:`_ESTIMATE_CHUNKS` evenly spaced chunks of it (:data:`_ESTIMATE_BYTES` in
+    all) scaled to its length when it is longer. A deterministic function of the bytes, so the file's
+    bytes still depend on the model alone. On the Puget crop, Autzen and Autzen 4x4 it makes the same
+    choice on every column as zlib level 6 of the whole column did, in a seventh of the time (Puget:
+    0.045 s against 0.33 s a save)."""
+    n = len(raw)
+    if n <= _ESTIMATE_BYTES:
+        return len(zlib.compress(raw, 1))
+    step = _ESTIMATE_BYTES // _ESTIMATE_CHUNKS
+    starts = [(n - step) * i // (_ESTIMATE_CHUNKS - 1) for i in range(_ESTIMATE_CHUNKS)]
+    coded = sum(len(zlib.compress(raw[a : a + step], 1)) for a in starts)
+    return coded * n // _ESTIMATE_BYTES
 
 
 def _encode_floats(a: np.ndarray) -> bytes:
