@@ -22,7 +22,7 @@ from scipy.spatial import Delaunay
 
 from terralod.error import ErrorReport, measure_error, measure_error_window, measure_error_window_series
 from terralod.heightfield import Heightfield
-from terralod.kernels.error import tile_error, tile_error_with
+from terralod.kernels.error import changed_rows, tile_error, tile_error_with
 
 RTOL = 1e-9
 SETTINGS = settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -315,6 +315,44 @@ def test_series_matches_one_by_one(case, data) -> None:
     meshes.append((verts, tris[: len(tris) // 2]))
     got = measure_error_window_series(meshes, z, valid, dx, dy)
     assert got == [measure_error_window(v, t, z, valid, dx, dy) for v, t in meshes]
+
+
+def _changed_rows_numpy(pv, pt, v, t, dy, h):
+    """The numpy statement of changed_rows (the rows a differing triangle reaches in either mesh)."""
+    moved = (pv != v).any(axis=1)
+    changed = (pt != t).any(axis=1)
+    if t.size:
+        changed |= moved[pt].any(axis=1) | moved[t].any(axis=1)
+    ys = np.concatenate([pv[pt[changed], 1], v[t[changed], 1]]) / dy
+    lo = np.clip(np.floor(ys.min(axis=1, initial=np.inf)).astype(np.int64) - 1, 0, h) if len(ys) else ys
+    hi = np.clip(np.ceil(ys.max(axis=1, initial=-np.inf)).astype(np.int64) + 2, 0, h) if len(ys) else ys
+    edges = np.zeros(h + 1, np.int64)
+    np.add.at(edges, lo.astype(np.int64), 1)
+    np.add.at(edges, hi.astype(np.int64), -1)
+    return np.cumsum(edges[:h]) > 0
+
+
+@given(case=cases(), data=st.data())
+@SETTINGS
+def test_changed_rows_kernel_matches_numpy(case, data) -> None:
+    """The kernel that picks the rows to rasterise again gives the numpy statement's rows: vertices moved
+    in x, y or only z (on and off the lattice, past the window's edges), triangles re-indexed, no change."""
+    verts, tris, z, _valid, _dx, dy = case
+    h = z.shape[0]
+    rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
+    v = np.ascontiguousarray(verts, np.float64).copy()
+    t = np.ascontiguousarray(tris, np.int64).copy()
+    pv, pt = v.copy(), t.copy()
+    if len(v) and data.draw(st.booleans()):
+        moved = rng.choice(len(v), size=min(len(v), int(rng.integers(1, 5))), replace=False)
+        axis = int(rng.integers(3))
+        v[moved, axis] += rng.uniform(-4, 4, moved.size) * (dy if axis == 1 else 1.0)
+    if len(t) and data.draw(st.booleans()):
+        k = int(rng.integers(len(t)))
+        t[k] = t[k][::-1]
+    got = changed_rows(pv, pt, v, t, float(dy), h)
+    assert np.array_equal(got, _changed_rows_numpy(pv, pt, v, t, float(dy), h))
+    assert not changed_rows(pv, pt, pv, pt, float(dy), h).any()
 
 
 @given(case=cases(kinds=("grid", "delaunay", "sliver")), data=st.data())

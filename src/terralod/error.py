@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from terralod.heightfield import Heightfield
-from terralod.kernels.error import _KEEP_SAMPLES, tile_error, tile_error_rows
+from terralod.kernels.error import _KEEP_SAMPLES, changed_rows, tile_error, tile_error_rows
 
 __all__ = ["ErrorReport", "measure_error", "measure_error_window", "measure_error_window_series"]
 
@@ -194,17 +194,7 @@ def _changed_rows(
     if prev is None or prev[0].shape != v.shape or prev[1].shape != t.shape:
         return np.ones(h, np.bool_)
     pv, pt = prev
-    moved = (pv != v).any(axis=1)
-    changed = (pt != t).any(axis=1)
-    if t.size:
-        changed |= moved[pt].any(axis=1) | moved[t].any(axis=1)
-    ys = np.concatenate([pv[pt[changed], 1], v[t[changed], 1]]) / dy  # (2 * changed, 3)
-    lo = np.clip(np.floor(ys.min(axis=1)).astype(np.int64) - 1, 0, h)
-    hi = np.clip(np.ceil(ys.max(axis=1)).astype(np.int64) + 2, 0, h)  # one past the last row
-    edges = np.zeros(h + 1, np.int64)
-    np.add.at(edges, lo, 1)
-    np.add.at(edges, hi, -1)
-    return np.cumsum(edges[:h]) > 0
+    return changed_rows(pv, pt, v, t, float(dy), int(h))
 
 
 def measure_error(

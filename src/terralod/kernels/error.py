@@ -803,6 +803,43 @@ def tile_error_with(verts, tris, z, valid, dx, dy, bucket_size, keep_samples):
 
 
 @jit
+def changed_rows(pv, pt, v, t, dy, h):
+    """(h,) bool: the window rows that the triangles differing between two meshes of the same counts reach
+    in either mesh, with a row of margin (what :func:`tile_error_rows` must rasterise again).
+
+    A triangle differs when an index differs or one of its vertices (in either mesh) moved; it reaches
+    rows ``floor(min y / dy) - 1`` to ``ceil(max y / dy) + 1`` of each mesh, clipped to the window.
+    pv, v : (N, 3) float64 vertices (window frame, metres); pt, t : (K, 3) integer triangles.
+    """
+    n = v.shape[0]
+    moved = np.zeros(n, np.bool_)
+    for i in range(n):
+        moved[i] = pv[i, 0] != v[i, 0] or pv[i, 1] != v[i, 1] or pv[i, 2] != v[i, 2]
+    edges = np.zeros(h + 1, np.int64)
+    for k in range(t.shape[0]):
+        a0, a1, a2 = pt[k, 0], pt[k, 1], pt[k, 2]
+        b0, b1, b2 = t[k, 0], t[k, 1], t[k, 2]
+        if not (a0 != b0 or a1 != b1 or a2 != b2 or moved[a0] or moved[a1] or moved[a2] or moved[b0]
+                or moved[b1] or moved[b2]):  # fmt: skip
+            continue
+        for m in range(2):
+            if m == 0:
+                y0, y1, y2 = pv[a0, 1] / dy, pv[a1, 1] / dy, pv[a2, 1] / dy
+            else:
+                y0, y1, y2 = v[b0, 1] / dy, v[b1, 1] / dy, v[b2, 1] / dy
+            lo = min(max(np.int64(math.floor(min(y0, y1, y2))) - 1, 0), h)
+            hi = min(max(np.int64(math.ceil(max(y0, y1, y2))) + 2, 0), h)  # one past the last row
+            edges[lo] += 1
+            edges[hi] -= 1
+    out = np.empty(h, np.bool_)
+    run = 0
+    for r in range(h):
+        run += edges[r]
+        out[r] = run > 0
+    return out
+
+
+@jit
 def tile_error_rows(verts, tris, z, valid, dx, dy, vall, dirty):
     """:func:`tile_error` of a mesh that differs from a previously measured one only on some rows.
 
