@@ -16,9 +16,9 @@ from __future__ import annotations
 import math
 import sqlite3
 import tempfile
-import zlib
 from pathlib import Path
 
+import deflate
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -39,7 +39,7 @@ from terralod.pyramid.builder import (
 )
 from terralod.pyramid.footprint import _all_true
 from terralod.store import (
-    ZLIB_LEVEL,
+    DEFLATE_LEVEL,
     LevelQuantisation,
     encode_triangles,
     encode_vertices,
@@ -61,14 +61,14 @@ def _zigzag_delta32(a: np.ndarray) -> np.ndarray:
 
 def _encode_vertices(q: np.ndarray) -> bytes:
     cols = [_zigzag_delta16(q[:, k]) for k in range(3)]
-    return zlib.compress(np.concatenate(cols).astype("<u2").tobytes(), ZLIB_LEVEL)
+    return deflate.zlib_compress(np.concatenate(cols).astype("<u2").tobytes(), DEFLATE_LEVEL)
 
 
 def _encode_triangles(t: np.ndarray) -> bytes:
     flat = t.astype(np.int64).ravel()
     if flat.size == 0 or flat.max() < 65536:
-        return b"\x02" + zlib.compress(_zigzag_delta16(flat).astype("<u2").tobytes(), ZLIB_LEVEL)
-    return b"\x04" + zlib.compress(_zigzag_delta32(flat).astype("<u4").tobytes(), ZLIB_LEVEL)
+        return b"\x02" + deflate.zlib_compress(_zigzag_delta16(flat).astype("<u2").tobytes(), DEFLATE_LEVEL)
+    return b"\x04" + deflate.zlib_compress(_zigzag_delta32(flat).astype("<u4").tobytes(), DEFLATE_LEVEL)
 
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
