@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from terralod import Heightfield, build_store, open_store
 from terralod.pyramid.builder import METHODS
-from terralod.pyramid.footprint import footprint_mask
+from terralod.pyramid.footprint import drop_nodata, footprint_mask
 
 from conftest import fractal_terrain
 
@@ -104,6 +104,34 @@ def _holed(seed: int) -> Heightfield:
     r, c = np.mgrid[0:97, 0:113]
     valid = (r + c > 25) & ~((r > 30) & (r < 70) & (c > 40) & (c < 90))  # a wedge and a lake of nodata
     return Heightfield.from_array(z, 30.0, origin_m=(500000.0, 4100000.0), valid=valid)
+
+
+@given(
+    seed=st.integers(0, 2**32 - 1), n=st.integers(3, 60), k=st.integers(0, 120),
+    dtype=st.sampled_from([np.int32, np.int64, np.uint32]),
+)  # fmt: skip
+@settings(max_examples=150, deadline=None)
+def test_drop_nodata_is_the_numpy_statement(seed: int, n: int, k: int, dtype) -> None:
+    """drop_nodata (the footprint's triangles, compacted by a kernel) gives the numpy statement's arrays:
+    the kept triangles in order, renumbered onto the vertices they use, in order, in the input's dtype."""
+    rng = np.random.default_rng(seed)
+    valid = rng.random((12, 12)) < 0.6
+    rows = rng.integers(0, 12, n).astype(np.float64)
+    cols = rng.integers(0, 12, n).astype(np.float64)
+    hz = rng.normal(0.0, 10.0, n)
+    tris = rng.integers(0, n, (k, 3)).astype(dtype)
+    got = drop_nodata(rows, cols, hz, tris, valid, valid)
+    keep = footprint_mask(rows, cols, tris.astype(np.int64), valid) if k else np.zeros(0, bool)
+    kept = tris[keep]
+    used = np.zeros(n, bool)
+    used[kept.ravel()] = True
+    remap = np.cumsum(used) - 1
+    want = (rows[used], cols[used], hz[used], remap[kept].astype(dtype))
+    if k == 0 or keep.all():
+        want = (rows, cols, hz, tris)
+    for g, w in zip(got, want, strict=True):
+        assert g.dtype == w.dtype
+        np.testing.assert_array_equal(g, w)
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))

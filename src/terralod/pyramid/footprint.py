@@ -135,6 +135,44 @@ def _all_true(mask):
     return True
 
 
+@jit
+def compact_mesh(rows, cols, heights_m, tris, keep):
+    """The mesh of the triangles where ``keep`` is True, without the vertices they leave unused (vertex and
+    triangle order kept, indices renumbered, triangles in ``tris``' dtype)."""
+    n = rows.shape[0]
+    used = np.zeros(n, np.bool_)
+    nk = 0
+    for t in range(tris.shape[0]):
+        if keep[t]:
+            nk += 1
+            used[tris[t, 0]] = True
+            used[tris[t, 1]] = True
+            used[tris[t, 2]] = True
+    remap = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        remap[i] = m
+        if used[i]:
+            m += 1
+    r_out = np.empty(m, rows.dtype)
+    c_out = np.empty(m, cols.dtype)
+    h_out = np.empty(m, heights_m.dtype)
+    for i in range(n):
+        if used[i]:
+            r_out[remap[i]] = rows[i]
+            c_out[remap[i]] = cols[i]
+            h_out[remap[i]] = heights_m[i]
+    t_out = np.empty((nk, 3), tris.dtype)
+    k = 0
+    for t in range(tris.shape[0]):
+        if keep[t]:
+            t_out[k, 0] = remap[tris[t, 0]]
+            t_out[k, 1] = remap[tris[t, 1]]
+            t_out[k, 2] = remap[tris[t, 2]]
+            k += 1
+    return r_out, c_out, h_out, t_out
+
+
 def drop_nodata(
     rows: np.ndarray, cols: np.ndarray, heights_m: np.ndarray, tris: np.ndarray, valid: np.ndarray,
     window_valid: np.ndarray,
@@ -146,14 +184,12 @@ def drop_nodata(
     """
     if tris.shape[0] == 0 or _all_true(window_valid):
         return rows, cols, heights_m, tris
+    tt = np.ascontiguousarray(tris if tris.dtype in (np.int32, np.int64) else tris.astype(np.int64))
     keep = footprint_mask(
-        np.ascontiguousarray(rows, np.float64), np.ascontiguousarray(cols, np.float64),
-        np.ascontiguousarray(tris, np.int64), np.ascontiguousarray(valid, np.bool_),
+        np.ascontiguousarray(rows, np.float64), np.ascontiguousarray(cols, np.float64), tt,
+        np.ascontiguousarray(valid, np.bool_),
     )  # fmt: skip
     if keep.all():
         return rows, cols, heights_m, tris
-    kept = tris[keep]
-    used = np.zeros(rows.shape[0], bool)
-    used[kept.ravel()] = True
-    remap = np.cumsum(used) - 1
-    return rows[used], cols[used], heights_m[used], remap[kept].astype(tris.dtype)
+    r, c, hz, t = compact_mesh(rows, cols, heights_m, tt, keep)
+    return r, c, hz, t.astype(tris.dtype, copy=False)
