@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import sqlite3
 import tempfile
+import zlib
 from pathlib import Path
 
 import deflate
@@ -84,6 +85,8 @@ def test_coding_kernels_match_the_store(seed: int, n: int, spread: int) -> None:
     q = rng.integers(0, spread + 1, (n, 3)).astype(np.uint16)
     assert np.array_equal(vertex_codes(q), np.concatenate([_zigzag_delta16(q[:, k]) for k in range(3)]))
     assert _encode_vertices(q) == encode_vertices(q)
+    assert type(encode_vertices(q)) is bytes  # (libdeflate returns a bytearray; the store keeps bytes)
+    assert zlib.decompress(encode_vertices(q)) == vertex_codes(q).astype("<u2").tobytes()  # zlib reads it
     for top in (10, 65535, 65536, 2**31 + 5):
         t = rng.integers(0, top, (n, 3)).astype(np.int64)
         flat = t.ravel()
@@ -91,6 +94,7 @@ def test_coding_kernels_match_the_store(seed: int, n: int, spread: int) -> None:
             assert np.array_equal(triangle_codes16(t), _zigzag_delta16(flat))
         assert np.array_equal(triangle_codes32(t), _zigzag_delta32(flat))
         assert _encode_triangles(t) == encode_triangles(t)
+        assert type(encode_triangles(t)) is bytes
         assert _encode_triangles(t.astype(np.int32) if top <= 2**31 else t) == encode_triangles(t)
         # the builder's call: the vertex count bounds the indices (any count above the largest index)
         n_vertices = int(t.max()) + 1 + int(rng.integers(0, 3)) if t.size else 0

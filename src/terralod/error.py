@@ -194,7 +194,8 @@ def _changed_rows(
     if prev is None or prev[0].shape != v.shape or prev[1].shape != t.shape:
         return np.ones(h, np.bool_)
     pv, pt = prev
-    return changed_rows(pv, pt, v, t, float(dy), int(h))
+    rows: np.ndarray = changed_rows(pv, pt, v, t, float(dy), int(h))
+    return rows
 
 
 def measure_error(

@@ -304,8 +304,7 @@ DEFLATE_LEVEL = 1
 
 def _deflate(raw: np.ndarray) -> bytes:
     """A zlib stream of an array's bytes (libdeflate; the GIL is released while it codes)."""
-    out: bytes = deflate.zlib_compress(raw.tobytes(), DEFLATE_LEVEL)
-    return out
+    return bytes(deflate.zlib_compress(raw.tobytes(), DEFLATE_LEVEL))  # (it returns a bytearray)
 
 
 def encode_vertices(q: np.ndarray) -> bytes:
