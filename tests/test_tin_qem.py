@@ -108,3 +108,20 @@ def test_vertical_gap_matches_an_exhaustive_search(seed: int, k: int, n_pts: int
         lim = 0.5 * ref
         if lim > 0.0:
             assert K._carried_gap2(w, P, sa, sb, k, geo, pxyz, ps, npts, tri, lim) >= lim
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    n_vertices=st.integers(1, 5000),
+    k=st.integers(0, 60),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_block_vertices_are_the_used_vertices_ascending(n_vertices: int, k: int, seed: int) -> None:
+    """block_vertices (a mask over the TIN, or a sort of the block's own indices when the TIN is far
+    larger) gives the distinct indices the triangles use, ascending, as int64, on both paths."""
+    from terralod.tin.qem import block_vertices
+
+    t = np.random.default_rng(seed).integers(0, n_vertices, (k, 3)).astype(np.int32)
+    got = block_vertices(t, n_vertices)
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, np.unique(t.ravel()))

@@ -174,6 +174,22 @@ def _check(base_fraction: float, vertical_weight: float | None) -> float:
     return VERTICAL_WEIGHT if vertical_weight is None else float(vertical_weight)
 
 
+def block_vertices(t: np.ndarray, n_vertices: int) -> np.ndarray:
+    """The vertices that triangles ``t`` use, ascending (int64): from a mask over all ``n_vertices`` while
+    the TIN has at most 25 vertices per index of ``t``, else from a sort of ``t``'s own indices (a pass
+    over V bytes per block made cutting every block of a large cloud cost blocks x V; measured with
+    393 k indices: mask 2 / 11 / 27 ms, sort 11-12 ms, for V = 1 M / 10 M / 100 M)."""
+    flat = t.ravel()
+    if n_vertices <= 25 * flat.size:
+        used = np.zeros(n_vertices, np.bool_)
+        used[flat] = True
+        return np.flatnonzero(used)
+    s = np.sort(flat)
+    keep = np.ones(s.size, np.bool_)
+    keep[1:] = s[1:] != s[:-1]
+    return s[keep].astype(np.int64)
+
+
 def block_jobs(
     vertices_m: np.ndarray,
     triangles: np.ndarray,
@@ -188,7 +204,8 @@ def block_jobs(
     """(number of blocks, make(b)): ``make(b)`` cuts sub-block b's job out of the TIN (None: no triangle).
 
     The quadrics are computed once over the whole TIN (so a seam vertex has the planes of every block
-    around it); cutting a job is O(V) numpy work that releases the GIL, so threads may cut their own.
+    around it); cutting a job is numpy work on the block's own triangles (:func:`block_vertices`) that
+    releases the GIL, so threads may cut their own.
     """
     vw = _check(base_fraction, vertical_weight)
     v = np.asarray(vertices_m, np.float64)
@@ -208,9 +225,7 @@ def block_jobs(
         if slots.size == 0:
             return None
         t = tris[slots]
-        used = np.zeros(v.shape[0], np.bool_)
-        used[t.ravel()] = True
-        verts = np.flatnonzero(used)
+        verts = block_vertices(t, v.shape[0])
         local = np.searchsorted(verts, t).astype(np.int32)
         return BlockJob(int(b), verts, slots, p[verts], v[verts], local, kind8[verts], q[verts], w[verts],
                         int(target[b]), float(shape_eps), vw)  # fmt: skip
