@@ -48,14 +48,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from terralod import Engine, Heightfield, build_store, measure_error, open_store  # noqa: E402
 from terralod.io.reader import read_heightfield  # noqa: E402
 from terralod.pyramid import adaptive  # noqa: E402
-from terralod.pyramid.builder import register_method  # noqa: E402
+from terralod.pyramid.builder import default_tile_size, register_method  # noqa: E402
 from terralod.tiles import parent  # noqa: E402
 
 from _common import SHARED, md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
 
 #: Max vertical error targets, metres, at which triangle counts are compared.
 TARGETS_M = (5.0, 10.0, 20.0, 40.0, 80.0)
-METHODS = ("adaptive", "adaptive_ladder", "adaptive_lossless", "cohesion", "chunked")
+#: Store methods as ``name@M`` (tile size M; without it the method's default: 33 for adaptive tiles, 65
+#: for cohesion and chunked).
+METHODS = ("adaptive", "adaptive@65", "adaptive@17", "adaptive_ladder", "adaptive_lossless", "cohesion",
+           "chunked", "chunked@33")  # fmt: skip
 TILE_SIZE = 65
 #: The adaptive ladder from the other end: a near-lossless finest level (0.5 m), halving upward, every tile
 #: capped at a regular tile's M^2 vertices (coarse tiles then stop above their target, measured).
@@ -82,17 +85,30 @@ def _terrain(name: str) -> Heightfield | None:
     raise ValueError(name)
 
 
-def child_build(name: str, method: str, out: str, reps: int) -> None:
+def method_spec(spec: str) -> tuple[str, int]:
+    """``(method, tile size)`` of ``name`` or ``name@M`` (the method's default tile size without ``@M``)."""
+    name, _, m = spec.partition("@")
+    return name, int(m) if m else default_tile_size(name)
+
+
+def label(spec: str) -> str:
+    """``spec`` with its tile size: "adaptive" -> "adaptive M=33"."""
+    name, m = method_spec(spec)
+    return f"{name} M={m}"
+
+
+def child_build(name: str, spec: str, out: str, reps: int) -> None:
     """Runs in a subprocess: warm the kernels, build one store ``reps`` times, print JSON."""
     hf = _terrain(name)
     assert hf is not None
+    method, tile_size = method_spec(spec)
     warm = np.random.default_rng(0).normal(0.0, 50.0, (140, 140)).astype(np.float32)
-    build_store(Heightfield.from_array(warm, 30.0), out + ".warm", tile_size=TILE_SIZE, method=method)
+    build_store(Heightfield.from_array(warm, 30.0), out + ".warm", tile_size=tile_size, method=method)
     secs = []
     for _ in range(reps):
         adaptive._LADDERS.clear()  # every rep measures its ladder afresh, as a user's one build does
         t = time.perf_counter()
-        build_store(hf, out, tile_size=TILE_SIZE, method=method, overwrite=True)
+        build_store(hf, out, tile_size=tile_size, method=method, overwrite=True)
         secs.append(time.perf_counter() - t)
     print(json.dumps({"seconds": secs, "peak_rss_mib": _own_peak_rss_kib() / 1024}))
 
@@ -209,7 +225,12 @@ def main() -> None:
     names += ["puget_sound_4k_mirror"] if args.big else []
     if args.terrains:
         names = args.terrains.split(",")
-    results: dict = {"tile_size": TILE_SIZE, "targets_m": list(TARGETS_M), "reps": reps, "terrains": {}}
+    results: dict = {
+        "tile_size": {m: method_spec(m)[1] for m in methods},
+        "targets_m": list(TARGETS_M),
+        "reps": reps,
+        "terrains": {},
+    }
     build_rows, cut_rows, path_rows, ratio_rows = [], [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
@@ -252,7 +273,7 @@ def main() -> None:
                                                                             + GPU_TRIANGLE_BYTES * len(tr)) / len(tr)}  # fmt: skip
                     m["path"] = camera_path(s, args.frames)
                 rec["methods"][method] = m
-                build_rows.append([name, f"{hf.width}x{hf.height}", method, m["tiles"], med, samples / med / 1e6,
+                build_rows.append([name, f"{hf.width}x{hf.height}", label(method), m["tiles"], med, samples / med / 1e6,
                                    m["peak_rss_mib"], m["store_mib"], m["bytes_per_triangle"]])  # fmt: skip
             for p in {p["method"].split(" ")[0] for p in peers}:
                 secs = [q["seconds"] for q in peers if q["method"].startswith(p)]
@@ -264,10 +285,12 @@ def main() -> None:
                 for method in methods:
                     c = rec["methods"][method]["cut"][str(target)]
                     if c is None:
-                        cut_rows.append([name, target, f"{method} (uniform cut)", "unreachable", "", "", ""])
+                        cut_rows.append(
+                            [name, target, f"{label(method)} (uniform cut)", "unreachable", "", "", ""]
+                        )
                         row_ratio.append("")
                         continue
-                    cut_rows.append([name, target, f"{method} (uniform cut)", c["triangles"], c["max_vertical_m"],
+                    cut_rows.append([name, target, f"{label(method)} (uniform cut)", c["triangles"], c["max_vertical_m"],
                                      c["hausdorff_m"], c["gpu_bytes_per_triangle"]])  # fmt: skip
                     row_ratio.append(c["triangles"] / dl["triangles"])
                 for p in peers:
@@ -287,10 +310,12 @@ def main() -> None:
             for method in methods:
                 pth = rec["methods"][method]["path"]
                 tri = np.asarray(pth["triangles"], float)
-                path_rows.append([name, method, int(tri.mean()), int(np.median(tri)), float(max(pth["max_screen_error_px"])),
-                                  float(np.mean(pth["gpu_bytes"]) / 2**20)])  # fmt: skip
+                ref = rec["methods"].get("chunked", {}).get("path")
+                vs = tri.mean() / np.mean(ref["triangles"]) if ref else ""
+                path_rows.append([name, label(method), int(tri.mean()), int(np.median(tri)), vs,
+                                  float(max(pth["max_screen_error_px"])), float(np.mean(pth["gpu_bytes"]) / 2**20)])  # fmt: skip
             results["terrains"][name] = rec
-    md = f"## Build throughput (M = {TILE_SIZE}, whole pyramid with measured errors, median of {reps})\n\n"
+    md = f"## Build throughput (whole pyramid with measured errors, median of {reps}; M: tile size)\n\n"
     md += md_table(["terrain", "size", "method", "tiles", "build s", "M samples/s", "peak RSS MiB", "store MiB",
                     "store bytes / triangle"], build_rows)  # fmt: skip
     md += "\nPeers mesh one error level per call (their median over the targets); the stores build every level.\n"
@@ -298,11 +323,11 @@ def main() -> None:
     md += md_table(["terrain", "target m", "method", "triangles", "true max vert. m", "Hausdorff m", "GPU B / triangle"],
                    cut_rows)  # fmt: skip
     md += "\nRatios of triangles (uniform cut / pydelatin at the same target; last column adaptive / chunked):\n\n"
-    md += md_table(["terrain", "target m", "pydelatin triangles"] + [f"{m} / pydelatin" for m in methods]
-                   + ["adaptive / chunked"], ratio_rows)  # fmt: skip
+    md += md_table(["terrain", "target m", "pydelatin triangles"] + [f"{label(m)} / pydelatin" for m in methods]
+                   + [f"{label('adaptive')} / {label('chunked')}"], ratio_rows)  # fmt: skip
     md += "\n## Camera path at 2 px (circle, 20 degrees down, 1920 x 1080)\n\n"
-    md += md_table(["terrain", "method", "mean triangles", "median triangles", "worst drawn px", "mean GPU MiB"],
-                   path_rows)  # fmt: skip
+    md += md_table(["terrain", "method", "mean triangles", "median triangles", "mean / chunked M=65", "worst drawn px",
+                    "mean GPU MiB"], path_rows)  # fmt: skip
     write_results(args.name, results, md)
 
 

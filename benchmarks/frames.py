@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from runtime import THRESHOLD_PX, cached_store, flight  # noqa: E402
 from terralod import open_store  # noqa: E402
-from terralod.pyramid.builder import DEFAULT_METHOD  # noqa: E402
+from terralod.pyramid.builder import DEFAULT_METHOD, default_tile_size  # noqa: E402
 from terralod.runtime import Camera, Engine  # noqa: E402
 
 from _common import md_table, puget_sound_1k, puget_sound_4k, write_results  # noqa: E402
@@ -134,14 +134,16 @@ def main() -> None:
     ap.add_argument(
         "--method", default=DEFAULT_METHOD, help="tile method of the store (default: the build's)"
     )
+    ap.add_argument("--tile-size", type=int, default=None, help="tile size M (default: the method's)")
     args = ap.parse_args()
     hf = puget_sound_1k() if args.quick else puget_sound_4k()
     if hf is None:
         print("skipping: ../shared/data/dem/puget_sound_1k_u16.png not present")
         return
     name = "puget_sound_1k" if args.quick else "puget_sound_4k"
-    path = cached_store(name, hf, args.method)
-    rows, payload = [], {"terrain": name, "method": args.method, "frames": args.frames,
+    tile_size = args.tile_size or default_tile_size(args.method)
+    path = cached_store(name, hf, args.method, tile_size)
+    rows, payload = [], {"terrain": name, "method": args.method, "tile_size": tile_size, "frames": args.frames,
                          "repeats": args.repeats, "results": {}}  # fmt: skip
     with open_store(path) as store:
         cams = flight(store, args.frames, speed_mps=2000.0, agl_m=1500.0)
@@ -164,7 +166,7 @@ def main() -> None:
                 int(fl["frame_thread_loads"]), jp["first_p50"], jp["first_max"], jp["settle_frames_p50"],
             ])  # fmt: skip
     md = (
-        f"# Frames without spikes ({name}, {args.method} tiles, {args.frames}-frame flight, {args.jumps} random jumps, "
+        f"# Frames without spikes ({name}, {args.method} tiles M={tile_size}, {args.frames}-frame flight, {args.jumps} random jumps, "
         f"medians of {args.repeats} runs, 1920x1080, {THRESHOLD_PX} px)\n\n"
         + md_table(
             [

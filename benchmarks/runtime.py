@@ -57,10 +57,11 @@ def fbm_4097(seed: int = 7) -> Heightfield:
     return Heightfield.from_array(z.astype(np.float32), 30.0, source="spectral fBm 4097² (seed 7)")
 
 
-def cached_store(name: str, hf: Heightfield, method: str = "cohesion") -> Path:
-    """The cached store of ``hf`` built with ``method`` (this benchmark's tables: cohesion)."""
+def cached_store(name: str, hf: Heightfield, method: str = "cohesion", tile_size: int = TILE_SIZE) -> Path:
+    """The cached store of ``hf`` built with ``method`` and ``tile_size`` (this benchmark's tables: cohesion
+    and chunked, M = 65)."""
     CACHE.mkdir(parents=True, exist_ok=True)
-    p = CACHE / f"{name}_{method}_m{TILE_SIZE}.terra"
+    p = CACHE / f"{name}_{method}_m{tile_size}.terra"
     digest = hf.digest()
     if p.exists():
         try:
@@ -68,7 +69,7 @@ def cached_store(name: str, hf: Heightfield, method: str = "cohesion") -> Path:
                 if (
                     s.complete
                     and s.meta.get("source_digest") == digest
-                    and s.tile_size == TILE_SIZE
+                    and s.tile_size == tile_size
                     and s.meta.get("method") == method
                 ):
                     return p
@@ -77,7 +78,7 @@ def cached_store(name: str, hf: Heightfield, method: str = "cohesion") -> Path:
         for suffix in ("", "-wal", "-shm"):
             Path(f"{p}{suffix}").unlink(missing_ok=True)
     t = time.perf_counter()
-    build_store(hf, p, tile_size=TILE_SIZE, method=method)
+    build_store(hf, p, tile_size=tile_size, method=method)
     print(f"built {p.name} in {time.perf_counter() - t:.1f} s", flush=True)
     return p
 

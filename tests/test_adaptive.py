@@ -295,3 +295,66 @@ def test_mesher_for_a_store_remakes_its_tiles(adaptive_store) -> None:
         ref = adaptive.mesh_tile(z, valid, pyr, code)
         if code[0] == pyr.max_level:
             assert all(np.array_equal(a, b) for a, b in zip(stated(z2, valid, pyr, code), ref, strict=True))
+
+
+@settings(max_examples=6, deadline=None)
+@given(
+    st.integers(20, 140),
+    st.integers(20, 140),
+    st.integers(0, 2**20),
+    st.floats(20.0, 800.0),
+    st.sampled_from([5, 9, 17]),
+)
+def test_halving_the_tile_size_adds_a_level_and_keeps_the_others(rows, cols, seed, relief_m, m) -> None:
+    """Tiles of size (m - 1) / 2 + 1 mesh every level that tiles of m have (same footprints) alike, bit for
+    bit, and add one ladder level, at half the target of m's last: the tile size sets how deep the ladder
+    goes, not what it is (the root's vertex count does not move with M)."""
+    z = _terrain(rows, cols, seed, relief_m, 0.0)
+    valid = np.ones(z.shape, bool)
+    big, small = TilePyramid(cols, rows, m), TilePyramid(cols, rows, (m - 1) // 2 + 1)
+    opt = adaptive.AdaptiveOptions(root_vertices=m * m)
+    lb, ls = adaptive.target_ladder(big, opt, z, valid), adaptive.target_ladder(small, opt, z, valid)
+    top = big.max_level
+    assert small.max_level == top + 1 and small.span(0) == big.span(0)
+    assert ls[: top + 1] == lb[:top] + [lb[top - 1] / 2.0] and ls[-1] == lb[-1] == 0.0
+    default = adaptive.AdaptiveOptions()  # the root at ROOT_VERTICES whatever M: the same ladder
+    assert (
+        adaptive.target_ladder(big, default, z, valid)[:top]
+        == adaptive.target_ladder(small, default, z, valid)[:top]
+    )
+    for code in big.all_codes():
+        if code[0] == top:
+            continue  # m's finest level is the grid; small's level there is the ladder's next step
+        a = adaptive.mesh_tile_with(z, valid, big, code, opt)
+        b = adaptive.mesh_tile_with(z, valid, small, code, opt)
+        assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True)), code
+
+
+def test_seeded_coarse_tiles_do_not_depend_on_the_tile_size() -> None:
+    """A window of 512 samples and more is seeded from every (span / 256)-th sample whatever M: its mesh
+    with 33² tiles is the one with 65² tiles."""
+    z = _terrain(600, 560, 3, 900.0, 0.0)
+    valid = np.ones(z.shape, bool)
+    opt = adaptive.AdaptiveOptions(root_vertices=2000)
+    p65, p33 = TilePyramid(560, 600, 65), TilePyramid(560, 600, 33)
+    assert p65.span(0) == p33.span(0) >= adaptive.SEED_MIN_SPAN
+    a = adaptive.mesh_tile_with(z, valid, p65, (0, 0, 0), opt)
+    b = adaptive.mesh_tile_with(z, valid, p33, (0, 0, 0), opt)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+    assert len(a[0]) > 100  # a real TIN, not two triangles
+
+
+def test_default_tile_size_is_the_methods() -> None:
+    from terralod.pyramid.builder import default_tile_size
+
+    assert default_tile_size("adaptive") == adaptive.DEFAULT_TILE_SIZE == 33
+    assert default_tile_size("chunked") == default_tile_size("cohesion") == 65
+    z = _terrain(70, 90, 1, 300.0, 0.0)
+    hf = Heightfield.from_array(z, SPACING_M)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        build_store(hf, f"{d}/a.terra", method="adaptive")
+        build_store(hf, f"{d}/c.terra", method="chunked")
+        with open_store(f"{d}/a.terra") as a, open_store(f"{d}/c.terra") as c:
+            assert a.tile_size == 33 and c.tile_size == 65

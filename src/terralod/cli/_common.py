@@ -345,14 +345,15 @@ def cache_store_path(source: str | Path, digest: str) -> Path:
     return user_cache_dir() / "views" / f"{p.stem}-{digest[:16]}.terra"
 
 
-def open_or_build(path: str, read: dict[str, Any], tile_size: int = 65) -> Path:
+def open_or_build(path: str, read: dict[str, Any], tile_size: int | None = None) -> Path:
     """A store path as is; a DEM is built into a cache store in the user cache folder first (rebuilt only
     when missing or from another version of the DEM)."""
     from terralod.errors import StoreError
-    from terralod.pyramid.builder import DEFAULT_METHOD
+    from terralod.pyramid.builder import DEFAULT_METHOD, default_tile_size
     from terralod.store import open_store
 
     p = Path(path)
+    tile_size = tile_size or default_tile_size(DEFAULT_METHOD)
     if p.exists() and is_store(p):
         return p
     hf = load(path, **read)

@@ -10,21 +10,24 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
   in the store's metadata (``build_options.target_error_m``). By default ``root_error_m`` is the error the
   greedy insertion reaches on the whole terrain (decimated to at most 4097² samples, every f-th row and
   column, so that an out-of-core build computes it from one decimated read: :func:`ladder_window`) with
-  as many vertices as a regular tile has (M^2), so the
+  as many vertices as a regular 65² tile has (:data:`ROOT_VERTICES`, whatever the tile size M), so the
   root weighs about what a regular root weighs, and each level below about the same per tile wherever the
   terrain's roughness is alike across scales (a flat plain costs 2 triangles a tile);
 - the finest level L (stride 1) is by default the regular grid of its samples (target 0, lossless, as a
-  regular pyramid's finest level is), not the ladder's ``root_error_m / 2^L``: a halving ladder from the
-  root spans only L + 1 levels (Puget Sound 1k: 302 m to 18.9 m), and a finest level at 18.9 m cannot hold
-  2 px near the eye (4.2 px measured along the benchmark's camera path). Greedy insertion down to a
-  near-lossless 0.5 m instead keeps only 14 % fewer triangles than the grid there (Puget Sound 1k) at
-  2.0-2.7x the build time (``benchmarks/results/build.md``), and the grid codes in about a third of the
-  bytes a triangle. The runtime never draws a
-  finest tile whose parent is exact, so a flat plain still draws its 2-triangle parents.
-  ``finest_level_error_m=None`` keeps the ladder down to L (``root_error_m / 2^L``, stated and measured);
-  ``finest_error_m`` sets the ladder from that end instead. The stored errors are measured on the stored
-  (quantised) geometry by the builder, as for every method, so a tile may measure a few millimetres above
-  its target (the vertical quantisation step);
+  regular pyramid's finest level is), not the ladder's ``root_error_m / 2^L``. The tile size M sets how
+  far the ladder goes before that grid: a tile of level k spans (M - 1) 2^(L-k) samples, so halving M adds
+  one level (the ladder's root and the levels M = 65 has are meshed alike), each tile a quarter of the
+  area. With 65² tiles the ladder spans only L + 1 levels (Puget Sound 1k: 302 m to 37.8 m, then the grid),
+  and 70 % of the triangles drawn along a 2 px camera path were grid tiles near the eye; the default
+  adaptive tiles are 33² (:data:`DEFAULT_TILE_SIZE`: 302 m to 18.9 m, then the grid), which draw about
+  half the triangles at about 1.5-2x the build time (``benchmarks/results/build.md``). Ending the ladder
+  with a greedy finest level instead of the grid (``finest_level_error_m=None``: the ladder's
+  ``root_error_m / 2^L``; a finest level at 18.9 m cannot hold 2 px near the eye; or near-lossless 0.5 m:
+  only 6-14 % fewer triangles than the grid at 2-2.7x the build time) does not pay: the grid codes in about
+  a third of the bytes a triangle, and the runtime never draws a finest tile whose parent is exact, so a
+  flat plain still draws its 2-triangle parents. ``finest_error_m`` sets the ladder from that end instead.
+  The stored errors are measured on the stored (quantised) geometry by the builder, as for every method, so
+  a tile may measure a few millimetres above its target (the vertical quantisation step);
 - shared borders: the four sides of a tile are fixed before its interior, each by a 1-D simplification of
   the side's own line of source samples to the level's target (split at the worst sample until every
   segment is within it), so the two tiles sharing a side compute the same vertices from the same samples,
@@ -34,10 +37,10 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
   level ends at the same place.
 
 Deviations from Delatin: border fixed first (above), invalid samples never inserted nor measured,
-triangles within the target never queued (see the kernel module), and a tile of stride >= 8 seeded from a
-pass on every (stride / 4)-th sample of its window (:data:`SEED_MIN_STRIDE`): the greedy insertion on the
-full source starts from that pass's interior vertices, so it no longer rescans the huge early triangles of
-a coarse window, and still refines until the target holds at every sample.
+triangles within the target never queued (see the kernel module), and a tile whose window spans >= 512
+samples seeded from a pass on every (span / 256)-th sample of its window (:data:`SEED_MIN_SPAN`): the
+greedy insertion on the full source starts from that pass's interior vertices, so it no longer rescans the
+huge early triangles of a coarse window, and still refines until the target holds at every sample.
 """
 
 from __future__ import annotations
@@ -53,7 +56,9 @@ from terralod.pyramid import chunked
 from terralod.tiles import TileCode, TilePyramid
 
 __all__ = [
+    "DEFAULT_TILE_SIZE",
     "LADDER_MAX_SIDE",
+    "ROOT_VERTICES",
     "AdaptiveOptions",
     "ladder_window",
     "make_mesher",
@@ -74,7 +79,8 @@ class AdaptiveOptions:
     finest_error_m : target of the finest level (root_error_m = finest_error_m * 2^L), metres (then
         ``finest_level_error_m`` does not apply)
     root_vertices : with neither error given, root_error_m is the max vertical error of the greedy TIN of
-        the whole terrain with this many vertices (None: M^2, a regular tile's count)
+        the whole terrain with this many vertices (None: :data:`ROOT_VERTICES`, a regular 65² tile's count,
+        whatever the tile size M)
     max_tile_vertices : a tile stops refining at this many vertices (None: no cap), so a tile whose target
         is out of reach stays as heavy as that (its stored error is then its measured one, above the target)
     finest_level_error_m : the finest level's own target, metres, below the ladder's (None: the ladder's;
@@ -137,12 +143,24 @@ def _halving_ladder(
             hit = _LADDERS.get(key)
             if hit is not None and hit[0]() is z:
                 return list(hit[1])
-            root = _budget_error(z, valid, pyramid, opt.root_vertices or pyramid.tile_size**2)
+            root = _budget_error(z, valid, pyramid, opt.root_vertices or ROOT_VERTICES)
             ladder = [root / 2.0**k for k in range(top + 1)]
             _LADDERS[key] = (weakref.ref(z), ladder)
             return list(ladder)
     return [root / 2.0**k for k in range(top + 1)]
 
+
+#: The default ladder's root holds as many vertices as a regular 65² tile: the ladder does not move with the
+#: tile size M, which sets how deep it goes instead (M = 33: one level more than 65, each tile a quarter of
+#: the area; the levels they share are meshed alike).
+ROOT_VERTICES = 65 * 65
+
+#: The tile size M of an adaptive build that gives none (:func:`terralod.pyramid.builder.default_tile_size`):
+#: 33, one ladder level below 65's before the lossless grid. Measured side by side (benchmarks/build.py,
+#: Pyrenees N42E001 / Puget Sound 1k): along the 2 px camera path 65² tiles draw 0.30x / 0.36x Chunked LOD's
+#: triangles and 33² tiles 0.17x / 0.19x, at about 1.5-1.9x the build time (the extra level's greedy
+#: insertion); 17² tiles (two levels more) draw 0.17x / 0.17x at 2.3-3.6x the time.
+DEFAULT_TILE_SIZE = 33
 
 #: The default ladder's root error is measured on the root's window decimated to at most this many samples
 #: a side (every f-th row and column, f a power of two), so that an out-of-core build, which never holds
@@ -212,10 +230,9 @@ def mesh_tile_with(
     # the four sides, each from its own line of samples (what the neighbour across it computes too)
     bx, by = _border(zw, vw, target)
     cap = hh * ww if opt.max_tile_vertices is None else max(4 + bx.size, opt.max_tile_vertices)
-    stride = pyramid.stride(level)
     # seeded from a decimated pass (coarse tiles), unless a vertex cap makes every vertex count: the
     # decimated pass's vertices would then take the cap's places before the full source's worst samples
-    f = stride // SEED_DIV if stride >= SEED_MIN_STRIDE and opt.max_tile_vertices is None else 1
+    f = span // SEED_SAMPLES if span >= SEED_MIN_SPAN and opt.max_tile_vertices is None else 1
     sx, sy = _seeds(zw, vw, f, float(target))
     px, py, tris, _, _ = tin_window_seeded(zw, vw, bx, by, sx, sy, float(target), cap)
     # raster order of the vertices (coherent deltas for the store's coding), triangles renumbered and
@@ -225,15 +242,17 @@ def mesh_tile_with(
     return _raster_order_numpy(zw, px, py, tris, r0, c0)
 
 
-#: A tile of stride s >= SEED_MIN_STRIDE is first meshed on every (s / SEED_DIV)-th sample of its window;
-#: its interior vertices then seed the greedy insertion on the full source, which goes on until the target
-#: holds at every sample. Measured per level (one thread; seeded / full-source insertion alone):
+#: A tile whose window spans s >= SEED_MIN_SPAN source samples is first meshed on every (s / SEED_SAMPLES)-th
+#: sample of its window; its interior vertices then seed the greedy insertion on the full source, which goes
+#: on until the target holds at every sample. The rule is the window's, not the level's stride, so that a
+#: tile is meshed alike whatever the tile size M (with 65² tiles: strides >= 8, every (stride / 4)-th
+#: sample). Measured per level with 65² tiles (one thread; seeded / full-source insertion alone):
 #: Pyrenees N42E001 strides 32, 16, 8: 0.031 / 0.265, 0.057 / 0.137, 0.129 / 0.177 s with 3,787 / 4,146,
 #: 12,889 / 12,970, 36,131 / 35,363 vertices; Puget Sound 1k strides 16, 8: 0.019 / 0.113, 0.050 / 0.073 s
 #: with 3,755 / 3,987, 13,610 / 13,948 vertices. Seeding from every (s / 2)-th sample cost up to 10 % more
 #: vertices (Pyrenees stride 8); at stride 4 (from every 2nd sample) it saved 18 % of the time for 5 % more.
-SEED_MIN_STRIDE = 8
-SEED_DIV = 4
+SEED_MIN_SPAN = 512
+SEED_SAMPLES = 256
 
 
 def _seeds(zw: np.ndarray, vw: np.ndarray, f: int, target: float) -> tuple[np.ndarray, np.ndarray]:
@@ -284,6 +303,7 @@ def make_mesher(**options):
         return mesh_tile_with(z, valid, pyramid, code, opt)
 
     mesher.options = opt  # type: ignore[attr-defined]
+    mesher.default_tile_size = DEFAULT_TILE_SIZE  # type: ignore[attr-defined]
     mesher.window_margin = _no_margin  # type: ignore[attr-defined]
     mesher.ladder_window = ladder_window  # type: ignore[attr-defined]
     mesher.with_build_options = mesher_for  # type: ignore[attr-defined]
@@ -355,6 +375,7 @@ def mesh_tile(
 
 
 mesh_tile.options = _DEFAULT  # type: ignore[attr-defined]
+mesh_tile.default_tile_size = DEFAULT_TILE_SIZE  # type: ignore[attr-defined]
 mesh_tile.window_margin = _no_margin  # type: ignore[attr-defined]
 #: an out-of-core build reads this decimated window for ``build_meta`` and meshes its work units with
 #: ``with_build_options(the stated build_options)``: the ladder fixed, never recomputed from a window

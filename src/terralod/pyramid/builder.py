@@ -82,6 +82,19 @@ _HELD_TILES = 4096
 _TASK_SAMPLES = 16 * 64 * 64
 
 
+#: Tile size M of a method that states none (``mesher.default_tile_size``): Chunked LOD's and the cohesion
+#: map's 65² grids. Adaptive tiles state 33: with the ladder's root fixed at a 65² tile's vertex count
+#: (:data:`terralod.pyramid.adaptive.ROOT_VERTICES`) that is one ladder level more than 65 before the
+#: lossless grid, each tile a quarter of the area (benchmarks/results/build.md).
+DEFAULT_TILE_SIZE = 65
+
+
+def default_tile_size(method: str) -> int:
+    """The tile size M a build of ``method`` uses when none is given."""
+    fn = METHODS.get(method)
+    return int(getattr(fn, "default_tile_size", DEFAULT_TILE_SIZE))
+
+
 def register_method(name: str, fn: MeshFn) -> None:
     """Make a tile mesher available to :func:`build_store` under ``name``."""
     METHODS[name] = fn
@@ -404,7 +417,7 @@ def build_store(
     hf: Heightfield,
     path: str | os.PathLike[str],
     *,
-    tile_size: int = 65,
+    tile_size: int | None = None,
     method: str = DEFAULT_METHOD,
     workers: int | None = None,
     resume: bool = False,
@@ -420,8 +433,9 @@ def build_store(
     ----------
     hf : the source heightfield (metres).
     path : output ``.terra`` file.
-    tile_size : M, vertices per tile side, 2^n + 1.
-    method : tile mesher, a key of :data:`METHODS` ("chunked", "cohesion").
+    tile_size : M, vertices per tile side, 2^n + 1 (None: the method's, :func:`default_tile_size`: 33 for
+        adaptive tiles, 65 for chunked and cohesion).
+    method : tile mesher, a key of :data:`METHODS` ("adaptive", "chunked", "cohesion").
     workers : threads meshing tiles (default: all cores).
     resume : continue an interrupted build of the same source and options at ``path``.
     overwrite : replace an existing file at ``path``.
@@ -432,10 +446,12 @@ def build_store(
     epoch : name of the store's first epoch (e.g. "2000-09-25"): the store keeps the source samples and
         plans its quantisation with headroom, so ``terralod update`` can add epochs (terralod.pyramid.update).
     """
-    if not is_valid_tile_size(tile_size):
-        raise ValueError(f"Expected a tile size 2^n + 1 (e.g. 33, 65, 129), got {tile_size}")
     if method not in METHODS:
         raise ValueError(f"Expected a method in {sorted(METHODS)}, got {method!r}")
+    if tile_size is None:
+        tile_size = default_tile_size(method)
+    if not is_valid_tile_size(tile_size):
+        raise ValueError(f"Expected a tile size 2^n + 1 (e.g. 33, 65, 129), got {tile_size}")
     p = Path(path)
     if same_file(p, hf.source):
         raise StoreError("is the input DEM of this build; choose another output", str(p))

@@ -771,7 +771,7 @@ def build_store_windowed(
     src: WindowSource | Heightfield,
     path: str | os.PathLike[str],
     *,
-    tile_size: int = 65,
+    tile_size: int | None = None,
     method: str = builder.DEFAULT_METHOD,
     workers: int | None = None,
     client: Any = None,
@@ -798,10 +798,12 @@ def build_store_windowed(
     """
     if isinstance(src, Heightfield):
         src = ArraySource(src)
-    if not is_valid_tile_size(tile_size):
-        raise ValueError(f"Expected a tile size 2^n + 1 (e.g. 33, 65, 129), got {tile_size}")
     if method not in builder.METHODS:
         raise ValueError(f"Expected a method in {sorted(builder.METHODS)}, got {method!r}")
+    if tile_size is None:
+        tile_size = builder.default_tile_size(method)
+    if not is_valid_tile_size(tile_size):
+        raise ValueError(f"Expected a tile size 2^n + 1 (e.g. 33, 65, 129), got {tile_size}")
     p = Path(path)
     t_start = time.perf_counter()
     pyramid = TilePyramid(src.width, src.height, tile_size)
