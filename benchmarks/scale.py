@@ -52,6 +52,9 @@ from _common import RESULTS, SHARED, md_table, mirror_tile, write_results  # noq
 DEM = SHARED / "dem" / "srtm3_N42E001.tif"
 CROP = 1025
 METHOD = "chunked"
+#: Tile size of every build here (the recorded scale*.md runs, adaptive included, used 65² tiles; adaptive
+#: builds default to 33² since).
+TILE_SIZE = 65
 RESULTS_JSON = RESULTS / "scale.json"
 
 
@@ -132,7 +135,12 @@ def child(config: str, dem: str, out: str) -> None:
     config, _, method = config.partition("@")
     method = method or METHOD
     # warm the numba caches (compile time is not build time)
-    build_store(Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0), out + ".warm", method=method)
+    build_store(
+        Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0),
+        out + ".warm",
+        method=method,
+        tile_size=TILE_SIZE,
+    )
     kind, _, rest = config.partition("-")
     n = int(rest.split("-")[0][1:])
     info: dict = {}
@@ -143,18 +151,22 @@ def child(config: str, dem: str, out: str) -> None:
         hf = read_heightfield(dem)
         info["read_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        rep = build_store(hf, out, method=method, workers=n, overwrite=True)
+        rep = build_store(hf, out, method=method, workers=n, overwrite=True, tile_size=TILE_SIZE)
     elif kind == "window":
         t = time.perf_counter()
-        rep = build_store_windowed(RasterSource(dem), out, method=method, workers=n, overwrite=True)
+        rep = build_store_windowed(
+            RasterSource(dem), out, method=method, workers=n, overwrite=True, tile_size=TILE_SIZE
+        )
     else:
         client = dask_client("local", n_workers=n, threads=1)
         client.run(lambda: build_store(Heightfield.from_array(np.zeros((70, 70), np.float32), 1.0),
-                                       out + f".warm{os.getpid()}", method=method))  # fmt: skip
+                                       out + f".warm{os.getpid()}", method=method, tile_size=TILE_SIZE))  # fmt: skip
         if config.endswith("kill"):
             _kill_later(client, out)
         t = time.perf_counter()
-        rep = build_store_windowed(RasterSource(dem), out, method=method, client=client, overwrite=True)
+        rep = build_store_windowed(
+            RasterSource(dem), out, method=method, client=client, overwrite=True, tile_size=TILE_SIZE
+        )
         info["workers_at_end"] = len(client.scheduler_info()["workers"])
         client.close()
     secs = time.perf_counter() - t

@@ -66,6 +66,14 @@ FORMAT_VERSION = 3
 READABLE_VERSIONS = (2, FORMAT_VERSION)
 #: Older versions :func:`upgrade_store` (``terralod check --upgrade``) brings to ``FORMAT_VERSION``.
 UPGRADABLE_VERSIONS = (1,)
+#: SQLite page size of a new store, bytes. A tile row holds a few hundred bytes to a few KiB of blobs; with
+#: SQLite's default 4 KiB pages most rows fill a leaf page or an overflow page by half, and the file was
+#: 1.6x its blobs (33² adaptive tiles; 1.2-1.3x for 65²). 2 KiB pages waste a quarter as much: the same
+#: rows, bit for bit, in 29 % smaller files (Pyrenees N42E001 33² adaptive: 17.5 -> 12.4 MB; Puget Sound 1k
+#: 65²: -7 % adaptive, -12 % chunked), and reading every tile in random order took as long. 1 KiB pages
+#: were 2 % smaller again and up to 25 % slower to read.
+PAGE_SIZE_BYTES = 2048
+
 #: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
 APPLICATION_ID = 0x544C4F44
 #: The meta row holding the SHA-256 of every other meta row (see :func:`meta_checksum`).
@@ -545,6 +553,7 @@ class TileStore(EpochTables):
         try:
             conn = sqlite3.connect(str(tmp))
             try:
+                conn.execute(f"PRAGMA page_size = {PAGE_SIZE_BYTES}")  # before the first table
                 conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
                 conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
                 with conn:

@@ -158,8 +158,9 @@ ROOT_VERTICES = 65 * 65
 #: The tile size M of an adaptive build that gives none (:func:`terralod.pyramid.builder.default_tile_size`):
 #: 33, one ladder level below 65's before the lossless grid. Measured side by side (benchmarks/build.py,
 #: Pyrenees N42E001 / Puget Sound 1k): along the 2 px camera path 65² tiles draw 0.30x / 0.36x Chunked LOD's
-#: triangles and 33² tiles 0.17x / 0.19x, at about 1.5-1.9x the build time (the extra level's greedy
-#: insertion); 17² tiles (two levels more) draw 0.17x / 0.17x at 2.3-3.6x the time.
+#: triangles and 33² tiles 0.17x / 0.19x, at 1.7x the build time (the extra level's greedy insertion), and
+#: the uniform cut reaches 10 m / 20 m at 1.32x / 1.05x pydelatin's triangles instead of falling to the
+#: grid; 17² tiles (two levels more) draw 0.17x / 0.17x at 3.2-3.5x 65²'s build time.
 DEFAULT_TILE_SIZE = 33
 
 #: The default ladder's root error is measured on the root's window decimated to at most this many samples
