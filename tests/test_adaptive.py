@@ -358,3 +358,16 @@ def test_default_tile_size_is_the_methods() -> None:
         build_store(hf, f"{d}/c.terra", method="chunked")
         with open_store(f"{d}/a.terra") as a, open_store(f"{d}/c.terra") as c:
             assert a.tile_size == 33 and c.tile_size == 65
+        build_store(hf, f"{d}/s.terra", method="adaptive", tile_size=17)
+        import sqlite3
+
+        from terralod.store import page_size_bytes
+
+        for name, m in (("a", 33), ("c", 65), ("s", 17)):
+            conn = sqlite3.connect(f"{d}/{name}.terra")
+            assert (
+                conn.execute("PRAGMA page_size").fetchone()[0]
+                == page_size_bytes(m)
+                == (1024 if m == 17 else 2048)
+            )
+            conn.close()

@@ -66,13 +66,23 @@ FORMAT_VERSION = 3
 READABLE_VERSIONS = (2, FORMAT_VERSION)
 #: Older versions :func:`upgrade_store` (``terralod check --upgrade``) brings to ``FORMAT_VERSION``.
 UPGRADABLE_VERSIONS = (1,)
-#: SQLite page size of a new store, bytes. A tile row holds a few hundred bytes to a few KiB of blobs; with
-#: SQLite's default 4 KiB pages most rows fill a leaf page or an overflow page by half, and the file was
-#: 1.6x its blobs (33² adaptive tiles; 1.2-1.3x for 65²). 2 KiB pages waste a quarter as much: the same
-#: rows, bit for bit, in 29 % smaller files (Pyrenees N42E001 33² adaptive: 17.5 -> 12.4 MB; Puget Sound 1k
-#: 65²: -7 % adaptive, -12 % chunked), and reading every tile in random order took as long. 1 KiB pages
-#: were 2 % smaller again and up to 25 % slower to read.
+#: SQLite page size of a new store, bytes, by tile size (:func:`page_size_bytes`). SQLite never splits a
+#: row across leaf pages, so a row of more than half a page holds a page alone and a larger one ends in a
+#: partly filled overflow page. With the default 4 KiB pages the files were 1.6x their tile blobs for 33²
+#: adaptive tiles (1.2-1.35x for 65² and 17²). Measured on Puget Sound 1k (adaptive; file / blobs):
+#: 33²: 1 KiB pages 1.11x, 2 KiB 1.14x, 4 KiB 1.60x, 8 KiB 2.07x; 65²: 1.06x, 1.10x, 1.19x, 1.30x;
+#: 17²: 1.31x, 1.85x, 1.35x, 1.71x. Reading every tile in random order (33² and 65²) took as long with
+#: 2 and 4 KiB pages, and 10-20 % longer with 1 KiB pages (2-6 % once decoded).
 PAGE_SIZE_BYTES = 2048
+SMALL_TILE_PAGE_SIZE_BYTES = 1024
+
+
+def page_size_bytes(tile_size: int | None) -> int:
+    """SQLite page size of a new store of ``tile_size``² tiles: 2 KiB, or 1 KiB for 17² tiles and smaller
+    (their rows are about 1 KiB: one a 2 KiB page)."""
+    if tile_size is not None and tile_size <= 17:
+        return SMALL_TILE_PAGE_SIZE_BYTES
+    return PAGE_SIZE_BYTES
 
 #: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
 APPLICATION_ID = 0x544C4F44
@@ -553,7 +563,7 @@ class TileStore(EpochTables):
         try:
             conn = sqlite3.connect(str(tmp))
             try:
-                conn.execute(f"PRAGMA page_size = {PAGE_SIZE_BYTES}")  # before the first table
+                conn.execute(f"PRAGMA page_size = {page_size_bytes(meta.get('tile_size'))}")  # before any table
                 conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
                 conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
                 with conn:
