@@ -84,6 +84,7 @@ def page_size_bytes(tile_size: int | None) -> int:
         return SMALL_TILE_PAGE_SIZE_BYTES
     return PAGE_SIZE_BYTES
 
+
 #: SQLite ``PRAGMA application_id`` of a terralod store ("TLOD").
 APPLICATION_ID = 0x544C4F44
 #: The meta row holding the SHA-256 of every other meta row (see :func:`meta_checksum`).
@@ -563,7 +564,8 @@ class TileStore(EpochTables):
         try:
             conn = sqlite3.connect(str(tmp))
             try:
-                conn.execute(f"PRAGMA page_size = {page_size_bytes(meta.get('tile_size'))}")  # before any table
+                page = page_size_bytes(meta.get("tile_size"))
+                conn.execute(f"PRAGMA page_size = {page}")  # before any table
                 conn.execute(f"PRAGMA application_id = {APPLICATION_ID}")
                 conn.execute(f"PRAGMA user_version = {FORMAT_VERSION}")
                 with conn:

@@ -20,7 +20,7 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
   area. With 65² tiles the ladder spans only L + 1 levels (Puget Sound 1k: 302 m to 37.8 m, then the grid),
   and 70 % of the triangles drawn along a 2 px camera path were grid tiles near the eye; the default
   adaptive tiles are 33² (:data:`DEFAULT_TILE_SIZE`: 302 m to 18.9 m, then the grid), which draw about
-  half the triangles at about 1.5-2x the build time (``benchmarks/results/build.md``). Ending the ladder
+  half the triangles at 1.6-1.8x the build time (``benchmarks/results/build.md``). Ending the ladder
   with a greedy finest level instead of the grid (``finest_level_error_m=None``: the ladder's
   ``root_error_m / 2^L``; a finest level at 18.9 m cannot hold 2 px near the eye; or near-lossless 0.5 m:
   only 6-14 % fewer triangles than the grid at 2-2.7x the build time) does not pay: the grid codes in about
@@ -158,9 +158,10 @@ ROOT_VERTICES = 65 * 65
 #: The tile size M of an adaptive build that gives none (:func:`terralod.pyramid.builder.default_tile_size`):
 #: 33, one ladder level below 65's before the lossless grid. Measured side by side (benchmarks/build.py,
 #: Pyrenees N42E001 / Puget Sound 1k): along the 2 px camera path 65² tiles draw 0.30x / 0.36x Chunked LOD's
-#: triangles and 33² tiles 0.17x / 0.19x, at 1.7x the build time (the extra level's greedy insertion), and
-#: the uniform cut reaches 10 m / 20 m at 1.32x / 1.05x pydelatin's triangles instead of falling to the
-#: grid; 17² tiles (two levels more) draw 0.17x / 0.17x at 3.2-3.5x 65²'s build time.
+#: triangles and 33² tiles 0.17x / 0.19x, at 1.6-1.8x the build time (the extra level's greedy insertion)
+#: and 1.6-1.7x the store, and the uniform cut reaches 10 m / 20 m at 1.32x / 1.05x pydelatin's triangles
+#: instead of falling to the grid; 17² tiles (two levels more) draw 0.17x / 0.17x at 3.1-4.0x 65²'s build
+#: time.
 DEFAULT_TILE_SIZE = 33
 
 #: The default ladder's root error is measured on the root's window decimated to at most this many samples

@@ -58,9 +58,9 @@ METHODS: dict[str, MeshFn] = {
     "adaptive": adaptive.mesh_tile,
     "adaptive_ladder": adaptive.make_mesher(finest_level_error_m=None),
 }
-# Adaptive tiles (halving ladder from the root, a lossless grid finest level) are the default: along the 2 px
-# camera paths they draw 0.72-0.76x the vertex cohesion map's triangles (paper 000; itself 0.40-0.49x
-# Chunked LOD's) and build 2.2-2.8x faster (benchmarks/results/build.md).
+# Adaptive tiles (halving ladder from the root, a lossless grid finest level, 33² tiles) are the default:
+# along the 2 px camera paths they draw 0.39-0.43x the vertex cohesion map's triangles (paper 000; itself
+# 0.41-0.48x Chunked LOD's) and build 1.3-1.5x faster (benchmarks/results/build.md).
 DEFAULT_METHOD = "adaptive"
 
 #: Extra relief (metres) the fixed quantisation of a store of epochs leaves at least (plan_quantisation).
