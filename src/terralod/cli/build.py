@@ -26,7 +26,7 @@ from terralod.cli._common import (
 @click.option(
     "--tile-size", type=int, default=None,
     help="Vertices per tile side (2^n + 1); default 33 for adaptive tiles (one error level deeper than 65: "
-    "about half the triangles drawn, about 1.5-2x the build time), 65 for cohesion and chunked.",
+    "0.5-0.6x the triangles drawn at 2 px, 1.8x the build time), 65 for cohesion and chunked.",
 )  # fmt: skip
 @click.option(
     "--method", default="adaptive", show_default=True,
