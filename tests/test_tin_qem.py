@@ -66,8 +66,9 @@ def test_vertical_gap_matches_an_exhaustive_search(seed: int, k: int, n_pts: int
     """u inside a convex ring of k neighbours, removed vertices scattered in its star and carried by the
     slot that holds them: for every target w, the kernel's squared vertical gap (own slot first, first
     triangle that holds the point) equals the exhaustive search's, and an early stop returns a value past
-    its limit. ``level``: most heights are sea level (0 m), so the kernel's skip of points on level
-    triangles runs against the exhaustive search too."""
+    its limit. ``level``: most heights are sea level (0 m), and so are u, an arc of the ring and every point
+    its slots carry, so the kernel's skips of points on level triangles (one by one, and of a whole slot)
+    run against the exhaustive search too."""
     rng = np.random.default_rng(seed)
     ang = np.linspace(0.0, 2 * np.pi, k, endpoint=False) + rng.uniform(-0.2, 0.2) * (2 * np.pi / k)
     ring_xy = np.c_[np.cos(ang), np.sin(ang)] * 100.0
@@ -86,6 +87,14 @@ def test_vertical_gap_matches_an_exhaustive_search(seed: int, k: int, n_pts: int
     z = rng.normal(0.0, 10.0, xy.shape[0])
     if level:
         z[rng.random(xy.shape[0]) < 0.75] = 0.0
+        # a sea arc: u, ring neighbours first .. last and the points of the slots between them at 0 m
+        first = int(rng.integers(k))
+        arc = [(first + d) % k for d in range(int(rng.integers(2, k)))]
+        z[0] = 0.0
+        z[[1 + i for i in arc]] = 0.0
+        for j, s in enumerate(slot_of):
+            if s in arc and (s + 1) % k in arc:
+                z[k + 1 + j] = 0.0
     P = np.c_[xy, z]
     u, ring = 0, list(range(1, k + 1))
     tris = np.array([[u, ring[i], ring[(i + 1) % k]] for i in range(k)], np.int32)
@@ -99,15 +108,22 @@ def test_vertical_gap_matches_an_exhaustive_search(seed: int, k: int, n_pts: int
     nv = P.shape[0]
     sa, sb, ps = np.empty(nv, np.int64), np.empty(nv, np.int64), np.empty(nv, np.int64)
     geo, pxyz, tri = np.empty((nv, 6)), np.empty((nv, 3)), np.empty((nv, 7))
-    npts = K._gather_star(u, P, tris, arena, 0, k, head, nxt, sa, sb, geo, pxyz, ps)
+    pst, seg = np.empty(k + 1, np.int64), np.empty((k, 5))
+    npts = K._gather_star(u, P, tris, arena, 0, k, head, nxt, sa, sb, geo, pxyz, ps, pst, seg)
     assert npts == n_pts + 1
+    for i in range(k):  # slot i's points, their box and their one height
+        own = pxyz[pst[i] : pst[i + 1]]
+        assert (ps[pst[i] : pst[i + 1]] == i).all() and own.shape[0] == slot_of.count(i)
+        if own.shape[0]:
+            assert (seg[i, :4] == [own[:, 0].min(), own[:, 0].max(), own[:, 1].min(), own[:, 1].max()]).all()
+            assert seg[i, 4] == own[0, 2] if (own[:, 2] == own[0, 2]).all() else np.isnan(seg[i, 4])
     for w in ring:
-        g = K._carried_gap2(w, P, sa, sb, k, geo, pxyz, ps, npts, tri, np.inf)
+        g = K._carried_gap2(w, P, sa, sb, k, geo, pxyz, ps, pst, seg, npts, tri, np.inf)
         ref = _reference_gap2(P, ring, w, [u] + list(range(k + 1, nv)))
         assert g == np.float64(ref) or abs(g - ref) <= 1e-9 * max(ref, 1.0)
         lim = 0.5 * ref
         if lim > 0.0:
-            assert K._carried_gap2(w, P, sa, sb, k, geo, pxyz, ps, npts, tri, lim) >= lim
+            assert K._carried_gap2(w, P, sa, sb, k, geo, pxyz, ps, pst, seg, npts, tri, lim) >= lim
 
 
 @settings(max_examples=150, deadline=None)

@@ -46,7 +46,9 @@ that moves the surface far from points removed earlier waits. Only the candidate
 below the best full cost get g (branch and bound), and g stops early once it passes that bound. star(u)
 and its points are gathered once per evaluation (contiguous xyz), each candidate's triangles once per
 candidate, and a point is looked for first in the triangle of the slot that carries it (where it almost
-always stays), by signs alone, dividing only for the height.
+always stays), by signs alone, dividing only for the height. A collapse hands each point to the rewritten slot
+that holds it most (the largest smallest barycentric coordinate), trying first the slot that carried it
+and stopping at the first that holds it with a margin (:data:`_INSIDE`); the same slot as the full search.
 
 Lazy validity: every FREE vertex is first queued, and after a collapse the vertices around it are
 re-queued, at its cheapest collapse *untested*; the test runs when the entry leaves the heap, and a failure
@@ -94,6 +96,12 @@ from terralod.kernels import jit, leaf
 
 FREE = np.uint8(0)  #: interior vertex of one sub-block: may be collapsed away
 LOCKED = np.uint8(1)  #: mesh boundary or sub-block seam: never removed, may be a collapse target
+
+#: A point whose smallest barycentric coordinate in a triangle of a collapse's new fan exceeds this lies
+#: inside it with a margin far above rounding (about 1e-14 here): the fan's triangles do not overlap (each
+#: keeps its counter-clockwise orientation), so no other one can hold it, and the search for the triangle
+#: that holds it most stops there with the same answer as the full search.
+_INSIDE = 1e-9
 
 
 # -- vertex → triangle lists (arena) -------------------------------------------------------------------
@@ -413,11 +421,14 @@ def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps
 
 
 @leaf
-def _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps):
+def _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps, pst, seg):
     """star(u) and the points its collapse moves away from, gathered once per evaluation (every candidate
     target w reads them): slot i of the star is (u, sa[i], sb[i]) counter-clockwise, ``geo[i]`` = the xyz
     of sa[i] then sb[i]; the points are u then the removed vertices the slots carry, ``pxyz[j]`` their xyz
-    and ``ps[j]`` the star index of the slot that carries them (-1 for u). Returns the point count."""
+    and ``ps[j]`` the star index of the slot that carries them (-1 for u). Slot i's points are
+    ``pxyz[pst[i] : pst[i + 1]]``, ``seg[i]`` their xy box (x min, x max, y min, y max) and their one height
+    (NaN when they differ, or none): what lets :func:`_carried_gap2` skip a slot's level points at once.
+    Returns the point count."""
     pxyz[0, 0] = P[u, 0]
     pxyz[0, 1] = P[u, 1]
     pxyz[0, 2] = P[u, 2]
@@ -433,18 +444,40 @@ def _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps):
             geo[i, k] = P[a, k]
             geo[i, 3 + k] = P[b, k]
         q = head[t]
+        pst[i] = m
+        x0 = y0 = np.inf
+        x1 = y1 = -np.inf
+        hq = np.nan
+        level = True
         while q >= 0:
-            pxyz[m, 0] = P[q, 0]
-            pxyz[m, 1] = P[q, 1]
-            pxyz[m, 2] = P[q, 2]
+            x = P[q, 0]
+            y = P[q, 1]
+            z = P[q, 2]
+            pxyz[m, 0] = x
+            pxyz[m, 1] = y
+            pxyz[m, 2] = z
             ps[m] = i
+            x0 = min(x0, x)
+            x1 = max(x1, x)
+            y0 = min(y0, y)
+            y1 = max(y1, y)
+            if m == pst[i]:
+                hq = z
+            elif z != hq:
+                level = False
             m += 1
             q = nxt[q]
+        seg[i, 0] = x0
+        seg[i, 1] = x1
+        seg[i, 2] = y0
+        seg[i, 3] = y1
+        seg[i, 4] = hq if level else np.nan
+    pst[n] = m
     return m
 
 
 @leaf
-def _carried_gap2(w, P, sa, sb, n, geo, pxyz, ps, npts, tri, glim):
+def _carried_gap2(w, P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, glim):
     """Largest squared vertical distance, m², from the gathered points (:func:`_gather_star`) to the
     surface after the collapse u -> w; stops early, returning a lower bound >= ``glim``, once the largest
     reaches ``glim``.
@@ -470,7 +503,9 @@ def _carried_gap2(w, P, sa, sb, n, geo, pxyz, ps, npts, tri, glim):
     # point at that height that falls in one is exactly on the surface (distance 0). A point at w's height
     # strictly outside the xy box of every other (non-level) rewritten triangle can only fall in a level
     # one: it is skipped without being located. This is what made flat fans slow: a coast vertex carries
-    # the thousands of sea points its fan covers, and every candidate located each of them.
+    # the thousands of sea points its fan covers, and every candidate located each of them. A slot whose
+    # points all share w's height and whose points' box lies outside that box is skipped whole (the same
+    # points the test of each would skip): looking at each sea point for every candidate was the rest.
     bx0 = by0 = np.inf
     bx1 = by1 = -np.inf
     n_level = 0
@@ -485,7 +520,23 @@ def _carried_gap2(w, P, sa, sb, n, geo, pxyz, ps, npts, tri, glim):
         by0 = min(by0, 0.0, tri[i, 1], tri[i, 3])
         by1 = max(by1, 0.0, tri[i, 1], tri[i, 3])
     g = 0.0
-    for j in range(npts):
+    j = -1
+    while j + 1 < npts:
+        j += 1
+        if n_level > 0 and j > 0:
+            i = ps[j]
+            if (
+                j == pst[i]
+                and seg[i, 4] == wz
+                and (
+                    seg[i, 1] - wx < bx0
+                    or seg[i, 0] - wx > bx1
+                    or seg[i, 3] - wy < by0
+                    or seg[i, 2] - wy > by1
+                )
+            ):
+                j = pst[i + 1] - 1  # every point of the slot: at w's height, outside the box (below)
+                continue
         qx = pxyz[j, 0] - wx
         qy = pxyz[j, 1] - wy
         if n_level > 0 and pxyz[j, 2] == wz and (qx < bx0 or qx > bx1 or qy < by0 or qy > by1):
@@ -570,7 +621,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     two tuples (the arena, which moves when it grows, is passed on its own).
     """
     P, tris, Q, W, selfq, head, nxt, shape_eps, vweight = ctx
-    mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, tri = work
+    mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, pst, seg, tri = work
     su = start[u]
     n = length[u]
     exact = not vweight > 0.0
@@ -580,7 +631,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     if not exact:
         # cbuf: lower bounds (the quadric alone); add the vertical term in increasing bound order until the
         # next bound exceeds the best exact cost (branch and bound)
-        npts = _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps)
+        npts = _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps, pst, seg)
         for i in range(n):
             dbuf[i] = False
             qbuf[i] = cbuf[i]
@@ -597,7 +648,9 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         for k in range(n):
             if wbuf[k] == prev_v:
                 # the previous best usually still wins: made exact first, it bounds the others tightly
-                cbuf[k] += wt * _carried_gap2(prev_v, P, sa, sb, n, geo, pxyz, ps, npts, tri, np.inf)
+                cbuf[k] += wt * _carried_gap2(
+                    prev_v, P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, np.inf
+                )
                 dbuf[k] = True
                 best = cbuf[k]
                 break
@@ -608,7 +661,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
             if cbuf[k] >= best:
                 break
             glim = (best - cbuf[k]) / wt if best < np.inf and wt > 0.0 else np.inf
-            g = _carried_gap2(wbuf[k], P, sa, sb, n, geo, pxyz, ps, npts, tri, glim)
+            g = _carried_gap2(wbuf[k], P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, glim)
             cbuf[k] += wt * g
             if g < glim:  # exact (else a bound past the best: never picked before it is made exact)
                 dbuf[k] = True
@@ -628,7 +681,9 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         if k < 0:
             break
         if not exact and not dbuf[k]:
-            cbuf[k] = qbuf[k] + wt * _carried_gap2(wbuf[k], P, sa, sb, n, geo, pxyz, ps, npts, tri, np.inf)
+            cbuf[k] = qbuf[k] + wt * _carried_gap2(
+                wbuf[k], P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, np.inf
+            )
             dbuf[k] = True
             continue
         if _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
@@ -734,6 +789,7 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     head = np.full(tris.shape[0], -1, np.int64)  # first removed vertex held by each slot (vertical term)
     nxt = np.full(n_v, -1, np.int64)
     pbuf = np.empty(n_v, np.int64)
+    pslot = np.empty(n_v, np.int64)
     dbuf = np.zeros(n_v, np.bool_)
     qbuf = np.zeros(n_v, np.float64)
     ctx = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight)  # what _evaluate reads
@@ -744,7 +800,9 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     ps = np.empty(n_v, np.int64)
     tri = np.empty((n_v, 7), np.float64)
     obuf = np.empty(n_v, np.int64)  # candidates in increasing bound order
-    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, tri)  # its scratch
+    pst = np.empty(n_v + 1, np.int64)
+    seg = np.empty((n_v, 5), np.float64)
+    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, pst, seg, tri)  # its scratch
 
     count = np.zeros(n_b, np.int64)  # live triangles per block
     for t in range(tris.shape[0]):
@@ -851,8 +909,12 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
         if vweight > 0.0:
             pbuf[0] = u
             npb = 1
+            pslot[0] = -1  # the slot each point was carried by (u: none)
             for i in range(length[u]):
+                n0 = npb
                 npb = _take_list(head, nxt, arena[su + i], pbuf, npb)
+                for k in range(n0, npb):
+                    pslot[k] = arena[su + i]
         for i in range(length[u]):
             t = arena[su + i]
             a0 = tris[t, 0]
@@ -888,12 +950,21 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
                 q = pbuf[k]
                 bsl = -1
                 bm = -np.inf
+                t = pslot[k]
+                if t >= 0 and alive[t]:  # its slot, rewritten, most often still holds it
+                    _, _, m = _bary_xy(P, tris[t, 0], tris[t, 1], tris[t, 2], P[q, 0], P[q, 1])
+                    if m > _INSIDE:
+                        nxt[q] = head[t]
+                        head[t] = q
+                        continue
                 for j in range(rep_ptr[nc], nr):
                     t = rep_slot[j]
                     _, _, m = _bary_xy(P, tris[t, 0], tris[t, 1], tris[t, 2], P[q, 0], P[q, 1])
                     if m > bm:
                         bm = m
                         bsl = t
+                        if m > _INSIDE:
+                            break  # inside with a margin: no other triangle of the fan can hold it
                 if bsl >= 0:
                     nxt[q] = head[bsl]
                     head[bsl] = q
@@ -1034,6 +1105,7 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
     head = np.full(T.shape[0], -1, np.int64)  # first vertex held by each slot
     nxt = np.full(n_v, -1, np.int64)  # next vertex in the same slot
     buf = np.empty(n_v, np.int64)
+    src = np.empty(n_v, np.int64)  # the rewritten slot that held buf[k] before the collapse, or -1
     c = cu.shape[0]
     out = np.zeros(c, np.float64)
     for i in range(c):
@@ -1042,11 +1114,16 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
         n = 1
         for j in range(2):
             n = _take_list(head, nxt, del_slot[2 * i + j], buf, n)
+        for k in range(n):
+            src[k] = -1
         r0 = rep_ptr[i]
         r1 = rep_ptr[i + 1]
         for j in range(r0, r1):
             s = rep_slot[j]
+            n0 = n
             n = _take_list(head, nxt, s, buf, n)
+            for k in range(n0, n):
+                src[k] = s
             _set_row(T, s, rep_new, j)
         e = 0.0
         for k in range(n):
@@ -1056,7 +1133,17 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
             best = -np.inf
             bs = -1
             bz = 0.0
-            for j in range(r0, r1):
+            s = src[k]
+            if s >= 0:  # its slot, rewritten, most often still holds it (then no other one can: _INSIDE)
+                a = T[s, 0]
+                b = T[s, 1]
+                d = T[s, 2]
+                l1, l2, m = _bary_xy(P, a, b, d, px, py)
+                if m > _INSIDE:
+                    best = m
+                    bs = s
+                    bz = (1.0 - l1 - l2) * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
+            for j in range(r0, r1 if bs < 0 else r0):
                 s = rep_slot[j]
                 a = T[s, 0]
                 b = T[s, 1]
@@ -1066,6 +1153,8 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
                     best = m
                     bs = s
                     bz = (1.0 - l1 - l2) * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
+                    if m > _INSIDE:
+                        break
             if bs < 0:
                 continue
             dz = abs(P[p, 2] - bz)
