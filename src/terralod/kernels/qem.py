@@ -384,23 +384,9 @@ def _heap_remove(hk, hv, hpos, size, v):
 @leaf
 def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps):
     """Link condition and orientation test of the half-edge collapse u → v (u FREE, interior)."""
-    # Link condition: the rings of u and v share exactly the two opposite vertices.
-    stampbox[0] += 1
-    stamp = stampbox[0]
-    sv = start[v]
-    for i in range(length[v]):
-        t = arena[sv + i]
-        for k in range(3):
-            mark[tris[t, k]] = stamp
+    # Orientation first (a folding collapse, the usual failure around a concave fan, often stops at its
+    # first triangles): every rewritten triangle (v, a, b) stays counter-clockwise and not a sliver.
     su = start[u]
-    common = 0
-    for i in range(length[u]):
-        a = _next_after(tris, arena[su + i], u)
-        if a != v and mark[a] == stamp:
-            common += 1
-    if common != 2:
-        return False
-    # Orientation: every rewritten triangle (v, a, b) stays counter-clockwise and not a sliver.
     vx = P[v, 0]
     vy = P[v, 1]
     for i in range(length[u]):
@@ -417,7 +403,20 @@ def _can_collapse(u, v, P, tris, arena, start, length, mark, stampbox, shape_eps
         size2 = ax * ax + ay * ay + bx * bx + by * by + (bx - ax) * (bx - ax) + (by - ay) * (by - ay)
         if not area2 > shape_eps * size2:
             return False
-    return True
+    # Link condition: the rings of u and v share exactly the two opposite vertices.
+    stampbox[0] += 1
+    stamp = stampbox[0]
+    sv = start[v]
+    for i in range(length[v]):
+        t = arena[sv + i]
+        for k in range(3):
+            mark[tris[t, k]] = stamp
+    common = 0
+    for i in range(length[u]):
+        a = _next_after(tris, arena[su + i], u)
+        if a != v and mark[a] == stamp:
+            common += 1
+    return common == 2
 
 
 @leaf
