@@ -103,6 +103,9 @@ LOCKED = np.uint8(1)  #: mesh boundary or sub-block seam: never removed, may be 
 #: that holds it most stops there with the same answer as the full search.
 _INSIDE = 1e-9
 
+#: Rings of more candidates than this are ordered by a sort instead of insertion (quadratic).
+_SORT_RING = 24
+
 
 # -- vertex → triangle lists (arena) -------------------------------------------------------------------
 @jit
@@ -631,18 +634,26 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         # cbuf: lower bounds (the quadric alone); add the vertical term in increasing bound order until the
         # next bound exceeds the best exact cost (branch and bound)
         npts = _gather_star(u, P, tris, arena, su, n, head, nxt, sa, sb, geo, pxyz, ps, pst, seg)
+        # obuf[:n]: candidates by increasing (bound, vertex) (the vertices are distinct: one order); a
+        # candidate made exact, or found past the best, never comes before the next bound
         for i in range(n):
             dbuf[i] = False
             qbuf[i] = cbuf[i]
-            # obuf[:i+1]: candidates by increasing (bound, vertex) (insertion sort: a ring is small); a
-            # candidate made exact, or found past the best, never comes before the next bound
-            j = i
-            while j > 0 and (
-                cbuf[obuf[j - 1]] > cbuf[i] or (cbuf[obuf[j - 1]] == cbuf[i] and wbuf[obuf[j - 1]] > wbuf[i])
-            ):
-                obuf[j] = obuf[j - 1]
-                j -= 1
-            obuf[j] = i
+        if n > _SORT_RING and not np.isnan(cbuf[:n]).any():  # a coast fan of ~200: sorted, not inserted
+            by_w = np.argsort(wbuf[:n], kind="mergesort")
+            by_cw = by_w[np.argsort(cbuf[:n][by_w], kind="mergesort")]
+            for i in range(n):
+                obuf[i] = by_cw[i]
+        else:
+            for i in range(n):  # insertion sort: a ring is small
+                j = i
+                while j > 0 and (
+                    cbuf[obuf[j - 1]] > cbuf[i]
+                    or (cbuf[obuf[j - 1]] == cbuf[i] and wbuf[obuf[j - 1]] > wbuf[i])
+                ):
+                    obuf[j] = obuf[j - 1]
+                    j -= 1
+                obuf[j] = i
         best = np.inf
         for k in range(n):
             if wbuf[k] == prev_v:
