@@ -1098,6 +1098,17 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
 
 
 # -- measured error of the collapses ---------------------------------------------------------------------
+@leaf
+def _slot_height(P, T, s, px, py):
+    """(m, z): the smallest barycentric coordinate of (px, py) in slot s's xy triangle ``T[s]``
+    (:func:`_bary_xy`) and the height of the triangle's plane there, metres."""
+    a = T[s, 0]
+    b = T[s, 1]
+    d = T[s, 2]
+    l1, l2, m = _bary_xy(P, a, b, d, px, py)
+    return m, (1.0 - l1 - l2) * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
+
+
 @jit
 def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
     """Max vertical distance between the vertices each collapse (and the ones before it) removed and the
@@ -1158,24 +1169,18 @@ def collapse_vertical_errors(P, tris, cu, del_slot, rep_ptr, rep_slot, rep_new):
             bz = 0.0
             s = src[k]
             if s >= 0:  # its slot, rewritten, most often still holds it (then no other one can: _INSIDE)
-                a = T[s, 0]
-                b = T[s, 1]
-                d = T[s, 2]
-                l1, l2, m = _bary_xy(P, a, b, d, px, py)
+                m, z = _slot_height(P, T, s, px, py)
                 if m > _INSIDE:
                     best = m
                     bs = s
-                    bz = (1.0 - l1 - l2) * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
+                    bz = z
             for j in range(r0, r1 if bs < 0 else r0):
                 s = rep_slot[j]
-                a = T[s, 0]
-                b = T[s, 1]
-                d = T[s, 2]
-                l1, l2, m = _bary_xy(P, a, b, d, px, py)
+                m, z = _slot_height(P, T, s, px, py)
                 if m > best:
                     best = m
                     bs = s
-                    bz = (1.0 - l1 - l2) * P[a, 2] + l1 * P[b, 2] + l2 * P[d, 2]
+                    bz = z
                     if m > _INSIDE:
                         break
             if bs < 0:
