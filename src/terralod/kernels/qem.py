@@ -689,6 +689,39 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     # comes first is made exact and the order taken again. The same answer as testing in exact order.
     for k in range(n):
         obuf[k] = 0  # 1: tested valid, 2: tested invalid (out of the race: its cost is never needed)
+    if n > _SORT_RING:
+        # a big ring walks one sorted order instead of searching for the smallest at every step: an invalid
+        # candidate is passed, one made exact moves on to its place (its cost only grows)
+        by_w = np.argsort(wbuf[:n], kind="mergesort")
+        order = by_w[np.argsort(cbuf[:n][by_w], kind="mergesort")]
+        p = 0
+        while p < n:
+            k = order[p]
+            if not cbuf[k] > -np.inf:
+                p += 1
+                continue
+            if obuf[k] == 0:
+                if not _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
+                    obuf[k] = 2
+                    p += 1
+                    continue
+                obuf[k] = 1
+            if not exact and not dbuf[k]:
+                cbuf[k] = qbuf[k] + wt * _carried_gap2(
+                    wbuf[k], P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, np.inf
+                )
+                dbuf[k] = True
+                q = p
+                while q + 1 < n and (
+                    cbuf[order[q + 1]] < cbuf[k]
+                    or (cbuf[order[q + 1]] == cbuf[k] and wbuf[order[q + 1]] < wbuf[k])
+                ):
+                    order[q] = order[q + 1]
+                    q += 1
+                order[q] = k
+                continue
+            return wbuf[k], cbuf[k], emin, ew
+        return -1, np.inf, emin, ew
     for _ in range(3 * n + 1):
         k = -1
         for i in range(n):
