@@ -619,11 +619,11 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     still ``prev_v`` at cost ``prev_c`` it is returned untested (its test is repeated when it leaves the
     heap anyway); ``prev_v`` is also the candidate whose vertical term is computed first.
     ``ctx`` = (P, tris, Q, W, selfq, head, nxt, shape_eps, vweight) and ``work`` = (mark, stampbox, wbuf,
-    cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, tri) are the simplifier's state and scratch, passed as
-    two tuples (the arena, which moves when it grows, is passed on its own).
+    cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, pst, seg, tri, rbuf) are the simplifier's state and
+    scratch, passed as two tuples (the arena, which moves when it grows, is passed on its own).
     """
     P, tris, Q, W, selfq, head, nxt, shape_eps, vweight = ctx
-    mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, pst, seg, tri = work
+    mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, pst, seg, tri, rbuf = work
     su = start[u]
     n = length[u]
     exact = not vweight > 0.0
@@ -689,39 +689,56 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     # comes first is made exact and the order taken again. The same answer as testing in exact order.
     for k in range(n):
         obuf[k] = 0  # 1: tested valid, 2: tested invalid (out of the race: its cost is never needed)
-    if n > _SORT_RING:
-        # a big ring walks one sorted order instead of searching for the smallest at every step: an invalid
-        # candidate is passed, one made exact moves on to its place (its cost only grows)
-        by_w = np.argsort(wbuf[:n], kind="mergesort")
-        order = by_w[np.argsort(cbuf[:n][by_w], kind="mergesort")]
-        p = 0
-        while p < n:
-            k = order[p]
-            if not cbuf[k] > -np.inf:
+    # rbuf[:m]: the candidates with a cost, by (cost or bound, vertex); walked once: an invalid candidate
+    # is passed, one made exact moves on to its place (its cost only grows)
+    m = 0
+    for i in range(n):
+        if cbuf[i] > -np.inf:
+            rbuf[m] = i
+            m += 1
+    if m > _SORT_RING:
+        idx = rbuf[:m].copy()
+        by_w = idx[np.argsort(wbuf[idx], kind="mergesort")]
+        by_cw = by_w[np.argsort(cbuf[by_w], kind="mergesort")]
+        for i in range(m):
+            rbuf[i] = by_cw[i]
+    else:
+        for i in range(1, m):  # insertion sort: a ring is small
+            k = rbuf[i]
+            j = i
+            while j > 0 and (
+                cbuf[rbuf[j - 1]] > cbuf[k] or (cbuf[rbuf[j - 1]] == cbuf[k] and wbuf[rbuf[j - 1]] > wbuf[k])
+            ):
+                rbuf[j] = rbuf[j - 1]
+                j -= 1
+            rbuf[j] = k
+    p = 0
+    while p < m:
+        k = rbuf[p]
+        if not cbuf[k] > -np.inf:
+            p += 1
+            continue
+        if obuf[k] == 0:
+            if not _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
+                obuf[k] = 2
                 p += 1
                 continue
-            if obuf[k] == 0:
-                if not _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
-                    obuf[k] = 2
-                    p += 1
-                    continue
-                obuf[k] = 1
-            if not exact and not dbuf[k]:
-                cbuf[k] = qbuf[k] + wt * _carried_gap2(
-                    wbuf[k], P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, np.inf
-                )
-                dbuf[k] = True
-                q = p
-                while q + 1 < n and (
-                    cbuf[order[q + 1]] < cbuf[k]
-                    or (cbuf[order[q + 1]] == cbuf[k] and wbuf[order[q + 1]] < wbuf[k])
-                ):
-                    order[q] = order[q + 1]
-                    q += 1
-                order[q] = k
-                continue
-            return wbuf[k], cbuf[k], emin, ew
-        return -1, np.inf, emin, ew
+            obuf[k] = 1
+        if not exact and not dbuf[k]:
+            cbuf[k] = qbuf[k] + wt * _carried_gap2(
+                wbuf[k], P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, np.inf
+            )
+            dbuf[k] = True
+            q = p
+            while q + 1 < m and (
+                cbuf[rbuf[q + 1]] < cbuf[k] or (cbuf[rbuf[q + 1]] == cbuf[k] and wbuf[rbuf[q + 1]] < wbuf[k])
+            ):
+                rbuf[q] = rbuf[q + 1]
+                q += 1
+            rbuf[q] = k
+            continue
+        return wbuf[k], cbuf[k], emin, ew
+    return -1, np.inf, emin, ew
     for _ in range(3 * n + 1):
         k = -1
         for i in range(n):
@@ -856,9 +873,27 @@ def qem_simplify(P, tris, alive, kind, tri_block, vert_block, target, shape_eps,
     ps = np.empty(n_v, np.int64)
     tri = np.empty((n_v, 7), np.float64)
     obuf = np.empty(n_v, np.int64)  # candidates in increasing bound order
+    rbuf = np.empty(n_v, np.int64)  # the collapse test's walk over the candidates
     pst = np.empty(n_v + 1, np.int64)
     seg = np.empty((n_v, 5), np.float64)
-    work = (mark, stampbox, wbuf, cbuf, dbuf, qbuf, obuf, sa, sb, geo, pxyz, ps, pst, seg, tri)  # its scratch
+    work = (
+        mark,
+        stampbox,
+        wbuf,
+        cbuf,
+        dbuf,
+        qbuf,
+        obuf,
+        sa,
+        sb,
+        geo,
+        pxyz,
+        ps,
+        pst,
+        seg,
+        tri,
+        rbuf,
+    )  # its scratch
 
     count = np.zeros(n_b, np.int64)  # live triangles per block
     for t in range(tris.shape[0]):
