@@ -739,31 +739,6 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
             continue
         return wbuf[k], cbuf[k], emin, ew
     return -1, np.inf, emin, ew
-    for _ in range(3 * n + 1):
-        k = -1
-        for i in range(n):
-            c = cbuf[i]
-            if (
-                obuf[i] != 2
-                and c > -np.inf
-                and (k < 0 or c < cbuf[k] or (c == cbuf[k] and wbuf[i] < wbuf[k]))
-            ):
-                k = i
-        if k < 0:
-            break
-        if obuf[k] == 0:
-            if not _can_collapse(u, wbuf[k], P, tris, arena, start, length, mark, stampbox, shape_eps):
-                obuf[k] = 2
-                continue
-            obuf[k] = 1
-        if not exact and not dbuf[k]:
-            cbuf[k] = qbuf[k] + wt * _carried_gap2(
-                wbuf[k], P, sa, sb, n, geo, pxyz, ps, pst, seg, npts, tri, np.inf
-            )
-            dbuf[k] = True
-            continue
-        return wbuf[k], cbuf[k], emin, ew
-    return -1, np.inf, emin, ew
 
 
 @leaf
