@@ -609,6 +609,29 @@ def _quadric_costs(u, P, tris, Q, W, selfq, arena, su, n, wbuf, cbuf):
 
 
 @jit
+def _order_by_cost(cbuf, wbuf, idx, m):
+    """Sort the candidate indices ``idx[:m]`` in place by increasing (cbuf, wbuf) (the vertices are
+    distinct: one order): insertion for a small ring, or one with a NaN cost (which then stays where it
+    is, as insertion leaves it), else two stable argsorts (a coast fan of ~200 candidates)."""
+    if m > _SORT_RING and not np.isnan(cbuf[idx[:m]]).any():
+        sub = idx[:m].copy()
+        by_w = sub[np.argsort(wbuf[sub], kind="mergesort")]
+        by_cw = by_w[np.argsort(cbuf[by_w], kind="mergesort")]
+        for i in range(m):
+            idx[i] = by_cw[i]
+        return
+    for i in range(1, m):
+        k = idx[i]
+        j = i
+        while j > 0 and (
+            cbuf[idx[j - 1]] > cbuf[k] or (cbuf[idx[j - 1]] == cbuf[k] and wbuf[idx[j - 1]] > wbuf[k])
+        ):
+            idx[j] = idx[j - 1]
+            j -= 1
+        idx[j] = k
+
+
+@jit
 def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
     """Best collapse target of u and u's minimum normalised quadric error.
 
@@ -639,21 +662,8 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         for i in range(n):
             dbuf[i] = False
             qbuf[i] = cbuf[i]
-        if n > _SORT_RING and not np.isnan(cbuf[:n]).any():  # a coast fan of ~200: sorted, not inserted
-            by_w = np.argsort(wbuf[:n], kind="mergesort")
-            by_cw = by_w[np.argsort(cbuf[:n][by_w], kind="mergesort")]
-            for i in range(n):
-                obuf[i] = by_cw[i]
-        else:
-            for i in range(n):  # insertion sort: a ring is small
-                j = i
-                while j > 0 and (
-                    cbuf[obuf[j - 1]] > cbuf[i]
-                    or (cbuf[obuf[j - 1]] == cbuf[i] and wbuf[obuf[j - 1]] > wbuf[i])
-                ):
-                    obuf[j] = obuf[j - 1]
-                    j -= 1
-                obuf[j] = i
+            obuf[i] = i
+        _order_by_cost(cbuf, wbuf, obuf, n)
         best = np.inf
         for k in range(n):
             if wbuf[k] == prev_v:
@@ -696,22 +706,7 @@ def _evaluate(u, prev_v, prev_c, validate, arena, start, length, ctx, work):
         if cbuf[i] > -np.inf:
             rbuf[m] = i
             m += 1
-    if m > _SORT_RING:
-        idx = rbuf[:m].copy()
-        by_w = idx[np.argsort(wbuf[idx], kind="mergesort")]
-        by_cw = by_w[np.argsort(cbuf[by_w], kind="mergesort")]
-        for i in range(m):
-            rbuf[i] = by_cw[i]
-    else:
-        for i in range(1, m):  # insertion sort: a ring is small
-            k = rbuf[i]
-            j = i
-            while j > 0 and (
-                cbuf[rbuf[j - 1]] > cbuf[k] or (cbuf[rbuf[j - 1]] == cbuf[k] and wbuf[rbuf[j - 1]] > wbuf[k])
-            ):
-                rbuf[j] = rbuf[j - 1]
-                j -= 1
-            rbuf[j] = k
+    _order_by_cost(cbuf, wbuf, rbuf, m)
     p = 0
     while p < m:
         k = rbuf[p]
