@@ -22,7 +22,11 @@ fi
 echo "install.sh: pip install -e .[dev,fast-tin] (terralod, its test tools and Triangle, into $(python -c 'import sys; print(sys.prefix)'))"
 python -m pip install -e ".[dev,fast-tin]"
 # CesiumJS, the Khronos glTF validator and puppeteer-core (drives the system Chromium: no browser download)
-if command -v npm >/dev/null 2>&1; then PUPPETEER_SKIP_DOWNLOAD=1 npm ci --no-audit --no-fund; fi
+if command -v npm >/dev/null 2>&1; then
+  PUPPETEER_SKIP_DOWNLOAD=1 npm ci --no-audit --no-fund
+  # the viewer's CesiumJS into the package (src/terralod/serve/static/cesium, package data of the wheel)
+  python scripts/vendor_cesium.py
+fi
 # compile and cache every numba kernel now, so the first build / render / demo does not sit silent
 echo "install.sh: compiling terralod's kernels once (about 3 minutes on an idle machine)"
 python -m terralod warmup

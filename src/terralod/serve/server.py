@@ -3,8 +3,8 @@
 Routes (GET and HEAD; everything else is 405; any other path is 404, never a file from elsewhere):
 
 - ``/`` the viewer page, ``/static/NAME`` its files (a fixed set, package data of this module);
-- ``/cesium/...`` CesiumJS's built files from ``node_modules/cesium/Build/Cesium`` (resolved paths must
-  stay inside that folder);
+- ``/cesium/...`` CesiumJS's browser build, the copy the package carries (:func:`terralod.serve.cesium_dir`;
+  resolved paths must stay inside that folder);
 - ``/3dtiles/tileset.json``, ``/3dtiles/tiles/L/X_Y.glb`` (:class:`terralod.export.tiles3d.Tiles3D`);
 - ``/terrain/layer.json``, ``/terrain/Z/X/Y.terrain`` (:class:`terralod.export.quantized_mesh.QuantizedMesh`,
   always gzip'd, as the format's clients expect);
@@ -27,7 +27,6 @@ import io
 import json
 import logging
 import mimetypes
-import os
 import re
 import threading
 from collections import OrderedDict
@@ -39,9 +38,11 @@ from urllib.parse import unquote, urlsplit
 
 import numpy as np
 
+from terralod.serve import cesium_dir
+
 log = logging.getLogger("terralod.serve")
 
-__all__ = ["TileService", "cesium_dir", "make_server"]
+__all__ = ["TileService", "make_server"]
 
 #: Files of the viewer page (package data); only these names are served under /static/.
 STATIC_FILES = ("index.html", "viewer.js", "viewer.css")
@@ -51,22 +52,6 @@ _EPOCH = re.compile(r"^/e/([^/]{1,64})(/.*)$")
 _CHANGE = re.compile(r"^/change/([^/]{1,64})/([^/]{1,64})\.png$")
 #: Change overlay: metres of change at full colour, below which the overlay is transparent.
 CHANGE_FULL_M, CHANGE_MIN_M = 50.0, 0.5
-CESIUM_HINT = (
-    "CesiumJS not found (node_modules/cesium): run `npm ci` in the repository (bash scripts/install.sh does)"
-)
-
-
-def cesium_dir() -> Path | None:
-    """CesiumJS's ``Build/Cesium`` folder: $TERRALOD_CESIUM_DIR, ./node_modules, or the repository's."""
-    cands = []
-    if os.environ.get("TERRALOD_CESIUM_DIR"):
-        cands.append(Path(os.environ["TERRALOD_CESIUM_DIR"]))
-    cands.append(Path.cwd() / "node_modules" / "cesium" / "Build" / "Cesium")
-    cands.append(Path(__file__).resolve().parents[3] / "node_modules" / "cesium" / "Build" / "Cesium")
-    for c in cands:
-        if (c / "Cesium.js").is_file():
-            return c.resolve()
-    return None
 
 
 class _LRU:
