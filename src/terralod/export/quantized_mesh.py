@@ -43,8 +43,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 
-from terralod.export.common import apply_affine, atomic_folder, check_exportable, source_heightfield
+from terralod.export.common import atomic_folder, check_exportable, check_output
 from terralod.export.geodesy import WGS84_A_M, Geodesy, ecef_lonlat, enu_frame
 from terralod.export.tiles3d import ExportReport
 
@@ -263,110 +264,120 @@ def decode_tile(data: bytes, rect: tuple[float, float, float, float] | None = No
     return out
 
 
-# -- the reference surface -----------------------------------------------------------------------------
-class _Reference:
-    """The source samples (x, y, z in the CRS, valid) and the surface through them (``height_at``)."""
+# -- the true error of a decoded tile --------------------------------------------------------------------
+@njit(cache=True)
+def _max_vertical_error_kernel(tu, tv, th, tris, pu, pv, pz):  # pragma: no cover - numba
+    """Max |surface - z| over points (pu, pv, pz) of the triangles (tu, tv, th) in u/v units, and how many
+    points no triangle covered (the points are bucketed on a square grid; each triangle visits the
+    buckets of its bounding box; a point on a shared edge is tested by both triangles)."""
+    n = pu.size
+    nb = max(1, min(256, int(math.sqrt(n / 4.0)) + 1))
+    scale = nb / 32768.0
+    cell = np.empty(n, np.int64)
+    start = np.zeros(nb * nb + 1, np.int64)
+    for i in range(n):
+        cx = min(max(int(pu[i] * scale), 0), nb - 1)
+        cy = min(max(int(pv[i] * scale), 0), nb - 1)
+        cell[i] = cy * nb + cx
+        start[cell[i] + 1] += 1
+    for k in range(nb * nb):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    covered = np.zeros(n, np.bool_)
+    err = 0.0
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ua, va, ub, vb, uc, vc = tu[a], tv[a], tu[b], tv[b], tu[c], tv[c]
+        det = (vb - vc) * (ua - uc) + (uc - ub) * (va - vc)
+        if det == 0.0:
+            continue
+        x0 = min(max(int(min(ua, ub, uc) * scale), 0), nb - 1)
+        x1 = min(max(int(max(ua, ub, uc) * scale), 0), nb - 1)
+        y0 = min(max(int(min(va, vb, vc) * scale), 0), nb - 1)
+        y1 = min(max(int(max(va, vb, vc) * scale), 0), nb - 1)
+        tol = 1e-9
+        for cy in range(y0, y1 + 1):
+            for cx in range(x0, x1 + 1):
+                k = cy * nb + cx
+                for j in range(start[k], start[k + 1]):
+                    i = order[j]
+                    la = ((vb - vc) * (pu[i] - uc) + (uc - ub) * (pv[i] - vc)) / det
+                    lb = ((vc - va) * (pu[i] - uc) + (ua - uc) * (pv[i] - vc)) / det
+                    lc = 1.0 - la - lb
+                    if la >= -tol and lb >= -tol and lc >= -tol:
+                        d = abs(la * th[a] + lb * th[b] + lc * th[c] - pz[i])
+                        if d > err:
+                            err = d
+                        covered[i] = True
+    missed = 0
+    for i in range(n):
+        if not covered[i]:
+            missed += 1
+    return err, missed
 
-    def __init__(self, terrain: Any, geo: Geodesy) -> None:
-        self.hf = source_heightfield(terrain)
-        if self.hf is not None:
-            hf = self.hf
-            rows, cols = np.mgrid[0 : hf.height, 0 : hf.width]
-            x, y = apply_affine(hf.transform, cols.ravel() + 0.5, rows.ravel() + 0.5)
-            self.xyz = np.column_stack([x, y, np.asarray(hf.elevation_m, np.float64).ravel()])
-            self.valid = np.asarray(hf.valid).ravel()
-            self.spacing_m = float(min(abs(hf.transform.a), abs(hf.transform.e)))
-            self._inv = ~hf.transform
-            self._z = np.asarray(hf.elevation_m, np.float64)
-        else:
-            import matplotlib.tri as mtri
 
-            tree = terrain.lod_tree()
-            parents = {n.parent for n in tree}
-            vs, ts, base = [], [], 0
-            for n in tree:
-                if n.code in parents:
-                    continue
-                v, t = terrain.lod_mesh(n.code)
-                used = np.unique(t)
-                remap = np.full(len(v), -1, np.int64)
-                remap[used] = np.arange(used.size)
-                vs.append(np.asarray(v, np.float64)[used])
-                ts.append(remap[t] + base)
-                base += used.size
-            allv = np.concatenate(vs)
-            key, first, inv = np.unique(
-                np.round(allv[:, :2], 4), axis=0, return_index=True, return_inverse=True
-            )
-            self.xyz = allv[first]
-            tri = inv.reshape(-1)[np.concatenate(ts)]
-            self._tri = mtri.LinearTriInterpolator(mtri.Triangulation(self.xyz[:, 0], self.xyz[:, 1], tri),
-                                                   self.xyz[:, 2])  # fmt: skip
-            self.valid = np.ones(len(self.xyz), bool)
-            w, s, e, n = terrain.bounds_m
-            self.spacing_m = float(math.sqrt((e - w) * (n - s) / max(len(self.xyz), 1)))
-        lon, lat = geo.lonlat(self.xyz[:, 0], self.xyz[:, 1])
-        self.lon, self.lat = lon, lat
+def true_error_m(tile: dict[str, Any], rect: tuple[float, float, float, float], lon: np.ndarray,
+                 lat: np.ndarray, z_m: np.ndarray) -> float:  # fmt: skip
+    """Max vertical distance (m) between a *decoded* tile (:func:`decode_tile`: u/v/h after quantisation,
+    the surface CesiumJS interpolates, linear in u/v) and sample points (lon, lat, z) inside ``rect``."""
+    if lon.size == 0:
+        return 0.0
+    w, s, e, n = rect
+    pu = np.clip((lon - w) / (e - w), 0.0, 1.0) * 32767.0
+    pv = np.clip((lat - s) / (n - s), 0.0, 1.0) * 32767.0
+    err, missed = _max_vertical_error_kernel(
+        tile["u"].astype(np.float64), tile["v"].astype(np.float64), np.asarray(tile["height"], np.float64),
+        np.ascontiguousarray(tile["triangles"], np.int64), pu, pv, np.asarray(z_m, np.float64),
+    )  # fmt: skip
+    if missed:
+        raise RuntimeError(f"{missed} samples fall outside every triangle of the tile (a hole in its mesh)")
+    return float(err)
 
-    def height_at(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(heights, valid) at CRS points: bilinear on the filled source, its edges extended outside it (valid
-        False there)."""
-        if self.hf is not None:
-            col, row = apply_affine(self._inv, x, y)
-            col, row = np.asarray(col) - 0.5, np.asarray(row) - 0.5
-            hgt, wid = self._z.shape
-            inside = (col >= -0.5) & (row >= -0.5) & (col <= wid - 0.5) & (row <= hgt - 0.5)
-            c = np.clip(col, 0, wid - 1)
-            r = np.clip(row, 0, hgt - 1)
-            c0 = np.minimum(np.floor(c).astype(np.int64), wid - 2 if wid > 1 else 0)
-            r0 = np.minimum(np.floor(r).astype(np.int64), hgt - 2 if hgt > 1 else 0)
-            fc, fr = c - c0, r - r0
-            z = self._z
-            c1, r1 = np.minimum(c0 + 1, wid - 1), np.minimum(r0 + 1, hgt - 1)
-            out = (z[r0, c0] * (1 - fc) * (1 - fr) + z[r0, c1] * fc * (1 - fr) + z[r1, c0] * (1 - fc) * fr
-                   + z[r1, c1] * fc * fr)  # fmt: skip
-            ok = np.zeros(out.shape, bool)
-            ri, ci = np.rint(r).astype(np.int64), np.rint(c).astype(np.int64)
-            ok[inside] = self.hf.valid[ri[inside], ci[inside]]
-            return out, ok
-        z = np.asarray(self._tri(x, y).filled(np.nan), np.float64)
-        ok = np.isfinite(z)
-        if not ok.all():
-            from scipy.spatial import cKDTree
 
-            if not hasattr(self, "_kd"):
-                self._kd = cKDTree(self.xyz[:, :2])
-            _, j = self._kd.query(np.column_stack([x[~ok], y[~ok]]))
-            z[~ok] = self.xyz[j, 2]
-        return z, ok
+def _ceil4(x: float) -> float:
+    """Round up to 0.1 mm (a declared error is never below the measured one)."""
+    return math.ceil(x * 1e4) / 1e4
 
 
 # -- the tiles -----------------------------------------------------------------------------------------
 @dataclass
 class QmTile:
-    data: bytes
+    data: bytes  # gzip'd (what ``terralod serve`` sends with Content-Encoding: gzip)
+    raw: bytes  # uncompressed (what the export writes by default)
     error_m: float
     triangles: int
     vertices: int
     nodata_fraction: float
+    water: str  # "none", "all" or "some": the water mask the tile carries
 
 
 class QuantizedMesh:
-    """The quantized-mesh view of one terrain: :meth:`layer` (layer.json dict) and :meth:`tile` (bytes)."""
+    """The quantized-mesh view of one terrain: :meth:`layer` (layer.json dict) and :meth:`tile`.
+
+    ``terrain`` is a store (:func:`terralod.terrain.open_terrain`) or a DEM's samples
+    (:func:`terralod.export.source.source_from_dem`).
+    """
 
     def __init__(self, terrain: Any, *, target_fraction: float = TARGET_FRACTION) -> None:
-        self.terrain = terrain
-        where = str(terrain.path) if terrain.path is not None else None
-        self.geo = Geodesy(terrain.crs, where)
-        self.ref = _Reference(terrain, self.geo)
+        from terralod.export.source import SourceGrid, source_for
+
+        if isinstance(terrain, SourceGrid):
+            self.terrain = None
+            self.ref = terrain
+            self.name = Path(terrain.name).stem
+        else:
+            self.terrain = terrain
+            where = str(terrain.path) if terrain.path is not None else None
+            self.ref = source_for(terrain, Geodesy(terrain.crs, where))
+            self.name = Path(str(terrain.path)).stem if terrain.path is not None else "terrain"
         self.target_fraction = target_fraction
-        ok = self.ref.valid
-        self.bbox = (float(self.ref.lon[ok].min()), float(self.ref.lat[ok].min()),
-                     float(self.ref.lon[ok].max()), float(self.ref.lat[ok].max()))  # fmt: skip
-        deg_per_m = 1.0 / 111320.0
-        spacing_deg = self.ref.spacing_m * deg_per_m
+        self.bbox = self.ref.bbox
         self.max_zoom = 0
-        while 180.0 / (1 << self.max_zoom) / (SAMPLES - 1) > spacing_deg and self.max_zoom < 22:
+        while 180.0 / (1 << self.max_zoom) / (SAMPLES - 1) > self.ref.spacing_deg and self.max_zoom < 22:
             self.max_zoom += 1
         self._errors: dict[tuple[int, int, int], float] = {}
 
@@ -400,10 +411,14 @@ class QuantizedMesh:
         return out
 
     def layer(self) -> dict[str, Any]:
+        """layer.json: ``available`` per level, no per-tile metadata extension (CesiumJS parses that
+        extension by default and then expects tile availability inside it); the measured errors are in
+        ``terralod.error_m`` (per level) and ``errors.json`` (per tile) beside it."""
         return {
             "tilejson": "2.1.0",
-            "name": Path(str(self.terrain.path)).stem if self.terrain.path is not None else "terrain",
-            "description": "terralod export: measured error per tile (metadata extension terralod.error_m)",
+            "name": self.name,
+            "description": "terralod export: measured max vertical error per level in terralod.error_m, "
+                           "per tile in errors.json",
             "version": "1.0.0",
             "format": "quantized-mesh-1.0",
             "scheme": "tms",
@@ -412,44 +427,38 @@ class QuantizedMesh:
             "bounds": list(self.bbox),
             "minzoom": 0,
             "maxzoom": self.max_zoom,
-            "extensions": ["octvertexnormals", "watermask", "metadata"],
+            "extensions": ["octvertexnormals", "watermask"],
             "available": [[dict(zip(("startX", "startY", "endX", "endY"), self.level_range(z), strict=True))]
                           for z in range(self.max_zoom + 1)],
-            "terralod": {"heights": "as read (no geoid change)", "nodata": "height 0 outside the source, fill "
-                         "inside; watermask 255 and metadata nodata_fraction mark both",
+            "terralod": {"heights": "as read (no geoid change)",
+                         "error": "max vertical distance (m) between each tile as decoded (after quantisation) "
+                                  "and every valid source sample inside it, in the source's own samples",
+                         "outside": "the data's edge values extended outward (no cliff); watermask 255 marks "
+                                    "nodata and sea at 0 m",
                          "target_error_m": [round(self.target_error_m(z), 4) for z in range(self.max_zoom + 1)]},
         }  # fmt: skip
 
     def samples(self, z: int, x: int, y: int, n: int = SAMPLES) -> tuple[np.ndarray, ...]:
-        """(lon, lat, heights, valid) on the tile's n² lattice plus a one-sample margin ((n+2)², north row first)."""
+        """(lon, lat, heights, water) on the tile's n² lattice plus a one-sample margin ((n+2)², north row
+        first); outside the data the heights continue its edge values."""
         w, s, e, nn = tile_rectangle(z, x, y)
         du, dv = (e - w) / (n - 1), (nn - s) / (n - 1)
         lon = w + du * np.arange(-1, n + 1)
         lat = nn - dv * np.arange(-1, n + 1)
         LON, LAT = np.meshgrid(lon, lat)
-        lat_c = np.clip(LAT, -89.9, 89.9)
-        # the source's edges extend 2 lattice cells beyond its footprint (no cliff next to a source sample)
-        inb = (LON >= self.bbox[0] - 2 * du) & (LON <= self.bbox[2] + 2 * du) & \
-              (lat_c >= self.bbox[1] - 2 * dv) & (lat_c <= self.bbox[3] + 2 * dv)  # fmt: skip
-        hgt = np.full(LON.shape, np.nan)
-        ok = np.zeros(LON.shape, bool)
-        if inb.any():
-            px, py = self.geo.xy(LON[inb], lat_c[inb])
-            hv, okv = self.ref.height_at(px, py)
-            hgt[inb], ok[inb] = hv, okv
-        return LON, LAT, hgt, ok
+        hgt = self.ref.height_at(LON.ravel(), LAT.ravel()).reshape(LON.shape)
+        water = self.ref.water_at(LON.ravel(), LAT.ravel()).reshape(LON.shape)
+        return LON, LAT, hgt, water
 
     def tile(
         self, z: int, x: int, y: int, *, regular: int | None = None, target_m: float | None = None
     ) -> QmTile:
-        """Tile z/x/y: greedy-insertion mesh (or, with ``regular=k``, the k² regular grid), error measured."""
+        """Tile z/x/y: greedy-insertion mesh (or, with ``regular=k``, the k² regular grid), its error
+        measured on the decoded tile against the source samples inside it."""
         from pydelatin import Delatin
 
         rect = tile_rectangle(z, x, y)
-        LON, LAT, hgt, ok = self.samples(z, x, y)
-        known = np.isfinite(hgt)
-        nodata = float(1.0 - (ok[1:-1, 1:-1]).mean())
-        filled = np.where(known, hgt, 0.0)
+        LON, LAT, filled, water = self.samples(z, x, y)
         core = filled[1:-1, 1:-1]
         target = self.target_error_m(z) if target_m is None else float(target_m)
         n = SAMPLES
@@ -475,37 +484,22 @@ class QuantizedMesh:
         o = np.column_stack([lon, lat])[tris[:, 0]]
         cr = (a[:, 0] - o[:, 0]) * (b[:, 1] - o[:, 1]) - (a[:, 1] - o[:, 1]) * (b[:, 0] - o[:, 0])
         tris[cr < 0] = tris[cr < 0][:, ::-1]
-        err = self.measure(rect, lon, lat, hv, tris)
         normals = self._normals(filled, rows, cols, rect, lon, lat)
-        mask = ~ok[1:-1, 1:-1]
-        if mask.all():
-            wm: np.ndarray | int = 255
-        elif not mask.any():
-            wm = 0
+        wmask = water[1:-1, 1:-1][:256, :256]
+        if not wmask.any():
+            wm: np.ndarray | int = 0
+            kind = "none"
+        elif wmask.all():
+            wm, kind = 255, "all"
         else:
-            wm = (mask[:256, :256] * 255).astype(np.uint8)
-        meta = {"terralod": {"error_m": round(err, 4), "nodata_fraction": round(nodata, 4),
-                             "target_error_m": round(target, 4)}}  # fmt: skip
-        raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm, metadata=meta)
+            wm, kind = (wmask * 255).astype(np.uint8), "some"
+        raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
+        plon, plat, pz = self.ref.points_in(z, x, y)
+        err = _ceil4(true_error_m(decode_tile(raw, rect), rect, plon, plat, pz))
+        nodata = float(water[1:-1, 1:-1].mean()) if kind != "none" else 0.0
         if regular is None and target_m is None:
             self._errors[(z, x, y)] = err
-        return QmTile(gzip.compress(raw, 6, mtime=0), err, len(tris), len(lon), nodata)
-
-    def measure(self, rect: tuple[float, ...], lon: np.ndarray, lat: np.ndarray, h: np.ndarray,
-                tris: np.ndarray) -> float:  # fmt: skip
-        """Max vertical distance (m) from the valid source samples inside ``rect`` to the tile surface."""
-        import matplotlib.tri as mtri
-
-        w, s, e, n = rect
-        r = self.ref
-        sel = r.valid & (r.lon >= w) & (r.lon <= e) & (r.lat >= s) & (r.lat <= n)
-        if not sel.any():
-            return 0.0
-        su, sv = (lon - w) / (e - w), (lat - s) / (n - s)
-        interp = mtri.LinearTriInterpolator(mtri.Triangulation(su, sv, tris), h)
-        zt = np.asarray(interp((r.lon[sel] - w) / (e - w), (r.lat[sel] - s) / (n - s)).filled(np.nan))
-        d = np.abs(zt - r.xyz[sel, 2])
-        return float(np.nanmax(d)) if np.isfinite(d).any() else 0.0
+        return QmTile(gzip.compress(raw, 6, mtime=0), raw, err, len(tris), len(lon), nodata, kind)
 
     def _normals(self, filled: np.ndarray, rows: np.ndarray, cols: np.ndarray, rect: tuple[float, ...],
                  lon: np.ndarray, lat: np.ndarray) -> np.ndarray:  # fmt: skip
@@ -529,39 +523,63 @@ def export_quantized_mesh(
     *,
     epoch: str | None = None,
     overwrite: bool = False,
+    gzip_tiles: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> ExportReport:
-    """Write ``out/layer.json`` and the gzip'd ``out/Z/X/Y.terrain`` tiles (serve them with
-    ``Content-Encoding: gzip``, as ``terralod serve`` does)."""
+    """Write ``out/layer.json``, ``out/errors.json`` (measured error per tile) and ``out/Z/X/Y.terrain``.
+
+    ``terrain`` is a store or a DEM's samples (:func:`terralod.export.source.source_from_dem`). Tiles are
+    uncompressed (any static host serves them as they are); ``gzip_tiles`` writes them gzip'd, for a host
+    that sends ``Content-Encoding: gzip`` with them (CesiumJS cannot read gzip'd tiles without it).
+    """
+    from terralod.export.source import SourceGrid
+
     t0 = time.perf_counter()
-    check_exportable(terrain, epoch)
-    if epoch is not None and epoch != getattr(terrain, "epoch", None):
-        terrain = terrain.with_epoch(epoch)
+    if not isinstance(terrain, SourceGrid):
+        check_exportable(terrain, epoch)
+        if epoch is not None and epoch != getattr(terrain, "epoch", None):
+            terrain = terrain.with_epoch(epoch)
+    else:
+        check_output(out, overwrite)
     qm = QuantizedMesh(terrain)
     rep = ExportReport(Path(out))
     per_level: dict[int, float] = {}
+    per_tile: dict[str, float] = {}
+    raw_bytes = gz_bytes = 0
+    water = {"none": 0, "all": 0, "some": 0}
     with atomic_folder(out, overwrite) as tmp:
         codes = qm.tile_codes()
         for i, (z, x, y) in enumerate(codes):
             t = qm.tile(z, x, y)
+            data = t.data if gzip_tiles else t.raw
             f = tmp / str(z) / str(x) / f"{y}.terrain"
             f.parent.mkdir(parents=True, exist_ok=True)
-            f.write_bytes(t.data)
+            f.write_bytes(data)
             rep.tiles += 1
-            rep.bytes += len(t.data)
+            rep.bytes += len(data)
+            raw_bytes += len(t.raw)
+            gz_bytes += len(t.data)
             rep.triangles += t.triangles
+            water[t.water] += 1
             per_level[z] = max(per_level.get(z, 0.0), t.error_m)
+            per_tile[f"{z}/{x}/{y}"] = t.error_m
             if progress is not None:
                 progress(i + 1, len(codes))
         layer = qm.layer()
-        layer["terralod"]["error_m"] = [round(per_level.get(z, 0.0), 4) for z in range(qm.max_zoom + 1)]
+        layer["terralod"]["error_m"] = [_ceil4(per_level.get(z, 0.0)) for z in range(qm.max_zoom + 1)]
+        layer["terralod"]["gzip"] = bool(gzip_tiles)
         js = json.dumps(layer, indent=1)
         (tmp / "layer.json").write_text(js)
+        (tmp / "errors.json").write_text(json.dumps({"unit": "m", "tiles": per_tile}, separators=(",", ":")))
         rep.bytes += len(js)
     rep.seconds = time.perf_counter() - t0
     rep.extra = {
         "format": "quantized-mesh",
         "max_zoom": qm.max_zoom,
+        "gzip": bool(gzip_tiles),
+        "tile_bytes_raw": raw_bytes,
+        "tile_bytes_gzip": gz_bytes,
+        "water_masks": water,
         "error_m_per_level": layer["terralod"]["error_m"],
     }
     return rep

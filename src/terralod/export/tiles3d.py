@@ -1,10 +1,13 @@
 """OGC 3D Tiles 1.1 export of any terrain: ``tileset.json`` + one binary glTF 2.0 per LOD node.
 
 The tileset is the terrain's static LOD tree (:meth:`terralod.terrain.Terrain.lod_tree`) as stored:
-REPLACE refinement; each tile's ``geometricError`` is the node's *measured* error in metres (the one-sided
-Hausdorff ``error_m``, or ``vertical_error_m`` with ``metric="vertical"``), the tileset's (the root's
-parent) twice the largest root error; a terrain with several roots (the sub-blocks of a TIN) gets one
-content-less root above them. Bounding volumes are ``region``s of the stored node boxes (their edges
+REPLACE refinement. ``geometricError`` as the specification defines it: a tile's is the error of drawing it
+instead of its children, i.e. the node's *measured* error in metres (the one-sided Hausdorff ``error_m``, or
+``vertical_error_m`` with ``metric="vertical"``; never below a child's); the tileset's is the error of
+drawing nothing at all, the terrain's whole extent (diagonal with relief), so that CesiumJS at its default
+``maximumScreenSpaceError`` draws the coarse root from any distance at which the terrain covers more than a
+few pixels. A terrain with several roots (the sub-blocks of a TIN) gets one content-less root above them,
+with the tileset's error (drawing it is drawing nothing). Bounding volumes are ``region``s of the stored node boxes (their edges
 sampled through pyproj, the skirt depth below ``z_min``).
 
 Each glb (written with pygltflib) holds one triangle mesh: positions relative to the tile centre (the
@@ -101,6 +104,7 @@ class Tiles3D:
         self.children: dict[Any, list[Any]] = {}
         for n in self.tree:
             self.children.setdefault(n.parent, []).append(n.code)
+        self._tile_errors: dict[Any, float] = {}
         self._normals: dict[int, dict[Any, np.ndarray]] = {}
         self._meshes: dict[int, dict[Any, tuple[np.ndarray, np.ndarray]]] = {}
         self._hf = source_heightfield(terrain) if drop_nodata else None
@@ -111,6 +115,23 @@ class Tiles3D:
     def error_m(self, code: Any) -> float:
         n = self.nodes[code]
         return float(n.vertical_error_m if self.metric == "vertical" else n.error_m)
+
+    def tile_error_m(self, code: Any) -> float:
+        """A tile's ``geometricError``: the error of drawing it instead of its children, i.e. its measured
+        error, never below a child's (the specification's monotone errors down the tree)."""
+        if code not in self._tile_errors:
+            kids = self.children.get(code, [])
+            self._tile_errors[code] = max([self.error_m(code), *(self.tile_error_m(k) for k in kids)])
+        return self._tile_errors[code]
+
+    def nothing_error_m(self) -> float:
+        """The tileset's ``geometricError``: the error of drawing nothing at all, i.e. the terrain's whole
+        extent (horizontal diagonal and relief; never below the roots' errors)."""
+        w, s, e, n = self.terrain.bounds_m
+        boxes = [self.nodes[c].box_m for c in self.children.get(None, [])]
+        relief = max(b[5] for b in boxes) - min(b[2] for b in boxes)
+        extent = math.sqrt((e - w) ** 2 + (n - s) ** 2 + relief**2)
+        return float(max(extent, *(self.tile_error_m(c) for c in self.children.get(None, [])), 1.0))
 
     def skirt_m(self, code: Any) -> float:
         n = self.nodes[code]
@@ -125,7 +146,7 @@ class Tiles3D:
         c = self._centre(n)
         tile: dict[str, Any] = {
             "boundingVolume": {"region": self.geo.region(n.box_m, self.skirt_m(code))},
-            "geometricError": self.error_m(code),
+            "geometricError": self.tile_error_m(code),
             "transform": self._transform(c - above),
         }
         if self.has_content(code):
@@ -146,7 +167,7 @@ class Tiles3D:
 
     def tileset(self) -> dict[str, Any]:
         roots = self.children.get(None, [])
-        top = max(self.error_m(c) for c in roots)
+        nothing = self.nothing_error_m()
         if len(roots) == 1:
             root = self._tile_json(roots[0], np.zeros(3))
         else:
@@ -156,13 +177,13 @@ class Tiles3D:
                 "boundingVolume": {"region": [float(reg[:, 0].min()), float(reg[:, 1].min()),
                                               float(reg[:, 2].max()), float(reg[:, 3].max()),
                                               float(reg[:, 4].min()), float(reg[:, 5].max())]},
-                "geometricError": top,
+                "geometricError": nothing,  # a root without content: drawing it is drawing nothing
                 "children": kids,
             }  # fmt: skip
         root["refine"] = "REPLACE"
         return {
             "asset": {"version": "1.1", "generator": "terralod", "tilesetVersion": "1"},
-            "geometricError": 2.0 * top if top > 0 else 1.0,
+            "geometricError": nothing,
             "extras": {"terralod": {"metric": self.metric, "crs": self.geo.crs.to_string()[:120],
                                     "error": "measured, metres", "heights": "as read (no geoid change)"}},
             "root": root,

@@ -1,0 +1,282 @@
+"""The samples an export is measured against: the DEM as the user gave it, in its own CRS.
+
+A store built from a geographic (EPSG:4326) or Web Mercator DEM holds a grid resampled to UTM; the samples
+the user has are the original ones on the geographic lattice. :func:`source_for` gives back those samples
+(:class:`SourceGrid`, read again from the store's source file when it is still there and has the store's
+digest) or, for a TIN store, the TIN's own vertices (:class:`TinSource`). :func:`source_from_dem` reads a
+DEM file directly (``terralod export dem.tif --format quantized-mesh``: no store, no UTM round trip).
+
+Both kinds answer the same questions in WGS 84 longitude/latitude degrees: ``height_at`` (the surface
+through the samples: bilinear on the grid, linear on the TIN's triangles; outside the data the edge values
+extend outward, so a tile that reaches past the data continues the terrain instead of dropping to 0 m),
+``water_at`` (nodata or sea at exactly 0 m at the nearest sample), ``points_in`` (the valid samples inside
+a rectangle: what a tile's error is measured against) and ``bbox``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from terralod.errors import InputError
+
+__all__ = ["SourceGrid", "TinSource", "source_for", "source_from_dem"]
+
+
+def _is_lonlat_wgs84(crs: Any) -> bool:
+    try:
+        return bool(crs.is_geographic) and crs.to_epsg() == 4326
+    except Exception:  # noqa: BLE001 - an unreadable CRS simply goes through pyproj
+        return False
+
+
+class SourceGrid:
+    """A north-up grid of samples in its own CRS (geographic or projected; pixel-corner ``transform``).
+
+    ``z_m`` holds filled heights (nodata filled, as the store fills it), ``valid`` the real samples.
+    """
+
+    def __init__(self, z_m: np.ndarray, valid: np.ndarray, transform: Any, crs: Any, name: str) -> None:
+        from pyproj import CRS, Transformer
+
+        self.z_m = np.ascontiguousarray(z_m, np.float64)
+        self.valid = np.ascontiguousarray(valid, bool)
+        self.t = transform
+        self.crs = CRS.from_user_input(crs)
+        self.name = name
+        self.identity = _is_lonlat_wgs84(self.crs)
+        if not self.identity:
+            self._to_crs = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True)
+            self._to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
+        h, w = self.z_m.shape
+        self.shape = (h, w)
+        if not self.valid.any():
+            raise InputError("has no valid samples", name)
+        # lon/lat of the valid samples (pixel centres), flat
+        rr, cc = np.nonzero(self.valid)
+        self._rc = (rr, cc)
+        x = self.t.c + (cc + 0.5) * self.t.a
+        y = self.t.f + (rr + 0.5) * self.t.e
+        self.lon, self.lat = self._lonlat(x, y)
+        self.zv = self.z_m[rr, cc]
+        # the footprint: corners of the valid samples' bounding box of rows/cols, its edges densified
+        r0, r1, c0, c1 = rr.min(), rr.max(), cc.min(), cc.max()
+        k = np.linspace(0.0, 1.0, 33)
+        ec = np.concatenate([c0 + (c1 - c0) * k, np.full(33, c1), c0 + (c1 - c0) * k, np.full(33, c0)])
+        er = np.concatenate([np.full(33, r0), r0 + (r1 - r0) * k, np.full(33, r1), r0 + (r1 - r0) * k])
+        elon, elat = self._lonlat(self.t.c + (ec + 0.5) * self.t.a, self.t.f + (er + 0.5) * self.t.e)
+        self.bbox = (float(min(elon.min(), self.lon.min())), float(min(elat.min(), self.lat.min())),
+                     float(max(elon.max(), self.lon.max())), float(max(elat.max(), self.lat.max())))  # fmt: skip
+        if self.crs.is_geographic:  # the ground spacing, in degrees of latitude (as for projected grids)
+            cos_lat = math.cos(math.radians(0.5 * (self.bbox[1] + self.bbox[3])))
+            self.spacing_deg = float(min(abs(self.t.a) * cos_lat, abs(self.t.e)))
+        else:
+            self.spacing_deg = float(min(abs(self.t.a), abs(self.t.e))) / 111320.0
+        self._buckets: dict[int, tuple[np.ndarray, dict[int, tuple[int, int]]]] = {}
+
+    def _lonlat(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.identity:
+            return np.asarray(x, np.float64), np.asarray(y, np.float64)
+        lon, lat = self._to_ll.transform(np.asarray(x, np.float64), np.asarray(y, np.float64))
+        return np.asarray(lon, np.float64), np.asarray(lat, np.float64)
+
+    def _colrow(self, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grid coordinates (sample centres at integers) of lon/lat points, clamped to the grid: outside it
+        the edge samples extend outward."""
+        w, s, e, n = self.bbox
+        lon = np.clip(lon, w, e)
+        lat = np.clip(lat, s, n)
+        if self.identity:
+            x, y = lon, lat
+        else:
+            x, y = self._to_crs.transform(lon, lat)
+            x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        col = (x - self.t.c) / self.t.a - 0.5
+        row = (y - self.t.f) / self.t.e - 0.5
+        h, wd = self.shape
+        return np.clip(col, 0, wd - 1), np.clip(row, 0, h - 1)
+
+    def height_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        """Bilinear height of the filled grid at lon/lat (edge values extended outside the grid)."""
+        c, r = self._colrow(lon, lat)
+        h, w = self.shape
+        c0 = np.minimum(np.floor(c).astype(np.int64), max(w - 2, 0))
+        r0 = np.minimum(np.floor(r).astype(np.int64), max(h - 2, 0))
+        c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
+        fc, fr = c - c0, r - r0
+        z = self.z_m
+        return (z[r0, c0] * (1 - fc) * (1 - fr) + z[r0, c1] * fc * (1 - fr) + z[r1, c0] * (1 - fc) * fr
+                + z[r1, c1] * fc * fr)  # fmt: skip
+
+    def water_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        """True where the nearest sample is nodata or sea (exactly 0 m); False outside the footprint."""
+        w, s, e, n = self.bbox
+        inside = (lon >= w) & (lon <= e) & (lat >= s) & (lat <= n)
+        c, r = self._colrow(lon, lat)
+        ri, ci = np.rint(r).astype(np.int64), np.rint(c).astype(np.int64)
+        return inside & (~self.valid[ri, ci] | (self.z_m[ri, ci] == 0.0))
+
+    def points_in(self, z: int, x: int, y: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(lon, lat, height) of the valid samples inside geographic tile z/x/y, its edges included (a
+        sample on a shared edge belongs to both tiles: CesiumJS may sample it from either)."""
+        from terralod.export.quantized_mesh import tile_rectangle
+
+        order, groups = self._bucketed(z)
+        wd, sd, ed, nd = tile_rectangle(z, x, y)
+        out = []
+        for bx in (x - 1, x, x + 1):
+            for by in (y - 1, y, y + 1):
+                g = groups.get(bx * (1 << z) + by)
+                if g is not None:
+                    out.append(order[g[0] : g[1]])
+        if not out:
+            e = np.zeros(0)
+            return e, e, e
+        idx = np.concatenate(out)
+        lo, la = self.lon[idx], self.lat[idx]
+        keep = (lo >= wd) & (lo <= ed) & (la >= sd) & (la <= nd)
+        idx = idx[keep]
+        return self.lon[idx], self.lat[idx], self.zv[idx]
+
+    def _bucketed(self, z: int) -> tuple[np.ndarray, dict[int, tuple[int, int]]]:
+        if z not in self._buckets:
+            d = 180.0 / (1 << z)
+            bx = np.floor((self.lon + 180.0) / d).astype(np.int64)
+            by = np.floor((self.lat + 90.0) / d).astype(np.int64)
+            key = bx * (1 << z) + by
+            order = np.argsort(key, kind="stable")
+            ks, first, counts = np.unique(key[order], return_index=True, return_counts=True)
+            groups = {int(k): (int(f), int(f + c)) for k, f, c in zip(ks, first, counts, strict=True)}
+            self._buckets = {z: (order, groups)}  # one level at a time (the export walks level by level)
+        return self._buckets[z]
+
+
+class TinSource(SourceGrid):
+    """A TIN store's finest surface: its vertices are the samples, its triangles the surface."""
+
+    def __init__(self, terrain: Any, geo: Any) -> None:
+        import matplotlib.tri as mtri
+
+        tree = terrain.lod_tree()
+        parents = {n.parent for n in tree}
+        vs, ts, base = [], [], 0
+        for n in tree:
+            if n.code in parents:
+                continue
+            v, t = terrain.lod_mesh(n.code)
+            used = np.unique(t)
+            remap = np.full(len(v), -1, np.int64)
+            remap[used] = np.arange(used.size)
+            vs.append(np.asarray(v, np.float64)[used])
+            ts.append(remap[t] + base)
+            base += used.size
+        allv = np.concatenate(vs)
+        _, first, inv = np.unique(np.round(allv[:, :2], 4), axis=0, return_index=True, return_inverse=True)
+        xyz = allv[first]
+        tri = inv.reshape(-1)[np.concatenate(ts)]
+        self.geo = geo
+        self._interp = mtri.LinearTriInterpolator(mtri.Triangulation(xyz[:, 0], xyz[:, 1], tri), xyz[:, 2])
+        from scipy.spatial import cKDTree
+
+        self._kd = cKDTree(xyz[:, :2])
+        self.xyz = xyz
+        self.name = str(terrain.path)
+        self.lon, self.lat = geo.lonlat(xyz[:, 0], xyz[:, 1])
+        self.zv = xyz[:, 2]
+        self.bbox = (
+            float(self.lon.min()),
+            float(self.lat.min()),
+            float(self.lon.max()),
+            float(self.lat.max()),
+        )
+        w, s, e, n = terrain.bounds_m
+        self.spacing_deg = math.sqrt((e - w) * (n - s) / max(len(xyz), 1)) / 111320.0
+        self._buckets = {}
+
+    def height_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        w, s, e, n = self.bbox
+        x, y = self.geo.xy(np.clip(lon, w, e), np.clip(lat, s, n))
+        z = np.asarray(self._interp(x, y).filled(np.nan), np.float64)
+        bad = ~np.isfinite(z)
+        if bad.any():  # outside the TIN's hull: the nearest vertex (its edge extended outward)
+            _, j = self._kd.query(np.column_stack([x[bad], y[bad]]))
+            z[bad] = self.xyz[j, 2]
+        return z
+
+    def water_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        return np.zeros(np.shape(lon), bool)
+
+
+def _native_grid(path: Path) -> SourceGrid | None:
+    """The samples of a geographic or Web Mercator GeoTIFF on its own lattice (the store holds them
+    resampled to UTM); None for other inputs (their metric heightfield already is the user's grid)."""
+    import rasterio
+
+    from terralod.fill import fill_nodata
+    from terralod.io.raster import _is_mercator, north_up
+
+    try:
+        with rasterio.open(path) as ds:
+            crs, t = ds.crs, ds.transform
+            if crs is None or t.is_identity or not (crs.is_geographic or _is_mercator(crs)):
+                return None
+            data = ds.read(1, masked=True)
+            scale = float((ds.scales or (1.0,))[0] or 1.0)
+            offset = float((ds.offsets or (0.0,))[0] or 0.0)
+            wkt = crs.to_wkt()
+    except Exception:  # noqa: BLE001 - not a GDAL raster: the caller uses the metric heightfield
+        return None
+    values = np.ma.getdata(data).astype(np.float64) * scale + offset
+    valid = ~np.ma.getmaskarray(data) & np.isfinite(values)
+    values, valid, t, _ = north_up(values, valid, t, str(path))
+    if not valid.any():
+        raise InputError("has no valid samples", str(path))
+    z = values if valid.all() else fill_nodata(np.where(valid, values, 0.0), valid)
+    return SourceGrid(z, valid, t, wkt, str(path))
+
+
+def _from_heightfield(hf: Any) -> SourceGrid:
+    return SourceGrid(np.asarray(hf.elevation_m, np.float64), np.asarray(hf.valid), hf.transform, hf.crs,
+                      str(hf.source))  # fmt: skip
+
+
+def source_from_dem(path: str | Path) -> SourceGrid:
+    """A DEM file's samples in its own CRS (geographic and Web Mercator GeoTIFFs on their own lattice;
+    anything else as :func:`terralod.io.reader.read_heightfield` reads it). Raises InputError."""
+    from terralod.io.reader import read_heightfield
+
+    p = Path(path)
+    native = _native_grid(p) if p.is_file() else None
+    if native is not None:
+        return native
+    hf = read_heightfield(p)
+    if not hf.crs:
+        raise InputError(
+            "has no CRS (a local metric frame); the web exports need a georeferenced DEM", str(p)
+        )
+    return _from_heightfield(hf)
+
+
+def source_for(terrain: Any, geo: Any) -> SourceGrid:
+    """The samples behind a store: its source DEM on its own lattice when it can be read again and is the
+    one the store was built from; the store's grid when only that is known; a TIN store's vertices."""
+    from terralod.export.common import source_heightfield
+
+    hf = source_heightfield(terrain)
+    if hf is not None:
+        meta = getattr(terrain, "meta", {}) or {}
+        src = meta.get("source")
+        if src and Path(src).is_file() and not getattr(terrain, "epochs", None):
+            native = _native_grid(Path(src))
+            if native is not None:
+                return native
+        return _from_heightfield(hf)
+    if hasattr(terrain, "heightfield") and not getattr(terrain, "epochs", None):
+        try:
+            return _from_heightfield(terrain.heightfield())
+        except Exception:  # noqa: BLE001 - a store without its samples: its finest meshes below
+            pass
+    return TinSource(terrain, geo)
