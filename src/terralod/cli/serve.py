@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import click
 
-from terralod.cli._common import console, err_console
+from terralod.cli._common import console, err_console, require_extra
 
 
 @click.command()
@@ -20,6 +20,8 @@ from terralod.cli._common import console, err_console
 )
 def serve(store: str, host: str, port: int) -> None:
     """Serve a .terra store to the browser: viewer at /, tiles under /3dtiles/ and /terrain/ (read-only)."""
+    require_extra("serve", "web")
+    from terralod.errors import TerralodError
     from terralod.serve import CESIUM_HINT, make_server
     from terralod.terrain import open_terrain
 
@@ -29,6 +31,8 @@ def serve(store: str, host: str, port: int) -> None:
         try:
             server, service = make_server(terrain, host, port)
         except OSError as exc:
+            if isinstance(exc, TerralodError):  # a store error (StoreError is an OSError): named as such
+                raise
             raise click.ClickException(f"cannot listen on {host}:{port} ({exc.strerror or exc})") from None
         if service.cesium is None:
             err_console.print(f"terralod: {CESIUM_HINT}; serving the tiles only")

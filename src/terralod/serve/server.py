@@ -28,6 +28,7 @@ import json
 import logging
 import mimetypes
 import re
+import sys
 import threading
 from collections import OrderedDict
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -245,10 +246,19 @@ class TileService:
         return (body, ctype, '"' + hashlib.sha1(body).hexdigest() + '"', False)
 
 
+#: Seconds a connection may sit idle or half-sent before the server closes it.
+REQUEST_TIMEOUT_S = 20.0
+#: Requests handled at once; further connections wait in the listen backlog, not in threads.
+MAX_THREADS = 32
+#: Bytes of a refused request's body the server reads (and drops) to keep the connection; more closes it.
+MAX_DISCARD_BYTES = 64 << 10
+
+
 class _Handler(BaseHTTPRequestHandler):
     server_version = "terralod"
     service: TileService
     protocol_version = "HTTP/1.1"
+    timeout = REQUEST_TIMEOUT_S  # socket timeout: an idle or half-sent request is dropped, not waited for
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base class's name
         log.debug("%s " + format, self.address_string(), *args)
@@ -300,26 +310,82 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(200, body, ctype, headers, head)
 
     def do_GET(self) -> None:  # noqa: N802 - http.server's names
+        self._drop_body()
         self._serve(False)
 
     def do_HEAD(self) -> None:  # noqa: N802
+        self._drop_body()
         self._serve(True)
 
+    def _drop_body(self) -> None:
+        """Read a request's body (so it is never parsed as the next request) or close after replying."""
+        try:
+            n = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            n = -1
+        chunked = "chunked" in (self.headers.get("Transfer-Encoding") or "").lower()
+        if n == 0 and not chunked:
+            return
+        if 0 < n <= MAX_DISCARD_BYTES and not chunked:
+            try:
+                self.rfile.read(n)
+                return
+            except OSError:
+                pass
+        self.close_connection = True
+
     def _refuse(self) -> None:
-        self._send(405, b"read-only: GET and HEAD only\n", headers={"Allow": "GET, HEAD"})
+        self._drop_body()
+        hdr = {"Allow": "GET, HEAD"}
+        if self.close_connection:
+            hdr["Connection"] = "close"
+        self._send(405, b"read-only: GET and HEAD only\n", headers=hdr)
 
     do_POST = do_PUT = do_DELETE = do_PATCH = _refuse  # noqa: N815
 
 
 class _Server(ThreadingHTTPServer):
+    """At most :data:`MAX_THREADS` requests at once; one log line per failed connection, no traceback."""
+
     daemon_threads = True
     request_queue_size = 1024
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._slots = threading.BoundedSemaphore(MAX_THREADS)
+        self.failures = 0
+
+    def process_request(self, request: Any, client_address: Any) -> None:
+        self._slots.acquire()  # the accept loop waits here: connections queue in the kernel's backlog
+        try:
+            super().process_request(request, client_address)
+        except BaseException:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request: Any, client_address: Any) -> None:
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        exc = sys.exc_info()[1]
+        self.failures += 1
+        who = client_address[0] if isinstance(client_address, tuple) else client_address
+        if isinstance(exc, ConnectionError | TimeoutError):
+            log.info("%s: client went away (%s)", who, type(exc).__name__)
+        else:
+            log.warning("%s: request failed: %s: %s", who, type(exc).__name__, exc)
+
 
 def make_server(
-    terrain: Any, host: str = "127.0.0.1", port: int = 8000
+    terrain: Any, host: str = "127.0.0.1", port: int = 8000, *, request_timeout_s: float = REQUEST_TIMEOUT_S
 ) -> tuple[ThreadingHTTPServer, TileService]:
-    """A server (not started: call ``serve_forever``) and its service for ``terrain``."""
+    """A server (not started: call ``serve_forever``) and its service for ``terrain``.
+
+    The service is made first, so a store error is raised as itself (a :class:`terralod.errors.StoreError`
+    naming the store), never reported as a failure to listen."""
     service = TileService(terrain)
-    handler = type("Handler", (_Handler,), {"service": service})
+    handler = type("Handler", (_Handler,), {"service": service, "timeout": request_timeout_s})
     return _Server((host, port), handler), service
