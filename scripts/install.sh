@@ -19,8 +19,8 @@ if command -v apt-get >/dev/null 2>&1; then
 else
   echo "apt-get not found: install Mesa EGL/OpenGL and Xvfb with your package manager" >&2
 fi
-echo "install.sh: pip install -e .[dev,fast-tin] (terralod, its test tools and Triangle, into $(python -c 'import sys; print(sys.prefix)'))"
-python -m pip install -e ".[dev,fast-tin]"
+echo "install.sh: pip install -e .[all,dev,fast-tin] (terralod with every extra, its test tools and Triangle, into $(python -c 'import sys; print(sys.prefix)'))"
+python -m pip install -e ".[all,dev,fast-tin]"
 # CesiumJS, the Khronos glTF validator and puppeteer-core (drives the system Chromium: no browser download)
 if command -v npm >/dev/null 2>&1; then
   PUPPETEER_SKIP_DOWNLOAD=1 npm ci --no-audit --no-fund

@@ -90,6 +90,47 @@ def check_output(
     return out
 
 
+#: The optional parts of terralod (``pip install 'terralod[EXTRA]'``) and the modules each one brings.
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "web": ("pyproj", "pygltflib", "pydelatin"),  # export, serve: 3D Tiles, quantized-mesh, ECEF
+    "change": ("xdem", "shapely", "pyproj"),  # change: co-registration, zones, reprojection
+    "dask": ("dask", "distributed"),  # build --dask
+    "window": ("glfw",),  # view: the real-time window
+}
+
+
+class MissingExtra(click.ClickException):
+    """A command whose optional dependencies are not installed: one line, exit 2."""
+
+    exit_code = 2
+
+    def show(self, file: Any = None) -> None:
+        click.echo(self.message, err=True)
+
+
+def missing_modules(extra: str) -> list[str]:
+    """The modules of ``extra`` (:data:`EXTRAS`) that cannot be imported here."""
+    import importlib.util
+
+    out = []
+    for name in EXTRAS[extra]:
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            out.append(name)
+    return out
+
+
+def require_extra(command: str, extra: str) -> None:
+    """Stop ``terralod COMMAND`` with one line naming the extra to install when its modules are missing."""
+    missing = missing_modules(extra)
+    if missing:
+        log.info("missing modules of the %s extra: %s", extra, ", ".join(missing))
+        raise MissingExtra(f"terralod {command} needs the {extra} extra: pip install 'terralod[{extra}]'")
+
+
 def parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
     if text is None:
         return None
@@ -442,11 +483,10 @@ def extent_info(crs: str | None, bounds_m) -> dict[str, Any]:
     w, s_, e, n = (float(v) for v in bounds_m)
     lonlat = None
     if crs:
-        try:
-            from pyproj import CRS, Transformer
+        try:  # rasterio's PROJ (pyproj is the web extra's)
+            from rasterio.warp import transform_bounds
 
-            tr = Transformer.from_crs(CRS.from_user_input(crs), CRS.from_epsg(4326), always_xy=True)
-            lonlat = [float(v) for v in tr.transform_bounds(w, s_, e, n, densify_pts=21)]
+            lonlat = [float(v) for v in transform_bounds(crs, "EPSG:4326", w, s_, e, n, densify_pts=21)]
         except Exception:  # noqa: BLE001 - an unplaceable CRS has no lon/lat, the rest still holds
             lonlat = None
     return {"bounds_m": [w, s_, e, n], "bounds_lonlat": lonlat, "size_km": [(e - w) / 1e3, (n - s_) / 1e3]}

@@ -16,6 +16,7 @@ from terralod.cli._common import (
     print_store_summary,
     print_tin_summary,
     read_options,
+    require_extra,
     run_build,
 )
 
@@ -82,6 +83,8 @@ def build(
     if resume and overwrite:
         raise click.BadParameter("give --resume or --overwrite, not both", param_hint="--resume")
     check_output(output, list(input_paths), overwrite=overwrite, resume=resume, what="output store")
+    if dask_address:
+        require_extra("build --dask", "dask")
     if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
         if len(input_paths) > 1:
             raise click.BadParameter("detail-increment TIN builds take one input", param_hint="INPUT")

@@ -30,7 +30,7 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import console, is_store, load, read_options
+from terralod.cli._common import console, is_store, load, read_options, require_extra
 
 _DATE = re.compile(r"(\d{4}-\d{2}-\d{2})")
 
@@ -119,6 +119,7 @@ def change(
     date_to, dates, no_views, overwrite, **read: Any,
 ) -> None:  # fmt: skip
     """Difference, volumes ± uncertainty and a report of the change between DEMs (BEFORE AFTER...)."""
+    require_extra("change", "change")
     from terralod.change.coregister import read_stable_mask
     from terralod.change.difference import check_vertical_units, write_dod
     from terralod.change.report import plain_summary, write_report

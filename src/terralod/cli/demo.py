@@ -8,7 +8,14 @@ from pathlib import Path
 
 import click
 
-from terralod.cli._common import console, crs_name, heightfield_info, print_store_summary, run_build
+from terralod.cli._common import (
+    console,
+    crs_name,
+    heightfield_info,
+    missing_modules,
+    print_store_summary,
+    run_build,
+)
 
 
 @click.command()
@@ -38,7 +45,12 @@ def demo(output: str, tile_size: int, frames: int, no_window: bool) -> None:
     with open_store(output) as s:
         print_store_summary(store_summary(s))
         terrain = GridTerrain(s)
-        if (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and not no_window:
+        display = os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+        if display and not no_window and missing_modules("window"):
+            console.print(
+                "no window without the window extra (pip install 'terralod[window]'): rendering instead"
+            )
+        elif display and not no_window:
             from terralod.render.viewer import run_viewer
 
             run_viewer(terrain)

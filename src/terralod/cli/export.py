@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import click
 
-from terralod.cli._common import console, progress
+from terralod.cli._common import console, progress, require_extra
 
 
 @click.command()
@@ -34,6 +34,7 @@ from terralod.cli._common import console, progress
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
 def export(store: str, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool) -> None:
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh terrain."""
+    require_extra("export", "web")
     from terralod.export.common import check_exportable, check_output
     from terralod.export.geodesy import Geodesy
     from terralod.terrain import open_terrain

@@ -8,7 +8,14 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import open_terrain_arg, read_options, size, view_options, water_option
+from terralod.cli._common import (
+    open_terrain_arg,
+    read_options,
+    require_extra,
+    size,
+    view_options,
+    water_option,
+)
 
 
 @click.command()
@@ -25,6 +32,7 @@ def view(
     path, size_text, threshold_px, frames, screenshot, epoch, water_level, fractal_levels, cull, **read: Any
 ) -> None:
     """Open the real-time viewer on a store (or a DEM, built into a cache store first)."""
+    require_extra("view", "window")
     from terralod.render.viewer import run_viewer
 
     w, h = size(size_text)

@@ -113,10 +113,10 @@ def lonlat_to_world(terrain, lon_deg: float, lat_deg: float) -> tuple[float, flo
     t = as_terrain(terrain)
     if not t.crs:
         raise InputError("has no CRS (a local metric frame): aim with --eye/--target in metres", str(t.path))
-    from pyproj import Transformer
+    from rasterio.warp import transform  # rasterio's PROJ: pyproj is an extra
 
-    x, y = Transformer.from_crs("EPSG:4326", t.crs, always_xy=True).transform(lon_deg, lat_deg)
-    return float(x), float(y)
+    xs, ys = transform("EPSG:4326", t.crs, [lon_deg], [lat_deg])
+    return float(xs[0]), float(ys[0])
 
 
 def height_at(terrain, x: float, y: float) -> float:
