@@ -20,14 +20,23 @@ BEFORE's grid), same output (the translation applied to AFTER, metres):
   AFTER is sampled from its own grid at the shifted positions (cubic spline), never resampled twice.
   ``benchmarks/change.py`` measures both on known shifts of real DEMs (accuracy, time, memory).
 
-"Stable ground" is a mask given by the caller (``--stable``), else every valid cell outside the change:
-the change is where the residual lies beyond 3 NMAD of its median, grown by 2 cells, re-estimated after
-each fit (:func:`stable_ground`).
+"Stable ground" (:func:`find_stable_ground`) is where the fit and σ may look: cells valid in both DEMs,
+inside ``--stable`` when given, outside ``--exclude`` (glaciers, lakes, the known change), off *level
+surfaces* (connected patches of BEFORE — or AFTER on the same grid — whose elevation is exactly constant:
+the sea at 0 m, lakes, reservoirs; a water surface says nothing about survey error and can change level
+between surveys) and outside the change (cells beyond 3 NMAD of the median difference, grown by 2 cells,
+re-estimated after the fit). The horizontal fit uses only its cells on slopes of at least
+``slope_min_deg`` (3° by default; flat cells carry no information on a horizontal shift, as in Nuth &
+Kääb 2011 and xdem). When those cannot constrain a shift (fewer than :data:`MIN_FIT_CELLS`, or the
+least-squares standard error of the shift above :data:`MAX_SHIFT_SE_CELLS` of a cell) only the vertical
+bias is fitted, on all of the stable ground, and :attr:`Coregistration.statement` says so.
+"Identical" is concluded only when the difference on stable ground is exactly 0, never from an NMAD of 0.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -46,8 +55,19 @@ OUTLIER_NMAD = 3.0
 CHANGE_BUFFER_CELLS = 2
 #: Fewest stable cells a fit (and an NMAD) is made from.
 MIN_STABLE_CELLS = 100
+#: Fewest sloping stable cells a horizontal fit is made from.
+MIN_FIT_CELLS = 500
+#: Slope below which a cell carries no information on a horizontal shift, degrees (xdem / Nuth & Kääb).
+SLOPE_MIN_DEG = 3.0
+#: A horizontal shift is fitted only when its least-squares standard error is below this, cells.
+MAX_SHIFT_SE_CELLS = 0.03
+#: A level surface (water) is a connected patch of exactly constant elevation of at least this many cells.
+LEVEL_MIN_CELLS = 16
 #: Most stable cells used by a fit (a seeded random subsample beyond it, as xdem does).
 MAX_FIT_CELLS = 500_000
+#: Smallest difference (m) under which a change threshold is never set (an NMAD of 0 is no licence to
+#: call every non-zero cell a change).
+NMAD_FLOOR_M = 0.01
 METHODS = ("xdem", "terralod")
 
 
@@ -65,18 +85,105 @@ class Coregistration:
     iterations: int = 0
     seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
+    #: "shift and bias", "bias only", "identical" or "none"
+    mode: str = "none"
+    fit_cells: int = 0
+    #: least-squares standard error of the horizontal shift, cells (NaN when none was fitted)
+    shift_se_cells: float = float("nan")
+    #: 1-σ uncertainty of the fitted vertical bias, metres
+    bias_sigma_m: float = float("nan")
+    #: one plain sentence on what was fitted and why
+    statement: str = ""
 
     def as_dict(self) -> dict:
         return {
             "method": self.method,
             "applied": self.applied,
+            "mode": self.mode,
+            "statement": self.statement,
             "shift_m": [float(v) for v in self.shift_m],
             "stable_cells": int(self.stable_cells),
+            "fit_cells": int(self.fit_cells),
+            "shift_se_cells": _num(self.shift_se_cells),
+            "bias_sigma_m": _num(self.bias_sigma_m),
             "nmad_before_m": _num(self.nmad_before_m),
             "nmad_after_m": _num(self.nmad_after_m),
             "iterations": int(self.iterations),
             "seconds": round(float(self.seconds), 4),
             "notes": list(self.notes),
+        }
+
+
+@dataclass
+class StableGround:
+    """Where the fit and σ look, and why the rest was left out (cell counts on BEFORE's grid)."""
+
+    mask: np.ndarray  # stable ground (σ, the vertical bias)
+    fit: np.ndarray  # its cells on slopes >= slope_min_deg (the horizontal fit)
+    slope_min_deg: float
+    valid_cells: int
+    user_mask_cells: int | None
+    excluded_cells: int
+    level_cells: int
+    level_patches: int
+    change_cells: int
+    flat_cells: int
+
+    @property
+    def cells(self) -> int:
+        return int(self.mask.sum())
+
+    @property
+    def fit_cells(self) -> int:
+        return int(self.fit.sum())
+
+    def describe(self, bias_only: bool) -> str:
+        """'fitted on 41 % of the area: land outside the change with slopes above 3°; the sea and 2 lakes
+        were left out' — for a council member."""
+        total = self.mask.size
+        used = self.cells if bias_only else self.fit_cells
+        pct = 100.0 * used / max(total, 1)
+        what = "ground outside the change" if self.user_mask_cells is None else "the stable ground you marked"
+        if not bias_only:
+            what += f" with slopes above {self.slope_min_deg:g}°"
+        left = []
+        if self.level_patches:
+            n = self.level_patches
+            left.append(
+                f"{n} flat water surface{'s' if n > 1 else ''} (sea, lakes: "
+                f"{100.0 * self.level_cells / total:.0f} % of the area)"
+            )
+        if self.excluded_cells:
+            left.append(f"the areas you excluded ({100.0 * self.excluded_cells / total:.0f} %)")
+        if self.change_cells:
+            left.append(f"the changed ground ({100.0 * self.change_cells / total:.0f} %)")
+        if total - self.valid_cells:
+            left.append(
+                f"cells without data in one survey ({100.0 * (total - self.valid_cells) / total:.0f} %)"
+            )
+        if not bias_only and self.flat_cells:
+            left.append(f"flatter ground ({100.0 * self.flat_cells / total:.0f} %)")
+        s = f"fitted on {pct:.0f} % of the area: {what}"
+        if left:
+            s += "; left out: " + ", ".join(left)
+        return s
+
+    def as_dict(self, bias_only: bool) -> dict:
+        total = self.mask.size
+        return {
+            "cells": self.cells,
+            "fit_cells": self.fit_cells,
+            "fraction_of_area": self.cells / max(total, 1),
+            "fit_fraction_of_area": (self.cells if bias_only else self.fit_cells) / max(total, 1),
+            "slope_min_deg": self.slope_min_deg,
+            "valid_cells": self.valid_cells,
+            "user_mask_cells": self.user_mask_cells,
+            "excluded_cells": self.excluded_cells,
+            "level_surface_cells": self.level_cells,
+            "level_surfaces": self.level_patches,
+            "change_cells": self.change_cells,
+            "flat_cells": self.flat_cells,
+            "description": self.describe(bias_only),
         }
 
 
@@ -91,7 +198,8 @@ def nmad(values: np.ndarray) -> float:
 
 def stable_ground(dod: np.ndarray, given: np.ndarray | None = None) -> np.ndarray:
     """Stable cells of a DoD: ``given`` (or every finite cell) minus the change, the cells beyond
-    ``OUTLIER_NMAD`` NMAD of the median (re-estimated until it settles), grown by ``CHANGE_BUFFER_CELLS``."""
+    ``OUTLIER_NMAD`` NMAD of the median (re-estimated until it settles; the threshold never below
+    :data:`NMAD_FLOOR_M`), grown by ``CHANGE_BUFFER_CELLS``."""
     from scipy import ndimage
 
     ok = np.isfinite(dod) if given is None else (np.isfinite(dod) & given)
@@ -100,7 +208,7 @@ def stable_ground(dod: np.ndarray, given: np.ndarray | None = None) -> np.ndarra
         v = dod[stable]
         if v.size < MIN_STABLE_CELLS:
             return stable
-        med, s = float(np.median(v)), nmad(v)
+        med, s = float(np.median(v)), max(nmad(v), NMAD_FLOOR_M)
         change = ok & (np.abs(dod - med) > OUTLIER_NMAD * s)
         if CHANGE_BUFFER_CELLS:
             change = ndimage.binary_dilation(change, iterations=CHANGE_BUFFER_CELLS)
@@ -111,38 +219,196 @@ def stable_ground(dod: np.ndarray, given: np.ndarray | None = None) -> np.ndarra
     return stable
 
 
+def level_surfaces(
+    z: np.ndarray, valid: np.ndarray, min_cells: int = LEVEL_MIN_CELLS
+) -> tuple[np.ndarray, int]:
+    """Cells of connected patches whose elevation is exactly constant (every 3×3 neighbourhood of equal
+    height), of at least ``min_cells``, with their shore cells: the sea, lakes, reservoirs. Returns (mask,
+    number of patches)."""
+    from scipy import ndimage
+
+    zz = z.astype(np.float64)
+    hi = ndimage.maximum_filter(np.where(valid, zz, np.inf), size=3, mode="nearest")
+    lo = ndimage.minimum_filter(np.where(valid, zz, -np.inf), size=3, mode="nearest")
+    flat = valid & (hi == lo)
+    if not flat.any():
+        return flat, 0
+    lab, n = ndimage.label(flat, structure=np.ones((3, 3), bool))
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    big = sizes >= min_cells
+    big[0] = False
+    core = big[lab]
+    return ndimage.binary_dilation(core) & valid, int(big.sum())
+
+
+def slope_deg(hf) -> np.ndarray:
+    """Slope of a heightfield, degrees (central differences, metres)."""
+    gy, gx = np.gradient(hf.elevation_m.astype(np.float64))
+    dx, dy = hf.spacing_m
+    return np.degrees(np.arctan(np.hypot(gx / dx, gy / dy)))
+
+
+def find_stable_ground(
+    pair: AlignedPair,
+    dod: np.ndarray,
+    *,
+    given: np.ndarray | None = None,
+    exclude: np.ndarray | None = None,
+    slope_min_deg: float = SLOPE_MIN_DEG,
+) -> StableGround:
+    """Stable ground of a DoD and its sloping part (module docstring)."""
+    before = pair.before
+    valid = np.isfinite(dod)
+    level, n_level = level_surfaces(before.elevation_m, before.valid)
+    if pair.same_grid:
+        lv2, _ = level_surfaces(pair.after.elevation_m, pair.after.valid)
+        if (lv2 & ~level).any():
+            from scipy import ndimage
+
+            level |= lv2
+            n_level = int(ndimage.label(level, structure=np.ones((3, 3), bool))[1])
+    base = valid & ~level
+    user = None
+    if given is not None:
+        user = int((given & valid).sum())
+        base &= given
+    n_excl = 0
+    if exclude is not None:
+        n_excl = int((exclude & valid & ~level).sum())
+        base &= ~exclude
+    mask = stable_ground(dod, base)
+    change = int((base & ~mask).sum())
+    sl = slope_deg(before)
+    fit = mask & (sl >= slope_min_deg)
+    return StableGround(
+        mask=mask, fit=fit, slope_min_deg=slope_min_deg, valid_cells=int(valid.sum()), user_mask_cells=user,
+        excluded_cells=n_excl, level_cells=int((level & valid).sum()), level_patches=n_level,
+        change_cells=change, flat_cells=int((mask & ~fit).sum()),
+    )  # fmt: skip
+
+
+def shift_standard_error_cells(pair: AlignedPair, fit: np.ndarray, residual: np.ndarray) -> float:
+    """Least-squares standard error of a horizontal shift fitted on ``fit`` cells (largest direction),
+    cells: σ_r · sqrt(λmax((GᵀG)⁻¹)) with G the slope vectors of BEFORE and σ_r the residual's NMAD."""
+    before = pair.before
+    gy, gx = np.gradient(before.elevation_m.astype(np.float64))
+    dx, dy = before.spacing_m
+    gx, gy = gx[fit] / dx, -gy[fit] / dy
+    r = residual[fit]
+    ok = np.isfinite(r)
+    if ok.sum() < MIN_FIT_CELLS:
+        return float("inf")
+    g = np.column_stack([gx[ok], gy[ok]])
+    m = g.T @ g
+    try:
+        lam = float(np.linalg.eigvalsh(np.linalg.inv(m)).max())
+    except np.linalg.LinAlgError:
+        return float("inf")
+    s = max(nmad(r[ok]), NMAD_FLOOR_M)
+    return float(s * math.sqrt(max(lam, 0.0)) / min(before.spacing_m))
+
+
 def coregister(
-    pair: AlignedPair, *, stable: np.ndarray | None = None, method: str = "xdem", seed: int = 0
+    pair: AlignedPair,
+    *,
+    stable: np.ndarray | None = None,
+    exclude: np.ndarray | None = None,
+    method: str = "xdem",
+    seed: int = 0,
+    slope_min_deg: float = SLOPE_MIN_DEG,
 ) -> Coregistration:
     """Fit the translation of AFTER onto BEFORE on stable ground (``stable``: a mask on BEFORE's grid, or
-    None for "outside the change"). Returns a :class:`Coregistration` (not yet applied)."""
+    None for "outside the change"; ``exclude``: cells never stable). Returns a :class:`Coregistration`
+    (not yet applied) with :attr:`~Coregistration.statement` saying what was fitted."""
     if method not in METHODS:
         raise ValueError(f"Expected a co-registration method in {METHODS}, got {method!r}")
     t0 = time.perf_counter()
     dod0 = dem_of_difference(pair)
-    mask = stable_ground(dod0, stable)
-    res = Coregistration(method=method, stable_cells=int(mask.sum()), nmad_before_m=nmad(dod0[mask]))
-    if res.stable_cells < MIN_STABLE_CELLS:
-        res.notes.append(f"co-registration skipped: {res.stable_cells} stable cells (< {MIN_STABLE_CELLS})")
-        res.method = "none"
-        return res
-    if res.nmad_before_m == 0.0:
-        res.notes.append(
-            "stable ground is identical in both DEMs (difference exactly 0): shift 0, nothing to fit"
+    sg = find_stable_ground(pair, dod0, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+    res = Coregistration(method=method, stable_cells=sg.cells, nmad_before_m=nmad(dod0[sg.mask]))
+    if sg.cells < MIN_STABLE_CELLS:
+        res.notes.append(f"co-registration skipped: {sg.cells} stable cells (< {MIN_STABLE_CELLS})")
+        res.statement = (
+            f"The surveys were not lined up: only {sg.cells} cells of stable ground were left to do it on."
         )
-        res.nmad_after_m = 0.0
         res.method = "none"
         res.seconds = time.perf_counter() - t0
         return res
-    if method == "xdem":
-        shift, iters = _fit_xdem(pair, mask, seed)
+    if bool(np.all(dod0[sg.mask] == 0.0)):
+        res.notes.append(
+            "stable ground is identical in both DEMs (difference exactly 0): shift 0, nothing to fit"
+        )
+        res.statement = "The two surveys are identical on unchanged ground, so no alignment was needed."
+        res.nmad_after_m = 0.0
+        res.method, res.mode = "none", "identical"
+        res.seconds = time.perf_counter() - t0
+        return res
+    shift = (0.0, 0.0, 0.0)
+    bias_only = True
+    why = ""
+    dod = dod0
+    for _round in range(2):
+        if sg.fit_cells >= MIN_FIT_CELLS:
+            try:
+                if method == "xdem":
+                    s1, iters = _fit_xdem(pair, sg.fit, seed)
+                else:
+                    s1, iters = _fit_terralod(pair, sg.fit, seed)
+                res.iterations += iters
+            except Exception as exc:  # noqa: BLE001 - an estimator's failure is a note and a fall-back
+                msg = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+                res.notes.append(f"{method}'s Nuth & Kääb fit failed ({msg}); vertical bias fitted alone")
+                s1 = None
+            if s1 is not None:
+                d1 = dem_of_difference(pair, s1)
+                se = shift_standard_error_cells(pair, sg.fit, d1)
+                res.shift_se_cells = se
+                if se <= MAX_SHIFT_SE_CELLS:
+                    shift, bias_only, dod = s1, False, d1
+                else:
+                    bias_only = True
+                    why = (
+                        f"the sloping stable ground ({sg.fit_cells:,} cells above {slope_min_deg:g}°) leaves "
+                        f"the shift uncertain by ±{se:.2f} cells"
+                    )
+        else:
+            why = (
+                f"only {sg.fit_cells:,} stable cells have slopes above {slope_min_deg:g}° (< {MIN_FIT_CELLS})"
+            )
+        if bias_only:
+            shift, dod = (0.0, 0.0, 0.0), dod0
+        # the vertical bias: the median difference on all of the stable ground
+        med = float(np.nanmedian(dod[sg.mask]))
+        shift = (shift[0], shift[1], shift[2] - med)
+        dod = dod - med
+        sg2 = find_stable_ground(pair, dod, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+        if sg2.cells < MIN_STABLE_CELLS or np.array_equal(sg2.mask, sg.mask):
+            break
+        sg = sg2
+    # the vertical bias once more on the final stable ground
+    d = dem_of_difference(pair, shift)
+    sg = find_stable_ground(pair, d, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+    if sg.cells >= MIN_STABLE_CELLS:
+        med = float(np.nanmedian(d[sg.mask]))
+        shift = (shift[0], shift[1], shift[2] - med)
+        d = d - med
+    res.shift_m = tuple(float(v) for v in shift)
+    res.fit_cells = sg.cells if bias_only else sg.fit_cells
+    res.stable_cells = sg.cells
+    res.nmad_after_m = nmad(d[sg.mask])
+    res.mode = "bias only" if bias_only else "shift and bias"
+    if bias_only:
+        res.method = f"{method} (vertical bias only)" if not res.notes else "median (vertical bias only)"
+        res.statement = (
+            f"Only the height difference between the surveys ({abs(shift[2]):.2f} m) could be corrected: "
+            f"{why or 'the horizontal alignment could not be measured'}, so a sideways misalignment "
+            "cannot be ruled out and the uncertainty was widened."
+        )
+        res.notes.append(f"vertical bias only: {why}")
     else:
-        shift, iters = _fit_terralod(pair, mask, seed)
-    res.shift_m, res.iterations = shift, iters
-    dod1 = dem_of_difference(pair, shift)
-    mask1 = stable_ground(dod1, stable)
-    res.stable_cells = int(mask1.sum())
-    res.nmad_after_m = nmad(dod1[mask1])
+        res.statement = (
+            f"The later survey was lined up with the earlier one on {sg.describe(False).split(': ', 1)[1]}."
+        )
     res.seconds = time.perf_counter() - t0
     return res
 

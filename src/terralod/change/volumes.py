@@ -35,8 +35,22 @@ from pathlib import Path
 
 import numpy as np
 
-from terralod.change.coregister import Coregistration, coregister, nmad, stable_ground
-from terralod.change.difference import AlignedPair, align, crs_label, dem_of_difference
+from terralod.change.coregister import (
+    SLOPE_MIN_DEG,
+    Coregistration,
+    StableGround,
+    coregister,
+    find_stable_ground,
+    nmad,
+)
+from terralod.change.difference import (
+    AlignedPair,
+    align,
+    crs_label,
+    dem_of_difference,
+    reproject_onto,
+    sample_surface,
+)
 from terralod.change.zones import read_zones
 from terralod.heightfield import Heightfield
 
@@ -73,6 +87,18 @@ class Uncertainty:
     stable_nmad_m: float | None
     cell_area_m2: float
     warnings: list[str] = field(default_factory=list)
+    #: 1-σ uncertainty of the fitted vertical bias (a fully correlated error of every cell), metres
+    bias_sigma_m: float = 0.0
+    #: the resampling's own error on BEFORE's grid (one interpolation, simulated), metres; None: no resampling
+    resampling_error_m: np.ndarray | None = None
+    #: plain statements on what the data could not support
+    statements: list[str] = field(default_factory=list)
+
+    @property
+    def resampling_nmad_m(self) -> float | None:
+        if self.resampling_error_m is None:
+            return None
+        return nmad(self.resampling_error_m)
 
     @property
     def level_of_detection_m(self) -> float:
@@ -106,7 +132,11 @@ class Uncertainty:
                 "range_source": self.range_source,
             },
             "propagation": "Rolstad et al. 2009 spherical-correlation area average plus nugget; "
-            "sigma_V = A * sqrt(c0 * a / A + c1 * min(1, pi L^2 / (5 A))), +- = t * sigma_V",
+            "sigma_V = A * sqrt(c0 * a / A + c1 * min(1, pi L^2 / (5 A))); +- = t * sqrt(sigma_V^2 + "
+            "(A * sigma_bias)^2 + (sum of the resampling error * a)^2)",
+            "bias_sigma_m": self.bias_sigma_m,
+            "resampling_nmad_m": self.resampling_nmad_m,
+            "statements": list(self.statements),
             "warnings": list(self.warnings),
         }
 
@@ -170,27 +200,59 @@ def estimate_uncertainty(
     sigma_m: float | None = None,
     corr_range_m: float | None = None,
     confidence: float = 0.95,
+    resampling_error_m: np.ndarray | None = None,
 ) -> Uncertainty:
-    """σ, LoD and the correlation model of a co-registered DoD (module docstring)."""
+    """σ, LoD and the correlation model of a co-registered DoD (module docstring).
+
+    σ is refused (a stated default is used, with a warning) when the stable ground cannot give it: too
+    few cells, a difference exactly 0 (copied, not surveyed twice), or a difference no larger than the
+    resampling's own error (``resampling_error_m``, simulated): stable ground that only differs by the
+    interpolation of a copy. Cells whose difference is exactly 0 while others are not (a copied patch)
+    are left out of σ, said so.
+    """
     t = z_quantile(confidence)
     ok = stable & np.isfinite(dod)
     n = int(ok.sum())
-    s_nmad = nmad(dod[ok]) if n else float("nan")
     warns: list[str] = []
+    statements: list[str] = []
+    zero = ok & (dod == 0.0)
+    n_zero = int(zero.sum())
+    if n and 0 < n_zero < n and n_zero >= 0.05 * n:
+        statements.append(
+            f"{100 * n_zero / n:.0f} % of the stable ground is identical in both files (copied from one "
+            "survey into the other); the survey error was measured on the rest"
+        )
+        ok = ok & ~zero
+        n = int(ok.sum())
+    s_nmad = nmad(dod[ok]) if n else float("nan")
+    r_nmad = nmad(resampling_error_m[ok]) if (resampling_error_m is not None and n) else 0.0
+    why = None
+    if n < MIN_STABLE_CELLS:
+        why = f"only {n} stable cells"
+    elif not s_nmad > 0:
+        why = (
+            f"the difference on its {n:,} stable cells is exactly 0 (copied, not surveyed twice)"
+            if bool(np.all(dod[ok] == 0))
+            else f"the difference on its {n:,} stable cells is constant (NMAD 0)"
+        )
+    elif s_nmad <= max(1.2 * r_nmad, 1e-3):
+        why = (
+            f"the difference on its {n:,} stable cells ({s_nmad:.3f} m) is no larger than the resampling's "
+            f"own error ({r_nmad:.3f} m): that ground looks copied from one survey into the other"
+        )
     if sigma_m is not None:
         if not (math.isfinite(sigma_m) and sigma_m >= 0):
             raise ValueError(f"Expected sigma_m >= 0, got {sigma_m}")
         sigma, source = float(sigma_m), "given (--sigma-m)"
-    elif n >= MIN_STABLE_CELLS and s_nmad > 0:
+    elif why is None:
         sigma, source = s_nmad, f"NMAD of the difference on {n:,} stable cells"
     else:
-        why = (
-            f"only {n} stable cells" if n < MIN_STABLE_CELLS
-            else f"the difference on its {n:,} stable cells is exactly 0 (copied, not surveyed twice)"
-        )  # fmt: skip
         sigma, source = ASSUMED_SIGMA_M, f"assumed {ASSUMED_SIGMA_M:g} m: {why}; give --sigma-m"
         warns.append(f"sigma cannot be measured ({why}); assumed {ASSUMED_SIGMA_M:g} m, give --sigma-m")
-    model = correlation_model(dod, ok, spacing_m) if (n >= MIN_STABLE_CELLS and s_nmad > 0) else None
+        statements.append(
+            f"The survey error could not be measured from these files ({why}); {ASSUMED_SIGMA_M:g} m was assumed."
+        )
+    model = correlation_model(dod, ok, spacing_m) if why is None else None
     if corr_range_m is not None:
         rng, rsrc = float(corr_range_m), "given (--corr-range-m)"
         c0, c1 = 0.0, sigma**2
@@ -198,15 +260,46 @@ def estimate_uncertainty(
         c0m, c1m, rng = model
         frac = c0m / max(c0m + c1m, 1e-30)
         c0, c1 = frac * sigma**2, (1 - frac) * sigma**2
-        rsrc = "spherical variogram fitted on stable ground"
+        rsrc = f"spherical variogram fitted on {n:,} stable cells"
     else:
-        rng, rsrc = ASSUMED_RANGE_M, f"assumed {ASSUMED_RANGE_M:g} m (no stable ground to fit)"
+        reason = why or "too few pairs of stable cells at each distance to fit a variogram"
+        rng, rsrc = ASSUMED_RANGE_M, f"assumed {ASSUMED_RANGE_M:g} m ({reason})"
         c0, c1 = 0.0, sigma**2
+        statements.append(
+            f"How far survey errors stay alike could not be measured ({reason}); {ASSUMED_RANGE_M:g} m "
+            "was assumed."
+        )
     return Uncertainty(
         sigma_m=sigma, sigma_source=source, confidence=confidence, t=t, nugget_m2=c0, sill_m2=c1, range_m=rng,
         range_source=rsrc, stable_cells=n, stable_nmad_m=None if not math.isfinite(s_nmad) else s_nmad,
-        cell_area_m2=cell_area_m2, warnings=warns,
+        cell_area_m2=cell_area_m2, warnings=warns, resampling_error_m=resampling_error_m,
+        statements=statements,
     )  # fmt: skip
+
+
+def resampling_error(pair: AlignedPair, after: Heightfield, shift_m=(0.0, 0.0, 0.0)) -> np.ndarray | None:
+    """The error resampling AFTER onto BEFORE's grid adds by itself, on BEFORE's grid (metres; None when
+    AFTER is on BEFORE's grid and not shifted). Simulated on BEFORE: its surface taken to AFTER's grid and
+    back by the same path (a round trip: two interpolations, halved for one)."""
+    before = pair.before
+    tx, ty, _ = (float(v) for v in shift_m)
+    if pair.after is not after:  # reprojected in align(): the round trip through AFTER's own grid and CRS
+        there = reproject_onto(before, after)
+        back = reproject_onto(there, before)
+        e = np.where(back.valid & before.valid, back.elevation_m - before.elevation_m, np.nan)
+        return (0.5 * e).astype(np.float64)
+    if pair.same_grid and tx == 0.0 and ty == 0.0:
+        return None
+    rows, cols = np.indices(after.shape, dtype=np.float64)
+    x, y = after.world_xy(rows, cols)
+    r, c = before.sample_rc(x + tx, y + ty)
+    z, ok = sample_surface(before, r, c, order=3)
+    sim = Heightfield(
+        np.where(ok, z, np.nanmedian(z[ok]) if ok.any() else 0.0).astype(np.float32), ok & after.valid,
+        after.transform, crs=after.crs, source="simulated",
+    )  # fmt: skip
+    d = dem_of_difference(AlignedPair(before, sim, pair.same_grid), (tx, ty, 0.0))
+    return 0.5 * d
 
 
 def budget(dod: np.ndarray, unc: Uncertainty, mask: np.ndarray | None = None) -> dict:
@@ -220,6 +313,14 @@ def budget(dod: np.ndarray, unc: Uncertainty, mask: np.ndarray | None = None) ->
     up, down = d > lod, d < -lod
     vol = lambda sel: float(np.sum(d[sel], dtype=np.float64) * a)  # noqa: E731
     area = lambda sel: float(np.count_nonzero(sel) * a)  # noqa: E731
+    err = None if unc.resampling_error_m is None else unc.resampling_error_m[ok]
+
+    def pm(sel: np.ndarray) -> float:
+        u = unc.volume_sigma_m3(area(sel)) ** 2 + (area(sel) * unc.bias_sigma_m) ** 2
+        if err is not None:
+            u += (float(np.nansum(err[sel], dtype=np.float64)) * a) ** 2
+        return float(unc.t * math.sqrt(u)) if area(sel) > 0 else 0.0
+
     out = {
         "gain_m3": vol(pos),
         "loss_m3": -vol(neg),
@@ -227,12 +328,12 @@ def budget(dod: np.ndarray, unc: Uncertainty, mask: np.ndarray | None = None) ->
         "gain_m3_above_lod": vol(up),
         "loss_m3_above_lod": -vol(down),
         "net_m3_above_lod": vol(up | down),
-        "net_uncertainty_m3": unc.volume_uncertainty_m3(area(np.ones_like(pos))),
-        "gain_uncertainty_m3": unc.volume_uncertainty_m3(area(pos)),
-        "loss_uncertainty_m3": unc.volume_uncertainty_m3(area(neg)),
-        "net_above_lod_uncertainty_m3": unc.volume_uncertainty_m3(area(up | down)),
-        "gain_above_lod_uncertainty_m3": unc.volume_uncertainty_m3(area(up)),
-        "loss_above_lod_uncertainty_m3": unc.volume_uncertainty_m3(area(down)),
+        "net_uncertainty_m3": pm(np.ones_like(pos)),
+        "gain_uncertainty_m3": pm(pos),
+        "loss_uncertainty_m3": pm(neg),
+        "net_above_lod_uncertainty_m3": pm(up | down),
+        "gain_above_lod_uncertainty_m3": pm(up),
+        "loss_above_lod_uncertainty_m3": pm(down),
         "area_gain_m2": area(up),
         "area_loss_m2": area(down),
         "area_m2": area(np.ones_like(pos)),
@@ -287,6 +388,7 @@ def measure_change(
     after: Heightfield,
     *,
     stable: np.ndarray | None = None,
+    exclude: np.ndarray | None = None,
     coregistration: bool = True,
     method: str = "xdem",
     sigma_m: float | None = None,
@@ -295,24 +397,39 @@ def measure_change(
     zones: str | Path | None = None,
     dates: tuple[str | None, str | None] = (None, None),
     pair: AlignedPair | None = None,
+    slope_min_deg: float = SLOPE_MIN_DEG,
 ) -> ChangeResult:
     """Align, co-register (unless ``coregistration`` is False), difference and budget two DEMs.
 
-    ``stable`` is a mask on BEFORE's grid (True = stable ground) or None ("outside the change").
+    ``stable`` is a mask on BEFORE's grid (True = stable ground) or None ("outside the change");
+    ``exclude`` a mask of cells never taken as stable (glaciers, lakes, the known change).
     The result's ``summary`` holds the contract keys of ``terralod change`` (see :mod:`terralod.cli.change`).
     """
     pair = pair or align(before, after)
     if coregistration:
-        co = coregister(pair, stable=stable, method=method)
+        co = coregister(pair, stable=stable, exclude=exclude, method=method, slope_min_deg=slope_min_deg)
         co.applied = co.method != "none"
     else:
         co = Coregistration(method="none", notes=["co-registration skipped (--no-coregister)"])
-    dod = dem_of_difference(pair, co.shift_m if co.applied else (0.0, 0.0, 0.0))
-    st = stable_ground(dod, stable)
+        co.statement = "The surveys were compared as they are, without lining them up (--no-coregister)."
+    shift = co.shift_m if co.applied else (0.0, 0.0, 0.0)
+    dod = dem_of_difference(pair, shift)
+    sg = find_stable_ground(pair, dod, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+    st = sg.mask
+    rerr = resampling_error(pair, after, shift)
     unc = estimate_uncertainty(
         dod, st, pair.cell_area_m2, before.spacing_m, sigma_m=sigma_m, corr_range_m=corr_range_m,
-        confidence=confidence,
+        confidence=confidence, resampling_error_m=rerr,
     )  # fmt: skip
+    # the fitted vertical bias is itself uncertain: the standard error of a median over the stable area
+    if co.applied and unc.stable_cells >= MIN_STABLE_CELLS:
+        area_st = unc.stable_cells * pair.cell_area_m2
+        unc.bias_sigma_m = 1.2533 * unc.volume_sigma_m3(area_st) / area_st
+        if co.mode == "bias only":
+            unc.bias_sigma_m *= 2.0  # the horizontal alignment could not be checked: widened
+        co.bias_sigma_m = unc.bias_sigma_m
+    bias_only = co.mode == "bias only"
+    fit_words = _fit_words(co, sg, bias_only)
     summary: dict = dict(budget(dod, unc))
     summary.update(
         {
@@ -320,9 +437,9 @@ def measure_change(
             "sigma_source": unc.sigma_source,
             "level_of_detection_m": unc.level_of_detection_m,
             "confidence": confidence,
-            "shift_m": [float(v) for v in (co.shift_m if co.applied else (0.0, 0.0, 0.0))],
-            "before": {"source": before.source, "date": dates[0]},
-            "after": {"source": after.source, "date": dates[1]},
+            "shift_m": [float(v) for v in shift],
+            "before": {"source": Path(str(before.source)).name, "date": dates[0]},
+            "after": {"source": Path(str(after.source)).name, "date": dates[1]},
             "grid": {
                 "crs": crs_label(before.crs),
                 "shape": list(before.shape),
@@ -334,6 +451,8 @@ def measure_change(
             },
             "alignment_notes": list(pair.notes),
             "coregistration": co.as_dict(),
+            "stable_ground": sg.as_dict(bias_only),
+            "fit_description": fit_words,
             "uncertainty": unc.as_dict(),
             "extremes": extremes(dod, before),
         }
@@ -346,6 +465,17 @@ def measure_change(
             z["note"] = f"{100 * (1 - frac):.1f} % of the polygon lies outside the terrain and is not counted"
         summary["zones"].append(z)
     return ChangeResult(pair, co, dod, st, unc, summary, zone_masks)
+
+
+def _fit_words(co: Coregistration, sg: StableGround, bias_only: bool) -> str:
+    """What the alignment used, in words a council member reads."""
+    if co.mode == "identical":
+        return co.statement
+    if not co.applied:
+        return co.statement
+    if bias_only:
+        return f"{co.statement} The height difference was {sg.describe(True)}."
+    return f"The alignment was {sg.describe(False)}."
 
 
 def series_volumes(
