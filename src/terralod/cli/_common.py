@@ -131,6 +131,22 @@ def require_extra(command: str, extra: str) -> None:
         raise MissingExtra(f"terralod {command} needs the {extra} extra: pip install 'terralod[{extra}]'")
 
 
+def refuse_output_holding_inputs(
+    output: str | Path, inputs: tuple[str | Path, ...] | list[str | Path]
+) -> None:
+    """Refuse an output folder that is, or holds (at any depth), one of ``inputs``: replacing it with
+    ``--overwrite`` would delete the input. One line naming the output (exit 2), checked before anything
+    is written, even with ``--overwrite``."""
+    from terralod.errors import InputError
+
+    o = Path(output).resolve()
+    for src in inputs:
+        s = Path(src).resolve()
+        if s == o or o in s.parents:
+            raise InputError(f"is (or holds) the input {src}; replacing it would delete it; choose another output",
+                             str(output))  # fmt: skip
+
+
 def parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
     if text is None:
         return None

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import click
 
-from terralod.cli._common import console, progress, require_extra
+from terralod.cli._common import console, progress, refuse_output_holding_inputs, require_extra
 
 
 @click.command()
@@ -35,6 +35,7 @@ from terralod.cli._common import console, progress, require_extra
 def export(store: str, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool) -> None:
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh terrain."""
     require_extra("export", "web")
+    refuse_output_holding_inputs(output, [store])  # --overwrite would delete it
     from terralod.export.common import check_exportable, check_output
     from terralod.export.geodesy import Geodesy
     from terralod.terrain import open_terrain
