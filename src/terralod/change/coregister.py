@@ -56,11 +56,11 @@ CHANGE_BUFFER_CELLS = 2
 #: Fewest stable cells a fit (and an NMAD) is made from.
 MIN_STABLE_CELLS = 100
 #: Fewest sloping stable cells a horizontal fit is made from.
-MIN_FIT_CELLS = 500
+MIN_FIT_CELLS = 200
 #: Slope below which a cell carries no information on a horizontal shift, degrees (xdem / Nuth & Kääb).
 SLOPE_MIN_DEG = 3.0
 #: A horizontal shift is fitted only when its least-squares standard error is below this, cells.
-MAX_SHIFT_SE_CELLS = 0.03
+MAX_SHIFT_SE_CELLS = 0.05
 #: A level surface (water) is a connected patch of exactly constant elevation of at least this many cells.
 LEVEL_MIN_CELLS = 16
 #: Most stable cells used by a fit (a seeded random subsample beyond it, as xdem does).
@@ -377,8 +377,9 @@ def coregister(
             )
         if bias_only:
             shift, dod = (0.0, 0.0, 0.0), dod0
-        # the vertical bias: the median difference on all of the stable ground
-        med = float(np.nanmedian(dod[sg.mask]))
+        # the vertical bias: the median difference on the stable ground (its flatter part when no
+        # horizontal shift could be fitted: an unknown shift moves sloping cells' differences most)
+        med = float(np.nanmedian(dod[_bias_cells(sg, bias_only)]))
         shift = (shift[0], shift[1], shift[2] - med)
         dod = dod - med
         sg2 = find_stable_ground(pair, dod, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
@@ -389,7 +390,7 @@ def coregister(
     d = dem_of_difference(pair, shift)
     sg = find_stable_ground(pair, d, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
     if sg.cells >= MIN_STABLE_CELLS:
-        med = float(np.nanmedian(d[sg.mask]))
+        med = float(np.nanmedian(d[_bias_cells(sg, bias_only)]))
         shift = (shift[0], shift[1], shift[2] - med)
         d = d - med
     res.shift_m = tuple(float(v) for v in shift)
@@ -411,6 +412,11 @@ def coregister(
         )
     res.seconds = time.perf_counter() - t0
     return res
+
+
+def _bias_cells(sg: StableGround, bias_only: bool) -> np.ndarray:
+    flat = sg.mask & ~sg.fit
+    return flat if bias_only and flat.sum() >= MIN_STABLE_CELLS else sg.mask
 
 
 # -- xdem ----------------------------------------------------------------------------------------------
@@ -498,7 +504,7 @@ def _num(v: float):
     return None if v is None or not np.isfinite(v) else float(v)
 
 
-def read_stable_mask(path, hf) -> np.ndarray:
+def read_stable_mask(path, hf, what: str = "stable cell") -> np.ndarray:
     """A stable-ground mask on ``hf``'s grid from a raster (non-zero, finite = stable; nearest-neighbour
     onto the grid, in its own CRS) or from GeoJSON polygons (inside = stable; see
     :func:`terralod.change.zones.read_zones` for their CRS)."""
@@ -537,5 +543,5 @@ def read_stable_mask(path, hf) -> np.ndarray:
         raise InputError(f"is not a raster mask or GeoJSON ({exc})", str(p)) from None
     mask = np.isfinite(out) & (out != 0)
     if not mask.any():
-        raise InputError("marks no stable cell on the terrain", str(p))
+        raise InputError(f"marks no {what} on the terrain", str(p))
     return mask

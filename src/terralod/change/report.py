@@ -150,13 +150,26 @@ def plain_summary(result: ChangeResult, dates: tuple[str | None, str | None]) ->
             f"The survey error ({unc.sigma_m:.2f} m per point) was measured on ground that did not change."
         )
     sh = s["shift_m"]
-    if any(abs(v) > 0 for v in sh):
+    co = s.get("coregistration", {})
+    if co.get("mode") == "bias only":
+        out.append(co.get("statement", ""))
+    elif any(abs(v) > 0 for v in sh):
         out.append(
             f"The later survey was first lined up with the earlier one on unchanged ground: moved "
             f"{abs(sh[0]):.2f} m {'east' if sh[0] >= 0 else 'west'}, {abs(sh[1]):.2f} m "
             f"{'north' if sh[1] >= 0 else 'south'} and {abs(sh[2]):.2f} m {'up' if sh[2] >= 0 else 'down'}."
         )
-    return out
+    desc = s.get("stable_ground", {}).get("description")
+    if desc and co.get("mode") == "bias only":
+        out.append(f"The height difference was {desc}.")
+    elif desc and co.get("mode") == "shift and bias":
+        out.append(f"The alignment was {desc}.")
+    elif co.get("statement"):
+        out.append(co["statement"])
+    for st in s.get("uncertainty", {}).get("statements", []):
+        if not src.startswith("assumed") or "could not be measured from these files" not in st:
+            out.append(st[0].upper() + st[1:] + ("" if st.endswith(".") else "."))
+    return [o for o in out if o]
 
 
 # -- figures -------------------------------------------------------------------------------------------
@@ -587,8 +600,15 @@ def _tech_table(result: ChangeResult) -> str:
         ("area beyond the LoD, gain / loss (m²)", f"{s['area_gain_m2']:,.0f} / {s['area_loss_m2']:,.0f}"),
         ("error model", u["propagation"]),
         ("correlation range (m)", f"{u['variogram']['range_m']:.1f} ({u['variogram']['range_source']})"),
-        ("co-registration", f"{c['method']}; shift applied to AFTER [dx, dy, dz] = "
+        ("co-registration", f"{c['method']} ({c.get('mode', '')}); shift applied to AFTER [dx, dy, dz] = "
          + ", ".join(f"{v:.3f}" for v in s["shift_m"]) + " m"),
+        ("what the fit used", s.get("fit_description", "")),
+        ("stable ground (cells; sloping part used for the shift)",
+         f"{s.get('stable_ground', {}).get('cells', 0):,}; {s.get('stable_ground', {}).get('fit_cells', 0):,} "
+         f"above {s.get('stable_ground', {}).get('slope_min_deg', 0):g}°"),
+        ("shift standard error (cells) / vertical bias σ (m)",
+         f"{c.get('shift_se_cells')} / {c.get('bias_sigma_m')}"),
+        ("resampling's own error, NMAD (m)", u.get("resampling_nmad_m")),
         ("NMAD on stable ground before / after co-registration (m)", f"{c['nmad_before_m']} / {c['nmad_after_m']}"),
         ("grid", f"{s['grid']['crs']}, {s['grid']['spacing_m'][0]:g} × {s['grid']['spacing_m'][1]:g} m, "
          f"{s['grid']['shape'][1]} × {s['grid']['shape'][0]} cells"),

@@ -99,15 +99,45 @@ def _epoch(store: str, date: str):
 @click.argument("inputs", nargs=-1, required=True)
 @click.option("-o", "--output", required=True, help="Folder to write (summary.json, dod.tif, report.html).")
 @click.option("--zones", help="GeoJSON polygons: a budget per polygon (its 'name' property).")
-@click.option("--stable", help="Stable ground: a raster mask (non-zero = stable) or GeoJSON polygons.")
-@click.option("--no-coregister", is_flag=True, help="Skip the co-registration (no shift applied).")
-@click.option("--coreg", "coreg_method", type=click.Choice(["xdem", "terralod"]), default="xdem",
-              show_default=True, help="Nuth & Kääb estimator: xdem's or terralod's own.")  # fmt: skip
 @click.option(
-    "--sigma-m", type=float, help="Vertical uncertainty of the difference, metres (overrides the NMAD)."
+    "--stable",
+    help="Ground you know did not change: a raster mask (non-zero = unchanged) or "
+    "GeoJSON polygons. Only this ground is used to line the surveys up.",
 )
-@click.option("--corr-range-m", type=float, help="Correlation range of the errors, metres (default: fitted).")
-@click.option("--confidence", type=click.FloatRange(0.5, 0.9999), default=0.95, show_default=True)
+@click.option(
+    "--exclude",
+    help="Ground that must not be used to line the surveys up (glaciers, lakes, "
+    "the known change): GeoJSON polygons or a raster mask (non-zero = leave out).",
+)
+@click.option(
+    "--min-slope-deg",
+    type=click.FloatRange(0, 60),
+    default=3.0,
+    show_default=True,
+    help="Only ground at least this steep is used to find a sideways shift.",
+)
+@click.option(
+    "--no-coregister", is_flag=True, help="Compare the surveys as they are, without lining them up."
+)
+@click.option("--coreg", "coreg_method", type=click.Choice(["xdem", "terralod"]), default="xdem",
+              show_default=True, help="How to line the surveys up (Nuth & Kääb 2011): xdem's or terralod's own.")  # fmt: skip
+@click.option(
+    "--sigma-m",
+    type=float,
+    help="Survey error of the difference, metres (default: measured on unchanged ground).",
+)
+@click.option(
+    "--corr-range-m",
+    type=float,
+    help="Distance over which survey errors stay alike, metres (default: measured).",
+)
+@click.option(
+    "--confidence",
+    type=click.FloatRange(0.5, 0.9999),
+    default=0.95,
+    show_default=True,
+    help="How sure each ± range is.",
+)
 @click.option("--from", "date_from", help="Epoch date of BEFORE (a .terra store).")
 @click.option("--to", "date_to", help="Epoch date of AFTER (a .terra store).")
 @click.option("--dates", help="Comma-separated ISO dates of the inputs (default: from the file names).")
@@ -115,10 +145,19 @@ def _epoch(store: str, date: str):
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @read_options
 def change(
-    inputs, output, zones, stable, no_coregister, coreg_method, sigma_m, corr_range_m, confidence, date_from,
-    date_to, dates, no_views, overwrite, **read: Any,
+    inputs, output, zones, stable, exclude, min_slope_deg, no_coregister, coreg_method, sigma_m, corr_range_m,
+    confidence, date_from, date_to, dates, no_views, overwrite, **read: Any,
 ) -> None:  # fmt: skip
-    """Difference, volumes ± uncertainty and a report of the change between DEMs (BEFORE AFTER...)."""
+    """How much ground was added or removed between two surveys (BEFORE AFTER), with a ± range and a report.
+
+    The later survey is first lined up with the earlier one on ground that did not change; the volumes,
+    the survey error and the level below which changes cannot be told from error are measured from the
+    pair itself. The output folder holds summary.json, dod.tif (the difference map) and report.html.
+
+    \b
+    Example:
+      terralod change dem_2015.tif dem_2021.tif -o site_change --exclude glacier.geojson
+    """
     require_extra("change", "change")
     from terralod.change.coregister import read_stable_mask
     from terralod.change.difference import check_vertical_units, write_dod
@@ -127,7 +166,7 @@ def change(
     from terralod.errors import InputError
 
     out = Path(output)
-    _check_out(out, [*inputs, *(p for p in (zones, stable) if p)], overwrite)
+    _check_out(out, [*inputs, *(p for p in (zones, stable, exclude) if p)], overwrite)
     first = inputs[0]
     notes: list[str] = []
     series_hf = None
@@ -159,11 +198,15 @@ def change(
     pair_dates = (ds[0], ds[-1])
     before, after = hfs[0], hfs[-1]
     mask = read_stable_mask(stable, before) if stable else None
+    excl = read_stable_mask(exclude, before, what="cell to leave out") if exclude else None
     result = measure_change(
-        before, after, stable=mask, coregistration=not no_coregister, method=coreg_method, sigma_m=sigma_m,
-        corr_range_m=corr_range_m, confidence=confidence, zones=zones, dates=pair_dates,
+        before, after, stable=mask, exclude=excl, coregistration=not no_coregister, method=coreg_method,
+        sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence, zones=zones, dates=pair_dates,
+        slope_min_deg=min_slope_deg,
     )  # fmt: skip
     result.summary["alignment_notes"] = notes + result.summary["alignment_notes"]
+    # the machine's folders are nobody's business: inputs are named by their file names only
+    result.summary = _without_folders(result.summary, [*inputs, *(p for p in (zones, stable, exclude) if p)])
     series = None
     if series_hf is not None:
         series = series_volumes(series_hf, list(ds), sigma_m=sigma_m, corr_range_m=corr_range_m,
@@ -208,6 +251,29 @@ def change(
     )  # fmt: skip
     for n in s["alignment_notes"]:
         console.print(f"  {n}")
+
+
+def _without_folders(v, paths: list[str]):
+    """``v`` with every folder of ``paths`` (as given and absolute) removed from its strings."""
+    dirs = set()
+    for p in paths:
+        for q in (Path(p), Path(p).resolve()):
+            if str(q.parent) not in ("", "."):
+                dirs.add(str(q.parent) + os.sep)
+    dirs = sorted(dirs, key=len, reverse=True)
+
+    def clean(x):
+        if isinstance(x, str):
+            for d in dirs:
+                x = x.replace(d, "")
+            return x
+        if isinstance(x, dict):
+            return {k: clean(y) for k, y in x.items()}
+        if isinstance(x, list | tuple):
+            return [clean(y) for y in x]
+        return x
+
+    return clean(v)
 
 
 def _jsonable(v):
