@@ -44,7 +44,7 @@ Deviations, and why:
   displacement is a pure function of (world lattice position at its iteration level, level, seed) through
   a splitmix64 hash and Box–Muller, never of call order, so any window, tile or strip reproduces the same
   values bit for bit and neighbours agree on shared edges at every iteration count. Different iteration
-  counts between neighbours are an ordinary LoD difference for the runtime's stitcher (paper 002).
+  counts between neighbours are an ordinary LoD difference for the runtime's stitcher (Li, Liu & Liu).
 - **Eq. 3 is missing** from the paper (the distance threshold from the error ε). The number of fractal
   levels is chosen by the same screen-space error rule as everything else (DESIGN.md):
   :meth:`FractalDetail.extra_levels_for` adds levels while the projected detail error exceeds the
@@ -101,7 +101,7 @@ __all__ = [
 
 #: Quad diagonal rules of fractal tiles.
 DIAGONAL_RULES = {
-    "lowest": "paper 001 §3.2: join the two lowest vertices (the diagonal of smaller height sum)",
+    "lowest": "Hu & Wang §3.2: join the two lowest vertices (the diagonal of smaller height sum)",
     "error": "the diagonal of smaller max vertical error against the next fractal level",
     "fixed": "always north-west to south-east",
 }
@@ -330,7 +330,7 @@ def choose_diagonals(
 
 # -- the detail generator ------------------------------------------------------------------------------
 class FractalDetail:
-    """fBm detail below a DEM's resolution, a pure function of world position (paper 001 §2).
+    """fBm detail below a DEM's resolution, a pure function of world position (Hu & Wang §2).
 
     Parameters
     ----------
@@ -517,7 +517,7 @@ class FractalDetail:
             )
         z = self.window(0, 0, nr, nc, factor)
         valid = self.window_valid(0, 0, nr, nc, factor)
-        note = f"fractal detail x{factor} (paper 001 fBm, seed {self.seed})"
+        note = f"fractal detail x{factor} (Hu & Wang fBm, seed {self.seed})"
         return Heightfield(
             z, valid, self.amplified_transform(factor), crs=self.hf.crs, source=self.hf.source,
             fill_method=self.hf.fill_method, notes=(*self.hf.notes, note),
@@ -641,9 +641,9 @@ def fractal_tile(
     return detail.tile(code, tile_size=tile_size, diagonal=diagonal)
 
 
-# -- culling (paper 001 §3.1, §3.2) --------------------------------------------------------------------
+# -- culling (Hu & Wang §3.1, §3.2) --------------------------------------------------------------------
 def patch_backfacing(vertices: np.ndarray, triangles: np.ndarray, eye: Sequence[float]) -> bool:
-    """Paper 001 §3.2: True when every triangle of the patch faces away from the eye (skip the patch).
+    """Hu & Wang §3.2: True when every triangle of the patch faces away from the eye (skip the patch).
 
     Parameters
     ----------
@@ -717,7 +717,7 @@ def visible_region(
     near_m: float = 1.0,
     plane_z_m: float = 0.0,
 ) -> np.ndarray:
-    """Paper 001 §3.1: the visible region A'B'C'D', the view frustum cut by the terrain's mean plane.
+    """Hu & Wang §3.1: the visible region A'B'C'D', the view frustum cut by the terrain's mean plane.
 
     Parameters
     ----------

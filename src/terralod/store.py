@@ -17,7 +17,7 @@ Layout
                       ``vertical_error_m``, the raw measured values, RMS, covered sample count, z-range,
                       the quantised geometry and a CRC-32 of everything in the row.
 
-A TIN store (``method = "tin"``, paper 003) holds instead ``meta`` and ``tin_model(name, model, sha256)``:
+A TIN store (``method = "tin"``, Ai et al. (2019)) holds instead ``meta`` and ``tin_model(name, model, sha256)``:
 one detail-increment model as opaque bytes (written by ``terralod.tin``) and their SHA-256;
 :func:`write_tin_store` / :func:`read_tin_store`. :meth:`TileStore.open` refuses it with a clear error.
 
@@ -524,7 +524,7 @@ class TileStore(EpochTables):
             raise CorruptStoreError(f"corrupted store (SQLite integrity check: {detail})", str(p))
         if _meta_value(conn, "method") == TIN_METHOD:
             conn.close()
-            raise StoreError("holds a TIN detail-increment model (paper 003), not tiles", str(p))
+            raise StoreError("holds a TIN detail-increment model (Ai et al., 2019), not tiles", str(p))
         try:
             store = cls(p, conn, writable, epoch)
         except (KeyError, ValueError, TypeError, AttributeError, IndexError, sqlite3.DatabaseError) as exc:
@@ -828,7 +828,7 @@ def open_store(path: str | os.PathLike[str], epoch: str | None = None) -> TileSt
     return TileStore.open(path, writable=False, epoch=epoch)
 
 
-# -- TIN detail-increment models (paper 003) ------------------------------------------------------------
+# -- TIN detail-increment models (Ai et al., 2019) ------------------------------------------------------------
 #: ``method`` of a store holding one TIN detail-increment model (``terralod.tin``) instead of tiles.
 TIN_METHOD = "tin"
 

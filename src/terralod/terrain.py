@@ -186,7 +186,7 @@ class GridTerrain(_TerrainBase):
     epoch : the epoch to read (a name of ``epochs``; default: the store's, i.e. the latest). Another epoch
         than the store's opens the file again at that epoch (closed with the terrain).
     source : what the engine selects from: the store itself (default) or a
-        :class:`terralod.runtime.fractal_source.FractalSource` over it (paper 001)
+        :class:`terralod.runtime.fractal_source.FractalSource` over it (Hu & Wang)
     own : close the store with the terrain
     """
 
@@ -300,7 +300,7 @@ class GridTerrain(_TerrainBase):
 
 
 class TinTerrain(_TerrainBase):
-    """A detail-increment TIN (paper 003): one mesh per sub-block, each at its own scale.
+    """A detail-increment TIN (Ai et al., 2019): one mesh per sub-block, each at its own scale.
 
     ``lod_tree`` gives each sub-block a ladder of scales whose measured max vertical errors halve from its
     base mesh (rung 0) to full resolution (the input TIN, error 0): ``code = (rung, sub_block, scale)``.

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 TileCode = tuple[int, int, int]
 
-#: Edge neighbours as (dx, dy): left (west), up (north), right (east), down (south) — paper 002's LN/UN/RN/DN.
+#: Edge neighbours as (dx, dy): left (west), up (north), right (east), down (south) — Li, Liu & Liu's LN/UN/RN/DN.
 EDGE_OFFSETS: dict[str, tuple[int, int]] = {"L": (-1, 0), "U": (0, -1), "R": (1, 0), "D": (0, 1)}
 #: Corner neighbours: LU (north-west), RU (north-east), RD (south-east), LD (south-west).
 CORNER_OFFSETS: dict[str, tuple[int, int]] = {"LU": (-1, -1), "RU": (1, -1), "RD": (1, 1), "LD": (-1, 1)}

@@ -234,7 +234,7 @@ def view_options(fn: Callable[..., Any]) -> Callable[..., Any]:
     """--fractal and --cull, shared by render, flythrough and view."""
     fn = click.option(
         "--cull", multiple=True, type=click.Choice(["backface", "region"]),
-        help="Skip drawing back-facing tiles (paper 001 §3.2) / tiles outside the visible region (§3.1).",
+        help="Skip drawing back-facing tiles (Hu & Wang §3.2) / tiles outside the visible region (§3.1).",
     )(fn)  # fmt: skip
     return click.option(
         "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=None,
@@ -429,7 +429,7 @@ def open_or_build(path: str, read: dict[str, Any], tile_size: int | None = None)
 
 
 def with_fractal(store, path: str, read: dict[str, Any], levels: int | None):
-    """The store itself, or with ``levels`` fractal levels below its finest (paper 001), generated on demand
+    """The store itself, or with ``levels`` fractal levels below its finest (Hu & Wang), generated on demand
     from the store's source DEM (the DEM given on the command line, else the one recorded in the store)."""
     if levels is None:  # not given: what the store was built with (``terralod build --fractal N``)
         levels = int(store.meta.get("fractal_levels", 0))

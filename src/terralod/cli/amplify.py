@@ -1,4 +1,4 @@
-"""``terralod amplify DEM -o FINE.tif``: fractal (fBm) detail below the DEM's resolution (paper 001)."""
+"""``terralod amplify DEM -o FINE.tif``: fractal (fBm) detail below the DEM's resolution (Hu & Wang)."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from terralod.cli._common import check_output, console, load, read_options
 def amplify(
     input_path: str, output: str, factor: int, seed: int, hurst, sigma, overwrite: bool, **read: Any
 ) -> None:
-    """Add fractal (fBm) detail below the DEM's resolution (paper 001); every DEM sample is kept exactly."""
+    """Add fractal (fBm) detail below the DEM's resolution (Hu & Wang); every DEM sample is kept exactly."""
     from terralod.fractal import amplify_command
 
     check_output(output, [input_path], overwrite=overwrite, suffixes=(".tif", ".tiff"), what="output GeoTIFF")

@@ -1,5 +1,5 @@
-"""``terralod build INPUT -o STORE``: the level-of-detail tile store of a DEM (papers 000/001), or the
-detail-increment TIN of a LAS/LAZ cloud (paper 003)."""
+"""``terralod build INPUT -o STORE``: the level-of-detail tile store of a DEM (Sung, Lee & Shin, 2021; Hu & Wang), or the
+detail-increment TIN of a LAS/LAZ cloud (Ai et al., 2019)."""
 
 from __future__ import annotations
 
@@ -32,9 +32,11 @@ from terralod.cli._common import (
 @click.option(
     "--method", default="adaptive", show_default=True,
     help="Tile mesher: adaptive (a greedy-insertion TIN per tile on a halving error ladder, the finest "
-    "level the lossless grid; adaptive_ladder: the ladder down to the finest level too), cohesion (paper "
-    "000, the vertex cohesion map) or chunked (Chunked LOD); tin builds a detail-increment TIN (paper 003), "
-    "the default for LAS/LAZ input.",
+    "level the lossless grid; adaptive_ladder: the ladder down to the finest level too), cohesion (Sung, Lee & "
+    "Shin's vertex cohesion map, 2021: one shared grid per level whose vertices are pulled towards the "
+    "relief, so every tile shares one index buffer) or chunked (Ulrich's Chunked LOD, 2002: plainly "
+    "decimated grids, the classic baseline); tin builds a detail-increment TIN from LiDAR (Ai et al., "
+    "2019: QEM edge collapses stored as reversible increments), the default for LAS/LAZ input.",
 )  # fmt: skip
 @click.option(
     "--sub-blocks", default="4", show_default=True, help="TIN: sub-blocks, a square number or auto."
@@ -51,7 +53,7 @@ from terralod.cli._common import (
 @click.option("--overwrite", is_flag=True, help="Replace an existing output store.")
 @click.option(
     "--fractal", "fractal_levels", type=click.IntRange(0, 6), default=0, show_default=True,
-    help="Fractal levels below the DEM that view/render/flythrough add by default (paper 001; generated "
+    help="Fractal levels below the DEM that view/render/flythrough add by default (Hu & Wang; generated "
     "on demand from the source DEM, never stored).",
 )  # fmt: skip
 @click.option(
@@ -192,7 +194,7 @@ def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: floa
     summary = save_model_to_store(model, output, overwrite=overwrite, workers=workers)
     total_s = time.perf_counter() - t0
     n_points = int(model.vertices_m.shape[0])
-    console.print(f"built a detail-increment TIN (paper 003) in {total_s:.2f} s, "
+    console.print(f"built a detail-increment TIN (Ai et al., 2019) in {total_s:.2f} s, "
                   f"{n_points / max(total_s, 1e-9) / 1e3:,.1f} k points/s")  # fmt: skip
     if stages:
         stages["save"] = time.perf_counter() - t_save

@@ -109,7 +109,9 @@ def info(path: str, as_json: bool, **read: Any) -> None:
         if as_json:
             click.echo(json.dumps(d, indent=2, default=str))
         elif d.get("method") == TIN_METHOD:
-            console.print(f"source {d.get('source')}, method tin (paper 003), CRS {crs_name(d.get('crs'))}")
+            console.print(
+                f"source {d.get('source')}, method tin (Ai et al., 2019), CRS {crs_name(d.get('crs'))}"
+            )
             if "bounds_m" in d:
                 print_extent(d)
             print_tin_summary(d)

@@ -18,7 +18,7 @@ UNSIGNED_SHORT or UNSIGNED_INT, the smallest that holds the vertex count.
 
 Normals: the nodes of one level (one rung of a TIN) are merged by position and their area-weighted face
 normals summed (:func:`terralod.runtime.normals.reference_normals`, the normals of the uniform-LoD mesh,
-what the runtime's stitcher gives same-level neighbours, paper 002 §3.4), so the lighting is continuous
+what the runtime's stitcher gives same-level neighbours, Li, Liu & Liu §3.4), so the lighting is continuous
 across the borders of same-level tiles. Across a level change the two tiles have different geometry, and
 their normals differ as much as their surfaces do.
 

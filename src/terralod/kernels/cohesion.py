@@ -70,7 +70,7 @@ def _try_at(pv, pu, i, j, v, u, cells, min_turn):
 
 @jit
 def stiffness(a, tau_low, tau_up):
-    """Adaptive modulus K of the area ratio a (paper 000 eq. 6-8; eq. 8 read as (a - 1) / (tau_up - 1) so
+    """Adaptive modulus K of the area ratio a (Sung, Lee & Shin (2021) eq. 6-8; eq. 8 read as (a - 1) / (tau_up - 1) so
     that K is continuous and 0 at a = 1, like eq. 7)."""
     if a < tau_low or a > tau_up:
         return 1.0
@@ -194,7 +194,7 @@ def _side_bounds(t, j, m, s, gap):
 @jit
 def relax_interior(zw, vw, feat, mode, pv, pu, movable, keep, s, snap, n_iter, alpha, tau_low, tau_up, sxy,
                    vmax, umax):  # fmt: skip
-    """2-D cohesion relocation of the movable interior vertices, in place (paper 000 eq. 9).
+    """2-D cohesion relocation of the movable interior vertices, in place (Sung, Lee & Shin (2021) eq. 9).
 
     Per iteration: heights at the current positions, per-quad diagonals and attraction moments
     (:func:`choose_diagonals`), then a Gauss-Seidel sweep in raster order: V = K (T - P) + alpha * A with

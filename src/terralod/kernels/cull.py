@@ -1,4 +1,4 @@
-"""Patch culling kernels (paper 001 §3.2): does any triangle of a patch face the eye?"""
+"""Patch culling kernels (Hu & Wang §3.2): does any triangle of a patch face the eye?"""
 
 from __future__ import annotations
 

@@ -130,7 +130,7 @@ def _local_model(h_blocks, s_blocks, block, gi, gj, level):
 def refine_level(
     coarse, r_lo, c_lo, level, n_rows, n_cols, h_blocks, s_blocks, block, table, row_off, col_off, seed
 ):
-    """One diamond-square iteration (paper 001 §2) of a rectangle of the level-(k-1) lattice.
+    """One diamond-square iteration (Hu & Wang §2) of a rectangle of the level-(k-1) lattice.
 
     Parameters
     ----------

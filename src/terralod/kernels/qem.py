@@ -17,7 +17,7 @@ Vocabulary
   its capacity moves to the arena's end with twice the room, and the arena doubles when full).
 - *half-edge collapse u → v*: vertex u disappears, every triangle of star(u) that also uses v is deleted
   (exactly two: u is interior), the others get v in place of u. The endpoint v does not move, so no new
-  vertex ever appears (paper 003 §2.1).
+  vertex ever appears (Ai et al. (2019) §2.1).
 
 Vertex kinds (what a vertex may do)::
 

@@ -19,7 +19,7 @@ from terralod.kernels import jit
 from terralod.kernels.qem import _empty_arena, _next_after, _set_row, _star_add, _star_remove
 
 
-# -- detail-increment replay (paper 003 §2.3.1) ----------------------------------------------------------
+# -- detail-increment replay (Ai et al. (2019) §2.3.1) ----------------------------------------------------------
 @jit
 def refine_records(tris, alive, r0, r1, del_ptr, del_slot, del_tri, rep_ptr, rep_slot, rep_old):
     """Vertex splits: apply records r0, r0+1, …, r1-1 (refinement order) to the state (tris, alive).
@@ -45,7 +45,7 @@ def coarsen_records(tris, alive, r0, r1, del_ptr, del_slot, rep_ptr, rep_slot, r
             _set_row(tris, rep_slot[i], rep_new, i)
 
 
-# -- vertex-split records (paper 003 §2.2.1, compact file layout) ------------------------------------------
+# -- vertex-split records (Ai et al. (2019) §2.2.1, compact file layout) ------------------------------------------
 @jit
 def replay_splits(n_vertices, base_tri, rec_u, rec_v, rec_x, rec_w, rec_m, encode):
     r"""Vertex splits from the compact records, replayed from the base: every record's full table-1 fields.

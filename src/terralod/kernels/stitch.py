@@ -37,7 +37,7 @@ def polyline_at(t, h, q):
 
 @jit
 def stitch_edge(t_f, t_c, h_c, tol):
-    """Paper 002 §3.3 step 2 for one edge and any LoD difference.
+    """Li, Liu & Liu §3.3 step 2 for one edge and any LoD difference.
 
     Parameters: fine edge positions ``t_f`` (ascending), the coarse neighbour's final edge polyline
     (``t_c`` ascending, ``h_c`` metres) and a position tolerance (samples).
@@ -225,7 +225,7 @@ def normalize_all(sums):
 
 @jit
 def add_edge_contributions(t_tab, s_tab, g_tab, t_q, rows, tol, acc):
-    """Paper 002 §3.4 steps 2–3 for the vertices of one tile edge against one neighbour edge.
+    """Li, Liu & Liu §3.4 steps 2–3 for the vertices of one tile edge against one neighbour edge.
 
     For each query position ``t_q[i]`` (a boundary vertex of the current tile) that lies on the
     neighbour's edge polyline ``t_tab``: add the neighbour's vertex sum ``s_tab[j]`` when a neighbour
@@ -328,7 +328,7 @@ def stitch_tile(
     verts0, tris0, base_sums, base_normals, btris, btouched, ev, et, eoff, seg0, segoff, corner_vid,
     fit_t, fit_h, fitoff, fit_on, corner_h, corner_on, fine_t, fineoff, fine_on, geo, tol,
 ):  # fmt: skip
-    """Paper 002 §3.3 for one tile in one call: fit its sides and corners to coarser visible neighbours,
+    """Li, Liu & Liu §3.3 for one tile in one call: fit its sides and corners to coarser visible neighbours,
     insert their bend points and the finer neighbours' boundary positions (no T-junction remains), and
     recompute its own-triangle normals and the edge tables its neighbours read (§3.4).
 

@@ -2,7 +2,7 @@
 
 The mesher is greedy insertion of the worst sample into a Delaunay triangulation (Garland & Heckbert 1995,
 algorithm III, as mapbox/delatin implements it; no paper of ``../shared/papers`` — the papers' tiles are
-regular grids, paper 000 §2 surveys TINs as the alternative it does not take): the kernels are in
+regular grids, Sung, Lee & Shin (2021) §2 surveys TINs as the alternative it does not take): the kernels are in
 :mod:`terralod.kernels.adaptive`. What the pyramid adds:
 
 - the error ladder: level k < L is refined to ``target_m[k] = root_error_m / 2^k`` of vertical error over
@@ -31,7 +31,7 @@ regular grids, paper 000 §2 surveys TINs as the alternative it does not take): 
 - shared borders: the four sides of a tile are fixed before its interior, each by a 1-D simplification of
   the side's own line of source samples to the level's target (split at the worst sample until every
   segment is within it), so the two tiles sharing a side compute the same vertices from the same samples,
-  bit for bit; across levels the runtime's stitcher (paper 002 §3.3) fits the finer side onto the coarser
+  bit for bit; across levels the runtime's stitcher (Li, Liu & Liu §3.3) fits the finer side onto the coarser
   polyline and fan-splits where needed, as it does for the cohesion tiles' relocated sides;
 - partial tiles at the data's edge end at the last sample (no padding apron, no replicated heights): every
   level ends at the same place.

@@ -59,7 +59,7 @@ METHODS: dict[str, MeshFn] = {
     "adaptive_ladder": adaptive.make_mesher(finest_level_error_m=None),
 }
 # Adaptive tiles (halving ladder from the root, a lossless grid finest level, 33² tiles) are the default:
-# along the 2 px camera paths they draw 0.39-0.43x the vertex cohesion map's triangles (paper 000; itself
+# along the 2 px camera paths they draw 0.39-0.43x the vertex cohesion map's triangles (Sung, Lee & Shin (2021); itself
 # 0.41-0.48x Chunked LOD's) and build 1.3-1.5x faster (benchmarks/results/build.md).
 DEFAULT_METHOD = "adaptive"
 

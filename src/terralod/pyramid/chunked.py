@@ -1,4 +1,4 @@
-"""Chunked LOD tiles (Ulrich 2002), the baseline that paper 000 (``../shared/papers/000_0f8c6950ace8a2d1.txt``,
+"""Chunked LOD tiles (Ulrich 2002), the baseline that Sung, Lee & Shin (2021) (``../shared/papers/000_0f8c6950ace8a2d1.txt``,
 §2 and §4) measures the vertex cohesion map against.
 
 Each tile is the regular M x M grid of the source at its level's stride; every quad is split along the
@@ -7,7 +7,7 @@ smaller summed error, then the north-west/south-east diagonal), so the baseline 
 not a strawman. Quads whose north-west corner lies outside the source's sample rectangle are dropped (see
 ``terralod.tiles``); vertices past the source edge take the edge-replicated height.
 
-Deviation from Ulrich: no skirts — cracks are closed by the runtime's stitching (paper 002), and the tile
+Deviation from Ulrich: no skirts — cracks are closed by the runtime's stitching (Li, Liu & Liu), and the tile
 error is measured (one-sided Hausdorff over every covered sample) instead of estimated.
 """
 

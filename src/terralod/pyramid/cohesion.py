@@ -1,4 +1,4 @@
-"""Vertex cohesion map tiles: paper 000 (``../shared/papers/000_0f8c6950ace8a2d1.txt``), §3.1 and §3.2.
+"""Vertex cohesion map tiles: Sung, Lee & Shin (2021) (``../shared/papers/000_0f8c6950ace8a2d1.txt``), §3.1 and §3.2.
 
 Each tile starts as the Chunked-LOD regular M x M grid of its level (:mod:`terralod.pyramid.chunked`) and its
 vertices are relocated toward the places the grid misrepresents, the "vertex cohesion map" of the paper,

@@ -11,7 +11,7 @@ removes the dropped triangles and the vertices no kept triangle uses, in order, 
 wholly in nodata is stored with no vertex and no triangle.
 
 Same-level neighbours still share bit-identical boundary vertices where both keep triangles; where one
-side dropped its triangles the stitcher (paper 002) sees a partial side, as at the data edge.
+side dropped its triangles the stitcher (Li, Liu & Liu) sees a partial side, as at the data edge.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 A tile's *source window* is every sample its mesher reads: the tile's own samples ``[r0, r0 + span]`` x
 ``[c0, c0 + span]`` (clipped to the data, whose last row and column stand in for the padding), widened by
-the mesher's margin — 0 for Chunked LOD and for the vertex cohesion map (paper 000) with its default
+the mesher's margin — 0 for Chunked LOD and for the vertex cohesion map (Sung, Lee & Shin, 2021) with its default
 error-driven attraction, ``2 * stride`` for the cohesion map with LoG attraction (the paper as written),
 whose roughness of sigma = stride / 2 is taken over 4 sigma around the window
 (``cohesion._window_roughness``); other meshers get ``4 * stride`` unless they declare

@@ -305,7 +305,7 @@ def load_path(path: str | Path) -> list[CameraPose]:
 
 
 def cull_options(cull: tuple[str, ...] | list[str]) -> dict[str, bool]:
-    """Engine options from culling names: "backface" (paper 001 §3.2), "region" (§3.1)."""
+    """Engine options from culling names: "backface" (Hu & Wang §3.2), "region" (§3.1)."""
     bad = set(cull) - {"backface", "region"}
     if bad:
         raise ValueError(f"Expected culling among backface, region; got {sorted(bad)}")
@@ -320,7 +320,7 @@ class FrameRenderer:
     terrain : a :class:`terralod.terrain.Terrain` (or what :func:`terralod.terrain.as_terrain` wraps)
     width_px, height_px : viewport
     threshold_px : screen-space error threshold, pixels
-    cull : culling names for grid terrains ("backface", "region"; paper 001)
+    cull : culling names for grid terrains ("backface", "region"; Hu & Wang)
     """
 
     def __init__(

@@ -36,9 +36,9 @@ __all__ = [
     "TileNeighbours",
 ]
 
-#: Edge sides, paper 002's LN, UN, RN, DN (west, north, east, south); index 0..3.
+#: Edge sides, Li, Liu & Liu's LN, UN, RN, DN (west, north, east, south); index 0..3.
 EDGES = ("L", "U", "R", "D")
-#: Corners, paper 002's LUN, RUN, RDN, LDN (north-west, north-east, south-east, south-west); index 4..7.
+#: Corners, Li, Liu & Liu's LUN, RUN, RDN, LDN (north-west, north-east, south-east, south-west); index 4..7.
 CORNERS = ("LU", "RU", "RD", "LD")
 DIRECTIONS = EDGES + CORNERS
 #: (dx, dy) of each direction (x east, y south), indexed like DIRECTIONS.
@@ -135,7 +135,7 @@ def _edge_neighbours(s, d, state, lvl, tx, ty, off, nx, ny, out, start):
     """Leaves across side d (0..3 = L, U, R, D) of tile slot ``s``, ascending along the side.
 
     Writes into ``out[start:]`` and returns how many. One leaf when it is coarser or of the same level;
-    the run of finer leaves along the facing side otherwise (paper 002 §3.3 step 1, ``LYvec``).
+    the run of finer leaves along the facing side otherwise (Li, Liu & Liu §3.3 step 1, ``LYvec``).
     """
     k = lvl[s]
     dx = 0
@@ -241,7 +241,7 @@ def _tile_adjacency(s, state, lvl, tx, ty, off, nx, ny):
 
 @jit
 def _apply_and_mark(old_leaves, new_leaves, new_states, state, dirty, mark, stamp, lvl, tx, ty, off, nx, ny):
-    """Swap the leaf set in ``state`` and set the Dirty flags (paper 002 §3.2).
+    """Swap the leaf set in ``state`` and set the Dirty flags (Li, Liu & Liu §3.2).
 
     A tile *changed* when it left the leaf set, joined it, or changed visibility. Every changed tile that is
     a visible leaf now gets all 8 flags active; every visible leaf across a side or corner of a changed tile

@@ -1,4 +1,4 @@
-"""Fractal levels below a store's finest level, generated on demand for the runtime (paper 001 §3.1 with
+"""Fractal levels below a store's finest level, generated on demand for the runtime (Hu & Wang §3.1 with
 the screen-space rule of DESIGN.md, ``../shared/papers/001_aded52eb792094ea.txt``).
 
 :class:`FractalSource` is a tile source for :class:`terralod.runtime.Engine`: levels 0..L are the store's

@@ -81,7 +81,7 @@ def reference_normals(
 ) -> dict[object, np.ndarray]:
     """Normals of the merged mesh: vertices at the same (x, y) (rounded to ``decimals`` metres) are one.
 
-    For tiles that all share one LoD (no T-junctions) this is paper 002 table 2's "theoretical value": the
+    For tiles that all share one LoD (no T-junctions) this is Li, Liu & Liu table 2's "theoretical value": the
     normals a single uniform-LoD mesh would have. Returns {key: (N, 3) float32} in each tile's vertex order.
     """
     keys = list(meshes)

@@ -224,7 +224,7 @@ def _select_incremental(
     emitted,
     stamp,
 ):
-    """Paper 000's quadtree parser: the new leaves from last frame's leaves, splitting/merging locally."""
+    """Sung, Lee & Shin's (2021) quadtree parser: the new leaves from last frame's leaves, splitting/merging locally."""
     n = boxes.shape[0]
     leaves = np.empty(n, np.int64)
     states = np.empty(n, np.int8)
@@ -359,7 +359,7 @@ def _select_budget(boxes, err, kids_ok, ntri, planes, eye, k_px, tau, budget, lv
 
 @jit
 def _fallback(leaves, states, boxes, meas, eye, k_px, tau, lvl, tx, ty, off, nx, ny, work, checked, stamp):
-    """Paper 000 parent fallback, bottom-up: a parent whose existing children are all visible leaves, whose own
+    """Sung, Lee & Shin (2021) parent fallback, bottom-up: a parent whose existing children are all visible leaves, whose own
     measured error projects within ``tau`` and is no worse than its worst child's, is drawn instead of them.
     Returns (leaves, states, fallback flags)."""
     n0 = leaves.shape[0]
@@ -538,14 +538,14 @@ class Engine:
     threshold_px : refine while the projected error exceeds this many pixels (default 2)
     triangle_budget : optional cap on drawn triangles (refine the largest error first until the cap)
     background : run selection on a worker thread: ``request(camera)`` then ``latest()``
-    incremental : start each frame from the last leaf list (paper 000's quadtree parser); False = from root
-    stitch_mode : "incremental" (CrackTileVector, paper 002) or "full" (re-stitch every tile each frame,
-        the conventional baseline of paper 002 table 3)
+    incremental : start each frame from the last leaf list (Sung, Lee & Shin's (2021) quadtree parser); False = from root
+    stitch_mode : "incremental" (CrackTileVector, Li, Liu & Liu) or "full" (re-stitch every tile each frame,
+        the conventional baseline of Li, Liu & Liu table 3)
     cache_tiles, cache_bytes : bounds of the decoded-tile LRU cache (a prepared 65² tile takes ~0.45 MB); the
         tiles of the current view (drawn leaves, plus 25 % for neighbours) are kept even beyond them
-    cull_backfacing : paper 001 §3.2: do not draw a leaf whose every (stitched) triangle faces away from
+    cull_backfacing : Hu & Wang §3.2: do not draw a leaf whose every (stitched) triangle faces away from
         the eye. Exact per triangle, stopping at the first front-facing one.
-    cull_region : paper 001 §3.1: do not draw a leaf whose footprint misses the visible region, the view
+    cull_region : Hu & Wang §3.1: do not draw a leaf whose footprint misses the visible region, the view
         frustum cut by the terrain's mean horizontal plane (the store's mean elevation). Approximate by
         design: a peak rising above that plane from outside the region is dropped although the 3-D
         frustum test (always on) would keep it; it exists to compare with the paper.
@@ -737,7 +737,7 @@ class Engine:
         with self._lock:
             if (self._last is not None and camera.key == self._last_key
                     and self._generation == self._last_generation):  # fmt: skip
-                return self._last  # camera still: no traversal at all (paper 000's parser)
+                return self._last  # camera still: no traversal at all (Sung, Lee & Shin's (2021) parser)
             if self._loader is None:
                 return self._update(camera)
             self._loader.frame_idle.clear()  # the loader pauses between tiles while this frame runs

@@ -442,7 +442,7 @@ class Stitcher:
         code = self.index.code(s)
         prep = self.cache.get(code)
         nb = adj.neighbours(s)
-        # corners: the coarsest other visible leaf around the corner point decides (paper 002 §3.3, corners)
+        # corners: the coarsest other visible leaf around the corner point decides (Li, Liu & Liu §3.3, corners)
         corner_h: list[float | None] = [None, None, None, None]
         for c in range(4):
             if prep.corner_vid[c] < 0:
@@ -546,7 +546,7 @@ class Stitcher:
 
     # -- normals ---------------------------------------------------------------------------------------
     def _normals(self, s: int) -> None:
-        """Paper 002 §3.4: boundary normals from this tile's and its visible neighbours' triangles."""
+        """Li, Liu & Liu §3.4: boundary normals from this tile's and its visible neighbours' triangles."""
         adj = self.adj
         st = self.states[s]
         nb = adj.neighbours(s)

@@ -1,4 +1,4 @@
-"""Runtime of a detail-increment TIN (paper 003): per-frame sub-block scales from the SVO rule, meshes out.
+"""Runtime of a detail-increment TIN (Ai et al., 2019): per-frame sub-block scales from the SVO rule, meshes out.
 
 Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §2.3 (reconstruction of any scale by applying or
 reverting ΔT records; each sub-block takes the coarsest scale whose error projects to at most N pixels,

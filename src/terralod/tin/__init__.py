@@ -1,4 +1,4 @@
-"""Continuous-scale TIN from LiDAR: the detail-increment model of paper 003.
+"""Continuous-scale TIN from LiDAR: the detail-increment model of Ai et al. (2019).
 
 Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` (Ai et al. 2019). Pipeline::
 

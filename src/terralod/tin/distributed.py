@@ -1,4 +1,4 @@
-"""Detail-increment TIN builds (paper 003) on Dask: triangulated and simplified on the workers.
+"""Detail-increment TIN builds (Ai et al., 2019) on Dask: triangulated and simplified on the workers.
 
 Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §2.1 (the sub-blocks are simplified independently,
 in the paper by parallel threads).

@@ -71,7 +71,7 @@ _HEADER = struct.Struct("<8sHHIQ32s8x")  # magic, version, flags, reserved, payl
 _FLAG_LZMA = 2  #: the payload is one raw LZMA2 stream
 
 
-# -- text export (paper 003 §2.2.2, "external storage scheme") -------------------------------------------
+# -- text export (Ai et al. (2019) §2.2.2, "external storage scheme") -------------------------------------------
 def write_text(inc: Increments, path: str | os.PathLike[str]) -> None:
     """Write the increments in the paper's text scheme.
 

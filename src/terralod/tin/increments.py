@@ -1,4 +1,4 @@
-"""The detail-increment model of paper 003: base mesh + ΔT records + the current scale of each sub-block.
+"""The detail-increment model of Ai et al. (2019): base mesh + ΔT records + the current scale of each sub-block.
 
 Paper: ``../shared/papers/003_2a2cfcda929de24c.txt``
 
@@ -610,12 +610,12 @@ class DetailIncrementModel:
         return self.increments.mmqe_of(block).copy()
 
     def records(self, block: int) -> Iterator[DeltaT]:
-        """ΔT_0, ΔT_1, … of a sub-block (paper 003 table 1)."""
+        """ΔT_0, ΔT_1, … of a sub-block (Ai et al. (2019) table 1)."""
         return self.increments.records(block)
 
     # -- compression -------------------------------------------------------------------------------------
     def compressed(self, k: int) -> DetailIncrementModel:
-        """A model whose records each merge k consecutive records (paper 003 §2.2.2), starting at the base.
+        """A model whose records each merge k consecutive records (Ai et al. (2019) §2.2.2), starting at the base.
 
         Its sub-block scales are this model's S_0, S_k, S_2k, …, S_{n_b}.
         """
@@ -681,7 +681,7 @@ class DetailIncrementModel:
                 return _split_arrays(*args)
 
         meta = {
-            "format": "terralod detail-increment model (paper 003)",
+            "format": "terralod detail-increment model (Ai et al., 2019)",
             "k": self.k,
             "n_slots": self.n_slots,
             "step": inc.step,

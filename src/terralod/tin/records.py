@@ -63,7 +63,7 @@ __all__ = [
 # -- records ---------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class DeltaT:
-    """One detail increment ΔT_s of one sub-block: what takes scale S_s to S_{s+1} (paper 003 table 1).
+    """One detail increment ΔT_s of one sub-block: what takes scale S_s to S_{s+1} (Ai et al. (2019) table 1).
 
     Refining (vertex split) brings the deleted triangles back and gives the replaced ones their original
     triples; coarsening (edge collapse) does the opposite.
@@ -406,7 +406,7 @@ class Increments:
         return inc, base_tris, base_alive
 
     def merged(self, k: int) -> Increments:
-        """Merge every k consecutive records of each block into one, compressed (paper 003 §2.2.2).
+        """Merge every k consecutive records of each block into one, compressed (Ai et al. (2019) §2.2.2).
 
         Block b's scales become S_0, S_k, S_2k, …, S_{n_b} (the last record may hold fewer than k).
         Within a merged record a triangle appears once: changed once, it stays as it is (principle 1);

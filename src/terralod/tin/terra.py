@@ -1,4 +1,4 @@
-"""A detail-increment TIN model (paper 003) inside a ``.terra`` store, and its one-screen summary.
+"""A detail-increment TIN model (Ai et al., 2019) inside a ``.terra`` store, and its one-screen summary.
 
 Paper: ``../shared/papers/003_2a2cfcda929de24c.txt`` §2.2.2 ("the incremental information can be saved to
 the external storage in the first run"). The store keeps the model's own checksummed file
