@@ -121,3 +121,23 @@ def test_real_dem_cli_info(shared_data: Path, name: str) -> None:
     assert "none (local metric frame)" not in p.stdout
     crs = read_heightfield(shared_data / name).crs or ""
     assert "UTM" in crs or "Transverse_Mercator" in crs
+
+
+def test_commands_registered_once_and_help_ends_with_an_example() -> None:
+    """Issue 46: each command once in COMMANDS; every --help's last line is an example that runs terralod
+    with that command; no help says "paper 00N"."""
+    import re
+
+    from click.testing import CliRunner
+
+    from terralod.cli import COMMANDS, cli
+
+    names = [name for _module, name in COMMANDS]
+    assert len(names) == len(set(names)), names
+    assert sorted(names) == sorted(cli.commands)
+    for name in names:
+        r = CliRunner().invoke(cli, [name, "--help"], terminal_width=200)
+        assert r.exit_code == 0, (name, r.output)
+        last = r.output.strip().splitlines()[-1].strip()
+        assert last.startswith(f"Example: terralod {name}"), (name, last)
+        assert not re.search(r"paper\s+00\d", r.output, re.IGNORECASE), name

@@ -32,9 +32,6 @@ COMMANDS = [
     ("update", "update"),
     ("epochs", "epochs"),
     ("edit", "edit"),
-    ("update", "update"),
-    ("epochs", "epochs"),
-    ("edit", "edit"),
     ("change", "change"),
     ("check", "check"),
 ]
@@ -57,8 +54,31 @@ def cli(verbose: bool) -> None:
                        "ahead)", err=True)  # fmt: skip
 
 
+#: The example line that ends each command's ``--help`` (a command may carry its own ``epilog`` instead).
+EXAMPLES = {
+    "info": "terralod info dem.tif",
+    "build": "terralod build dem.tif -o dem.terra",
+    "amplify": "terralod amplify dem.tif -o fine.tif --factor 4",
+    "render": "terralod render dem.terra -o frame.png",
+    "flythrough": "terralod flythrough dem.terra -o fly.mp4",
+    "view": "terralod view dem.terra",
+    "demo": "terralod demo",
+    "bench": "terralod bench cohesion --quick",
+    "warmup": "terralod warmup",
+    "export": "terralod export dem.terra --format 3dtiles -o tiles/",
+    "serve": "terralod serve dem.terra --port 8000",
+    "update": "terralod update dem.terra dem-2024.tif --epoch 2024-06-01",
+    "epochs": "terralod epochs dem.terra",
+    "edit": "terralod edit dem.terra --polygon pit.geojson --depth-m 12 --epoch pit",
+    "change": "terralod change before.tif after.tif -o change/",
+    "check": "terralod check dem.terra",
+}
+
 for _module, _name in COMMANDS:
-    cli.add_command(getattr(importlib.import_module(f"terralod.cli.{_module}"), _name))
+    _cmd = getattr(importlib.import_module(f"terralod.cli.{_module}"), _name)
+    if not _cmd.epilog and _name in EXAMPLES:
+        _cmd.epilog = f"Example: {EXAMPLES[_name]}"
+    cli.add_command(_cmd)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -66,4 +86,4 @@ def main(argv: list[str] | None = None) -> None:
     run_main(cli, sys.argv[1:] if argv is None else argv)
 
 
-__all__ = ["COMMANDS", "cli", "main"]
+__all__ = ["COMMANDS", "EXAMPLES", "cli", "main"]
