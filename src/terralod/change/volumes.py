@@ -225,7 +225,14 @@ def estimate_uncertainty(
         ok = ok & ~zero
         n = int(ok.sum())
     s_nmad = nmad(dod[ok]) if n else float("nan")
-    r_nmad = nmad(resampling_error_m[ok]) if (resampling_error_m is not None and n) else 0.0
+    r_nmad, r_corr = 0.0, 0.0
+    if resampling_error_m is not None and n:
+        # the resampling's own error over every valid cell, and how much of the stable difference it
+        # explains cell by cell: a copy of the same survey, resampled, differs by just that
+        r_nmad = nmad(resampling_error_m[np.isfinite(dod)])
+        both = ok & np.isfinite(resampling_error_m)
+        if both.sum() >= MIN_STABLE_CELLS and np.std(resampling_error_m[both]) > 0 and np.std(dod[both]) > 0:
+            r_corr = float(np.corrcoef(dod[both], resampling_error_m[both])[0, 1])
     why = None
     if n < MIN_STABLE_CELLS:
         why = f"only {n} stable cells"
@@ -235,10 +242,11 @@ def estimate_uncertainty(
             if bool(np.all(dod[ok] == 0))
             else f"the difference on its {n:,} stable cells is constant (NMAD 0)"
         )
-    elif s_nmad <= max(1.2 * r_nmad, 1e-3):
+    elif s_nmad <= max(r_nmad, 1e-3) or r_corr >= 0.7:
         why = (
-            f"the difference on its {n:,} stable cells ({s_nmad:.3f} m) is no larger than the resampling's "
-            f"own error ({r_nmad:.3f} m): that ground looks copied from one survey into the other"
+            f"the difference on its {n:,} stable cells ({s_nmad:.3f} m) is no more than the resampling's "
+            f"own error ({r_nmad:.3f} m, correlation {r_corr:.2f}): that ground looks copied from one survey "
+            "into the other"
         )
     if sigma_m is not None:
         if not (math.isfinite(sigma_m) and sigma_m >= 0):
@@ -425,6 +433,9 @@ def measure_change(
     if co.applied and unc.stable_cells >= MIN_STABLE_CELLS:
         area_st = unc.stable_cells * pair.cell_area_m2
         unc.bias_sigma_m = 1.2533 * unc.volume_sigma_m3(area_st) / area_st
+        if unc.sigma_source.startswith("assumed") and unc.stable_nmad_m is not None:
+            # an assumed σ is no measure of how well the bias was fitted: the stable ground's own spread is
+            unc.bias_sigma_m *= unc.stable_nmad_m / unc.sigma_m
         if co.mode == "bias only":
             unc.bias_sigma_m *= 2.0  # the horizontal alignment could not be checked: widened
         co.bias_sigma_m = unc.bias_sigma_m
