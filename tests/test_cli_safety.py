@@ -55,3 +55,50 @@ def test_export_overwrite_refuses_a_folder_holding_the_input(
     assert sorted(p.relative_to(site) for p in site.rglob("*")) == before  # nothing deleted, nothing added
     assert store.read_bytes() == small_store.read_bytes()
     assert not list(tmp_path.glob(".site*"))  # no temporary folder left beside it
+
+
+# -- 48.2: one size limit, checked up front, with the file named -------------------------------------------
+
+
+def _huge_vrt(folder: Path, side: int) -> Path:
+    """A VRT claiming side x side float32 samples over a small real raster: nothing is allocated."""
+    vrt = folder / f"huge_{side}.vrt"
+    vrt.write_text(f"""<VRTDataset rasterXSize="{side}" rasterYSize="{side}">
+  <GeoTransform>560000, 1, 0, 5120000, 0, -1</GeoTransform>
+  <VRTRasterBand dataType="Float32" band="1">
+    <SimpleSource><SourceFilename relativeToVRT="0">{BEFORE}</SourceFilename><SourceBand>1</SourceBand>
+      <SrcRect xOff="0" yOff="0" xSize="303" ySize="442"/><DstRect xOff="0" yOff="0" xSize="303" ySize="442"/>
+    </SimpleSource>
+  </VRTRasterBand>
+</VRTDataset>""")
+    return vrt
+
+
+@needs_data
+@pytest.mark.parametrize("side", [100_000, 50_000])
+def test_one_size_limit_in_every_command(tmp_path: Path, small_store: Path, side: int) -> None:
+    vrt = _huge_vrt(tmp_path, side)
+    out = tmp_path / "out"
+    store = tmp_path / "s.terra"
+    store.write_bytes(small_store.read_bytes())
+    cases = [
+        ["info", str(vrt)],
+        ["build", str(vrt), "-o", str(out / "b.terra")],
+        ["render", str(vrt), "-o", str(out / "r.png")],
+        ["flythrough", str(vrt), "-o", str(out / "f.mp4")],
+        ["view", str(vrt)],
+        ["amplify", str(vrt), "-o", str(out / "a.tif")],
+        ["update", str(store), str(vrt), "--epoch", "big"],
+        ["change", str(BEFORE), str(vrt), "-o", str(out / "c")],
+    ]
+    out.mkdir()
+    for args in cases:
+        r = terralod(*args, cwd=tmp_path)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2, (args, r.stdout, r.stderr)
+        assert len(lines) == 1 and str(vrt) in lines[0] and "beyond the supported" in lines[0], (
+            args,
+            r.stderr,
+        )
+        assert list(out.iterdir()) == [], args  # nothing written, no incomplete store
+    assert store.read_bytes() == small_store.read_bytes()

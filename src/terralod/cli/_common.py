@@ -147,6 +147,25 @@ def refuse_output_holding_inputs(
                              str(output))  # fmt: skip
 
 
+def check_raster_size(path: str | Path) -> None:
+    """The one size limit (:func:`terralod.fill.check_dimensions`), checked up front from the raster's
+    header, never its samples: every command that reads a DEM calls it before reading or writing anything.
+    Stores, point clouds and files GDAL cannot open are left to their readers."""
+    p = Path(path)
+    if not p.is_file() or is_store(p) or p.suffix.lower() in (".las", ".laz", ".npy", ".npz"):
+        return
+    try:
+        import rasterio
+
+        with rasterio.open(p) as src:
+            height, width = src.height, src.width
+    except Exception:  # noqa: BLE001 - not a raster GDAL reads: the reader names the problem
+        return
+    from terralod.fill import check_dimensions
+
+    check_dimensions(height, width, str(path))
+
+
 def parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
     if text is None:
         return None
@@ -179,6 +198,7 @@ def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, enc
     """Read a DEM with the reader options of :func:`read_options` → :class:`terralod.Heightfield`."""
     from terralod.io.reader import read_heightfield
 
+    check_raster_size(path)
     tile = None
     if tile_zxy:
         try:
@@ -454,6 +474,7 @@ def open_terrain_arg(path: str, read: dict[str, Any], fractal_levels: int | None
     from terralod.terrain import GridTerrain, open_terrain
 
     p = Path(path)
+    check_raster_size(p)
     if p.is_file() and is_store(p):
         t = open_terrain(p)
         if t.kind != "grid":

@@ -11,6 +11,7 @@ import click
 
 from terralod.cli._common import (
     check_output,
+    check_raster_size,
     console,
     load,
     print_store_summary,
@@ -85,6 +86,8 @@ def build(
     if resume and overwrite:
         raise click.BadParameter("give --resume or --overwrite, not both", param_hint="--resume")
     check_output(output, list(input_paths), overwrite=overwrite, resume=resume, what="output store")
+    for path in input_paths:  # the size limit before anything is written
+        check_raster_size(path)
     if dask_address:
         require_extra("build --dask", "dask")
     if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
