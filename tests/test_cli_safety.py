@@ -102,3 +102,17 @@ def test_one_size_limit_in_every_command(tmp_path: Path, small_store: Path, side
         )
         assert list(out.iterdir()) == [], args  # nothing written, no incomplete store
     assert store.read_bytes() == small_store.read_bytes()
+
+
+# -- 48.5: epoch names from a documented set -----------------------------------------------------------------
+
+
+@needs_data
+@pytest.mark.parametrize("name", ["..", "--", "' OR 1=1 --", ".hidden", "a..b", "-x", "a/b"])
+def test_update_refuses_odd_epoch_names(tmp_path: Path, small_store: Path, name: str) -> None:
+    store = tmp_path / "s.terra"
+    store.write_bytes(small_store.read_bytes())
+    r = terralod("update", str(store), str(AFTER), f"--epoch={name}", cwd=tmp_path)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "epoch name" in r.stderr, r.stderr
+    assert store.read_bytes() == small_store.read_bytes()

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -228,10 +229,20 @@ class UpdateReport:
         return d
 
 
+#: Epoch names: dates and simple names, 1 to 64 of letters, digits, ``-``, ``_`` and ``.``, not starting
+#: with ``-`` or ``.``, without ``..`` (they appear in URLs, file names and command lines as they are).
+EPOCH_NAME = re.compile(r"^(?!.*\.\.)[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+
+
 def validate_epoch_name(name: str, where: str) -> str:
+    """``name`` when it is an allowed epoch name (:data:`EPOCH_NAME`), else one line naming ``where``."""
     name = str(name).strip()
-    if not name or len(name) > 64 or any(c in name for c in "\n\r\t/\\"):
-        raise InputError(f"expected an epoch name such as 2007-07-05, got {name!r}", where)
+    if not EPOCH_NAME.match(name):
+        raise InputError(
+            f"expected an epoch name such as 2007-07-05 or survey_2 (letters, digits, '-', '_', '.'; not "
+            f"starting with '-' or '.', no '..', at most 64), got {name!r}",
+            where,
+        )
     return name
 
 
