@@ -1,0 +1,232 @@
+"""Write the change site: a self-contained folder (the page, CesiumJS, each epoch's 3D Tiles, each pair's
+difference raster and drape, the manifest, a README.txt for whoever hosts it) that works from any static web
+host and offline. Written in a temporary folder beside the output and renamed into place at the end, so an
+interrupted run leaves nothing half-written."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from terralod.site.data import epoch_label, lonlat_bounds, pair_payload, pairs_of
+
+#: The page's files (package data of :mod:`terralod.site`).
+PAGE_FILES = ("index.html", "site.js", "site.css")
+
+README_TXT = """\
+{title}
+{underline}
+
+This folder is a web page that shows how the ground changed{between}, in 3D, in any modern browser.
+It needs no internet connection, no account and no server software of its own: any static web host serves it.
+
+To look at it on this computer, open a terminal in this folder and run
+
+    python3 -m http.server 8000
+
+then open http://localhost:8000/ in a browser. (Opening index.html directly from the disk does not work:
+browsers do not let a page read its own files that way.)
+
+To publish it, copy the whole folder to any web host (a web server's folder, an object store with website
+hosting, GitHub Pages, ...). No special configuration is needed: every file is sent as it is.
+
+What is in it:
+  index.html, site.js, site.css   the page
+  site.json                       what the page shows (dates, places, file names)
+  epochs/                         the terrain of each date (3D Tiles)
+  pairs/                          the measured change between dates: the difference of heights (float32
+                                  rasters), its uncertainty, the coloured drape and the plain-language summary
+  cesium/                         CesiumJS, the 3D globe library (Apache-2.0, see cesium/LICENSE.md)
+
+Made with terralod. Size: {size_mb:.1f} MB.
+"""
+
+
+@dataclass
+class SiteReport:
+    """What was written: the folder, its size, and the bytes per part."""
+
+    path: Path
+    bytes: int = 0
+    parts: dict[str, int] = field(default_factory=dict)
+    epochs: int = 0
+    pairs: int = 0
+    area_km2: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        per_epoch = self.parts.get("epochs", 0) / max(self.epochs, 1)
+        return {"path": self.path.name, "bytes": self.bytes, "parts": self.parts, "epochs": self.epochs,
+                "pairs": self.pairs, "area_km2": self.area_km2,
+                "bytes_per_km2": self.bytes / self.area_km2 if self.area_km2 else None,
+                "epoch_bytes_each": per_epoch}  # fmt: skip
+
+
+def copy_page(dest: Path) -> None:
+    """The page's own files into ``dest``."""
+    for name in PAGE_FILES:
+        (dest / name).write_bytes(resources.files("terralod.site").joinpath("static", name).read_bytes())
+
+
+def copy_cesium(dest: Path) -> None:
+    """CesiumJS's browser build (with its licence) into ``dest/cesium``."""
+    from terralod.errors import TerralodError
+    from terralod.serve import cesium_dir
+
+    src = cesium_dir()
+    if src is None:
+        raise TerralodError(
+            "CesiumJS is not installed with this terralod (it ships with the web extra: "
+            "pip install 'terralod[web]'); the site cannot be written"
+        )
+    shutil.copytree(src, dest / "cesium")
+    lic = src / "LICENSE.md"
+    if not lic.is_file():
+        for cand in (src.parent.parent / "LICENSE.md",):
+            if cand.is_file():
+                shutil.copy2(cand, dest / "cesium" / "LICENSE.md")
+
+
+def manifest(title: str, epochs: Sequence[str], pairs: Sequence[tuple[str, str]], bounds_deg: Sequence[float],
+             elevation_range_m: Sequence[float]) -> dict[str, Any]:  # fmt: skip
+    """``site.json``: the epochs (oldest first), their tilesets, the pairs and where each is described."""
+    return {
+        "generator": "terralod",
+        "title": title,
+        "bounds_deg": [float(v) for v in bounds_deg],
+        "elevation_range_m": [float(v) for v in elevation_range_m],
+        "epochs": [
+            {"name": e, "label": epoch_label(e), "tileset": f"epochs/{i}/tileset.json"}
+            for i, e in enumerate(epochs)
+        ],  # fmt: skip
+        "pairs": [{"from": a, "to": b, "url": f"pairs/{k}.json"} for k, (a, b) in enumerate(pairs)],
+    }
+
+
+def _folder_bytes(p: Path) -> int:
+    return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
+
+
+def _atomic_site(
+    out: Path, overwrite: bool, inputs: Sequence[Path], fill: Callable[[Path], SiteReport]
+) -> SiteReport:
+    from terralod.errors import InputError
+
+    o = out.resolve()
+    for src in inputs:
+        s = Path(src).resolve()
+        if s == o or o in s.parents:
+            raise InputError(f"is (or holds) the input {src}; writing there would destroy it", str(out))
+    if out.exists() and not out.is_dir():
+        raise InputError("exists and is not a folder; a site is a folder", str(out))
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise InputError("already exists; pass --overwrite to replace it", str(out))
+    if not o.parent.is_dir():
+        raise InputError(f"output folder {o.parent} does not exist", str(out))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=o.parent))
+    try:
+        rep = fill(tmp)
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    rep.path = out
+    return rep
+
+
+def _write(tmp: Path, title: str, between: str, epochs: list[str], terrains: list[Any],
+           pair_results: list[tuple[str, str, Any]], bounds: Sequence[float], zrange: Sequence[float],
+           area_km2: float) -> SiteReport:  # fmt: skip
+    from terralod.export.tiles3d import export_3dtiles
+
+    rep = SiteReport(tmp, epochs=len(epochs), pairs=len(pair_results), area_km2=area_km2)
+    (tmp / "epochs").mkdir()
+    for i, t in enumerate(terrains):
+        export_3dtiles(t, tmp / "epochs" / str(i))
+    (tmp / "pairs").mkdir()
+    for k, (a, b, result) in enumerate(pair_results):
+        dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
+        meta, files = pair_payload(result, dates, (a, b), str(k))
+        (tmp / "pairs" / f"{k}.json").write_text(json.dumps(meta, separators=(",", ":")))
+        for name, data in files.items():
+            (tmp / name).write_bytes(data)
+    pairs = [(a, b) for a, b, _ in pair_results]
+    (tmp / "site.json").write_text(json.dumps(manifest(title, epochs, pairs, bounds, zrange), indent=1))
+    copy_page(tmp)
+    copy_cesium(tmp)
+    for part in ("epochs", "pairs", "cesium"):
+        rep.parts[part] = _folder_bytes(tmp / part)
+    rep.parts["page"] = sum((tmp / f).stat().st_size for f in (*PAGE_FILES, "site.json"))
+    size = sum(rep.parts.values())
+    underline = "=" * len(title)
+    (tmp / "README.txt").write_text(README_TXT.format(title=title, underline=underline, between=between,
+                                                      size_mb=size / 1e6))  # fmt: skip
+    rep.bytes = _folder_bytes(tmp)
+    return rep
+
+
+def _between(epochs: Sequence[str]) -> str:
+    if len(epochs) < 2:
+        return ""
+    return f" between {epoch_label(epochs[0])} and {epoch_label(epochs[-1])}"
+
+
+def site_from_store(store: str | Path, out: str | Path, *, overwrite: bool = False,
+                    coregistration: bool = True) -> SiteReport:  # fmt: skip
+    """The site of a store's epochs (``terralod export STORE --format site -o OUT``): every epoch's 3D Tiles,
+    the pairs first → last and each consecutive pair, measured as ``terralod change`` measures them."""
+    from terralod.change.volumes import measure_change
+    from terralod.terrain import open_terrain
+
+    store, out = Path(store), Path(out)
+    with open_terrain(store) as terrain:
+        names = list(terrain.epochs)
+        terrains = [terrain.with_epoch(e) for e in names] if names else [terrain]
+        hf0 = terrain.heightfield(names[0]) if names else terrain.heightfield()
+        bounds = lonlat_bounds(hf0)
+        zr = terrain.elevation_range_m
+        area = float(hf0.valid.sum()) * abs(hf0.transform.a * hf0.transform.e) / 1e6
+        pr = []
+        for a, b in pairs_of(names):
+            dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
+            res = measure_change(terrain.heightfield(a), terrain.heightfield(b), dates=dates,
+                                 coregistration=coregistration)  # fmt: skip
+            pr.append((a, b, res))
+        title = f"{store.stem}: how the ground changed" if len(names) >= 2 else store.stem
+        return _atomic_site(out, overwrite, [store], lambda tmp: _write(
+            tmp, title, _between(names), names or [store.stem], terrains, pr, bounds, zr, area))  # fmt: skip
+
+
+def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results: Sequence[tuple[str, str, Any]],
+                     out: str | Path, *, title: str | None = None, workers: int | None = None) -> SiteReport:  # fmt: skip
+    """The site of a ``terralod change`` run (``--site``): a store is built from each epoch's DEM (in a
+    temporary folder) for its 3D Tiles; ``results`` are the measured pairs (from, to, ChangeResult)."""
+    from terralod.pyramid.builder import build_store
+    from terralod.terrain import open_terrain
+
+    out = Path(out)
+    with tempfile.TemporaryDirectory(prefix=".terralod-site-", dir=out.resolve().parent) as work:
+        terrains = []
+        try:
+            for i, hf in enumerate(heightfields):
+                p = Path(work) / f"epoch{i}.terra"
+                build_store(hf, p, workers=workers)
+                terrains.append(open_terrain(p))
+            hf0 = heightfields[0]
+            lo = min(t.elevation_range_m[0] for t in terrains)
+            hi = max(t.elevation_range_m[1] for t in terrains)
+            area = float(hf0.valid.sum()) * abs(hf0.transform.a * hf0.transform.e) / 1e6
+            ttl = title or "How the ground changed"
+            return _atomic_site(out, False, [], lambda tmp: _write(
+                tmp, ttl, _between(names), list(names), terrains, list(results), lonlat_bounds(hf0), (lo, hi),
+                area))  # fmt: skip
+        finally:
+            for t in terrains:
+                t.close()

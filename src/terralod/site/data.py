@@ -1,0 +1,212 @@
+"""What the change site's page reads: the manifest and, per pair of epochs, the difference raster with
+everything needed to answer "how much changed here?" in the browser (see :mod:`terralod.site`).
+
+The page has no projection library. It maps a longitude/latitude to the difference raster's cell through a
+lattice of the grid CRS's coordinates at regular longitudes and latitudes (bilinear between nodes: over a
+lattice step of a few hundred metres a projection bends by millimetres), and drapes the overlay on the 3D
+Tiles through an affine map from local east/north metres to texture coordinates, fitted here on the grid's
+cells at their own heights (its worst residual is stored and tested).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+from typing import Any
+
+import numpy as np
+
+#: Lattice nodes per side (lon/lat → grid CRS coordinates).
+LATTICE_NODES = 33
+#: One Olympic swimming pool (50 m × 25 m × 2 m), the page's familiar comparison for a volume.
+OLYMPIC_POOL_M3 = 2500.0
+#: Largest side of the drape texture (WebGL's guaranteed size is 4096).
+MAX_OVERLAY_PX = 4096
+#: Grey of "no measurable change" (inside the level of detection) and its opacity.
+LOD_GREY_RGBA = (150, 150, 150, 110)
+
+
+def _transformer(src: str, dst: str) -> Any:
+    from pyproj import CRS, Transformer
+
+    return Transformer.from_crs(CRS.from_user_input(src), CRS.from_user_input(dst), always_xy=True)
+
+
+def lonlat_bounds(hf: Any) -> tuple[float, float, float, float]:
+    """(west, south, east, north) degrees of ``hf``'s extent (its edges sampled densely)."""
+    w, s, e, n = hf.bounds_m
+    t = np.linspace(0.0, 1.0, 65)
+    xs = np.concatenate([w + (e - w) * t, np.full_like(t, e), e - (e - w) * t, np.full_like(t, w)])
+    ys = np.concatenate([np.full_like(t, s), s + (n - s) * t, np.full_like(t, n), n - (n - s) * t])
+    lon, lat = _transformer(hf.crs, "EPSG:4326").transform(xs, ys)
+    return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
+
+
+def lattice(hf: Any, nodes: int = LATTICE_NODES) -> dict[str, Any]:
+    """Grid-CRS x, y (metres) at ``nodes``² regular lon/lat points covering ``hf`` (row-major, south first)."""
+    w, s, e, n = lonlat_bounds(hf)
+    pad_lon, pad_lat = 0.02 * (e - w), 0.02 * (n - s)
+    w, e, s, n = w - pad_lon, e + pad_lon, s - pad_lat, n + pad_lat
+    lon = np.linspace(w, e, nodes)
+    lat = np.linspace(s, n, nodes)
+    LON, LAT = np.meshgrid(lon, lat)
+    x, y = _transformer("EPSG:4326", hf.crs).transform(LON.ravel(), LAT.ravel())
+    return {"lon0_deg": w, "lat0_deg": s, "dlon_deg": (e - w) / (nodes - 1), "dlat_deg": (n - s) / (nodes - 1),
+            "nodes": nodes, "x_m": [round(float(v), 4) for v in x], "y_m": [round(float(v), 4) for v in y]}  # fmt: skip
+
+
+def _ecef(lon: np.ndarray, lat: np.ndarray, h: np.ndarray) -> np.ndarray:
+    x, y, z = _transformer("EPSG:4979", "EPSG:4978").transform(lon, lat, h)
+    return np.stack([x, y, z], axis=-1)
+
+
+def drape_map(hf: Any) -> dict[str, Any]:
+    """The affine map from local east/north metres (about the grid's centre, Earth-fixed) to the overlay's
+    texture coordinates (u = column / width, v = row / height), least-squares on a 17² sample of cells at
+    their own heights; ``residual_cells`` is its worst error in cells."""
+    h, w = hf.shape
+    rows = np.linspace(0, h - 1, 17)
+    cols = np.linspace(0, w - 1, 17)
+    R, C = np.meshgrid(rows, cols, indexing="ij")
+    r_i, c_i = R.round().astype(int), C.round().astype(int)
+    z = np.asarray(hf.elevation_m, np.float64)
+    valid = np.asarray(hf.valid, bool)
+    zmed = float(np.median(z[valid])) if valid.any() else 0.0
+    zz = np.where(valid[r_i, c_i], z[r_i, c_i], zmed)
+    x, y = hf.world_xy(R + 0.5, C + 0.5)
+    lon, lat = _transformer(hf.crs, "EPSG:4326").transform(np.ravel(x), np.ravel(y))
+    p = _ecef(np.asarray(lon), np.asarray(lat), zz.ravel())
+    lon_c, lat_c = float(np.mean(lon)), float(np.mean(lat))
+    centre = _ecef(np.array([lon_c]), np.array([lat_c]), np.array([zmed]))[0]
+    lo, la = math.radians(lon_c), math.radians(lat_c)
+    east = np.array([-math.sin(lo), math.cos(lo), 0.0])
+    north = np.array([-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)])
+    d = p - centre
+    A = np.stack([np.ones(len(d)), d @ east, d @ north], axis=1)
+    u = (C.ravel() + 0.5) / w
+    v = (R.ravel() + 0.5) / h
+    cu, *_ = np.linalg.lstsq(A, u, rcond=None)
+    cv, *_ = np.linalg.lstsq(A, v, rcond=None)
+    res = max(float(np.max(np.abs(A @ cu - u))) * w, float(np.max(np.abs(A @ cv - v))) * h)
+    return {"centre_ecef": centre.tolist(), "east": east.tolist(), "north": north.tolist(),
+            "u": cu.tolist(), "v": cv.tolist(), "residual_cells": res}  # fmt: skip
+
+
+def colour_scale(dod: np.ndarray, lod_m: float) -> tuple[float, float]:
+    """(largest drop, largest rise) metres at full colour: the report's map's scale (99.5th percentiles)."""
+    fin = dod[np.isfinite(dod)]
+    hi = max(float(np.percentile(fin[fin > 0], 99.5)) if (fin > 0).any() else 0.0, 2 * lod_m, 0.1)
+    lo = max(float(-np.percentile(fin[fin < 0], 0.5)) if (fin < 0).any() else 0.0, 2 * lod_m, 0.1)
+    return lo, hi
+
+
+def overlay_png(dod: np.ndarray, lod_m: float) -> tuple[bytes, dict[str, Any]]:
+    """The drape (RGBA PNG on the grid, one pixel per cell up to :data:`MAX_OVERLAY_PX`) and its legend:
+    matplotlib's RdBu (colour-blind safe; blue = rose, red = dropped) on the report's scale, grey inside the
+    level of detection, transparent where there is no data."""
+    from matplotlib import colormaps
+    from matplotlib.colors import TwoSlopeNorm
+    from PIL import Image
+
+    lo, hi = colour_scale(dod, lod_m)
+    norm = TwoSlopeNorm(vmin=-lo, vcenter=0.0, vmax=hi)
+    cmap = colormaps["RdBu"]
+    step = max(1, math.ceil(max(dod.shape) / MAX_OVERLAY_PX))
+    d = dod[::step, ::step]
+    fin = np.isfinite(d)
+    rgba = (cmap(norm(np.where(fin, d, 0.0))) * 255).round().astype(np.uint8)
+    rgba[..., 3] = 235
+    grey = fin & (np.abs(d) <= lod_m)
+    rgba[grey] = LOD_GREY_RGBA
+    rgba[~fin] = (0, 0, 0, 0)
+    buf = io.BytesIO()
+    Image.fromarray(rgba, "RGBA").save(buf, "PNG", optimize=True)
+    values = [-lo, -lo / 2, -lod_m, lod_m, hi / 4, hi / 2, 3 * hi / 4, hi]
+    stops = []
+    for v in values:
+        r, g, b, _ = cmap(norm(v))
+        stops.append({"value_m": v, "css": f"rgb({round(255 * r)},{round(255 * g)},{round(255 * b)})"})
+    legend = {"min_m": -lo, "max_m": hi, "lod_m": lod_m, "stops": stops, "lod_css": "rgb(150,150,150)",
+              "rose": "blue", "dropped": "red"}  # fmt: skip
+    return buf.getvalue(), legend
+
+
+def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tuple[str, str], key: str,
+                 *, summary_lines: list[str] | None = None) -> tuple[dict[str, Any], dict[str, bytes]]:  # fmt: skip
+    """(description, files) of one pair for the page: ``pairs/KEY.json``'s content and the rasters."""
+    from terralod.change.report import plain_summary
+
+    hf = result.pair.before
+    dod = np.asarray(result.dod, np.float32)
+    before = np.where(np.asarray(hf.valid, bool), np.asarray(hf.elevation_m, np.float32), np.nan).astype(
+        "<f4"
+    )
+    unc = result.uncertainty
+    png, legend = overlay_png(dod, unc.level_of_detection_m)
+    s = result.summary
+    ext = {}
+    for k in ("max_rise", "max_drop"):
+        e = (s.get("extremes") or {}).get(k)
+        if e and "lon_deg" in e:
+            ext[k] = {"lon_deg": e["lon_deg"], "lat_deg": e["lat_deg"], "value_m": e["value_m"]}
+    big = max(ext.values(), key=lambda e: abs(e["value_m"]), default=None)
+    tr = hf.transform
+    meta = {
+        "key": key,
+        "from": labels[0],
+        "to": labels[1],
+        "dates": list(dates),
+        "grid": {
+            "shape": list(dod.shape),
+            "transform": [tr.a, tr.b, tr.c, tr.d, tr.e, tr.f],
+            "cell_area_m2": float(unc.cell_area_m2),
+        },  # fmt: skip
+        "lattice": lattice(hf),
+        "drape": drape_map(hf),
+        "error_model": {
+            "sigma_m": unc.sigma_m,
+            "t": unc.t,
+            "confidence": unc.confidence,
+            "nugget_m2": unc.nugget_m2,
+            "sill_m2": unc.sill_m2,
+            "range_m": unc.range_m,
+            "lod_m": unc.level_of_detection_m,
+            "sigma_source": unc.sigma_source,
+        },  # fmt: skip
+        "legend": legend,
+        "summary": summary_lines if summary_lines is not None else plain_summary(result, dates),
+        "totals": {
+            k: s[k] for k in ("net_m3", "net_uncertainty_m3", "gain_m3_above_lod", "loss_m3_above_lod")
+        },
+        "largest": big,
+        "files": {
+            "dod": f"pairs/{key}-dod.f32",
+            "before": f"pairs/{key}-before.f32",
+            "overlay": f"pairs/{key}-overlay.png",
+        },  # fmt: skip
+        "olympic_pool_m3": OLYMPIC_POOL_M3,
+    }
+    files = {
+        f"pairs/{key}-dod.f32": dod.astype("<f4").tobytes(),
+        f"pairs/{key}-before.f32": before.tobytes(),
+        f"pairs/{key}-overlay.png": png,
+    }
+    return meta, files
+
+
+def pairs_of(epochs: list[str]) -> list[tuple[str, str]]:
+    """The pairs a site carries: first → last, then each consecutive pair (no repeats)."""
+    out: list[tuple[str, str]] = []
+    if len(epochs) >= 2:
+        out.append((epochs[0], epochs[-1]))
+    for a, b in zip(epochs[:-1], epochs[1:], strict=True):
+        if (a, b) not in out:
+            out.append((a, b))
+    return out
+
+
+def epoch_label(name: str) -> str:
+    """'25 Sep 2000' for an ISO date name, the name otherwise."""
+    from terralod.change.report import nice_date
+
+    return nice_date(name) or name if len(name) >= 10 and name[4] == "-" else name

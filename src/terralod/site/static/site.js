@@ -1,0 +1,454 @@
+// terralod's change site: how the ground changed between dates, for people who are not terrain experts.
+// CesiumJS with its default options, no account, no internet. What it reads is described in terralod/site.
+// window.terralodSite is the page's contract (the tests use it): ready, epochs, pairs, setEpoch, setSwipe,
+// changeAt, volume.
+"use strict";
+(function () {
+  const S = (window.terralodSite = { errors: [] });
+  let readyResolve, readyReject;
+  S.ready = new Promise((res, rej) => { readyResolve = res; readyReject = rej; });
+  window.addEventListener("error", (e) => S.errors.push(String(e.message)));
+  const $ = (id) => document.getElementById(id);
+  const status = (t) => { $("status").textContent = t; };
+
+  // -- numbers in words -------------------------------------------------------------------------------
+  const fmtVol = (v) => {
+    const a = Math.abs(v);
+    if (a >= 1e9) return `${(v / 1e9).toFixed(2)} billion m³`;
+    if (a >= 1e6) return `${(v / 1e6).toFixed(1)} million m³`;
+    return `${Math.round(v).toLocaleString("en")} m³`;
+  };
+  const fmtPm = (v, u) => {
+    const a = Math.max(Math.abs(v), Math.abs(u));
+    if (a >= 1e6) return `${(v / 1e6).toFixed(2)} ± ${(u / 1e6).toFixed(2)} million m³`;
+    return `${Math.round(v).toLocaleString("en")} ± ${Math.round(u).toLocaleString("en")} m³`;
+  };
+  const pools = (v, pool) => {
+    const n = Math.abs(v) / pool;
+    return n >= 10 ? Math.round(n).toLocaleString("en") : n.toFixed(1);
+  };
+
+  // -- data -------------------------------------------------------------------------------------------
+  let site = null;
+  const pairCache = new Map();
+  const pairIndex = (a, b) => site.pairs.findIndex((p) => p.from === a && p.to === b);
+  async function loadPair(a, b) {
+    const k = pairIndex(a, b);
+    if (k < 0) throw new Error(`this site carries no difference from ${a} to ${b}`);
+    if (!pairCache.has(k)) {
+      pairCache.set(k, (async () => {
+        const meta = await (await fetch(site.pairs[k].url)).json();
+        const [dod, before] = await Promise.all([meta.files.dod, meta.files.before].map(async (u) =>
+          new Float32Array(await (await fetch(u)).arrayBuffer())));
+        return Object.assign(meta, { dod, beforeZ: before });
+      })());
+    }
+    return pairCache.get(k);
+  }
+  // lon/lat (degrees) -> fractional grid (col, row): the lattice of grid-CRS coordinates, then the affine
+  function toGrid(P, lon, lat) {
+    const L = P.lattice, n = L.nodes;
+    let fi = (lon - L.lon0_deg) / L.dlon_deg, fj = (lat - L.lat0_deg) / L.dlat_deg;
+    fi = Math.min(Math.max(fi, 0), n - 1.000001); fj = Math.min(Math.max(fj, 0), n - 1.000001);
+    const i = Math.floor(fi), j = Math.floor(fj), ti = fi - i, tj = fj - j;
+    const at = (arr) => {
+      const a = arr[j * n + i], b = arr[j * n + i + 1], c = arr[(j + 1) * n + i], d = arr[(j + 1) * n + i + 1];
+      return (a * (1 - ti) + b * ti) * (1 - tj) + (c * (1 - ti) + d * ti) * tj;
+    };
+    const x = at(L.x_m), y = at(L.y_m);
+    const [a, b, c, d, e, f] = P.grid.transform;
+    const det = a * e - b * d;
+    return [(e * (x - c) - b * (y - f)) / det, (-d * (x - c) + a * (y - f)) / det];
+  }
+  // the ± at the confidence level of a volume over area_m2 (Rolstad et al. 2009 + nugget, as the report)
+  function volumeUncertainty(P, area) {
+    const m = P.error_model, a = P.grid.cell_area_m2;
+    if (area <= 0) return 0;
+    const corr = m.range_m > 0 ? Math.min(1, Math.PI * m.range_m ** 2 / (5 * area)) : 0;
+    const v = m.nugget_m2 * Math.min(1, a / area) + m.sill_m2 * corr;
+    return m.t * area * Math.sqrt(Math.max(v, 0));
+  }
+  const num = (v) => (Number.isFinite(v) ? v : null);
+  S.changeAt = async (lon, lat, from, to) => {
+    const P = await loadPair(from, to);
+    const [h, w] = P.grid.shape;
+    const [col, row] = toGrid(P, lon, lat);
+    const c = Math.floor(col), r = Math.floor(row);
+    const inside = c >= 0 && r >= 0 && c < w && r < h;
+    const d = inside ? P.dod[r * w + c] : NaN, b = inside ? P.beforeZ[r * w + c] : NaN;
+    return { before_m: num(b), after_m: num(b + d), change_m: num(d), lod_m: P.error_model.lod_m,
+      uncertainty_m: volumeUncertainty(P, P.grid.cell_area_m2) / P.grid.cell_area_m2, row: r, col: c };
+  };
+  S.volume = async (ring, from, to) => {
+    const P = await loadPair(from, to);
+    const [h, w] = P.grid.shape;
+    const pts = ring.map(([lo, la]) => toGrid(P, lo, la));
+    if (pts.length > 1 && pts[0][0] === pts[pts.length - 1][0] && pts[0][1] === pts[pts.length - 1][1]) pts.pop();
+    if (pts.length < 3) throw new Error("a polygon needs at least three corners");
+    const r0 = Math.max(0, Math.floor(Math.min(...pts.map((p) => p[1])))), r1 = Math.min(h - 1, Math.ceil(Math.max(...pts.map((p) => p[1]))));
+    let gain = 0, loss = 0, net = 0, cells = 0;
+    for (let r = r0; r <= r1; r++) {
+      const yc = r + 0.5, xs = [];
+      for (let k = 0, m = pts.length - 1; k < pts.length; m = k++) {  // crossings of the row's centre line
+        const [xa, ya] = pts[k], [xb, yb] = pts[m];
+        if ((ya > yc) !== (yb > yc)) xs.push(xa + (yc - ya) * (xb - xa) / (yb - ya));
+      }
+      xs.sort((p, q) => p - q);
+      for (let k = 0; k + 1 < xs.length; k += 2) {  // cells whose centre lies between two crossings
+        const c0 = Math.max(0, Math.ceil(xs[k] - 0.5)), c1 = Math.min(w - 1, Math.floor(xs[k + 1] - 0.5));
+        for (let c = c0; c <= c1; c++) {
+          const v = P.dod[r * w + c];
+          if (!Number.isFinite(v)) continue;
+          cells++; net += v;
+          if (v > 0) gain += v; else loss -= v;
+        }
+      }
+    }
+    const a = P.grid.cell_area_m2;
+    return { gain_m3: gain * a, loss_m3: loss * a, net_m3: net * a, net_uncertainty_m3: volumeUncertainty(P, cells * a),
+      cells, area_m2: cells * a };
+  };
+
+  // -- the globe --------------------------------------------------------------------------------------
+  async function main() {
+    if (typeof Cesium === "undefined") throw new Error("CesiumJS did not load (cesium/ missing from this folder)");
+    site = await (await fetch("site.json")).json();
+    S.site = site;
+    S.epochs = site.epochs.map((e) => e.name);
+    S.pairs = site.pairs.map((p) => [p.from, p.to]);
+    document.title = site.title;
+    $("title").textContent = site.title;
+    const labelOf = (name) => (site.epochs.find((e) => e.name === name) || { label: name }).label;
+    const first = S.epochs[0], last = S.epochs[S.epochs.length - 1];
+    $("dates").textContent = S.epochs.length > 1 ? `${S.epochs.length} surveys, ${labelOf(first)} to ${labelOf(last)}` : labelOf(first);
+
+    const viewer = new Cesium.Viewer("globe", {
+      baseLayer: false, baseLayerPicker: false, geocoder: false, timeline: false, animation: false, homeButton: false,
+      sceneModePicker: false, navigationHelpButton: false, fullscreenButton: false, infoBox: false,
+      selectionIndicator: false, contextOptions: { webgl: { preserveDrawingBuffer: true } },
+    });
+    S.viewer = viewer;
+    const scene = viewer.scene;
+    scene.globe.show = false;  // 3D Tiles carry the terrain; no empty globe around (or through) it
+    scene.skyAtmosphere.show = false;
+    scene.skyBox.show = false;
+    scene.sun.show = false; scene.moon.show = false;
+    scene.backgroundColor = Cesium.Color.fromCssColorString("#dfe6ec");
+    scene.fog.enabled = false;
+
+    const [w, s, e, n] = site.bounds_deg;
+    const [zlo, zhi] = site.elevation_range_m;
+    const centre = Cesium.Cartesian3.fromDegrees((w + e) / 2, (s + n) / 2, (zlo + zhi) / 2);
+    const enu = Cesium.Transforms.eastNorthUpToFixedFrame(centre);
+    const toLight = Cesium.Matrix4.multiplyByPointAsVector(enu, new Cesium.Cartesian3(-0.5, 0.5, 0.7071), new Cesium.Cartesian3());
+    scene.light = new Cesium.DirectionalLight({ direction: Cesium.Cartesian3.normalize(Cesium.Cartesian3.negate(toLight, new Cesium.Cartesian3()), new Cesium.Cartesian3()), intensity: 2.0 });
+
+    const blank = "data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mNkYPhfDwAChwGA60e6kgAAAABJRU5ErkJggg==";
+    const makeShader = () => new Cesium.CustomShader({
+      lightingModel: Cesium.LightingModel.PBR,
+      uniforms: {
+        u_overlay: { type: Cesium.UniformType.SAMPLER_2D, value: new Cesium.TextureUniform({ url: blank }) },
+        u_drape: { type: Cesium.UniformType.FLOAT, value: 0.0 },
+        u_centre: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3() },
+        u_east: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3(1, 0, 0) },
+        u_north: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3(0, 1, 0) },
+        u_u: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3() },
+        u_v: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3() },
+        u_zc: { type: Cesium.UniformType.VEC3, value: centre },
+        u_up: { type: Cesium.UniformType.VEC3, value: Cesium.Cartesian3.normalize(centre, new Cesium.Cartesian3()) },
+        u_range: { type: Cesium.UniformType.VEC2, value: new Cesium.Cartesian2(zlo, zhi) },
+      },
+      fragmentShaderText: `
+        void fragmentMain(FragmentInput fsInput, inout czm_modelMaterial material) {
+          vec3 p = fsInput.attributes.positionWC;
+          float h = (u_range.x + u_range.y) * 0.5 + dot(p - u_zc, u_up);
+          float t = clamp((h - u_range.x) / max(u_range.y - u_range.x, 1.0), 0.0, 1.0);
+          vec3 base = mix(vec3(0.80, 0.78, 0.70), vec3(0.95, 0.94, 0.92), t);
+          material.diffuse = base;
+          if (u_drape > 0.5) {
+            vec3 d = p - u_centre;
+            float e = dot(d, u_east), n = dot(d, u_north);
+            vec2 uv = vec2(u_u.x + u_u.y * e + u_u.z * n, u_v.x + u_v.y * e + u_v.z * n);
+            if (uv.x >= 0.0 && uv.x <= 1.0 && uv.y >= 0.0 && uv.y <= 1.0) {
+              vec4 c = texture(u_overlay, vec2(uv.x, 1.0 - uv.y));
+              material.diffuse = mix(base, c.rgb, c.a);
+            }
+          }
+        }`,
+    });
+    const tilesets = [];
+    for (const ep of site.epochs) {
+      const ts = await Cesium.Cesium3DTileset.fromUrl(ep.tileset, { preloadWhenHidden: true });
+      ts.show = false;
+      ts.customShader = makeShader();
+      ts.tileFailed.addEventListener((err) => S.errors.push(`tile ${err.url}: ${err.message}`));
+      scene.primitives.add(ts);
+      tilesets.push(ts);
+    }
+    S.tilesets = tilesets;
+    const idx = (name) => {
+      const i = S.epochs.indexOf(name);
+      if (i < 0) throw new Error(`no epoch named ${name}`);
+      return i;
+    };
+
+    // the drape: pair (a -> b) on tileset i
+    const drapeOn = new Map();
+    async function drape(i, a, b) {
+      const sh = tilesets[i].customShader;
+      if (!$("drape").checked || a === null || pairIndex(a, b) < 0) {
+        sh.setUniform("u_drape", 0.0); drapeOn.delete(i); return null;
+      }
+      const P = await loadPair(a, b);
+      const D = P.drape;
+      sh.setUniform("u_overlay", new Cesium.TextureUniform({ url: P.files.overlay }));
+      sh.setUniform("u_centre", Cesium.Cartesian3.fromArray(D.centre_ecef));
+      sh.setUniform("u_east", Cesium.Cartesian3.fromArray(D.east));
+      sh.setUniform("u_north", Cesium.Cartesian3.fromArray(D.north));
+      sh.setUniform("u_u", Cesium.Cartesian3.fromArray(D.u));
+      sh.setUniform("u_v", Cesium.Cartesian3.fromArray(D.v));
+      sh.setUniform("u_drape", 1.0);
+      drapeOn.set(i, [a, b]);
+      showLegend(P);
+      return P;
+    }
+    function showLegend(P) {
+      // two slopes, as the report's colour bar: 0 in the middle, each side scaled to its own extreme
+      const L = P.legend, pos = (v) => (v >= 0 ? 50 + (50 * v) / L.max_m : 50 - (50 * v) / L.min_m);
+      const stops = L.stops.map((st) => `${st.css} ${pos(st.value_m).toFixed(1)}%`);
+      const g0 = pos(-L.lod_m).toFixed(1), g1 = pos(L.lod_m).toFixed(1);
+      const grad = [...stops.slice(0, 3), `${L.lod_css} ${g0}%`, `${L.lod_css} ${g1}%`, ...stops.slice(3)];
+      $("legend-bar").style.background = `linear-gradient(to right, ${grad.join(", ")})`;
+      const ticks = [L.min_m, L.min_m / 2, 0, L.max_m / 2, L.max_m];
+      const big = Math.max(L.max_m, -L.min_m) >= 20;
+      $("legend-ticks").innerHTML = ticks.map((v) => `<span style="left:${pos(v)}%">${v === 0 ? "0" : (v > 0 ? "+" : "−") + Math.abs(v).toFixed(big ? 0 : 1)} m</span>`).join("");
+      $("legend-lod").innerHTML = `<i></i> grey: within ±${L.lod_m.toFixed(1)} m, no measurable change`;
+      $("legend").hidden = false;
+    }
+
+    // waiting for what is shown to be drawn
+    const drawn = (list) => new Promise((resolve) => {
+      const t0 = performance.now();
+      const check = () => {
+        if (list.every((t) => t.tilesLoaded) || performance.now() - t0 > 120000) {
+          scene.requestRender();
+          const once = () => { scene.postRender.removeEventListener(once); resolve(); };
+          scene.postRender.addEventListener(once);
+        } else setTimeout(check, 100);
+      };
+      setTimeout(check, 50);
+    });
+
+    // modes
+    let mode = "one", current = first, swipeA = first, swipeB = last;
+    const slider = $("epoch");
+    slider.max = String(Math.max(0, S.epochs.length - 1));
+    if (S.epochs.length < 2) { $("mode-row").hidden = true; $("action-row").hidden = true; $("epoch-row").hidden = true; }
+    S.setEpoch = async (name) => {
+      const i = idx(name);
+      mode = "one"; current = name;
+      $("mode-one").classList.add("on"); $("mode-swipe").classList.remove("on");
+      $("swipe").hidden = true; $("swipe-labels").hidden = true;
+      tilesets.forEach((t, k) => { t.show = k === i; t.splitDirection = Cesium.SplitDirection.NONE; });
+      slider.value = String(i);
+      $("epoch-name").textContent = labelOf(name);
+      await drape(i, i > 0 ? first : null, name);
+      if (i === 0) $("legend").hidden = true;
+      await drawn([tilesets[i]]);
+    };
+    S.setSwipe = async (a, b, position = 0.5) => {
+      const ia = idx(a), ib = idx(b);
+      mode = "swipe"; swipeA = a; swipeB = b;
+      $("mode-swipe").classList.add("on"); $("mode-one").classList.remove("on");
+      tilesets.forEach((t, k) => { t.show = k === ia || k === ib; t.splitDirection = Cesium.SplitDirection.NONE; });
+      tilesets[ia].splitDirection = Cesium.SplitDirection.LEFT;
+      tilesets[ib].splitDirection = Cesium.SplitDirection.RIGHT;
+      scene.splitPosition = position;
+      $("swipe").hidden = false; $("swipe-labels").hidden = false;
+      placeSwipe(position);
+      $("swipe-left").textContent = labelOf(a); $("swipe-right").textContent = labelOf(b);
+      await drape(ia, null, a);
+      await drape(ib, a, b);
+      await drawn([tilesets[ia], tilesets[ib]]);
+    };
+    function placeSwipe(pos) {
+      const W = scene.canvas.clientWidth;
+      $("swipe").style.left = `${pos * 100}%`;
+      const l = $("swipe-left"), r = $("swipe-right");
+      l.style.right = `${W * (1 - pos) + 12}px`; l.style.left = "auto";
+      r.style.left = `${W * pos + 12}px`;
+    }
+    // dragging the swipe handle
+    let dragging = false;
+    $("swipe-handle").addEventListener("pointerdown", (ev) => { dragging = true; ev.preventDefault(); });
+    window.addEventListener("pointerup", () => { dragging = false; });
+    window.addEventListener("pointermove", (ev) => {
+      if (!dragging) return;
+      const pos = Math.min(0.98, Math.max(0.02, ev.clientX / scene.canvas.clientWidth));
+      scene.splitPosition = pos; placeSwipe(pos);
+    });
+    slider.addEventListener("input", () => {
+      const name = S.epochs[+slider.value];
+      if (mode === "one") S.setEpoch(name); else S.setSwipe(first === name ? S.epochs[0] : first, name, scene.splitPosition);
+    });
+    $("mode-one").addEventListener("click", () => S.setEpoch(current));
+    $("mode-swipe").addEventListener("click", () => S.setSwipe(first, current === first ? last : current, 0.5));
+    $("drape").addEventListener("change", () => (mode === "one" ? S.setEpoch(current) : S.setSwipe(swipeA, swipeB, scene.splitPosition)));
+
+    // the pair the answers refer to: first -> shown (one date) or left -> right (swipe)
+    const activePair = () => {
+      if (mode === "swipe") return pairIndex(swipeA, swipeB) >= 0 ? [swipeA, swipeB] : [first, last];
+      return current !== first && pairIndex(first, current) >= 0 ? [first, current] : [first, last];
+    };
+
+    // click: how much changed here
+    const handler = new Cesium.ScreenSpaceEventHandler(scene.canvas);
+    const drawing = { on: false, ring: [], entity: null };
+    const pick = (pos) => {
+      const p = scene.pickPosition(pos);
+      if (!Cesium.defined(p)) return null;
+      const c = Cesium.Cartographic.fromCartesian(p);
+      return [Cesium.Math.toDegrees(c.longitude), Cesium.Math.toDegrees(c.latitude)];
+    };
+    S.describeChange = async (lon, lat) => {
+      const [a, b] = activePair();
+      const r = await S.changeAt(lon, lat, a, b);
+      const when = `between ${labelOf(a)} and ${labelOf(b)}`;
+      if (r.change_m === null) return "No data here.";
+      const u = r.uncertainty_m.toFixed(1);
+      if (Math.abs(r.change_m) <= r.lod_m) return `Here the ground did not change measurably ${when} (less than ±${r.lod_m.toFixed(1)} m).`;
+      const verb = r.change_m > 0 ? "rose" : "dropped";
+      return `Here the ground ${verb} ${Math.abs(r.change_m).toFixed(1)} ± ${u} m ${when} (from ${r.before_m.toFixed(0)} m to ${r.after_m.toFixed(0)} m above sea level).`;
+    };
+    handler.setInputAction(async (click) => {
+      const ll = pick(click.position);
+      if (!ll) return;
+      if (drawing.on) { drawing.ring.push(ll); updateRing(); return; }
+      $("answer").textContent = await S.describeChange(ll[0], ll[1]);
+    }, Cesium.ScreenSpaceEventType.LEFT_CLICK);
+
+    // draw a polygon: its gain, loss and net volume
+    function updateRing() {
+      if (drawing.entity) viewer.entities.remove(drawing.entity);
+      if (drawing.ring.length < 2) return;
+      const flat = drawing.ring.concat([drawing.ring[0]]).flat();
+      drawing.entity = viewer.entities.add({ polyline: { positions: Cesium.Cartesian3.fromDegreesArray(flat), width: 3,
+        material: Cesium.Color.YELLOW, clampToGround: false, depthFailMaterial: Cesium.Color.YELLOW } });
+      // lift the outline onto the terrain so it is seen
+      Promise.all(drawing.ring.map(([lo, la]) => scene.sampleHeightMostDetailed([Cesium.Cartographic.fromDegrees(lo, la)])))
+        .then((hs) => {
+          if (!drawing.entity) return;
+          const pts = drawing.ring.map(([lo, la], k) => Cesium.Cartesian3.fromDegrees(lo, la, ((hs[k][0] && hs[k][0].height) || 0) + 5));
+          drawing.entity.polyline.positions = pts.concat([pts[0]]);
+        }).catch(() => {});
+      $("answer").textContent = `Corners: ${drawing.ring.length}. Click more, then press "Done".`;
+    }
+    S.describeVolume = async (ring) => {
+      const [a, b] = activePair();
+      const v = await S.volume(ring, a, b);
+      const P = await loadPair(a, b);
+      const pool = P.olympic_pool_m3;
+      const net = v.net_m3 >= 0 ? `a net gain of ${fmtPm(v.net_m3, v.net_uncertainty_m3)}` : `a net loss of ${fmtPm(-v.net_m3, v.net_uncertainty_m3)}`;
+      return `Inside this shape (${(v.area_m2 / 1e6).toFixed(2)} km²), between ${labelOf(a)} and ${labelOf(b)}: ${net} ` +
+        `(about ${pools(v.net_m3, pool)} Olympic swimming pools); ${fmtVol(v.gain_m3)} added where the ground rose, ` +
+        `${fmtVol(v.loss_m3)} removed where it dropped.`;
+    };
+    $("measure").addEventListener("click", async () => {
+      if (!drawing.on) {
+        drawing.on = true; drawing.ring = [];
+        if (drawing.entity) { viewer.entities.remove(drawing.entity); drawing.entity = null; }
+        $("measure").textContent = "Done"; $("measure").classList.add("on");
+        $("answer").textContent = "Click the corners of the area on the ground, then press \"Done\".";
+        return;
+      }
+      drawing.on = false;
+      $("measure").textContent = "Measure a volume"; $("measure").classList.remove("on");
+      if (drawing.ring.length < 3) { $("answer").textContent = "A shape needs at least three corners."; return; }
+      $("answer").textContent = await S.describeVolume(drawing.ring);
+    });
+
+    // the largest change
+    $("largest").addEventListener("click", async () => {
+      const [a, b] = activePair();
+      const P = await loadPair(a, b);
+      if (!P.largest) return;
+      const { lon_deg, lat_deg } = P.largest;
+      const r = await S.changeAt(lon_deg, lat_deg, a, b);
+      const target = Cesium.Cartesian3.fromDegrees(lon_deg, lat_deg, r.after_m || 0);
+      viewer.camera.flyToBoundingSphere(new Cesium.BoundingSphere(target, 600), { offset: new Cesium.HeadingPitchRange(0, Cesium.Math.toRadians(-40), 2500), duration: 2 });
+      $("answer").textContent = await S.describeChange(lon_deg, lat_deg);
+    });
+
+    // a series: play through the dates, and the volume against time
+    if (S.epochs.length > 2) {
+      $("play").hidden = false;
+      let timer = null;
+      $("play").addEventListener("click", () => {
+        if (timer) { clearInterval(timer); timer = null; $("play").textContent = "▶ Play"; return; }
+        $("play").textContent = "❚❚ Pause";
+        let i = S.epochs.indexOf(current);
+        timer = setInterval(() => { i = (i + 1) % S.epochs.length; S.setEpoch(S.epochs[i]); }, 1500);
+      });
+      drawChart(labelOf).catch((err) => S.errors.push("chart: " + err));
+    }
+
+    // scale bar and north arrow follow the camera
+    scene.postRender.addEventListener(() => {
+      $("north-needle").setAttribute("transform", `rotate(${-Cesium.Math.toDegrees(viewer.camera.heading)})`);
+      const cv = scene.canvas, y = cv.clientHeight - 30;
+      const p0 = viewer.camera.pickEllipsoid(new Cesium.Cartesian2(60, y)), p1 = viewer.camera.pickEllipsoid(new Cesium.Cartesian2(160, y));
+      if (!p0 || !p1) return;
+      const mPer100 = Cesium.Cartesian3.distance(p0, p1);
+      const nice = [1, 2, 5].flatMap((k) => [1, 10, 100, 1000, 10000, 100000].map((m) => k * m)).sort((p, q) => p - q);
+      const len = nice.filter((v) => v <= mPer100 * 1.5).pop() || nice[0];
+      $("scale-bar").style.width = `${(100 * len) / mPer100}px`;
+      $("scale-text").textContent = len >= 1000 ? `${len / 1000} km` : `${len} m`;
+    });
+
+    // first view: the whole terrain, from the south-south-west, looking down 50°
+    const diag = Cesium.Cartesian3.distance(Cesium.Cartesian3.fromDegrees(w, s, zlo), Cesium.Cartesian3.fromDegrees(e, n, zlo));
+    viewer.camera.lookAt(centre, new Cesium.HeadingPitchRange(0.0, Cesium.Math.toRadians(-50), 1.1 * diag));
+    viewer.camera.lookAtTransform(Cesium.Matrix4.IDENTITY);
+
+    // the plain-language summary of the main pair
+    if (site.pairs.length) {
+      const P = await loadPair(first, last);
+      $("summary").innerHTML = "";
+      for (const line of P.summary) { const li = document.createElement("li"); li.textContent = line; $("summary").appendChild(li); }
+    } else $("summary-box").hidden = true;
+    const t0 = performance.now();
+    await S.setEpoch(S.epochs.length > 1 ? last : first);
+    S.firstViewMs = performance.now() - t0;
+    status(`${S.epochs.length} date${S.epochs.length > 1 ? "s" : ""} · drawn with ${scene.context.webgl2 ? "WebGL 2" : "WebGL"}`);
+  }
+
+  async function drawChart(labelOf) {
+    // cumulative net volume since the first date, from the consecutive pairs (± added in quadrature)
+    const pts = [{ x: 0, v: 0, u: 0 }];
+    let v = 0, u2 = 0;
+    for (let i = 1; i < S.epochs.length; i++) {
+      const k = pairIndex(S.epochs[i - 1], S.epochs[i]);
+      if (k < 0) return;
+      const meta = await (await fetch(site.pairs[k].url)).json();
+      v += meta.totals.net_m3; u2 += meta.totals.net_uncertainty_m3 ** 2;
+      pts.push({ x: i, v, u: Math.sqrt(u2) });
+    }
+    const W = 320, H = 150, pad = 34;
+    const lo = Math.min(0, ...pts.map((p) => p.v - p.u)), hi = Math.max(0, ...pts.map((p) => p.v + p.u));
+    const X = (i) => pad + (i / (pts.length - 1)) * (W - pad - 8), Y = (val) => H - 20 - ((val - lo) / (hi - lo || 1)) * (H - 30);
+    const line = pts.map((p, i) => `${i ? "L" : "M"}${X(p.x).toFixed(1)},${Y(p.v).toFixed(1)}`).join("");
+    const band = pts.map((p) => `${X(p.x).toFixed(1)},${Y(p.v + p.u).toFixed(1)}`).concat(pts.slice().reverse().map((p) => `${X(p.x).toFixed(1)},${Y(p.v - p.u).toFixed(1)}`)).join(" ");
+    const unit = Math.max(Math.abs(lo), Math.abs(hi)) >= 1e6 ? 1e6 : 1;
+    $("chart").innerHTML = `<div><b>Volume since ${labelOf(S.epochs[0])}</b> (${unit === 1e6 ? "million m³" : "m³"})</div>
+      <svg viewBox="0 0 ${W} ${H}"><polygon points="${band}" fill="rgba(33,102,172,0.2)"/><path d="${line}" stroke="#2166ac" fill="none" stroke-width="2"/>
+      <line x1="${pad}" x2="${W - 8}" y1="${Y(0)}" y2="${Y(0)}" stroke="#999"/>
+      <text x="2" y="${Y(hi) + 4}" font-size="10">${(hi / unit).toFixed(1)}</text><text x="2" y="${Y(lo)}" font-size="10">${(lo / unit).toFixed(1)}</text>
+      <text x="${pad}" y="${H - 4}" font-size="10">${labelOf(S.epochs[0])}</text><text x="${W - 8}" y="${H - 4}" font-size="10" text-anchor="end">${labelOf(S.epochs[S.epochs.length - 1])}</text></svg>`;
+  }
+
+  main().then(() => readyResolve(true), (err) => {
+    S.errors.push("site: " + (err && err.stack ? err.stack : err));
+    status("error: " + err);
+    readyReject(err);
+  });
+})();
