@@ -143,10 +143,12 @@ def _epoch(store: str, date: str):
 @click.option("--dates", help="Comma-separated ISO dates of the inputs (default: from the file names).")
 @click.option("--no-views", is_flag=True, help="Leave the 3D before/after views out of the report.")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
+@click.option("--site", "with_site", is_flag=True,
+              help="Also write OUT/site/: a web page of the change in 3D that any static web host serves, offline.")  # fmt: skip
 @read_options
 def change(
     inputs, output, zones, stable, exclude, min_slope_deg, no_coregister, coreg_method, sigma_m, corr_range_m,
-    confidence, date_from, date_to, dates, no_views, overwrite, **read: Any,
+    confidence, date_from, date_to, dates, no_views, overwrite, with_site, **read: Any,
 ) -> None:  # fmt: skip
     """How much ground was added or removed between two surveys (BEFORE AFTER), with a ± range and a report.
 
@@ -227,6 +229,10 @@ def change(
             result, tmp / "report.html", series=series, views=not no_views, figures_dir=tmp / "figures"
         )
         (tmp / "summary.json").write_text(json.dumps(_jsonable(s), indent=2) + "\n")
+        if with_site:
+            _write_site(tmp / "site", result, series_hf or [before, after], list(ds) if series_hf else list(pair_dates),
+                        dict(sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
+                             coregistration=not no_coregister, method=coreg_method))  # fmt: skip
         old = None
         if out.exists():
             old = out.resolve().parent / f".{out.name}.old-{os.getpid()}"
@@ -274,6 +280,22 @@ def _without_folders(v, paths: list[str]):
         return x
 
     return clean(v)
+
+
+def _write_site(dest: Path, result, hfs: list, dates: list, options: dict) -> None:  # noqa: ANN001
+    """OUT/site/ (:mod:`terralod.site`): each epoch's 3D Tiles, the first → last pair (this run's result) and,
+    for a series, each consecutive pair measured the same way."""
+    from terralod.change.volumes import measure_change
+    from terralod.site import site_from_change
+
+    names = [d or f"survey {i + 1}" for i, d in enumerate(dates)]
+    pairs = [(names[0], names[-1], result)]
+    for i in range(1, len(hfs)):
+        if len(hfs) > 2:
+            r = measure_change(hfs[i - 1], hfs[i], dates=(dates[i - 1], dates[i]), **options)
+            pairs.append((names[i - 1], names[i], r))
+    rep = site_from_change(hfs, names, pairs, dest)
+    console.print(f"site: {rep.bytes / 1e6:.1f} MB in {dest.name}/ (open it with `python -m http.server` there)")
 
 
 def _jsonable(v):
