@@ -249,7 +249,7 @@ def test_quantized_mesh_export_against_source(alpine_store: Path, shared_data: P
     """layer.json's availability matches the files; finest tiles decode to heights within their measured
     error of the source samples; the gzip'd greedy-insertion tile is smaller than the 65² regular grid at
     a larger measured error."""
-    from terralod.export.quantized_mesh import QuantizedMesh, export_quantized_mesh
+    from terralod.export.quantized_mesh import QuantizedMesh, export_quantized_mesh, true_error_m
     from terralod.terrain import open_terrain
 
     out = tmp_path / "qm"
@@ -271,20 +271,21 @@ def test_quantized_mesh_export_against_source(alpine_store: Path, shared_data: P
         assert files == listed and {(0, 0, 0), (0, 1, 0)} <= files
         z = layer["maxzoom"]
         qm = QuantizedMesh(t)
+        declared = json.loads((out / "errors.json").read_text())["tiles"]
         for zz, x, y in sorted(f for f in files if f[0] == z)[:2]:
             rect = tile_rectangle(zz, x, y)
-            d = decode_tile((out / str(zz) / str(x) / f"{y}.terrain").read_bytes(), rect)
-            err = d["metadata"]["terralod"]["error_m"]
-            assert err == pytest.approx(
-                qm.measure(rect, d["lon"], d["lat"], d["height"], d["triangles"]), abs=0.3
-            )
+            raw = (out / str(zz) / str(x) / f"{y}.terrain").read_bytes()
+            assert raw[:2] != b"\x1f\x8b" and "metadata" not in decode_tile(raw)  # plain, no metadata block
+            d = decode_tile(raw, rect)
+            err = declared[f"{zz}/{x}/{y}"]
+            assert err == pytest.approx(true_error_m(d, rect, *qm.ref.points_in(zz, x, y)), abs=2e-4)
             assert err <= layer["terralod"]["error_m"][z]
         # at equal measured error, fewer bytes than the regular 65² grid (an interior tile of the finest level)
         inner = sorted(f for f in files if f[0] == z)
         zz, x, y = inner[len(inner) // 2]
         grid = qm.tile(zz, x, y, regular=65)
-        greedy = qm.tile(zz, x, y, target_m=grid.error_m)
-        assert greedy.error_m <= grid.error_m + 0.5 and len(greedy.data) < len(grid.data)
+        greedy = qm.tile(zz, x, y, target_m=0.5 * grid.error_m)  # the lattice's target; measured on the source
+        assert greedy.error_m <= grid.error_m and len(greedy.data) < len(grid.data)
 
 
 # -- errors of the CLI --------------------------------------------------------------------------------

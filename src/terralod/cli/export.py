@@ -1,9 +1,12 @@
-"""``terralod export STORE --format 3dtiles|quantized-mesh -o DIR``: the web globe's two formats.
+"""``terralod export STORE|DEM --format 3dtiles|quantized-mesh -o DIR``: the web globe's two formats.
 
-3D Tiles 1.1 writes ``DIR/tileset.json`` and one glb per LOD node; quantized-mesh 1.0 writes
-``DIR/layer.json`` and gzip'd ``Z/X/Y.terrain`` tiles (serve them with ``Content-Encoding: gzip``, as
-``terralod serve`` does). Heights are the DEM's as read (no geoid change). The output appears whole or not
-at all; a folder that is not empty needs ``--overwrite``.
+3D Tiles 1.1 writes ``DIR/tileset.json`` and one glb per LOD node (from a store). Quantized-mesh 1.0 writes
+``DIR/layer.json``, ``DIR/errors.json`` (measured error per tile) and ``Z/X/Y.terrain`` tiles, from a store
+or straight from a DEM file (its samples meshed into Cesium's geographic tiles directly, no store and no
+UTM round trip). Tiles are uncompressed, so any static file server serves them as they are; ``--gzip``
+writes them gzip'd, for a host configured to send ``Content-Encoding: gzip`` with ``.terrain`` files
+(CesiumJS cannot read gzip'd tiles without that header). Heights are the DEM's as read (no geoid change).
+The output appears whole or not at all; a folder that is not empty needs ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -18,9 +21,10 @@ from terralod.cli._common import console, progress, refuse_output_holding_inputs
 @click.option(
     "--format",
     "fmt",
-    type=click.Choice(["3dtiles", "quantized-mesh"]),
+    type=click.Choice(["3dtiles", "quantized-mesh", "site"]),
     required=True,
-    help="3dtiles (OGC 3D Tiles 1.1, glb per tile) or quantized-mesh (Cesium terrain 1.0).",
+    help="3dtiles (OGC 3D Tiles 1.1, glb per tile), quantized-mesh (Cesium terrain 1.0) or site (a folder any "
+    "static web host serves: a store's epochs and the change between them, for people who are not experts).",
 )
 @click.option("-o", "--output", required=True, help="Output folder (tileset.json / layer.json inside).")
 @click.option(
@@ -32,24 +36,81 @@ from terralod.cli._common import console, progress, refuse_output_holding_inputs
 )
 @click.option("--epoch", default=None, help="Epoch (date) of a store with epochs.")
 @click.option("--overwrite", is_flag=True, help="Replace a non-empty output folder.")
-def export(store: str, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool) -> None:
-    """Export a .terra store as 3D Tiles or Cesium quantized-mesh terrain."""
+@click.option(
+    "--gzip",
+    "gzip_tiles",
+    is_flag=True,
+    help="quantized-mesh: write gzip'd tiles (only for a host that sends Content-Encoding: gzip with them).",
+)
+def export(
+    store: str, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool, gzip_tiles: bool
+) -> None:
+    """Export a .terra store (or, for quantized-mesh, a DEM file) as 3D Tiles or Cesium quantized-mesh."""
     require_extra("export", "web")
     refuse_output_holding_inputs(output, [store])  # --overwrite would delete it
     from terralod.export.common import check_exportable, check_output
     from terralod.export.geodesy import Geodesy
-    from terralod.terrain import open_terrain
+    from terralod.terrain import _is_sqlite, open_terrain
 
+    if fmt == "site":
+        _run_site(store, output, overwrite)
+        return
+    if _is_dem(store, _is_sqlite):
+        if fmt == "3dtiles":
+            from terralod.errors import InputError
+
+            raise InputError(
+                "is a DEM; 3D Tiles are written from a store (run `terralod build` first)", store
+            )
+        _run_dem(store, output, epoch, overwrite, gzip_tiles)
+        return
     with open_terrain(store) as terrain:
         if epoch is not None:
             check_exportable(terrain, epoch)  # a missing epoch: one line naming the ones there are
         check_output(output, overwrite)  # refusals first: one line, before any progress output
         Geodesy(terrain.crs, store)
         check_exportable(terrain, epoch)
-        _run(terrain, fmt, output, metric, epoch, overwrite)
+        _run(terrain, fmt, output, metric, epoch, overwrite, gzip_tiles)
 
 
-def _run(terrain, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool) -> None:
+def _run_site(store: str, output: str, overwrite: bool) -> None:
+    """The change site of a store's epochs (:mod:`terralod.site`), its size printed."""
+    from terralod.site import site_from_store
+
+    rep = site_from_store(store, output, overwrite=overwrite)
+    d = rep.as_dict()
+    parts = ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in d["parts"].items())
+    console.print(
+        f"{output}: site of {d['epochs']} epoch(s), {d['pairs']} pair(s): {d['bytes'] / 1e6:.1f} MB ({parts}); "
+        f"{d['bytes'] / 1e6 / max(d['area_km2'], 1e-9):.2f} MB per km² of terrain. Serve it with "
+        f"`python -m http.server` in that folder (see its README.txt).",
+        highlight=False,
+    )
+
+
+def _is_dem(path: str, is_sqlite) -> bool:  # noqa: ANN001
+    """A file that is not a .terra store (a missing path is left to open_terrain's message)."""
+    from pathlib import Path
+
+    p = Path(path)
+    return p.is_file() and not is_sqlite(p)
+
+
+def _run_dem(dem: str, output: str, epoch: str | None, overwrite: bool, gzip_tiles: bool) -> None:
+    from terralod.errors import InputError
+    from terralod.export.common import check_output
+    from terralod.export.source import source_from_dem
+
+    if epoch is not None:
+        raise InputError("is a DEM; --epoch selects an epoch of a store", dem)
+    check_output(output, overwrite)
+    source = source_from_dem(dem)
+    _run(source, "quantized-mesh", output, "vertical", None, overwrite, gzip_tiles)
+
+
+def _run(
+    terrain, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool, gzip_tiles: bool = False
+) -> None:  # fmt: skip
     from terralod.export import export_3dtiles, export_quantized_mesh
 
     with progress("exporting") as prog:
@@ -63,6 +124,8 @@ def _run(terrain, fmt: str, output: str, metric: str, epoch: str | None, overwri
                 terrain, output, metric=metric, epoch=epoch, overwrite=overwrite, progress=cb
             )
         else:
-            rep = export_quantized_mesh(terrain, output, epoch=epoch, overwrite=overwrite, progress=cb)
+            rep = export_quantized_mesh(
+                terrain, output, epoch=epoch, overwrite=overwrite, gzip_tiles=gzip_tiles, progress=cb
+            )
     console.print(f"{fmt}: {rep.tiles} tiles, {rep.triangles:,} triangles, {rep.bytes / 1e6:.2f} MB in "
                   f"{rep.seconds:.1f} s → {output}")  # fmt: skip

@@ -175,15 +175,22 @@ def encode_tile(
     w, s, e, n = rect
     u = np.rint(np.clip((lon - w) / (e - w), 0, 1) * 32767).astype(np.int64)
     v = np.rint(np.clip((lat - s) / (n - s), 0, 1) * 32767).astype(np.int64)
-    hmin, hmax = float(h.min()), float(h.max())
+    # the height range as the header stores it (float32), widened to hold every height
+    lo32, hi32 = np.float32(h.min()), np.float32(h.max())
+    lo32 = lo32 if lo32 <= h.min() else np.nextafter(lo32, np.float32(-np.inf))
+    hi32 = hi32 if hi32 >= h.max() else np.nextafter(hi32, np.float32(np.inf))
+    hmin, hmax = float(lo32), float(hi32)
     hq = np.rint((h - hmin) / max(hmax - hmin, 1e-9) * 32767).astype(np.int64) if hmax > hmin else 0 * u
     order, t = _reorder(np.column_stack([u, v]), np.asarray(tris, np.int64))
     u, v, hq = u[order], v[order], hq[order]
-    ecef = ecef_lonlat(np.asarray(lon)[order], np.asarray(lat)[order], np.asarray(h)[order])
+    # the header bounds the vertices as a decoder sees them (after quantisation, float32 height range)
+    ecef = ecef_lonlat(
+        w + u / 32767.0 * (e - w), s + v / 32767.0 * (n - s), hmin + hq / 32767.0 * (hmax - hmin)
+    )
     lo, hi = ecef.min(axis=0), ecef.max(axis=0)
     centre = 0.5 * (lo + hi)
     sc = centre  # the box centre and the farthest vertex (a tight enough sphere, in double precision)
-    radius = float(np.sqrt(((ecef - sc) ** 2).sum(axis=1).max()))
+    radius = float(np.sqrt(((ecef - sc) ** 2).sum(axis=1).max())) + 1e-3
     occ = horizon_occlusion_point(ecef, sc)
     out = io.BytesIO()
     out.write(struct.pack("<3d2f4d3d", *centre, hmin, hmax, *sc, radius, *occ))
