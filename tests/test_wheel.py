@@ -91,7 +91,7 @@ def test_wheel_carries_the_package_and_cesium(wheel_venv) -> None:
     names = zipfile.ZipFile(wheel).namelist()
     assert "terralod/serve/static/cesium/Cesium.js" in names
     assert "terralod/serve/static/cesium/LICENSE.md" in names
-    assert "terralod/serve/static/index.html" in names
+    assert "terralod/site/static/index.html" in names and "terralod/site/static/site.js" in names
     assert not any(n.endswith(("cesium/index.cjs", "cesium/index.js")) for n in names)  # Node bundles
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
     assert "License-Expression: MIT AND Apache-2.0" in meta

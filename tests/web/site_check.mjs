@@ -28,7 +28,10 @@ try {
     if (u.startsWith(origin) || u.startsWith("data:") || u.startsWith("blob:")) r.continue();
     else { out.blocked.push(u); r.abort(); }
   });
-  page.on("requestfailed", (r) => out.failedRequests.push(r.url() + " " + (r.failure() || {}).errorText));
+  page.on("requestfailed", (r) => {  // a request CesiumJS cancels (the view moved on) is not a failure
+    const why = (r.failure() || {}).errorText || "";
+    if (why !== "net::ERR_ABORTED") out.failedRequests.push(r.url() + " " + why);
+  });
   page.on("response", (r) => { if (r.status() >= 400) out.failedRequests.push(r.status() + " " + r.url()); });
   page.on("pageerror", (e) => out.errors.push("pageerror: " + e.message));
   page.on("console", (m) => { if (m.type() === "error") out.errors.push("console: " + m.text()); });

@@ -1,8 +1,11 @@
-"""``terralod serve``: both web formats straight from a store, and a CesiumJS viewer page, over HTTP.
+"""``terralod serve``: both web formats straight from a store, and the change site's page, over HTTP.
 
 Routes (GET and HEAD; everything else is 405; any other path is 404, never a file from elsewhere):
 
-- ``/`` the viewer page, ``/static/NAME`` its files (a fixed set, package data of this module);
+- ``/`` the page of :mod:`terralod.site` (``/site.js``, ``/site.css``: package data), the same page an exported
+  site folder holds, answering the same paths: ``/site.json`` (the manifest), ``/epochs/I/tileset.json`` and
+  its tiles (3D Tiles of epoch I), ``/pairs/K.json`` and its rasters (pair K measured as ``terralod change``
+  measures it, on the first request, then kept);
 - ``/cesium/...`` CesiumJS's browser build, the copy the package carries (:func:`terralod.serve.cesium_dir`;
   resolved paths must stay inside that folder);
 - ``/3dtiles/tileset.json``, ``/3dtiles/tiles/L/X_Y.glb`` (:class:`terralod.export.tiles3d.Tiles3D`);
@@ -10,8 +13,7 @@ Routes (GET and HEAD; everything else is 405; any other path is 404, never a fil
   always gzip'd, as the format's clients expect);
 - ``/info.json`` the terrain's bounds (degrees), heights, epochs and node counts for the page;
 - a store with epochs: ``/e/EPOCH/3dtiles/...`` and ``/e/EPOCH/terrain/...`` the same for one epoch (the
-  plain paths are the store's latest), ``/change/BEFORE/AFTER.png`` the change overlay: ``after - before``
-  resampled on the terrain's longitude/latitude rectangle (red up, blue down, transparent below 0.5 m).
+  plain paths are the store's latest).
 
 Tiles are encoded on the first request and kept in a byte-bounded LRU cache; every response carries a
 strong ``ETag`` (``If-None-Match`` → 304) and is gzip'd when the client accepts it. The store is opened
@@ -23,7 +25,6 @@ from __future__ import annotations
 
 import gzip
 import hashlib
-import io
 import json
 import logging
 import mimetypes
@@ -37,22 +38,19 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import unquote, urlsplit
 
-import numpy as np
-
 from terralod.serve import cesium_dir
 
 log = logging.getLogger("terralod.serve")
 
 __all__ = ["TileService", "make_server"]
 
-#: Files of the viewer page (package data); only these names are served under /static/.
-STATIC_FILES = ("index.html", "viewer.js", "viewer.css")
+#: Files of the page (the change site's, package data of terralod.site); only these names are served.
+PAGE_FILES = ("index.html", "site.js", "site.css")
+_SITE_TILES = re.compile(r"^/epochs/(\d{1,4})(/tileset\.json|/tiles/\d{1,3}/\d{1,9}_\d{1,9}\.glb)$")
+_SITE_PAIR = re.compile(r"^/pairs/(\d{1,4})(\.json|-dod\.f32|-before\.f32|-overlay\.png)$")
 _GLB = re.compile(r"^/3dtiles/tiles/(\d{1,3})/(\d{1,9})_(\d{1,9})\.glb$")
 _TERRAIN = re.compile(r"^/terrain/(\d{1,2})/(\d{1,9})/(\d{1,9})\.terrain$")
 _EPOCH = re.compile(r"^/e/([^/]{1,64})(/.*)$")
-_CHANGE = re.compile(r"^/change/([^/]{1,64})/([^/]{1,64})\.png$")
-#: Change overlay: metres of change at full colour, below which the overlay is transparent.
-CHANGE_FULL_M, CHANGE_MIN_M = 50.0, 0.5
 
 
 class _LRU:
@@ -95,6 +93,7 @@ class TileService:
         self._views: dict[str | None, dict[str, Any]] = {}
         self.cesium = cesium_dir()
         self.stats = {"requests": 0, "encoded": 0, "hits": 0}
+        self._pairs: dict[int, tuple[dict[str, Any], dict[str, bytes]]] = {}
 
     # lazily built views (their set-up reads the whole LOD tree / the source), one set per epoch
     def _view(self, epoch: str | None, kind: str) -> Any:
@@ -119,38 +118,36 @@ class TileService:
     def qm(self, epoch: str | None = None) -> Any:
         return self._view(epoch, "qm")
 
-    def change_png(self, before: str, after: str, size: int = 512) -> bytes:
-        """The change overlay ``after - before`` on the terrain's lon/lat rectangle, RGBA PNG."""
-        from PIL import Image
+    # the change site's page (terralod.site): the same paths as an exported site folder
+    def _site_epochs(self) -> list[str | None]:
+        return list(self.terrain.epochs) or [None]
 
+    def site_manifest(self) -> dict[str, Any]:
+        from terralod.site.build import manifest
+        from terralod.site.data import pairs_of
+
+        names = list(self.terrain.epochs)
         qm = self.qm()
-        w, s, e, n = qm.bbox
-        lon = w + (e - w) * (np.arange(size) + 0.5) / size
-        lat = n - (n - s) * (np.arange(size) + 0.5) / size
-        LON, LAT = np.meshgrid(lon, lat)
-        x, y = qm.geo.xy(LON.ravel(), LAT.ravel())
-        a = self.terrain.heightfield(before)
-        b = self.terrain.heightfield(after)
-        d = b.elevation_m.astype(np.float64) - a.elevation_m.astype(np.float64)
-        ok = a.valid & b.valid
-        inv = ~a.transform
-        col = np.floor(inv.a * x + inv.b * y + inv.c).astype(np.int64)
-        row = np.floor(inv.d * x + inv.e * y + inv.f).astype(np.int64)
-        inside = (row >= 0) & (col >= 0) & (row < d.shape[0]) & (col < d.shape[1])
-        dd = np.zeros(x.shape)
-        m = np.zeros(x.shape, bool)
-        dd[inside] = d[row[inside], col[inside]]
-        m[inside] = ok[row[inside], col[inside]]
-        t = np.clip(np.abs(dd) / CHANGE_FULL_M, 0, 1)
-        rgba = np.zeros((x.size, 4), np.uint8)
-        up = dd > 0
-        rgba[:, 0] = np.where(up, 230, 40)
-        rgba[:, 1] = 40
-        rgba[:, 2] = np.where(up, 40, 230)
-        rgba[:, 3] = np.where(m & (np.abs(dd) >= CHANGE_MIN_M), 90 + 160 * t, 0).astype(np.uint8)
-        buf = io.BytesIO()
-        Image.fromarray(rgba.reshape(size, size, 4), "RGBA").save(buf, "PNG")
-        return buf.getvalue()
+        title = Path(str(self.terrain.path)).stem if self.terrain.path else "terrain"
+        if len(names) >= 2:
+            title += ": how the ground changed"
+        return manifest(title, names or [title], pairs_of(names), qm.bbox, self.terrain.elevation_range_m)
+
+    def site_pair(self, k: int) -> tuple[dict[str, Any], dict[str, bytes]] | None:
+        """Pair ``k`` of the manifest, measured as ``terralod change`` measures it (once, then kept)."""
+        from terralod.change.volumes import measure_change
+        from terralod.site.data import epoch_label, pair_payload, pairs_of
+
+        pairs = pairs_of(list(self.terrain.epochs))
+        if k >= len(pairs):
+            return None
+        got = self._pairs.get(k)
+        if got is None:
+            a, b = pairs[k]
+            dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
+            res = measure_change(self.terrain.heightfield(a), self.terrain.heightfield(b), dates=dates)
+            got = self._pairs[k] = pair_payload(res, dates, (a, b), str(k))
+        return got
 
     def info(self) -> dict[str, Any]:
         qm = self.qm()
@@ -159,19 +156,34 @@ class TileService:
         return {"name": Path(str(self.terrain.path)).name if self.terrain.path else "terrain",
                 "kind": self.terrain.kind, "bounds_deg": list(qm.bbox), "elevation_range_m": [lo, hi],
                 "epochs": list(self.terrain.epochs), "epoch": getattr(self.terrain, "epoch", None),
-                "nodes": len(tree), "max_zoom": qm.max_zoom, "cesium": self.cesium is not None,
-                "change_full_m": CHANGE_FULL_M, "change_min_m": CHANGE_MIN_M}  # fmt: skip
+                "nodes": len(tree), "max_zoom": qm.max_zoom, "cesium": self.cesium is not None}  # fmt: skip
 
     def _encode(self, path: str) -> tuple[bytes, str, bool] | None:
         """(body, content type, already gzip'd) of a dynamic path, or None when it is not in the tile set."""
+        epoch: str | None = None
         if path == "/info.json":
             return json.dumps(self.info()).encode(), "application/json", False
-        m = _CHANGE.match(path)
+        if path == "/site.json":
+            return json.dumps(self.site_manifest()).encode(), "application/json", False
+        m = _SITE_TILES.match(path)
         if m:
-            if not all(e in self.terrain.epochs for e in m.groups()):
+            epochs = self._site_epochs()
+            i = int(m.group(1))
+            if i >= len(epochs):
                 return None
-            return self.change_png(*m.groups()), "image/png", False
-        epoch = None
+            epoch = epochs[i]
+            path = "/3dtiles" + m.group(2)
+        m = _SITE_PAIR.match(path)
+        if m:
+            got = self.site_pair(int(m.group(1)))
+            if got is None:
+                return None
+            meta, files = got
+            if m.group(2) == ".json":
+                return json.dumps(meta, separators=(",", ":")).encode(), "application/json", False
+            body = files.get(f"pairs/{m.group(1)}{m.group(2)}")
+            ctype = "image/png" if m.group(2).endswith(".png") else "application/octet-stream"
+            return (body, ctype, False) if body is not None else None
         m = _EPOCH.match(path)
         if m:
             if m.group(1) not in self.terrain.epochs:
@@ -226,8 +238,8 @@ class TileService:
     def _static(self, path: str) -> tuple[bytes, str, str, bool] | None:
         if path in ("/", "/index.html"):
             name = "index.html"
-        elif path.startswith("/static/") and path[len("/static/") :] in STATIC_FILES:
-            name = path[len("/static/") :]
+        elif path[1:] in PAGE_FILES:
+            name = path[1:]
         elif path.startswith("/cesium/") and self.cesium is not None:
             rel = path[len("/cesium/") :]
             f = (self.cesium / rel).resolve()
@@ -241,7 +253,7 @@ class TileService:
             return value
         else:
             return None
-        body = resources.files("terralod.serve").joinpath("static", name).read_bytes()
+        body = resources.files("terralod.site").joinpath("static", name).read_bytes()
         ctype = mimetypes.guess_type(name)[0] or "application/octet-stream"
         return (body, ctype, '"' + hashlib.sha1(body).hexdigest() + '"', False)
 

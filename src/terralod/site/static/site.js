@@ -409,6 +409,7 @@
     const diag = Cesium.Cartesian3.distance(Cesium.Cartesian3.fromDegrees(w, s, zlo), Cesium.Cartesian3.fromDegrees(e, n, zlo));
     viewer.camera.lookAt(centre, new Cesium.HeadingPitchRange(0.0, Cesium.Math.toRadians(-50), 1.1 * diag));
     viewer.camera.lookAtTransform(Cesium.Matrix4.IDENTITY);
+    viewer.camera.moveLeft(0.18 * diag);  // the terrain to the right of the panel
 
     // the plain-language summary of the main pair
     if (site.pairs.length) {

@@ -1,0 +1,339 @@
+"""The change site (terralod.site): the folder ``terralod change --site`` and ``terralod export --format site``
+write, and ``terralod serve``'s page, checked in a real headless Chromium through the page's contract
+``window.terralodSite`` against what ``terralod change`` wrote in the same run (dod.tif, the --zones budget).
+
+The St Helens pair (../shared/data/change, 2000-09-25 and 2007-07-05, 10 m): the dome rose up to 205 m.
+Python-side invariants (the lattice the page maps lon/lat with, the drape's affine map, the pairs a site
+carries) run without a browser; the browser tests skip with the reason when chromium or node_modules are
+missing.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from terralod.cli import main
+
+REPO = Path(__file__).resolve().parents[1]
+BEFORE = "change/st_helens_crater_2000-09-25_10m.tif"
+AFTER = "change/st_helens_crater_2007-07-05_10m.tif"
+A, B = "2000-09-25", "2007-07-05"
+
+
+def _browser_missing() -> str | None:
+    if shutil.which("chromium") is None:
+        return "Debian chromium not installed (bash scripts/install.sh installs it)"
+    if shutil.which("node") is None:
+        return "node not installed"
+    if not (REPO / "node_modules" / "puppeteer-core").is_dir():
+        return "node_modules/puppeteer-core missing (run `npm ci` in the repository)"
+    from terralod.serve import cesium_dir
+
+    if cesium_dir() is None:
+        return "CesiumJS not installed with terralod (scripts/vendor_cesium.py)"
+    return None
+
+
+def _drive(url: str, steps: list[dict], shots: Path, timeout_s: int = 240) -> dict:
+    job = {
+        "url": url,
+        "shots": str(shots) + "/",
+        "steps": steps,
+        "timeoutMs": 150000,
+        "width": 900,
+        "height": 600,
+    }
+    run = subprocess.run(["node", str(REPO / "tests" / "web" / "site_check.mjs")], input=json.dumps(job),
+                         capture_output=True, text=True, timeout=timeout_s, cwd=REPO)  # fmt: skip
+    assert run.stdout.strip(), run.stderr[-2000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+def _cli(args: list[str]) -> None:
+    """Run a terralod command in this process; it must succeed."""
+    try:
+        main(args)
+    except SystemExit as exc:
+        assert exc.code in (0, None), args
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def change_run(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``terralod change BEFORE AFTER -o OUT --site --zones Z``: dod.tif, the zone budget and the site."""
+    tmp = tmp_path_factory.mktemp("site")
+    zones = tmp / "zones.geojson"
+    ring = [[-122.1975, 46.1935], [-122.1830, 46.1925], [-122.1815, 46.2010], [-122.1960, 46.2030]]
+    zones.write_text(json.dumps({"type": "FeatureCollection", "features": [{"type": "Feature",
+        "properties": {"name": "dome"}, "geometry": {"type": "Polygon", "coordinates": [ring + [ring[0]]]}}]}))  # fmt: skip
+    out = tmp / "out"
+    _cli(["change", str(shared_data / BEFORE), str(shared_data / AFTER), "-o", str(out), "--site",
+          "--zones", str(zones), "--no-views"])  # fmt: skip
+    (out / "ring.json").write_text(json.dumps(ring))
+    return out
+
+
+@pytest.fixture(scope="module")
+def static_host(change_run: Path):
+    """``python -m http.server`` in the site folder, as any host would serve it (no terralod)."""
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"],
+                            cwd=change_run / "site", stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    for _ in range(100):
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            break
+        except OSError:
+            time.sleep(0.1)
+    yield f"http://127.0.0.1:{port}/"
+    proc.terminate()
+    proc.wait(10)
+
+
+# -- without a browser ----------------------------------------------------------------------------------
+def test_pairs_first_last_and_consecutive() -> None:
+    from terralod.site.data import pairs_of
+
+    assert pairs_of(["a"]) == []
+    assert pairs_of(["a", "b"]) == [("a", "b")]
+    names = [f"e{i}" for i in range(6)]
+    p = pairs_of(names)
+    assert (
+        p[0] == ("e0", "e5")
+        and len(p) == 6
+        and all((a, b) in p for a, b in zip(names, names[1:], strict=False))
+    )
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(0.02, 0.98), st.floats(0.02, 0.98), st.sampled_from(["EPSG:26910", "EPSG:32633", "EPSG:3857",
+                                                                        "EPSG:4326"]))  # fmt: skip
+def test_lattice_maps_lonlat_to_the_grid_within_a_centimetre(fx: float, fy: float, crs: str) -> None:
+    """The page's bilinear lattice (reimplemented here as site.js does it) against pyproj, anywhere on a
+    20 km terrain (0.2° in a geographic CRS) in several projections."""
+    from affine import Affine
+    from pyproj import Transformer
+
+    from terralod.heightfield import Heightfield
+    from terralod.site.data import lattice
+
+    origin = {"EPSG:26910": (560000, 5120000, 10.0), "EPSG:32633": (400000, 5000000, 10.0),
+              "EPSG:3857": (1500000, 6000000, 10.0), "EPSG:4326": (14.0, 47.0, 0.0001)}[crs]  # fmt: skip
+    x0, y0, step = origin
+    z = np.zeros((2000, 2000), np.float32)
+    hf = Heightfield(z, np.ones(z.shape, bool), Affine(step, 0, x0, 0, -step, y0), crs=crs)
+    L = lattice(hf)
+    w, s, e, n = hf.bounds_m
+    x, y = w + fx * (e - w), s + fy * (n - s)
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    k = L["nodes"]
+    fi, fj = (lon - L["lon0_deg"]) / L["dlon_deg"], (lat - L["lat0_deg"]) / L["dlat_deg"]
+    i, j = int(fi), int(fj)
+    ti, tj = fi - i, fj - j
+    X, Y = np.reshape(L["x_m"], (k, k)), np.reshape(L["y_m"], (k, k))
+
+    def at(a: np.ndarray) -> float:
+        return (a[j, i] * (1 - ti) + a[j, i + 1] * ti) * (1 - tj) + (
+            a[j + 1, i] * (1 - ti) + a[j + 1, i + 1] * ti
+        ) * tj
+
+    tol = 0.01 if crs != "EPSG:4326" else 1e-7
+    assert abs(at(X) - x) < tol and abs(at(Y) - y) < tol
+
+
+def test_site_folder_is_whole_and_names_no_machine(change_run: Path) -> None:
+    site = change_run / "site"
+    for f in ("index.html", "site.js", "site.css", "site.json", "README.txt", "cesium/Cesium.js",
+              "cesium/LICENSE.md", "epochs/0/tileset.json", "epochs/1/tileset.json", "pairs/0.json"):  # fmt: skip
+        assert (site / f).is_file(), f
+    m = json.loads((site / "site.json").read_text())
+    assert [e["name"] for e in m["epochs"]] == [A, B] and m["pairs"] == [
+        {"from": A, "to": B, "url": "pairs/0.json"}
+    ]
+    pair = json.loads((site / "pairs/0.json").read_text())
+    assert pair["drape"]["residual_cells"] < 0.5
+    h, w = pair["grid"]["shape"]
+    assert (site / "pairs/0-dod.f32").stat().st_size == 4 * h * w
+    home = str(Path.home())
+    for f in [*site.glob("*.json"), *site.glob("pairs/*.json"), site / "README.txt", change_run / "report.html",
+              change_run / "summary.json"]:  # fmt: skip
+        text = f.read_text(errors="replace")
+        assert str(change_run.parent) not in text and home + "/" not in text, f
+
+
+def test_site_refuses_to_write_over_its_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from terralod.io.reader import sample_heightfield
+    from terralod.pyramid.builder import build_store
+
+    store = tmp_path / "in" / "s.terra"
+    store.parent.mkdir()
+    build_store(sample_heightfield(), store, workers=1)
+    with pytest.raises(SystemExit) as exc:
+        main(["export", str(store), "--format", "site", "-o", str(tmp_path / "in"), "--overwrite"])
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and len(err.splitlines()) == 1 and store.is_file()
+
+
+# -- in the browser -----------------------------------------------------------------------------------
+def _cells(change_run: Path, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
+    """n random valid cells of dod.tif: rows, cols, values, and their centres in lon/lat."""
+    import rasterio
+    from pyproj import Transformer
+
+    with rasterio.open(change_run / "dod.tif") as ds:
+        d = ds.read(1, masked=True).filled(np.nan)
+        tr, crs = ds.transform, ds.crs
+    rng = np.random.default_rng(seed)
+    ok = np.argwhere(np.isfinite(d))
+    pick = ok[rng.choice(len(ok), n, replace=False)]
+    r, c = pick[:, 0], pick[:, 1]
+    x, y = tr.c + (c + 0.5) * tr.a + (r + 0.5) * tr.b, tr.f + (c + 0.5) * tr.d + (r + 0.5) * tr.e
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    return r, c, d[r, c], [[float(a), float(b)] for a, b in zip(lon, lat, strict=True)]
+
+
+def test_static_site_answers_like_terralod_change(change_run: Path, static_host: str, tmp_path: Path) -> None:
+    """From a plain static host: changeAt = dod.tif at 20 cells within 0.01 m; volume of the zone polygon =
+    `terralod change --zones` within 0.5 %; the heights CesiumJS samples follow each epoch's DEM within the
+    tiles' stored error; the drape is blue on the dome's top and red where dod.tif says the ground dropped;
+    the legend is shown; no request leaves loopback, no console error."""
+    why = _browser_missing()
+    if why:
+        pytest.skip(why)
+    import rasterio
+    from PIL import Image
+    from scipy.ndimage import maximum_filter
+
+    rows, cols, vals, pts = _cells(change_run, 20, 3)
+    ring = json.loads((change_run / "ring.json").read_text())
+    summary = json.loads((change_run / "summary.json").read_text())
+    zone = summary["zones"][0]
+    with rasterio.open(change_run / "dod.tif") as ds:
+        d = ds.read(1, masked=True).filled(np.nan)
+    lod = summary["level_of_detection_m"]
+    ext = summary["extremes"]["max_rise"]
+    drop = maximum_filter(np.nan_to_num(d, nan=0.0), size=3) < -2 * lod  # a 3x3 patch that dropped
+    rr, cc = np.unravel_index(int(np.argmin(np.where(drop, d, 0.0))), d.shape)
+    assert drop.any()
+    (_, _, _, drop_ll) = _cells_at(change_run, [rr], [cc])
+    steps = [{"op": "changeAt", "args": [lo, la, A, B]} for lo, la in pts]
+    steps.append({"op": "volume", "args": [ring, A, B]})
+    hpts = pts[:8]
+    steps += [{"op": "setEpoch", "args": [A]}, {"op": "heights", "args": [hpts]},
+              {"op": "setEpoch", "args": [B]}, {"op": "heights", "args": [hpts]}]  # fmt: skip
+    for name, (lo, la), z in (
+        ("rise", (ext["lon_deg"], ext["lat_deg"]), 3800.0),
+        ("drop", drop_ll[0], 3800.0),
+    ):
+        steps += [{"op": "camera", "args": [lo, la, z, 0, -90]}, {"op": "describeChange", "args": [lo, la],
+                   "shot": name, "settleMs": 800}]  # fmt: skip
+    res = _drive(static_host, steps, tmp_path)
+    assert not res["errors"] and not res["blocked"] and not res["failedRequests"], res
+    got = res["results"]
+    for k in range(20):
+        v = got[k]["value"]
+        assert v["change_m"] is not None and abs(v["change_m"] - vals[k]) <= 0.01, (k, v, vals[k])
+        assert abs(v["after_m"] - v["before_m"] - v["change_m"]) < 0.01
+        assert v["lod_m"] == pytest.approx(lod, rel=1e-6)
+    vol = got[20]["value"]
+    assert vol["net_m3"] == pytest.approx(zone["net_m3"], rel=0.005), (vol, zone)
+    assert vol["gain_m3"] == pytest.approx(zone["gain_m3"], rel=0.005)
+    assert vol["net_uncertainty_m3"] == pytest.approx(zone["net_uncertainty_m3"], rel=0.01)
+    # heights: each epoch's DEM at the sampled cell centres (the leaf tiles are the lossless grid)
+    heights = {A: np.array(got[22]["value"], float), B: np.array(got[24]["value"], float)}
+    for epoch, dem in ((A, BEFORE), (B, AFTER)):
+        src = _dem_values(dem, hpts)
+        h = heights[epoch]
+        assert np.isfinite(h).sum() >= 6
+        assert np.nanmax(np.abs(h - src)) <= 0.6, (epoch, h - src)  # + picking precision
+    # the drape's colours at the dome's top (rose: blue) and at the patch that dropped (red)
+    for name, sign in (("rise", +1), ("drop", -1)):
+        img = np.asarray(Image.open(tmp_path / f"{name}.png").convert("RGB"), np.float64)
+        px = np.median(img[295:306, 445:456].reshape(-1, 3), axis=0)
+        if sign > 0:
+            assert px[2] > px[0] + 40, (name, px)
+        else:
+            assert px[0] > px[2] + 40, (name, px)
+    assert "rose" in got[-3]["value"] and "dropped" in got[-1]["value"]
+    assert res["readyMs"] > 0
+
+
+def _cells_at(change_run: Path, rows: list, cols: list):
+    import rasterio
+    from pyproj import Transformer
+
+    with rasterio.open(change_run / "dod.tif") as ds:
+        tr, crs = ds.transform, ds.crs
+    cc, rr = np.asarray(cols) + 0.5, np.asarray(rows) + 0.5
+    x, y = tr.c + cc * tr.a + rr * tr.b, tr.f + cc * tr.d + rr * tr.e
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    return (
+        rows,
+        cols,
+        None,
+        [[float(a), float(b)] for a, b in zip(np.atleast_1d(lon), np.atleast_1d(lat), strict=True)],
+    )
+
+
+def _dem_values(dem: str, pts: list) -> np.ndarray:
+    import rasterio
+    from pyproj import Transformer
+
+    from conftest import SHARED_DATA as SHARED
+
+    with rasterio.open(SHARED / dem) as ds:
+        z = ds.read(1).astype(np.float64)
+        x, y = Transformer.from_crs("EPSG:4326", ds.crs, always_xy=True).transform(*np.array(pts).T)
+        inv = ~ds.transform
+        c = np.floor(inv.a * x + inv.b * y + inv.c).astype(int)
+        r = np.floor(inv.d * x + inv.e * y + inv.f).astype(int)
+    return z[r, c]
+
+
+def test_serve_shows_the_same_page(shared_data: Path, tmp_path: Path) -> None:
+    """`terralod serve` on a store with two epochs serves the same page and contract: the same epochs and
+    pair, changeAt at the dome's top as the exported site says."""
+    why = _browser_missing()
+    if why:
+        pytest.skip(why)
+    from terralod.serve import make_server
+    from terralod.terrain import open_terrain
+
+    store = tmp_path / "sh.terra"
+    _cli(["build", str(shared_data / BEFORE), "-o", str(store), "--epoch", A])
+    _cli(["update", str(store), str(shared_data / AFTER), "--epoch", B])
+    t = open_terrain(store)
+    srv, service = make_server(t, "127.0.0.1", 0)
+    th = threading.Thread(target=srv.serve_forever, daemon=True)
+    th.start()
+    try:
+        pair = service.site_pair(0)
+        assert pair is not None
+        big = pair[0]["largest"]
+        res = _drive(f"http://127.0.0.1:{srv.server_address[1]}/", [
+            {"op": "setSwipe", "args": [A, B, 0.5], "shot": "swipe"},
+            {"op": "changeAt", "args": [big["lon_deg"], big["lat_deg"], A, B]}], tmp_path)  # fmt: skip
+    finally:
+        srv.shutdown()
+        srv.server_close()
+        t.close()
+    assert not res["errors"] and not res["blocked"] and not res["failedRequests"], res
+    assert res["epochs"] == [A, B] and res["pairs"] == [[A, B]]
+    assert res["results"][1]["value"]["change_m"] == pytest.approx(big["value_m"], abs=0.01)
