@@ -2,7 +2,7 @@
 
 Python tests decode what the exporters wrote (glb through pygltflib, quantized-mesh through the decoder)
 and compare with the store and the source DEM; the server tests bind a loopback port. The browser test runs
-Debian's headless Chromium (software WebGL) with CesiumJS through puppeteer-core (tests/web/browser_check.mjs)
+Debian's headless Chromium (software WebGL) with CesiumJS through puppeteer-core (tests/test_interop.py, tests/test_site.py)
 and the Khronos glTF validator through node; it skips with the reason when chromium or node_modules are
 missing. Real data: ../shared/data/dem/srtm1_crop256_alpine.tif (skipped when absent).
 """
@@ -284,7 +284,9 @@ def test_quantized_mesh_export_against_source(alpine_store: Path, shared_data: P
         inner = sorted(f for f in files if f[0] == z)
         zz, x, y = inner[len(inner) // 2]
         grid = qm.tile(zz, x, y, regular=65)
-        greedy = qm.tile(zz, x, y, target_m=0.5 * grid.error_m)  # the lattice's target; measured on the source
+        greedy = qm.tile(
+            zz, x, y, target_m=0.5 * grid.error_m
+        )  # the lattice's target; measured on the source
         assert greedy.error_m <= grid.error_m and len(greedy.data) < len(grid.data)
 
 
@@ -393,66 +395,6 @@ def test_server_tiles_cache_gzip_etag(server) -> None:
     assert code == 200 and body[:4] == b"glTF" and "Content-Encoding" not in hdr
 
 
-# -- the browser -------------------------------------------------------------------------------------
-def test_browser_cesium_loads_both_formats(
-    server, alpine_store: Path, shared_data: Path, tmp_path: Path
-) -> None:
-    """CesiumJS in headless Chromium loads the quantized-mesh terrain and the 3D Tiles of a real SRTM crop:
-    no tile error, heights sampled at 20 source samples within the stored errors, a frame with terrain in
-    it; the Khronos validator finds 0 errors in every glb of the 3D Tiles export."""
-    why = _browser_missing()
-    if why:
-        pytest.skip(why)
-    from terralod.io.reader import read_heightfield
-    from terralod.terrain import open_terrain
-
-    base, service = server
-    hf = read_heightfield(shared_data / ALPINE)
-    rng = np.random.default_rng(7)
-    rows = rng.integers(20, hf.height - 20, 20)
-    cols = rng.integers(20, hf.width - 20, 20)
-    tr = hf.transform
-    x, y = tr.c + (cols + 0.5) * tr.a + (rows + 0.5) * tr.b, tr.f + (cols + 0.5) * tr.d + (rows + 0.5) * tr.e
-    qm = service.qm()
-    lon, lat = qm.geo.lonlat(np.asarray(x), np.asarray(y))
-    src = np.asarray(hf.elevation_m, np.float64)[rows, cols]
-    pts = json.dumps([[float(a), float(b)] for a, b in zip(lon, lat, strict=True)])
-    script = REPO / "tests" / "web" / "browser_check.mjs"
-    run = subprocess.run(["node", str(script), base + "/", "terrain,3dtiles", pts, str(tmp_path / "shot-"), "40000"],
-                         capture_output=True, text=True, timeout=90, cwd=REPO)  # fmt: skip
-    results = json.loads(run.stdout.strip().splitlines()[-1])
-    from PIL import Image
-
-    for fmt in ("terrain", "3dtiles"):
-        res = results[fmt]
-        assert res["loaded"] and not res["errors"] and not res["failedRequests"], res
-        assert res["tileResponses"] > 0 and all(b.startswith("304") for b in res["badTileResponses"])
-        assert not res["blocked"]
-        assert re.search(r"height under cursor -?\d+\.\d m", res["cursor"]), res["cursor"]
-        img = np.asarray(Image.open(tmp_path / f"shot-{fmt}.png").convert("RGB"), np.float64)[120:, :]
-        assert img.std() > 15 and (img.sum(axis=2) > 60).mean() > 0.2  # a lit, varied terrain fills the frame
-    layer = qm.layer()
-    qm_err = max(qm._errors.get(c, 0.0) for c in qm._errors if c[0] == layer["maxzoom"])
-    h_qm = np.array(results["terrain"]["heights"], float)
-    assert np.all(np.abs(h_qm - src) <= qm_err + (hf.elevation_m.max() - hf.elevation_m.min()) / 32767 + 0.01)
-    with open_terrain(alpine_store) as t:
-        leaf_err = max(
-            n.vertical_error_m
-            for n in t.lod_tree()
-            if n.code[0] == max(c[0] for c in service.tiles3d().nodes)
-        )
-    h_3d = np.array([np.nan if v is None else v for v in results["3dtiles"]["heights"]], float)
-    assert np.isfinite(h_3d).sum() >= 18
-    assert np.nanmax(np.abs(h_3d - src)) <= leaf_err + 0.5  # picking precision of sampleHeightMostDetailed
-    out = tmp_path / "t3"
-    with open_terrain(alpine_store) as t:
-        export_3dtiles(t, out)
-    val = subprocess.run(["node", str(REPO / "tests" / "web" / "validate_glb.mjs"), str(out)], capture_output=True,
-                         text=True, timeout=60, cwd=REPO)  # fmt: skip
-    rep = json.loads(val.stdout.strip().splitlines()[-1])
-    assert rep["files"] == len(list(out.rglob("*.glb"))) > 0 and rep["errors"] == 0, rep
-
-
 def _top_sum(tile: dict) -> float:
     """Sum of the region tops of a tileset subtree (grows where any tile's terrain rose)."""
     return tile["boundingVolume"]["region"][5] + sum(_top_sum(k) for k in tile.get("children", []))
@@ -460,7 +402,7 @@ def _top_sum(tile: dict) -> float:
 
 def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """A store with two epochs: --epoch exports that epoch's heights, an unknown epoch is one line + exit 2;
-    the server serves /e/EPOCH/... per epoch (404 for another name) and the change overlay PNG."""
+    the server serves /e/EPOCH/... per epoch (404 for another name) and the site's pair of the two epochs."""
     from terralod.heightfield import Heightfield
     from terralod.io.reader import read_heightfield
     from terralod.pyramid.builder import build_store
@@ -481,19 +423,18 @@ def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pyte
         first, last = t.epochs[0], t.epochs[-1]
         assert last == "2020-01-01"
         svc = TileService(t)
-        assert (
-            svc.get("/e/nope/3dtiles/tileset.json") is None and svc.get("/change/nope/2020-01-01.png") is None
-        )
+        assert svc.get("/e/nope/3dtiles/tileset.json") is None and svc.get("/pairs/1.json") is None
         hi = _top_sum(svc.tiles3d(last).tileset()["root"])
         assert _top_sum(svc.tiles3d(first).tileset()["root"]) < hi - 20
-        png = svc.get(f"/change/{first}/{last}.png")
-        assert png is not None and png[1] == "image/png"
-        import io
-
-        from PIL import Image
-
-        img = np.asarray(Image.open(io.BytesIO(png[0])))
-        assert img[..., 3].max() > 0 and img[..., 3].mean() < 128  # the mound, transparent elsewhere
+        site = json.loads(
+            gzip.decompress(svc.get("/site.json")[0])
+            if svc.get("/site.json")[3]
+            else svc.get("/site.json")[0]
+        )
+        assert [e["name"] for e in site["epochs"]] == [first, last] and site["pairs"][0]["from"] == first
+        meta, files = svc.site_pair(0)
+        dod = np.frombuffer(files["pairs/0-dod.f32"], "<f4")
+        assert np.nanmax(dod) == pytest.approx(60.0, abs=0.5)  # the mound (same grid: no shift)
     out = tmp_path / "first"
     main(["export", str(store), "--format", "3dtiles", "-o", str(out), "--epoch", first])
     ts = json.loads((out / "tileset.json").read_text())
