@@ -2,7 +2,11 @@
 against the regular grid at equal measured error, CesiumJS load times in headless Chromium, and a loopback
 load test of ``terralod serve`` (1,000 concurrent tile requests).
 
-    python benchmarks/web.py [--runs 3] [--no-browser]
+    python benchmarks/web.py [--runs 3] [--no-browser] [--stock-only]
+
+The stock section (``stock_figures``): full DEMs exported as a user would (SRTM3 N41E001 straight from the
+DEM, Big Tujunga through a store), bytes per triangle as written and gzip'd, declared error per zoom, and
+the load time to all tiles in stock CesiumJS (tests/web/stock_cesium.html) from three views.
 
 Terrains: the bundled sample (Jacksboro fault, 416 x 440 at 74.6 m) and the 256² SRTM crop of Mt Rainier
 from ../shared/data (skipped when absent). Writes benchmarks/results/web.json and web.md.
@@ -244,13 +248,139 @@ def browser(base: str, runs: int) -> dict:
     return summary
 
 
+def _dir_bytes(d: Path, suffix: str) -> tuple[int, int]:
+    """(bytes as written, bytes gzip'd at level 6) of every file with ``suffix`` under ``d``."""
+    raw = gz = 0
+    for f in d.rglob(f"*{suffix}"):
+        b = f.read_bytes()
+        raw += len(b)
+        gz += len(b) if b[:2] == b"\x1f\x8b" else len(gzip.compress(b, 6, mtime=0))
+    return raw, gz
+
+
+def _site(tmp: Path, exports: dict[str, Path]) -> Path:
+    """A folder for a plain static server: the stock page, CesiumJS, the exports (symlinks)."""
+    try:
+        from terralod.serve import cesium_dir
+
+        cesium = Path(cesium_dir())
+    except Exception:  # noqa: BLE001 - no packaged copy: the npm one
+        cesium = ROOT / "node_modules" / "cesium" / "Build" / "Cesium"
+    site = tmp / "site"
+    site.mkdir(exist_ok=True)
+    (site / "cesium").symlink_to(cesium, target_is_directory=True)
+    shutil.copy(ROOT / "tests" / "web" / "stock_cesium.html", site / "stock_cesium.html")
+    for name, d in exports.items():
+        (site / name).symlink_to(d, target_is_directory=True)
+    return site
+
+
+def stock_figures(tmp: Path, browser_runs: bool) -> dict:
+    """Full DEMs exported as a user would (N41E001 straight from the DEM; Big Tujunga through a store),
+    bytes per triangle as written and gzip'd (every extension included), the declared error per zoom, and
+    the load time to all tiles in stock CesiumJS (defaults) from three views, from a plain static server."""
+    from terralod.export import export_3dtiles, export_quantized_mesh
+    from terralod.export.source import source_from_dem
+    from terralod.io.reader import read_heightfield
+    from terralod.pyramid.builder import build_store
+    from terralod.terrain import open_terrain
+
+    out: dict = {}
+    geo = SHARED / "dem" / "srtm3_N41E001.tif"
+    utm = SHARED / "dem" / "big_tujunga_srtm30m_utm11.tif"
+    if not geo.exists():
+        return out
+    exports: dict[str, Path] = {}
+    rep = export_quantized_mesh(source_from_dem(geo), tmp / "qm_geo")
+    exports["qm_geo"] = tmp / "qm_geo"
+    out["N41E001 quantized-mesh (from the DEM)"] = rep
+    store = tmp / "tujunga.terra"
+    build_store(read_heightfield(utm), store, workers=2)
+    with open_terrain(store) as t:
+        out["Big Tujunga quantized-mesh (store)"] = export_quantized_mesh(t, tmp / "qm_utm")
+        out["Big Tujunga 3D Tiles (store)"] = export_3dtiles(t, tmp / "t3_utm")
+    exports["qm_utm"], exports["t3_utm"] = tmp / "qm_utm", tmp / "t3_utm"
+    res: dict = {}
+    for name, r in out.items():
+        suffix = ".glb" if "3D Tiles" in name else ".terrain"
+        raw, gz = _dir_bytes(r.path, suffix)
+        res[name] = {"tiles": r.tiles, "triangles": r.triangles, "seconds": r.seconds, "bytes": raw,
+                     "gzip_bytes": gz, "B_per_tri": raw / max(r.triangles, 1), "gzip_B_per_tri": gz / max(r.triangles, 1),
+                     **{k: v for k, v in r.extra.items() if k in ("water_masks", "error_m_per_level", "max_zoom",
+                                                                   "geometric_error_root")}}  # fmt: skip
+    if browser_runs and shutil.which("node") and shutil.which("chromium"):
+        site = _site(tmp, exports)
+        proc = subprocess.Popen([sys.executable, "-u", "-m", "http.server", "0", "--bind", "127.0.0.1"], cwd=site,
+                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)  # fmt: skip
+        try:
+            port = proc.stdout.readline().split("port ")[1].split()[0]
+            base = f"http://127.0.0.1:{port}"
+            for name, query, kind, bbox, ridge in (
+                ("N41E001 quantized-mesh (from the DEM)", "terrain=qm_geo/&hmin=0&hmax=1200", "terrain",
+                 (1.0, 41.0, 2.0, 42.0), (1.83, 41.6)),
+                ("Big Tujunga 3D Tiles (store)", "tileset=t3_utm/tileset.json", "tileset",
+                 (-118.35, 34.22, -117.95, 34.40), (-118.15, 34.33)),
+                ("Big Tujunga quantized-mesh (store)", "terrain=qm_utm/&hmin=300&hmax=2300", "terrain",
+                 (-118.35, 34.22, -117.95, 34.40), (-118.15, 34.33)),
+            ):  # fmt: skip
+                w, s_, e, n = bbox
+                cfg = {"kind": kind, "points": [list(ridge)], "views": [
+                    {"name": "whole", "rect": [w, s_, e, n]},
+                    {"name": "ridge", "lon": ridge[0], "lat": ridge[1], "height": 2000 + 1500, "pitch": -90},
+                    {"name": "oblique", "lon": 0.5 * (w + e), "lat": s_ - 0.3 * (n - s_), "height": 1500, "pitch": -5}]}  # fmt: skip
+                (tmp / "cfg.json").write_text(json.dumps(cfg))
+                r = subprocess.run(["node", str(ROOT / "tests" / "web" / "stock_check.mjs"),
+                                    f"{base}/stock_cesium.html?{query}", str(tmp / "cfg.json"), str(tmp / "shot_"),
+                                    "180000"], capture_output=True, text=True, timeout=900)  # fmt: skip
+                try:
+                    j = json.loads(r.stdout.strip().splitlines()[-1])
+                except (IndexError, json.JSONDecodeError):
+                    j = {"errors": [r.stderr[-300:]], "views": []}
+                res[name]["stock_cesium"] = {"views": j.get("views", []), "errors": len(j.get("errors", [])),
+                                             "wall_ms": j.get("wallMs")}  # fmt: skip
+        finally:
+            proc.terminate()
+            proc.wait(10)
+    return res
+
+
+def _stock_md(res: dict) -> list[str]:
+    md = ["", "## Exports as a user makes them, in stock CesiumJS (defaults, plain static server)", "",
+          "Bytes of the tile files as written (uncompressed quantized-mesh, every extension included) and gzip'd;",
+          "declared error per zoom = max over the zoom's tiles of the true error of each tile as decoded, against",
+          "every source sample in it (the DEM's own samples).", "",
+          "| export | tiles | triangles | s | B/tri | gzip B/tri | water masks (none/all/some) | load ms whole / ridge / oblique | errors |",
+          "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for name, r in res.items():
+        wm = r.get("water_masks")
+        wms = f"{wm['none']}/{wm['all']}/{wm['some']}" if wm else "–"
+        sc = r.get("stock_cesium", {})
+        loads = " / ".join(str(v["ms"]) for v in sc.get("views", [])) or "–"
+        md.append(f"| {name} | {r['tiles']} | {r['triangles']:,} | {r['seconds']:.1f} | {r['B_per_tri']:.2f} | "
+                  f"{r['gzip_B_per_tri']:.2f} | {wms} | {loads} | {sc.get('errors', '–')} |")  # fmt: skip
+    md += ["", "| export | declared max vertical error per zoom, m |", "|---|---|"]
+    for name, r in res.items():
+        if "error_m_per_level" in r:
+            md.append(
+                f"| {name} | {', '.join(f'z{z}: {e:.2f}' for z, e in enumerate(r['error_m_per_level']))} |"
+            )
+    return md
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--no-browser", action="store_true")
     ap.add_argument("--requests", type=int, default=1000)
+    ap.add_argument("--stock-only", action="store_true", help="only the stock-client section")
     a = ap.parse_args()
     payload: dict = {"terrains": {}}
+    if a.stock_only:
+        with tempfile.TemporaryDirectory() as d:
+            payload["stock"] = stock_figures(Path(d), not a.no_browser)
+        md = ["# Web globe: exports in stock clients", *_stock_md(payload["stock"])]
+        write_results("web_stock", payload, "\n".join(md) + "\n")
+        return
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         for name, path in stores(tmp).items():
@@ -265,6 +395,8 @@ def main() -> None:
                 proc.terminate()
                 proc.wait(10)
             payload["terrains"][name] = entry
+        print("benchmarking the stock-client exports", flush=True)
+        payload["stock"] = stock_figures(tmp, not a.no_browser)
     md = ["# Web globe: exports, encodings, browser, serve", "",
           "Medians of the runs; machine shared (2 cores, loaded). Bytes per triangle of the same meshes;",
           "quantized-mesh sizes without extensions for the encoder comparison.", "",
@@ -320,6 +452,7 @@ def main() -> None:
                                                                             "page_to_loaded_ms")]  # fmt: skip
                 md.append(f"| {name} | {fmt} | {r['loaded']}/{r['runs']} | {' | '.join(ms)} | {r['tiles']} | "
                           f"{r['triangles']:,} | {r['errors']} |")  # fmt: skip
+    md += _stock_md(payload["stock"])
     write_results("web", payload, "\n".join(md) + "\n")
 
 
