@@ -288,7 +288,7 @@ def _write_site(dest: Path, result, hfs: list, dates: list, options: dict) -> No
     from terralod.change.volumes import measure_change
     from terralod.site import site_from_change
 
-    names = [d or f"survey {i + 1}" for i, d in enumerate(dates)]
+    names = [d or f"survey-{i + 1}" for i, d in enumerate(dates)]
     pairs = [(names[0], names[-1], result)]
     for i in range(1, len(hfs)):
         if len(hfs) > 2:

@@ -58,13 +58,14 @@ class SiteReport:
     epochs: int = 0
     pairs: int = 0
     area_km2: float = 0.0
+    shared_bytes: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         per_epoch = self.parts.get("epochs", 0) / max(self.epochs, 1)
         return {"path": self.path.name, "bytes": self.bytes, "parts": self.parts, "epochs": self.epochs,
                 "pairs": self.pairs, "area_km2": self.area_km2,
                 "bytes_per_km2": self.bytes / self.area_km2 if self.area_km2 else None,
-                "epoch_bytes_each": per_epoch}  # fmt: skip
+                "epoch_bytes_each": per_epoch, "tile_bytes_shared": self.shared_bytes}  # fmt: skip
 
 
 def copy_page(dest: Path) -> None:
@@ -106,6 +107,42 @@ def manifest(title: str, epochs: Sequence[str], pairs: Sequence[tuple[str, str]]
         ],  # fmt: skip
         "pairs": [{"from": a, "to": b, "url": f"pairs/{k}.json"} for k, (a, b) in enumerate(pairs)],
     }
+
+
+def share_tiles(epochs_dir: Path, n: int) -> int:
+    """Tiles an epoch has in common with an earlier one (the same bytes: an update rebuilds only the tiles
+    whose samples changed) are kept once: the later tileset.json points at the earlier file (a relative URI,
+    which 3D Tiles resolves against the tileset). Returns the bytes saved."""
+    import hashlib
+
+    seen: dict[str, str] = {}
+    saved = 0
+    for i in range(n):
+        root = epochs_dir / str(i)
+        moved: dict[str, str] = {}
+        for f in sorted(root.rglob("*.glb")):
+            data = f.read_bytes()
+            h = hashlib.sha256(data).hexdigest()
+            rel = f.relative_to(root).as_posix()
+            if h in seen:
+                moved[rel] = seen[h]
+                saved += len(data)
+                f.unlink()
+            else:
+                seen[h] = f"../{i}/{rel}"
+        if not moved:
+            continue
+        ts_path = root / "tileset.json"
+        ts = json.loads(ts_path.read_text())
+        stack = [ts["root"]]
+        while stack:
+            node = stack.pop()
+            c = node.get("content")
+            if c is not None and c.get("uri") in moved:
+                c["uri"] = moved[c["uri"]]
+            stack.extend(node.get("children", []))
+        ts_path.write_text(json.dumps(ts, separators=(",", ":")))
+    return saved
 
 
 def _folder_bytes(p: Path) -> int:
@@ -150,6 +187,7 @@ def _write(tmp: Path, title: str, between: str, epochs: list[str], terrains: lis
     (tmp / "epochs").mkdir()
     for i, t in enumerate(terrains):
         export_3dtiles(t, tmp / "epochs" / str(i))
+    rep.parts["tiles_shared"] = share_tiles(tmp / "epochs", len(terrains))
     (tmp / "pairs").mkdir()
     for k, (a, b, result) in enumerate(pair_results):
         dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
@@ -163,12 +201,14 @@ def _write(tmp: Path, title: str, between: str, epochs: list[str], terrains: lis
     copy_cesium(tmp)
     for part in ("epochs", "pairs", "cesium"):
         rep.parts[part] = _folder_bytes(tmp / part)
+    shared = rep.parts.pop("tiles_shared")
     rep.parts["page"] = sum((tmp / f).stat().st_size for f in (*PAGE_FILES, "site.json"))
     size = sum(rep.parts.values())
     underline = "=" * len(title)
     (tmp / "README.txt").write_text(README_TXT.format(title=title, underline=underline, between=between,
                                                       size_mb=size / 1e6))  # fmt: skip
     rep.bytes = _folder_bytes(tmp)
+    rep.shared_bytes = shared
     return rep
 
 
@@ -204,29 +244,49 @@ def site_from_store(store: str | Path, out: str | Path, *, overwrite: bool = Fal
             tmp, title, _between(names), names or [store.stem], terrains, pr, bounds, zr, area))  # fmt: skip
 
 
+def _on_grid_of(first: Any, hf: Any) -> Any:
+    """``hf`` on ``first``'s grid (as given when it is already; else resampled as the change aligns it)."""
+    import numpy as np
+
+    from terralod.change.difference import align
+    from terralod.heightfield import Heightfield
+
+    if hf.shape == first.shape and tuple(hf.transform) == tuple(first.transform) and hf.crs == first.crs:
+        return hf
+    z, ok = align(first, hf).after_on_before()
+    return Heightfield(np.where(ok, z, np.nan).astype(np.float32), ok, first.transform, first.crs)
+
+
+def _epoch_name(name: str, i: int) -> str:
+    import re
+
+    clean = re.sub(r"[^A-Za-z0-9_.-]+", "-", name).strip("-.")[:64]
+    return clean if clean and ".." not in clean else f"survey-{i + 1}"
+
+
 def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results: Sequence[tuple[str, str, Any]],
                      out: str | Path, *, title: str | None = None, workers: int | None = None) -> SiteReport:  # fmt: skip
-    """The site of a ``terralod change`` run (``--site``): a store is built from each epoch's DEM (in a
-    temporary folder) for its 3D Tiles; ``results`` are the measured pairs (from, to, ChangeResult)."""
+    """The site of a ``terralod change`` run (``--site``): one store with an epoch per DEM (built in a
+    temporary folder; later DEMs on the first one's grid, so the tiles they share are written once) for the
+    3D Tiles; ``results`` are the measured pairs (from, to, ChangeResult)."""
     from terralod.pyramid.builder import build_store
+    from terralod.pyramid.update import update_store
     from terralod.terrain import open_terrain
 
     out = Path(out)
+    epochs = [_epoch_name(n, i) for i, n in enumerate(names)]
+    rename = dict(zip(names, epochs, strict=True))
+    pairs = [(rename[a], rename[b], r) for a, b, r in results]
     with tempfile.TemporaryDirectory(prefix=".terralod-site-", dir=out.resolve().parent) as work:
-        terrains = []
-        try:
-            for i, hf in enumerate(heightfields):
-                p = Path(work) / f"epoch{i}.terra"
-                build_store(hf, p, workers=workers)
-                terrains.append(open_terrain(p))
-            hf0 = heightfields[0]
-            lo = min(t.elevation_range_m[0] for t in terrains)
-            hi = max(t.elevation_range_m[1] for t in terrains)
-            area = float(hf0.valid.sum()) * abs(hf0.transform.a * hf0.transform.e) / 1e6
+        store = Path(work) / "epochs.terra"
+        first = heightfields[0]
+        build_store(first, store, workers=workers, epoch=epochs[0])
+        for hf, name in zip(heightfields[1:], epochs[1:], strict=True):
+            update_store(_on_grid_of(first, hf), store, name, workers=workers)
+        with open_terrain(store) as terrain:
+            terrains = [terrain.with_epoch(e) for e in epochs]
+            lo, hi = terrain.elevation_range_m
+            area = float(first.valid.sum()) * abs(first.transform.a * first.transform.e) / 1e6
             ttl = title or "How the ground changed"
             return _atomic_site(out, False, [], lambda tmp: _write(
-                tmp, ttl, _between(names), list(names), terrains, list(results), lonlat_bounds(hf0), (lo, hi),
-                area))  # fmt: skip
-        finally:
-            for t in terrains:
-                t.close()
+                tmp, ttl, _between(epochs), epochs, terrains, pairs, lonlat_bounds(first), (lo, hi), area))  # fmt: skip
