@@ -1,11 +1,23 @@
-"""Sphinx configuration: the API reference generated from terralod's numpy-style docstrings.
+"""Sphinx configuration: the user guide, the CLI reference (sphinx-click) and the API reference.
 
 Build (what CI runs): ``python -m sphinx -b html -W --keep-going -q docs docs/_build/html``.
+The benchmark pages are generated at build time from ``benchmarks/results/*.json`` by ``_ext/benchpages.py``.
 """
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent / "_ext"))
 
 project = "terralod"
 author = "terralod developers"
-extensions = ["sphinx.ext.autodoc", "sphinx.ext.napoleon", "sphinx.ext.viewcode"]
+extensions = [
+    "sphinx.ext.autodoc",
+    "sphinx.ext.napoleon",
+    "sphinx.ext.viewcode",
+    "sphinx_click",
+    "benchpages",
+]
 autodoc_member_order = "bysource"
 autodoc_typehints = "description"
 autodoc_default_options = {"members": True, "undoc-members": False, "show-inheritance": True}
@@ -16,5 +28,7 @@ napoleon_google_docstring = False
 nitpicky = False
 suppress_warnings = ["autodoc.import_object", "ref.python", "docutils"]
 html_theme = "alabaster"
-exclude_patterns = ["_build"]
+html_static_path = ["_static"]
+html_theme_options = {"description": "terrain level of detail with measured error", "fixed_sidebar": True}
+exclude_patterns = ["_build", "_ext"]
 napoleon_use_ivar = True
