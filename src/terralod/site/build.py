@@ -59,13 +59,16 @@ class SiteReport:
     pairs: int = 0
     area_km2: float = 0.0
     shared_bytes: int = 0
+    pruned_bytes: int = 0
+    keep_error_m: float = 0.0
 
     def as_dict(self) -> dict[str, Any]:
         per_epoch = self.parts.get("epochs", 0) / max(self.epochs, 1)
         return {"path": self.path.name, "bytes": self.bytes, "parts": self.parts, "epochs": self.epochs,
                 "pairs": self.pairs, "area_km2": self.area_km2,
                 "bytes_per_km2": self.bytes / self.area_km2 if self.area_km2 else None,
-                "epoch_bytes_each": per_epoch, "tile_bytes_shared": self.shared_bytes}  # fmt: skip
+                "epoch_bytes_each": per_epoch, "tile_bytes_shared": self.shared_bytes,
+                "tile_bytes_below_lod": self.pruned_bytes, "finest_error_kept_m": self.keep_error_m}  # fmt: skip
 
 
 def copy_page(dest: Path) -> None:
@@ -107,6 +110,39 @@ def manifest(title: str, epochs: Sequence[str], pairs: Sequence[tuple[str, str]]
         ],  # fmt: skip
         "pairs": [{"from": a, "to": b, "url": f"pairs/{k}.json"} for k, (a, b) in enumerate(pairs)],
     }
+
+
+def prune_tiles(root: Path, keep_error_m: float) -> int:
+    """Make every tile whose measured error is at most ``keep_error_m`` a leaf: the levels below it, which
+    refine the terrain by less than the pair's level of detection (a change the data cannot tell from survey
+    error), are not written. The drape and every figure the page shows come from the difference raster, not
+    from the mesh, so they stay exact. Returns the bytes left out."""
+    if keep_error_m <= 0:
+        return 0
+    ts_path = root / "tileset.json"
+    ts = json.loads(ts_path.read_text())
+    dropped = 0
+
+    def drop(node: dict[str, Any]) -> None:
+        nonlocal dropped
+        uri = (node.get("content") or {}).get("uri")
+        if uri and (root / uri).is_file():
+            dropped += (root / uri).stat().st_size
+            (root / uri).unlink()
+        for c in node.get("children", []):
+            drop(c)
+
+    stack = [ts["root"]]
+    while stack:
+        node = stack.pop()
+        if node.get("content") and node["geometricError"] <= keep_error_m and node.get("children"):
+            for c in node["children"]:
+                drop(c)
+            del node["children"]
+            continue
+        stack.extend(node.get("children", []))
+    ts_path.write_text(json.dumps(ts, separators=(",", ":")))
+    return dropped
 
 
 def share_tiles(epochs_dir: Path, n: int) -> int:
@@ -185,8 +221,14 @@ def _write(tmp: Path, title: str, between: str, epochs: list[str], terrains: lis
 
     rep = SiteReport(tmp, epochs=len(epochs), pairs=len(pair_results), area_km2=area_km2)
     (tmp / "epochs").mkdir()
+    lods = [r.uncertainty.level_of_detection_m for _, _, r in pair_results]
+    keep_m = min(lods) if lods else 0.0
     for i, t in enumerate(terrains):
         export_3dtiles(t, tmp / "epochs" / str(i))
+        rep.parts["tiles_pruned"] = rep.parts.get("tiles_pruned", 0) + prune_tiles(
+            tmp / "epochs" / str(i), keep_m
+        )
+    rep.keep_error_m = keep_m
     rep.parts["tiles_shared"] = share_tiles(tmp / "epochs", len(terrains))
     (tmp / "pairs").mkdir()
     for k, (a, b, result) in enumerate(pair_results):
@@ -202,6 +244,7 @@ def _write(tmp: Path, title: str, between: str, epochs: list[str], terrains: lis
     for part in ("epochs", "pairs", "cesium"):
         rep.parts[part] = _folder_bytes(tmp / part)
     shared = rep.parts.pop("tiles_shared")
+    rep.pruned_bytes = rep.parts.pop("tiles_pruned", 0)
     rep.parts["page"] = sum((tmp / f).stat().st_size for f in (*PAGE_FILES, "site.json"))
     size = sum(rep.parts.values())
     underline = "=" * len(title)
