@@ -47,7 +47,7 @@ __all__ = ["TileService", "make_server"]
 #: Files of the page (the change site's, package data of terralod.site); only these names are served.
 PAGE_FILES = ("index.html", "site.js", "site.css")
 _SITE_TILES = re.compile(r"^/epochs/(\d{1,4})(/tileset\.json|/tiles/\d{1,3}/\d{1,9}_\d{1,9}\.glb)$")
-_SITE_PAIR = re.compile(r"^/pairs/(\d{1,4})(\.json|-dod\.f32|-before\.f32|-overlay\.png)$")
+_SITE_PAIR = re.compile(r"^/pairs/(\d{1,4})(\.json|-dod\.f32\.gz|-before\.f32\.gz|-overlay\.png)$")
 _GLB = re.compile(r"^/3dtiles/tiles/(\d{1,3})/(\d{1,9})_(\d{1,9})\.glb$")
 _TERRAIN = re.compile(r"^/terrain/(\d{1,2})/(\d{1,9})/(\d{1,9})\.terrain$")
 _EPOCH = re.compile(r"^/e/([^/]{1,64})(/.*)$")
@@ -182,7 +182,7 @@ class TileService:
             if m.group(2) == ".json":
                 return json.dumps(meta, separators=(",", ":")).encode(), "application/json", False
             body = files.get(f"pairs/{m.group(1)}{m.group(2)}")
-            ctype = "image/png" if m.group(2).endswith(".png") else "application/octet-stream"
+            ctype = "image/png" if m.group(2).endswith(".png") else "application/gzip"
             return (body, ctype, False) if body is not None else None
         m = _EPOCH.match(path)
         if m:
@@ -229,7 +229,7 @@ class TileService:
                 return None
             self.stats["encoded"] += 1
         body, ctype, gz = got
-        if not gz and len(body) > 1024 and not ctype.startswith("image/"):
+        if not gz and len(body) > 1024 and not ctype.startswith("image/") and ctype != "application/gzip":
             body, gz = gzip.compress(body, 6, mtime=0), True
         value = (body, ctype, '"' + hashlib.sha1(body).hexdigest() + '"', gz)
         self.cache.put(path, value)

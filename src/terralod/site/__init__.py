@@ -16,7 +16,8 @@ What the page reads (relative URLs, so a folder on any static host works; ``serv
 - ``pairs/K.json`` — one pair (:func:`terralod.site.data.pair_payload`): the grid (shape, affine transform),
   a lon/lat lattice of grid coordinates (the page maps a point to its cell without a projection library),
   the error model (σ, t, variogram), the legend, the plain-language summary; and its rasters
-  ``pairs/K-dod.f32`` / ``pairs/K-before.f32`` (little-endian float32, NaN = no data) and
+  ``pairs/K-dod.f32.gz`` / ``pairs/K-before.f32.gz`` (little-endian float32, NaN = no data, gzip'd: the page
+  inflates them itself, so no host configuration is needed) and
   ``pairs/K-overlay.png`` (the drape);
 - ``epochs/I/tileset.json`` — 3D Tiles of epoch I; ``cesium/`` — CesiumJS's build.
 """

@@ -10,6 +10,7 @@ cells at their own heights (its worst residual is stored and tested).
 
 from __future__ import annotations
 
+import gzip
 import io
 import math
 from typing import Any
@@ -180,15 +181,15 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
         },
         "largest": big,
         "files": {
-            "dod": f"pairs/{key}-dod.f32",
-            "before": f"pairs/{key}-before.f32",
+            "dod": f"pairs/{key}-dod.f32.gz",
+            "before": f"pairs/{key}-before.f32.gz",
             "overlay": f"pairs/{key}-overlay.png",
         },  # fmt: skip
         "olympic_pool_m3": OLYMPIC_POOL_M3,
     }
     files = {
-        f"pairs/{key}-dod.f32": dod.astype("<f4").tobytes(),
-        f"pairs/{key}-before.f32": before.tobytes(),
+        f"pairs/{key}-dod.f32.gz": gzip.compress(dod.astype("<f4").tobytes(), 6, mtime=0),
+        f"pairs/{key}-before.f32.gz": gzip.compress(before.tobytes(), 6, mtime=0),
         f"pairs/{key}-overlay.png": png,
     }
     return meta, files

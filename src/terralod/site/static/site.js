@@ -38,8 +38,12 @@
     if (!pairCache.has(k)) {
       pairCache.set(k, (async () => {
         const meta = await (await fetch(site.pairs[k].url)).json();
-        const [dod, before] = await Promise.all([meta.files.dod, meta.files.before].map(async (u) =>
-          new Float32Array(await (await fetch(u)).arrayBuffer())));
+        // gzip'd float32 rasters, inflated here (DecompressionStream): any host serves them as they are
+        const inflate = async (u) => {
+          const body = (await fetch(u)).body.pipeThrough(new DecompressionStream("gzip"));
+          return new Float32Array(await new Response(body).arrayBuffer());
+        };
+        const [dod, before] = await Promise.all([inflate(meta.files.dod), inflate(meta.files.before)]);
         return Object.assign(meta, { dod, beforeZ: before });
       })());
     }
