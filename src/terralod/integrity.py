@@ -131,7 +131,7 @@ def _check_meta_values(store: TileStore, rep: CheckReport) -> None:
     if missing:
         rep.problems.append(f"no quantisation for level(s) {missing}")
     for k, q in store.quantisation.items():
-        if not (q.z_step_m > 0 and math.isfinite(q.z_step_m)) or not 0 <= q.xy_frac_bits <= 16:
+        if not (q.z_step_m > 0 and math.isfinite(q.z_step_m)) or not -16 <= q.xy_frac_bits <= 16:
             rep.problems.append(f"level {k} quantisation {q} is not usable")
 
 

@@ -465,7 +465,7 @@ class LevelQuantisation:
     @property
     def xy_bound_samples(self) -> float:
         """Largest horizontal rounding error, in source samples (0 for grid vertices)."""
-        return 0.5 / (1 << self.xy_frac_bits)
+        return 0.5 * 2.0 ** (-self.xy_frac_bits)
 
     @property
     def z_bound_m(self) -> float:
@@ -767,7 +767,7 @@ class TileStore(EpochTables):
         """Quantised (u, v, h) → (rows, cols) source sample coordinates and heights in metres."""
         lq = self.quantisation[code[0]]
         r0, c0 = self.pyramid.origin_rc(code)
-        scale = 1.0 / (1 << lq.xy_frac_bits)
+        scale = 2.0 ** (-lq.xy_frac_bits)  # bits < 0: a step over a sample (level 0 of > 32,769)
         cols = c0 + q[:, 0].astype(np.float64) * scale
         rows = r0 + q[:, 1].astype(np.float64) * scale
         z = (z0_index + q[:, 2].astype(np.int64)).astype(np.float64) * lq.z_step_m

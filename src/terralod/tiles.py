@@ -135,6 +135,9 @@ class TilePyramid:
         Vertex column/row offsets inside a tile are stored as ``offset_samples * 2^f`` in 0..65535, with
         f = floor(log2(65535 / span)). All tiles of a level share this lattice, so shared boundary
         vertices dequantise to identical coordinates, and grid vertices (integer offsets) are exact.
+        f is negative where a tile spans over 65,535 samples (the coarse levels of a raster over 32,769
+        samples a side): the lattice step is then 2^-f samples, still far finer than the level's stride,
+        so its grid vertices stay exact.
         """
         return int(math.floor(math.log2(65535 / self.span(level))))
 

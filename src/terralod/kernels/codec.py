@@ -82,7 +82,7 @@ def quantise_tile(rows, cols, hz, r0, c0, xy_frac_bits, z_step_m, dx, dy):
     0..65535 (q is then not meaningful); N must be > 0.
     """
     n = rows.shape[0]
-    scale = float(1 << xy_frac_bits)
+    scale = 2.0**xy_frac_bits  # exact; bits < 0 where a tile spans over 65,535 samples
     u = np.rint((cols - c0) * scale)
     v = np.rint((rows - r0) * scale)
     zi = np.empty(n, np.int64)
@@ -99,7 +99,7 @@ def quantise_tile(rows, cols, hz, r0, c0, xy_frac_bits, z_step_m, dx, dy):
         q[i, 0] = np.uint16(u[i])
         q[i, 1] = np.uint16(v[i])
         q[i, 2] = np.uint16(qz)
-    inv = 1.0 / (1 << xy_frac_bits)
+    inv = 2.0 ** (-xy_frac_bits)
     local = np.empty((n, 3), np.float64)
     for i in range(n):
         local[i, 0] = q[i, 0] * inv * dx

@@ -205,7 +205,7 @@ def _store_meta(
 def _quantise(
     rows: np.ndarray, cols: np.ndarray, hz: np.ndarray, r0: int, c0: int, q: LevelQuantisation
 ) -> tuple[np.ndarray, int]:
-    scale = float(1 << q.xy_frac_bits)
+    scale = math.ldexp(1.0, q.xy_frac_bits)  # bits < 0 at coarse levels of rasters over 32,769 samples
     u = np.rint((cols - c0) * scale)
     v = np.rint((rows - r0) * scale)
     zi = np.rint(hz / q.z_step_m).astype(np.int64)

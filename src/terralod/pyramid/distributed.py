@@ -491,7 +491,7 @@ def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_windo
                            n_vertices=0, n_triangles=0, z0_index=0, vertices=encode_vertices(np.zeros((0, 3), np.uint16)),
                            triangles=encode_triangles(np.zeros((0, 3), np.int32)))  # fmt: skip
     qv, z0 = builder._quantise(rows * f, cols * f, hz, 0, 0, quant)
-    scale = 1.0 / (1 << quant.xy_frac_bits)
+    scale = math.ldexp(1.0, -quant.xy_frac_bits)
     u = qv[:, 0] * scale
     v = qv[:, 1] * scale
     zq = (z0 + qv[:, 2].astype(np.int64)) * quant.z_step_m
