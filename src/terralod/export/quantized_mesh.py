@@ -62,6 +62,9 @@ __all__ = [
 SAMPLES = 257
 #: Target error of the greedy insertion, as a fraction of CesiumJS's level maximum geometric error.
 TARGET_FRACTION = 0.25
+#: Greedy-insertion target at the finest zoom of a lattice export at most this (m): the zoom CesiumJS
+#: shows up close and never refines, holding the DEM's detail (SRTM heights are whole metres).
+FINEST_ERROR_M = 3.0
 #: Extension ids of the format.
 EXT_NORMALS, EXT_WATERMASK, EXT_METADATA = 1, 2, 4
 
@@ -96,13 +99,10 @@ def _hwm_encode(idx: np.ndarray) -> np.ndarray:
 
 
 def _hwm_decode(code: np.ndarray) -> np.ndarray:
-    out = np.empty(code.size, np.int64)
-    highest = 0
-    for i, c in enumerate(code.astype(np.int64)):
-        out[i] = highest - c
-        if c == 0:
-            highest += 1
-    return out
+    """Inverse of :func:`_hwm_encode`: each index is (highest + 1 so far) - code, the mark rising at 0."""
+    c = code.astype(np.int64)
+    zero = (c == 0).astype(np.int64)
+    return np.cumsum(zero) - zero - c
 
 
 def oct_encode(n: np.ndarray) -> np.ndarray:
@@ -125,8 +125,23 @@ def oct_decode(e: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
+def _spread10(a: np.ndarray) -> np.ndarray:
+    """The low 10 bits of ``a`` spread to the even bits (half of a Morton code)."""
+    a = a.astype(np.int64) & 0x3FF
+    a = (a | (a << 8)) & 0x00FF00FF
+    a = (a | (a << 4)) & 0x0F0F0F0F
+    a = (a | (a << 2)) & 0x33333333
+    return (a | (a << 1)) & 0x55555555
+
+
 def _reorder(uvh: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices renumbered in first-use order of the triangles (what high-water-mark coding wants)."""
+    """Triangles in Morton order of their centroids and vertices renumbered in first-use order of them
+    (what high-water-mark coding wants; neighbours come together, so the zig-zag deltas and the index
+    codes are small and gzip well)."""
+    if len(tris):
+        cu = uvh[tris, 0].sum(axis=1) // 96  # centroid / 32: 10 bits
+        cv = uvh[tris, 1].sum(axis=1) // 96
+        tris = tris[np.argsort(_spread10(cu) | (_spread10(cv) << 1), kind="stable")]
     flat = tris.ravel()
     _, first = np.unique(flat, return_index=True)
     order = flat[np.sort(first)]
@@ -353,13 +368,22 @@ def _ceil4(x: float) -> float:
 # -- the tiles -----------------------------------------------------------------------------------------
 @dataclass
 class QmTile:
-    data: bytes  # gzip'd (what ``terralod serve`` sends with Content-Encoding: gzip)
     raw: bytes  # uncompressed (what the export writes by default)
     error_m: float
     triangles: int
     vertices: int
     nodata_fraction: float
     water: str  # "none", "all" or "some": the water mask the tile carries
+    sumsq_m2: float = 0.0  # sum of squared vertical errors over the source samples measured ...
+    samples: int = 0  # ... and how many (the level's RMS error; lattice tiles only)
+    _gz: bytes | None = None
+
+    @property
+    def data(self) -> bytes:
+        """gzip'd (what ``terralod serve`` sends with Content-Encoding: gzip); made on first use."""
+        if self._gz is None:
+            self._gz = gzip.compress(self.raw, 6, mtime=0)
+        return self._gz
 
 
 class QuantizedMesh:
@@ -370,7 +394,8 @@ class QuantizedMesh:
     """
 
     def __init__(self, terrain: Any, *, target_fraction: float = TARGET_FRACTION) -> None:
-        from terralod.export.source import SourceGrid, source_for
+        from terralod.export.lattice import Lattice
+        from terralod.export.source import SourceGrid, TinSource, source_for
 
         if isinstance(terrain, SourceGrid):
             self.terrain = None
@@ -383,15 +408,23 @@ class QuantizedMesh:
             self.name = Path(str(terrain.path)).stem if terrain.path is not None else "terrain"
         self.target_fraction = target_fraction
         self.bbox = self.ref.bbox
+        # a geographic DEM is meshed on its own lattice (no resampling); anything else on 257² tile grids
+        geographic = not isinstance(self.ref, TinSource) and getattr(self.ref, "identity", False)
+        self.lattice = Lattice(self.ref) if geographic else None
         self.max_zoom = 0
-        while 180.0 / (1 << self.max_zoom) / (SAMPLES - 1) > self.ref.spacing_deg and self.max_zoom < 22:
-            self.max_zoom += 1
+        if self.lattice is not None:
+            self.max_zoom = self.lattice.finest_zoom()
+        else:
+            while 180.0 / (1 << self.max_zoom) / (SAMPLES - 1) > self.ref.spacing_deg and self.max_zoom < 22:
+                self.max_zoom += 1
         self._errors: dict[tuple[int, int, int], float] = {}
 
     def target_error_m(self, z: int) -> float:
         """Greedy-insertion target of level z: a fraction of CesiumJS's level error; 2x finer at the last
         level (nothing refines it, so it carries the detail of the source)."""
         f = self.target_fraction / (2.0 if z >= self.max_zoom else 1.0)
+        if self.lattice is not None and z >= self.max_zoom:
+            return min(f * level_max_error_m(z), FINEST_ERROR_M)
         return f * level_max_error_m(z)
 
     def level_range(self, z: int) -> tuple[int, int, int, int]:
@@ -465,9 +498,14 @@ class QuantizedMesh:
         from pydelatin import Delatin
 
         rect = tile_rectangle(z, x, y)
+        target = self.target_error_m(z) if target_m is None else float(target_m)
+        if self.lattice is not None and not regular:
+            t = self._lattice_tile(z, x, y, rect, target)
+            if target_m is None:
+                self._errors[(z, x, y)] = t.error_m
+            return t
         LON, LAT, filled, water = self.samples(z, x, y)
         core = filled[1:-1, 1:-1]
-        target = self.target_error_m(z) if target_m is None else float(target_m)
         n = SAMPLES
         if regular:
             step = (n - 1) // (regular - 1)
@@ -506,7 +544,55 @@ class QuantizedMesh:
         nodata = float(water[1:-1, 1:-1].mean()) if kind != "none" else 0.0
         if regular is None and target_m is None:
             self._errors[(z, x, y)] = err
-        return QmTile(gzip.compress(raw, 6, mtime=0), raw, err, len(tris), len(lon), nodata, kind)
+        return QmTile(raw, err, len(tris), len(lon), nodata, kind)
+
+    def _lattice_tile(self, z: int, x: int, y: int, rect: tuple[float, float, float, float],
+                      target: float) -> QmTile:  # fmt: skip
+        """Greedy insertion on the tile's window of the source lattice (:mod:`terralod.export.lattice`);
+        its error measured on the decoded tile against every valid source sample inside it."""
+        from pydelatin import Delatin
+
+        from terralod.export.lattice import clip_mesh, lattice_error
+
+        lat_ = self.lattice
+        stride = lat_.stride(z, self.max_zoom)
+        r0, c0, g, (xw, xe, yn, ys) = lat_.grid(rect, stride)
+        nr, nc = g.shape
+        d = Delatin(g.astype(np.float32), width=nc, height=nr, max_error=target)
+        vx = d.vertices
+        gx, gy = vx[:, 0].copy(), (nr - 1) - vx[:, 1]  # Delatin's y grows north
+        hx = g[np.rint(gy).astype(np.int64), np.rint(gx).astype(np.int64)]
+        px, py, ph, tris = clip_mesh(gx, gy, hx, np.asarray(d.triangles, np.int64), xw, xe, yn, ys)
+        fc, fr = c0 + px * stride, r0 + py * stride  # fractional lattice indices
+        w, s, e, n = rect
+        # one vertex per quantised u/v (clipping makes the same edge crossing in both neighbours)
+        u = np.rint(np.clip((fc - (c0 + xw * stride)) / ((xe - xw) * stride), 0, 1) * 32767).astype(np.int64)
+        v = np.rint(np.clip(((r0 + ys * stride) - fr) / ((ys - yn) * stride), 0, 1) * 32767).astype(np.int64)
+        used = np.unique(tris)
+        key = u[used] * 32768 + v[used]
+        _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+        keep = used[first]
+        remap = np.full(len(px), -1, np.int64)
+        remap[used] = inv.ravel()
+        tris = remap[tris]
+        fc, fr, hv, u, v = fc[keep], fr[keep], ph[keep], u[keep], v[keep]
+        area = (u[tris[:, 1]] - u[tris[:, 0]]) * (v[tris[:, 2]] - v[tris[:, 0]]) - (
+            v[tris[:, 1]] - v[tris[:, 0]]
+        ) * (u[tris[:, 2]] - u[tris[:, 0]])
+        tris = tris[area != 0]
+        tris[area[area != 0] < 0] = tris[area[area != 0] < 0][:, ::-1]  # counter-clockwise (east, north)
+        lon = w + u / 32767.0 * (e - w)
+        lat = s + v / 32767.0 * (n - s)
+        enu = lat_.normals_enu(fr, fc, lat, stride)
+        ea, no, up = enu_frame(lon, lat)
+        normals = ea * enu[:, :1] + no * enu[:, 1:2] + up * enu[:, 2:3]
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        wm = lat_.water_mask(rect)
+        kind = "some" if isinstance(wm, np.ndarray) else ("all" if wm == 255 else "none")
+        raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
+        err, sumsq, count = lattice_error(lat_, decode_tile(raw, rect), rect)
+        nodata = float(np.mean(wm) / 255.0) if kind != "none" else 0.0
+        return QmTile(raw, _ceil4(err), len(tris), len(lon), nodata, kind, sumsq, count)
 
     def _normals(self, filled: np.ndarray, rows: np.ndarray, cols: np.ndarray, rect: tuple[float, ...],
                  lon: np.ndarray, lat: np.ndarray) -> np.ndarray:  # fmt: skip
@@ -554,6 +640,7 @@ def export_quantized_mesh(
     per_tile: dict[str, float] = {}
     raw_bytes = gz_bytes = 0
     water = {"none": 0, "all": 0, "some": 0}
+    level_sq: dict[int, list] = {}
     with atomic_folder(out, overwrite) as tmp:
         codes = qm.tile_codes()
         for i, (z, x, y) in enumerate(codes):
@@ -565,8 +652,11 @@ def export_quantized_mesh(
             rep.tiles += 1
             rep.bytes += len(data)
             raw_bytes += len(t.raw)
-            gz_bytes += len(t.data)
+            gz_bytes += len(t.data) if gzip_tiles else 0
             rep.triangles += t.triangles
+            sq = level_sq.setdefault(z, [0.0, 0])
+            sq[0] += t.sumsq_m2
+            sq[1] += t.samples
             water[t.water] += 1
             per_level[z] = max(per_level.get(z, 0.0), t.error_m)
             per_tile[f"{z}/{x}/{y}"] = t.error_m
@@ -574,6 +664,11 @@ def export_quantized_mesh(
                 progress(i + 1, len(codes))
         layer = qm.layer()
         layer["terralod"]["error_m"] = [_ceil4(per_level.get(z, 0.0)) for z in range(qm.max_zoom + 1)]
+        if qm.lattice is not None:  # RMS over every valid source sample of the level (edge samples twice)
+            layer["terralod"]["rms_m"] = [
+                round(math.sqrt(level_sq[z][0] / level_sq[z][1]), 4) if level_sq.get(z, [0, 0])[1] else 0.0
+                for z in range(qm.max_zoom + 1)
+            ]
         layer["terralod"]["gzip"] = bool(gzip_tiles)
         js = json.dumps(layer, indent=1)
         (tmp / "layer.json").write_text(js)
@@ -585,7 +680,7 @@ def export_quantized_mesh(
         "max_zoom": qm.max_zoom,
         "gzip": bool(gzip_tiles),
         "tile_bytes_raw": raw_bytes,
-        "tile_bytes_gzip": gz_bytes,
+        "tile_bytes_gzip": gz_bytes if gzip_tiles else None,
         "water_masks": water,
         "error_m_per_level": layer["terralod"]["error_m"],
     }

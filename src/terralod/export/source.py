@@ -53,29 +53,52 @@ class SourceGrid:
             self._to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
         h, w = self.z_m.shape
         self.shape = (h, w)
-        if not self.valid.any():
+        rows_any, cols_any = self.valid.any(axis=1), self.valid.any(axis=0)
+        if not rows_any.any():
             raise InputError("has no valid samples", name)
-        # lon/lat of the valid samples (pixel centres), flat
-        rr, cc = np.nonzero(self.valid)
-        self._rc = (rr, cc)
-        x = self.t.c + (cc + 0.5) * self.t.a
-        y = self.t.f + (rr + 0.5) * self.t.e
-        self.lon, self.lat = self._lonlat(x, y)
-        self.zv = self.z_m[rr, cc]
-        # the footprint: corners of the valid samples' bounding box of rows/cols, its edges densified
-        r0, r1, c0, c1 = rr.min(), rr.max(), cc.min(), cc.max()
-        k = np.linspace(0.0, 1.0, 33)
-        ec = np.concatenate([c0 + (c1 - c0) * k, np.full(33, c1), c0 + (c1 - c0) * k, np.full(33, c0)])
-        er = np.concatenate([np.full(33, r0), r0 + (r1 - r0) * k, np.full(33, r1), r0 + (r1 - r0) * k])
-        elon, elat = self._lonlat(self.t.c + (ec + 0.5) * self.t.a, self.t.f + (er + 0.5) * self.t.e)
-        self.bbox = (float(min(elon.min(), self.lon.min())), float(min(elat.min(), self.lat.min())),
-                     float(max(elon.max(), self.lon.max())), float(max(elat.max(), self.lat.max())))  # fmt: skip
+        r0, r1 = int(np.argmax(rows_any)), int(h - 1 - np.argmax(rows_any[::-1]))
+        c0, c1 = int(np.argmax(cols_any)), int(w - 1 - np.argmax(cols_any[::-1]))
+        self._flat: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        if self.identity:  # the valid samples' bounding box of centres (no per-sample arrays: big DEMs)
+            lons = (self.t.c + (c0 + 0.5) * self.t.a, self.t.c + (c1 + 0.5) * self.t.a)
+            lats = (self.t.f + (r0 + 0.5) * self.t.e, self.t.f + (r1 + 0.5) * self.t.e)
+            self.bbox = (float(min(lons)), float(min(lats)), float(max(lons)), float(max(lats)))
+        else:
+            # the footprint: corners of the valid samples' bounding box of rows/cols, its edges densified
+            k = np.linspace(0.0, 1.0, 33)
+            ec = np.concatenate([c0 + (c1 - c0) * k, np.full(33, c1), c0 + (c1 - c0) * k, np.full(33, c0)])
+            er = np.concatenate([np.full(33, r0), r0 + (r1 - r0) * k, np.full(33, r1), r0 + (r1 - r0) * k])
+            elon, elat = self._lonlat(self.t.c + (ec + 0.5) * self.t.a, self.t.f + (er + 0.5) * self.t.e)
+            self.bbox = (float(min(elon.min(), self.lon.min())), float(min(elat.min(), self.lat.min())),
+                         float(max(elon.max(), self.lon.max())), float(max(elat.max(), self.lat.max())))  # fmt: skip
         if self.crs.is_geographic:  # the ground spacing, in degrees of latitude (as for projected grids)
             cos_lat = math.cos(math.radians(0.5 * (self.bbox[1] + self.bbox[3])))
             self.spacing_deg = float(min(abs(self.t.a) * cos_lat, abs(self.t.e)))
         else:
             self.spacing_deg = float(min(abs(self.t.a), abs(self.t.e))) / 111320.0
         self._buckets: dict[int, tuple[np.ndarray, dict[int, tuple[int, int]]]] = {}
+
+    def _points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """lon, lat, height of the valid samples (pixel centres), flat; made on first use."""
+        if self._flat is None:
+            rr, cc = np.nonzero(self.valid)
+            x = self.t.c + (cc + 0.5) * self.t.a
+            y = self.t.f + (rr + 0.5) * self.t.e
+            lon, lat = self._lonlat(x, y)
+            self._flat = (lon, lat, self.z_m[rr, cc])
+        return self._flat
+
+    @property
+    def lon(self) -> np.ndarray:
+        return self._points()[0]
+
+    @property
+    def lat(self) -> np.ndarray:
+        return self._points()[1]
+
+    @property
+    def zv(self) -> np.ndarray:
+        return self._points()[2]
 
     def _lonlat(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.identity:
@@ -184,8 +207,8 @@ class TinSource(SourceGrid):
         self._kd = cKDTree(xyz[:, :2])
         self.xyz = xyz
         self.name = str(terrain.path)
-        self.lon, self.lat = geo.lonlat(xyz[:, 0], xyz[:, 1])
-        self.zv = xyz[:, 2]
+        lon, lat = geo.lonlat(xyz[:, 0], xyz[:, 1])
+        self._flat = (np.asarray(lon, np.float64), np.asarray(lat, np.float64), xyz[:, 2])
         self.bbox = (
             float(self.lon.min()),
             float(self.lat.min()),
