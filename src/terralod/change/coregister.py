@@ -305,7 +305,9 @@ def shift_standard_error_cells(pair: AlignedPair, fit: np.ndarray, residual: np.
     except np.linalg.LinAlgError:
         return float("inf")
     s = max(nmad(r[ok]), NMAD_FLOOR_M)
-    return float(s * math.sqrt(max(lam, 0.0)) / min(before.spacing_m))
+    # AFTER's own samples are the independent ones: fewer of them when its grid is coarser
+    coarser = max(1.0, (pair.after.spacing_m[0] * pair.after.spacing_m[1]) / (dx * dy))
+    return float(s * math.sqrt(max(lam, 0.0) * coarser) / min(before.spacing_m))
 
 
 def coregister(
@@ -343,56 +345,65 @@ def coregister(
         res.method, res.mode = "none", "identical"
         res.seconds = time.perf_counter() - t0
         return res
-    shift = (0.0, 0.0, 0.0)
-    bias_only = True
-    why = ""
+    # rounds: fit on the sloping stable ground, re-find the stable ground on the improved difference (a
+    # misregistered survey makes sloping ground look changed), fit again; keep a fit only if it helps
+    cand: tuple[float, float, float] | None = None
     dod = dod0
-    for _round in range(2):
-        if sg.fit_cells >= MIN_FIT_CELLS:
-            try:
-                if method == "xdem":
-                    s1, iters = _fit_xdem(pair, sg.fit, seed)
-                else:
-                    s1, iters = _fit_terralod(pair, sg.fit, seed)
-                res.iterations += iters
-            except Exception as exc:  # noqa: BLE001 - an estimator's failure is a note and a fall-back
-                msg = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
-                res.notes.append(f"{method}'s Nuth & Kääb fit failed ({msg}); vertical bias fitted alone")
-                s1 = None
-            if s1 is not None:
-                d1 = dem_of_difference(pair, s1)
-                se = shift_standard_error_cells(pair, sg.fit, d1)
-                res.shift_se_cells = se
-                if se <= MAX_SHIFT_SE_CELLS:
-                    shift, bias_only, dod = s1, False, d1
-                else:
-                    bias_only = True
-                    why = (
-                        f"the sloping stable ground ({sg.fit_cells:,} cells above {slope_min_deg:g}°) leaves "
-                        f"the shift uncertain by ±{se:.2f} cells"
-                    )
-        else:
+    why = ""
+    for _round in range(3):
+        if sg.fit_cells < MIN_FIT_CELLS:
             why = (
                 f"only {sg.fit_cells:,} stable cells have slopes above {slope_min_deg:g}° (< {MIN_FIT_CELLS})"
             )
-        if bias_only:
-            shift, dod = (0.0, 0.0, 0.0), dod0
-        # the vertical bias: the median difference on the stable ground (its flatter part when no
-        # horizontal shift could be fitted: an unknown shift moves sloping cells' differences most)
-        med = float(np.nanmedian(dod[_bias_cells(sg, bias_only)]))
-        shift = (shift[0], shift[1], shift[2] - med)
-        dod = dod - med
+            break
+        try:
+            if method == "xdem":
+                s1, iters = _fit_xdem(pair, sg.fit, seed)
+            else:
+                s1, iters = _fit_terralod(pair, sg.fit, seed)
+            res.iterations += iters
+        except Exception as exc:  # noqa: BLE001 - an estimator's failure is a note and a fall-back
+            msg = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
+            res.notes.append(f"{method}'s Nuth & Kääb fit failed ({msg}); vertical bias fitted alone")
+            why = f"the horizontal fit failed ({msg})"
+            break
+        d1 = dem_of_difference(pair, s1)
+        if cand is not None and not nmad(d1[sg.fit]) < nmad(dod[sg.fit]):
+            break
+        cand, dod = s1, d1 - float(np.nanmedian(d1[sg.mask]))
         sg2 = find_stable_ground(pair, dod, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
         if sg2.cells < MIN_STABLE_CELLS or np.array_equal(sg2.mask, sg.mask):
             break
         sg = sg2
-    # the vertical bias once more on the final stable ground
-    d = dem_of_difference(pair, shift)
-    sg = find_stable_ground(pair, d, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
-    if sg.cells >= MIN_STABLE_CELLS:
+    bias_only = True
+    if cand is not None:
+        d1 = dem_of_difference(pair, cand)
+        se = shift_standard_error_cells(pair, sg.fit, d1)
+        res.shift_se_cells = se
+        if se <= MAX_SHIFT_SE_CELLS:
+            bias_only = False
+            shift = cand
+        else:
+            why = (
+                f"the sloping stable ground ({sg.fit_cells:,} cells above {slope_min_deg:g}°) leaves the "
+                f"shift uncertain by ±{se:.2f} cells"
+            )
+    if bias_only:
+        shift = (0.0, 0.0, 0.0)
+        dod = dod0
+        sg = find_stable_ground(pair, dod0 - float(np.nanmedian(dod0[_bias_cells(sg, True)])), given=stable,
+                                exclude=exclude, slope_min_deg=slope_min_deg)  # fmt: skip
+    # the vertical bias: the median difference on the stable ground (its flatter part when no horizontal
+    # shift could be fitted: an unknown shift moves sloping cells' differences most), twice
+    for _ in range(2):
+        d = dem_of_difference(pair, shift)
         med = float(np.nanmedian(d[_bias_cells(sg, bias_only)]))
         shift = (shift[0], shift[1], shift[2] - med)
         d = d - med
+        sg2 = find_stable_ground(pair, d, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+        if sg2.cells < MIN_STABLE_CELLS:
+            break
+        sg = sg2
     res.shift_m = tuple(float(v) for v in shift)
     res.fit_cells = sg.cells if bias_only else sg.fit_cells
     res.stable_cells = sg.cells
