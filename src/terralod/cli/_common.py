@@ -23,6 +23,8 @@ from rich.table import Table
 console = Console(stderr=False, width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True)
 VERBOSE = {"on": False}
+#: The DEM the command read last: a failure for want of memory names it (run_main).
+LAST_INPUT: dict[str, str | None] = {"path": None}
 log = logging.getLogger("terralod.cli")
 
 
@@ -166,6 +168,19 @@ def check_raster_size(path: str | Path) -> None:
     check_dimensions(height, width, str(path))
 
 
+def out_of_memory(path: str | Path) -> str:
+    """The one line for a DEM this machine has not the memory to read (its size from the header)."""
+    try:
+        import rasterio
+
+        with rasterio.open(path) as src:
+            n = src.width * src.height
+            size = f"{src.width}x{src.height} samples (about {n * 13 / 1e9:.1f} GB to read and fill)"
+    except Exception:  # noqa: BLE001 - not a GDAL raster: say it without the size
+        size = "its samples"
+    return f"not enough memory for {size}; crop or split it into tiles first"
+
+
 def parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
     if text is None:
         return None
@@ -199,6 +214,7 @@ def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, enc
     from terralod.io.reader import read_heightfield
 
     check_raster_size(path)
+    LAST_INPUT["path"] = str(path)
     tile = None
     if tile_zxy:
         try:
@@ -206,14 +222,19 @@ def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, enc
             assert len(tile) == 3
         except (ValueError, AssertionError):
             raise click.BadParameter(f"expected Z/X/Y, got {tile_zxy!r}", param_hint="--tile") from None
-    return read_heightfield(
-        path,
-        spacing_m=parse_pair(spacing, "--spacing"),
-        vertical_scale=vertical_scale,
-        vertical_offset=vertical_offset,
-        encoding=encoding,
-        tile=tile,
-    )
+    from terralod.errors import InputError
+
+    try:
+        return read_heightfield(
+            path,
+            spacing_m=parse_pair(spacing, "--spacing"),
+            vertical_scale=vertical_scale,
+            vertical_offset=vertical_offset,
+            encoding=encoding,
+            tile=tile,
+        )
+    except MemoryError:
+        raise InputError(out_of_memory(path), str(path)) from None
 
 
 def crs_name(crs: str | None) -> str:
@@ -673,7 +694,12 @@ def run_main(group: click.Group, argv: list[str] | None) -> None:
     except TerralodError as exc:
         _fail(str(exc))
     except MemoryError:
-        _fail("out of memory; split the input or use a smaller --tile-size")
+        last = LAST_INPUT["path"]
+        _fail(
+            f"{last}: {out_of_memory(last)}"
+            if last
+            else "out of memory; split the input or use a smaller --tile-size"
+        )
     except OSError as exc:
         name = getattr(exc, "filename", None)
         _fail(f"{str(name) + ': ' if name else ''}{exc.strerror or exc}")

@@ -13,7 +13,13 @@ from __future__ import annotations
 
 import click
 
-from terralod.cli._common import console, progress, refuse_output_holding_inputs, require_extra
+from terralod.cli._common import (
+    check_raster_size,
+    console,
+    progress,
+    refuse_output_holding_inputs,
+    require_extra,
+)
 
 
 @click.command()
@@ -103,6 +109,7 @@ def _run_dem(dem: str, output: str, epoch: str | None, overwrite: bool, gzip_til
 
     if epoch is not None:
         raise InputError("is a DEM; --epoch selects an epoch of a store", dem)
+    check_raster_size(dem)  # the one size limit, from the header, before any sample is read
     check_output(output, overwrite)
     source = source_from_dem(dem)
     _run(source, "quantized-mesh", output, "vertical", None, overwrite, gzip_tiles)
