@@ -11,6 +11,7 @@ missing.
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import socket
 import subprocess
@@ -357,3 +358,93 @@ def test_serve_shows_the_same_page(shared_data: Path, tmp_path: Path) -> None:
     assert not res["errors"] and not res["blocked"] and not res["failedRequests"], res
     assert res["epochs"] == [A, B] and res["pairs"] == [[A, B]]
     assert res["results"][1]["value"]["change_m"] == pytest.approx(big["value_m"], abs=0.01)
+
+
+def _plant_series(src: Path, out: Path) -> tuple[list[Path], dict]:
+    """Three epochs of a real SRTM crop (EPSG:4326): a deposit growing to +30 m (a Gaussian mound) and a
+    scarp deepening to -20 m, on the same grid; their true volumes at the last epoch (cell areas on the
+    ellipsoid's sphere of the latitude)."""
+    import rasterio
+
+    with rasterio.open(src) as ds:
+        z = ds.read(1).astype(np.float32)
+        prof = ds.profile
+        tr = ds.transform
+    h, w = z.shape
+    rr, cc = np.mgrid[0:h, 0:w]
+    mound = np.exp(-(((rr - 90) / 14.0) ** 2 + ((cc - 160) / 14.0) ** 2))
+    scarp = np.exp(-(((rr - 180) / 12.0) ** 2 + ((cc - 80) / 12.0) ** 2))
+    lat = tr.f + (rr + 0.5) * tr.e
+    cell_m2 = (np.radians(tr.a) * 6371008.8 * np.cos(np.radians(lat))) * (np.radians(-tr.e) * 6371008.8)
+    paths = []
+    for i, f in enumerate((0.0, 0.5, 1.0)):
+        e = z + f * (30.0 * mound - 20.0 * scarp)
+        p = out / f"epoch{i}.tif"
+        with rasterio.open(p, "w", **prof) as dst:
+            dst.write(e.astype(prof["dtype"]), 1)
+        paths.append(p)
+    truth = {"mound_m3": float((30.0 * mound * cell_m2)[mound > 0.01].sum()),
+             "mound_lonlat": (tr.c + 160.5 * tr.a, tr.f + 90.5 * tr.e),
+             "scarp_lonlat": (tr.c + 80.5 * tr.a, tr.f + 180.5 * tr.e),
+             "mound_ring": [[tr.c + (160.5 + 40 * np.cos(t)) * tr.a, tr.f + (90.5 + 40 * np.sin(t)) * tr.e]
+                            for t in np.linspace(0, 2 * np.pi, 24, endpoint=False)]}  # fmt: skip
+    return paths, truth
+
+
+def test_planted_series_site(shared_data: Path, tmp_path: Path) -> None:
+    """A three-epoch series planted on a geographic SRTM crop (another DEM than St Helens): the site carries
+    first -> last and both consecutive pairs; in the browser the change at the deposit's top and the scarp's
+    bottom is the planted +30 / -20 m, the volume inside a ring around the deposit is the planted volume
+    within 3 %, the drape is blue on the deposit and red in the scarp, and the series has its play button
+    and volume-against-time chart."""
+    why = _browser_missing()
+    if why:
+        pytest.skip(why)
+    from PIL import Image
+
+    paths, truth = _plant_series(shared_data / "dem" / "srtm1_crop256_alpine.tif", tmp_path)
+    out = tmp_path / "out"
+    dates = ["2019-06-01", "2020-06-01", "2021-06-01"]
+    _cli(["change", *map(str, paths), "-o", str(out), "--site", "--no-views", "--dates", ",".join(dates)])
+    m = json.loads((out / "site" / "site.json").read_text())
+    assert [e["name"] for e in m["epochs"]] == dates
+    assert [(p["from"], p["to"]) for p in m["pairs"]] == [
+        (dates[0], dates[2]),
+        (dates[0], dates[1]),
+        (dates[1], dates[2]),
+    ]
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "http.server", str(port), "--bind", "127.0.0.1"],
+                            cwd=out / "site", stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        time.sleep(0.5)
+        (mlo, mla), (slo, sla) = truth["mound_lonlat"], truth["scarp_lonlat"]
+        steps = [
+            {"op": "changeAt", "args": [mlo, mla, dates[0], dates[2]]},
+            {"op": "changeAt", "args": [slo, sla, dates[0], dates[2]]},
+            {"op": "changeAt", "args": [mlo, mla, dates[1], dates[2]]},
+            {"op": "volume", "args": [truth["mound_ring"], dates[0], dates[2]]},
+            {"op": "setEpoch", "args": [dates[2]]},
+            {"op": "camera", "args": [mlo, mla, 9000.0, 0, -90]},
+            {"op": "describeChange", "args": [mlo, mla], "shot": "mound", "settleMs": 800},
+            {"op": "camera", "args": [slo, sla, 9000.0, 0, -90]},
+            {"op": "describeChange", "args": [slo, sla], "shot": "scarp", "settleMs": 800},
+            {"op": "dom"},
+        ]
+        res = _drive(f"http://127.0.0.1:{port}/", steps, tmp_path)
+    finally:
+        proc.terminate()
+        proc.wait(10)
+    assert not res["errors"] and not res["blocked"] and not res["failedRequests"], res
+    got = [r.get("value") for r in res["results"]]
+    assert got[0]["change_m"] == pytest.approx(30.0, abs=1.5)  # resampled onto the UTM grid: the top's cell
+    assert got[1]["change_m"] == pytest.approx(-20.0, abs=1.5)
+    assert got[2]["change_m"] == pytest.approx(15.0, abs=1.0)
+    assert got[3]["net_m3"] == pytest.approx(truth["mound_m3"], rel=0.03), (got[3], truth)
+    for name, sign in (("mound", 1), ("scarp", -1)):
+        img = np.asarray(Image.open(tmp_path / f"{name}.png").convert("RGB"), np.float64)
+        px = np.median(img[295:306, 445:456].reshape(-1, 3), axis=0)
+        assert (px[2] - px[0]) * sign > 40, (name, px)
+    dom = got[-1]
+    assert dom["play"] and dom["legend"] and dom["chartPoints"] == 3 and dom["north"], dom
+    assert re.fullmatch(r"\d+ k?m", dom["scale"]) and "rose" in dom["legendText"] and "Between" in dom["summary"]

@@ -64,6 +64,14 @@ try {
         await new Promise((r) => { const c = () => (terralodSite.tilesets.every((t) => !t.show || t.tilesLoaded) ? r() : setTimeout(c, 100)); c(); });
         return true;
       }, step.args);
+    } else if (step.op === "dom") {  // what a visitor sees besides the globe
+      value = await page.evaluate(() => {
+        const $ = (id) => document.getElementById(id);
+        const path = $("chart").querySelector("path");
+        return { play: !$("play").hidden, legend: !$("legend").hidden, legendText: $("legend").innerText,
+          chartPoints: path ? (path.getAttribute("d").match(/[ML]/g) || []).length : 0, summary: $("summary").innerText,
+          north: !!$("north-needle"), scale: $("scale-text").textContent };
+      });
     } else if (step.op === "click") {
       await page.mouse.click(step.args[0], step.args[1]);
       await new Promise((r) => setTimeout(r, 800));
