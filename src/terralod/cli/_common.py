@@ -168,6 +168,45 @@ def check_raster_size(path: str | Path) -> None:
     check_dimensions(height, width, str(path))
 
 
+def pid_alive(pid: int) -> bool:
+    """True unless process ``pid`` is known to be gone (off POSIX, and for another user's, assumed alive)."""
+    if os.name != "posix" or pid <= 0:
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # EPERM: alive, someone else's
+        return True
+    return True
+
+
+def remove_stale_temporaries(out: str | Path) -> list[Path]:
+    """Remove the ``.OUT.tmp-PID`` folders beside ``out`` that a killed run left (PID no longer running),
+    and its ``.OUT.old-PID`` once OUT exists again (the swap finished); a live run's are never touched.
+    Returns what was removed."""
+    import re
+    import shutil
+
+    o = Path(out).resolve()
+    pattern = re.compile(rf"\.{re.escape(o.name)}\.(tmp|old)-(\d+)")
+    try:
+        entries = list(o.parent.iterdir())
+    except OSError:
+        return []
+    removed = []
+    for e in entries:
+        m = pattern.fullmatch(e.name)
+        if m is None or e.is_symlink() or not e.is_dir():
+            continue
+        pid = int(m.group(2))
+        if pid == os.getpid() or pid_alive(pid) or (m.group(1) == "old" and not o.exists()):
+            continue
+        shutil.rmtree(e, ignore_errors=True)
+        removed.append(e)
+    return removed
+
+
 def out_of_memory(path: str | Path) -> str:
     """The one line for a DEM this machine has not the memory to read (its size from the header)."""
     try:

@@ -215,6 +215,9 @@ def change(
                                 confidence=confidence, coregistration=not no_coregister, method=coreg_method)  # fmt: skip
         result.summary["series"] = series
 
+    from terralod.cli._common import remove_stale_temporaries
+
+    remove_stale_temporaries(out)  # what killed runs into OUT left (their PID gone); a live run's are kept
     tmp = out.resolve().parent / f".{out.name}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
