@@ -427,6 +427,13 @@ def test_planted_series_site(shared_data: Path, tmp_path: Path) -> None:
             {"op": "setEpoch", "args": [dates[2]]},
             {"op": "camera", "args": [mlo, mla, 9000.0, 0, -90]},
             {"op": "describeChange", "args": [mlo, mla], "shot": "mound", "settleMs": 800},
+            {"op": "click", "args": [450, 300]},  # a visitor clicks the deposit's top
+            {"op": "press", "args": ["measure"]},  # ... then draws a square around it
+            {"op": "click", "args": [390, 220]},  # (the panel ends at x = 374)
+            {"op": "click", "args": [510, 220]},
+            {"op": "click", "args": [510, 380]},
+            {"op": "click", "args": [390, 380]},
+            {"op": "press", "args": ["measure"]},
             {"op": "camera", "args": [slo, sla, 9000.0, 0, -90]},
             {"op": "describeChange", "args": [slo, sla], "shot": "scarp", "settleMs": 800},
             {"op": "dom"},
@@ -445,6 +452,13 @@ def test_planted_series_site(shared_data: Path, tmp_path: Path) -> None:
         img = np.asarray(Image.open(tmp_path / f"{name}.png").convert("RGB"), np.float64)
         px = np.median(img[295:306, 445:456].reshape(-1, 3), axis=0)
         assert (px[2] - px[0]) * sign > 40, (name, px)
+    clicked, drawn = got[7], got[13]
+    assert clicked.startswith("Here the ground rose") and "between 1 Jun 2019 and 1 Jun 2021" in clicked, (
+        clicked
+    )
+    assert "net gain" in drawn and "Olympic swimming pools" in drawn, drawn
     dom = got[-1]
     assert dom["play"] and dom["legend"] and dom["chartPoints"] == 3 and dom["north"], dom
-    assert re.fullmatch(r"\d+ k?m", dom["scale"]) and "rose" in dom["legendText"] and "Between" in dom["summary"]
+    assert (
+        re.fullmatch(r"\d+ k?m", dom["scale"]) and "rose" in dom["legendText"] and "Between" in dom["summary"]
+    )

@@ -72,6 +72,10 @@ try {
           chartPoints: path ? (path.getAttribute("d").match(/[ML]/g) || []).length : 0, summary: $("summary").innerText,
           north: !!$("north-needle"), scale: $("scale-text").textContent };
       });
+    } else if (step.op === "press") {  // a button of the page, by id
+      await page.click("#" + step.args[0]);
+      await new Promise((r) => setTimeout(r, 300));
+      value = await page.evaluate(() => document.getElementById("answer").textContent);
     } else if (step.op === "click") {
       await page.mouse.click(step.args[0], step.args[1]);
       await new Promise((r) => setTimeout(r, 800));
