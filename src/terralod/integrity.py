@@ -268,12 +268,17 @@ def _check_epochs(store: TileStore, rep: CheckReport) -> None:
         tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
         if "epochs" not in tables:
             return
-        epochs = conn.execute("SELECT id, name, state FROM epochs ORDER BY id").fetchall()
+        epochs = conn.execute("SELECT id, name, state, info FROM epochs ORDER BY id").fetchall()
         cols = {r[1] for r in conn.execute("PRAGMA table_info(tiles)")}
         n_refs = 0
-        for eid, name, state in epochs:
+        for eid, name, state, info in epochs:
             if state != "complete":
-                rep.problems.append(f"epoch {name!r} is unfinished (state {state}); rerun the update")
+                from terralod.pyramid.update import finish_advice
+
+                row = {"name": name, "info": json.loads(info)}
+                rep.problems.append(
+                    f"epoch {name!r} is unfinished (state {state}); {finish_advice(store.path, row)}"
+                )
                 continue
             if "epoch_tiles" in tables and "rev" in cols:
                 dangling = conn.execute(

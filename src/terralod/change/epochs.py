@@ -179,6 +179,39 @@ def apply_patch(hf: Heightfield, patch: Heightfield, where: str) -> EditResult:
     return EditResult(_replace(hf, z, valid, f"{hf.source} + patch {Path(where).name}"), mask, vol, desc)
 
 
+class EditAlreadyDone(InputError):
+    """The edit asked for is already an epoch of the store (a rerun after the edit committed): nothing to do.
+    ``epoch`` names that epoch."""
+
+    def __init__(self, message: str, path: str, epoch: str) -> None:
+        super().__init__(message, path)
+        self.epoch = epoch
+
+
+def edit_key(polygon: Any = None, depth_m: float | None = None, patch_digest: str | None = None) -> str:
+    """What identifies an edit's parameters, kept with its epoch: the polygon file's bytes and the depth,
+    or the patch's samples (their digest)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    if polygon is not None:
+        h.update(b"polygon\0" + Path(polygon).read_bytes() + f"\0{float(depth_m)!r}".encode())  # type: ignore[arg-type]
+    else:
+        h.update(b"patch\0" + str(patch_digest).encode())
+    return h.hexdigest()
+
+
+def _done_edit(rows: list[dict[str, Any]], key: str, epoch: str | None, base: str | None, latest: str) -> Any:
+    """The complete epoch that already holds this edit, or None: the epoch named (from the base given, if
+    one is), else the base given's edit of these parameters, else the latest epoch when it is this edit."""
+    done = [r for r in rows if r["state"] == "complete" and r["info"].get("edit_key") == key]
+    if epoch is not None:
+        return next((r for r in done if r["name"] == epoch and base in (None, r["info"].get("base"))), None)
+    if base is not None:
+        return next((r for r in done if r["info"].get("base") == base), None)
+    return next((r for r in done if r["name"] == latest), None)
+
+
 def default_edit_name(existing: list[str]) -> str:
     """``edit-N``: the first N not taken."""
     n = 1
@@ -210,15 +243,30 @@ def prepare_edit(
         crs = s.crs
         existing = s.epochs
         base_name = str(s.epoch)
+        rows = s.epoch_rows() if s.has_epochs else []
     if polygon is not None:
         if depth_m is None:
             raise InputError("--polygon needs --depth-m (metres down; negative for a fill)", str(polygon))
         res = excavate(hf, read_polygons(polygon, crs), float(depth_m), str(polygon))
+        key = edit_key(polygon, depth_m)
+        args = {"polygon": str(polygon), "depth_m": float(depth_m)}
     else:
-        res = apply_patch(hf, read_heightfield(patch), str(patch))
+        patch_hf = read_heightfield(patch)
+        res = apply_patch(hf, patch_hf, str(patch))
+        key = edit_key(patch_digest=patch_hf.digest())
+        args = {"patch": str(patch)}
+    if not resume and (done := _done_edit(rows, key, epoch, base, base_name)) is not None:
+        raise EditAlreadyDone(
+            f"this edit is already epoch {done['name']!r} (the same {'polygon and depth' if polygon else 'patch'} "
+            f"on {done['info'].get('base')!r}, a run that finished); nothing done. To apply it once more, "
+            f"name a new epoch with --epoch",
+            str(store_path),
+            done["name"],
+        )
     name = epoch or default_edit_name(existing)
     check_update(store_path, res.heightfield, name, base=base_name, resume=resume)
-    info = {"edit": res.description, "edited": datetime.date.today().isoformat()}
+    info = {"edit": res.description, "edited": datetime.date.today().isoformat(), "edit_key": key,
+            "edit_args": args}  # fmt: skip
     return res, name, base_name, info
 
 

@@ -708,7 +708,7 @@ def _fail(message: str) -> None:
         import traceback
 
         traceback.print_exc(file=sys.stderr)
-    click.echo(f"terralod: {one_line(message)}", err=True)
+    click.echo(f"terralod: {one_line(message, 1000)}", err=True)  # room for a command with two long paths
     sys.exit(2)
 
 

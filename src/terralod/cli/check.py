@@ -36,7 +36,8 @@ def check(path: str, repair: bool, upgrade: bool, as_json: bool) -> None:
         if rep.checked:
             console.print(f"  checked: {'; '.join(rep.checked)}", highlight=False)
         for line in rep.problems[:MAX_LINES]:
-            console.print(f"  problem: {one_line(line)}", highlight=False, markup=False)
+            # never wrapped nor cut: a line may end in the command that finishes an interrupted epoch
+            console.print(f"  problem: {one_line(line, 2000)}", highlight=False, markup=False, soft_wrap=True)
         if len(rep.problems) > MAX_LINES:
             console.print(f"  ... and {len(rep.problems) - MAX_LINES} more problems", highlight=False)
         n = len(rep.problems)

@@ -22,8 +22,12 @@ from terralod.cli._common import console
 @click.option("--resume", is_flag=True, help="Finish an interrupted edit of the same epoch.")
 @click.option("--workers", type=click.IntRange(1, 256), default=None, help="Threads (default: all cores).")
 def edit(store: str, polygon, depth_m, patch, epoch, base, resume: bool, workers) -> None:
-    """Dig, fill or patch the terrain of STORE and keep the result as a new epoch."""
-    from terralod.change.epochs import prepare_edit
+    """Dig, fill or patch the terrain of STORE and keep the result as a new epoch.
+
+    Rerunning an edit that finished (the same polygon and depth, or patch) digs nothing a second time: it
+    says which epoch holds it. To apply it once more, name a new epoch with --epoch.
+    """
+    from terralod.change.epochs import EditAlreadyDone, prepare_edit
     from terralod.cli.update import print_update, run_update
 
     if (polygon is None) == (patch is None):
@@ -32,8 +36,12 @@ def edit(store: str, polygon, depth_m, patch, epoch, base, resume: bool, workers
         raise click.BadParameter(
             "--polygon needs --depth-m (metres down; negative for a fill)", param_hint="--depth-m"
         )
-    res, name, base_name, info = prepare_edit(store, polygon=polygon, depth_m=depth_m, patch=patch, epoch=epoch,
-                                              base=base, resume=resume)  # fmt: skip
+    try:
+        res, name, base_name, info = prepare_edit(store, polygon=polygon, depth_m=depth_m, patch=patch, epoch=epoch,
+                                                  base=base, resume=resume)  # fmt: skip
+    except EditAlreadyDone as done:  # a rerun after the edit committed (e.g. killed before it said so)
+        console.print(f"{store}: {done.message}", highlight=False, markup=False)
+        return
     d = res.description
     what = {"excavation": "removed", "fill": "added", "patch": "changed (net)"}[d["edit"]]
     console.print(f"{d['edit']}: {abs(res.volume_m3):,.0f} m³ {what} over {d['cells']:,} cells")

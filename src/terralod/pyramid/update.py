@@ -246,6 +246,27 @@ def validate_epoch_name(name: str, where: str) -> str:
     return name
 
 
+def finish_advice(store_path: str | os.PathLike[str], row: dict[str, Any]) -> str:
+    """How to finish (or drop) the interrupted epoch ``row`` (a :meth:`TileStore.epoch_rows` row): the exact
+    ``terralod update|edit ... --resume`` command, from what the epoch recorded when it began."""
+    import shlex
+
+    q, info, name, store = shlex.quote, row["info"], str(row["name"]), str(store_path)
+    base = f" --from {q(str(info['base']))}" if info.get("base") else ""
+    args, src = info.get("edit_args") or {}, info.get("source")
+    cmd = None
+    if info.get("kind") == "edit" and "polygon" in args:
+        cmd = f"terralod edit {q(store)} --polygon {q(args['polygon'])} --depth-m {args['depth_m']!r}"
+    elif info.get("kind") == "edit" and "patch" in args:
+        cmd = f"terralod edit {q(store)} --patch {q(args['patch'])}"
+    elif info.get("kind") == "update" and src and Path(src).is_file():
+        cmd = f"terralod update {q(store)} {q(str(src))}"
+    drop = f"`terralod epochs {q(store)} --delete {q(name)}`"
+    if cmd is None:
+        return f"finish it with the same command plus --resume, or remove it with {drop}"
+    return f"finish it with `{cmd} --epoch {q(name)}{base} --resume` or remove it with {drop}"
+
+
 def _check_update(store: TileStore, hf: Heightfield, epoch: str, resume: bool) -> dict[str, Any] | None:
     """Refuse an update that cannot go ahead (one line); the interrupted row of ``epoch`` when resuming."""
     p = store.path
@@ -257,17 +278,11 @@ def _check_update(store: TileStore, hf: Heightfield, epoch: str, resume: bool) -
     if same is not None and same["state"] == "complete":
         raise InputError(f"epoch {epoch!r} exists already (epochs: {', '.join(store.epochs)})", str(p))
     if same is not None and not resume:
-        raise StoreError(
-            f"an update to epoch {epoch!r} was interrupted; finish it with --resume or remove it with "
-            f"`terralod epochs {p} --delete {epoch}`",
-            str(p),
-        )
+        raise StoreError(f"an update to epoch {epoch!r} was interrupted; {finish_advice(p, same)}", str(p))
     others = [r for r in pending if r["name"] != epoch]
     if others:
         raise StoreError(
-            f"an update to epoch {others[0]['name']!r} was interrupted; finish it with --resume or remove "
-            f"it with `terralod epochs {p} --delete {others[0]['name']}`",
-            str(p),
+            f"an update to epoch {others[0]['name']!r} was interrupted; {finish_advice(p, others[0])}", str(p)
         )
     if same is not None and same["info"].get("source_digest") != hf.digest():
         raise StoreError(
