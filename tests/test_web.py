@@ -433,7 +433,7 @@ def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pyte
         )
         assert [e["name"] for e in site["epochs"]] == [first, last] and site["pairs"][0]["from"] == first
         meta, files = svc.site_pair(0)
-        dod = np.frombuffer(files["pairs/0-dod.f32"], "<f4")
+        dod = np.frombuffer(gzip.decompress(files["pairs/0-dod.f32.gz"]), "<f4")
         assert np.nanmax(dod) == pytest.approx(60.0, abs=0.5)  # the mound (same grid: no shift)
     out = tmp_path / "first"
     main(["export", str(store), "--format", "3dtiles", "-o", str(out), "--epoch", first])
