@@ -161,6 +161,8 @@ def change(
       terralod change dem_2015.tif dem_2021.tif -o site_change --exclude glacier.geojson
     """
     require_extra("change", "change")
+    if with_site:
+        require_extra("change --site", "web")
     from terralod.change.coregister import read_stable_mask
     from terralod.change.difference import check_vertical_units, write_dod
     from terralod.change.report import plain_summary, write_report
@@ -298,7 +300,9 @@ def _write_site(dest: Path, result, hfs: list, dates: list, options: dict) -> No
             r = measure_change(hfs[i - 1], hfs[i], dates=(dates[i - 1], dates[i]), **options)
             pairs.append((names[i - 1], names[i], r))
     rep = site_from_change(hfs, names, pairs, dest)
-    console.print(f"site: {rep.bytes / 1e6:.1f} MB in {dest.name}/ (open it with `python -m http.server` there)")
+    console.print(
+        f"site: {rep.bytes / 1e6:.1f} MB in {dest.name}/ (open it with `python -m http.server` there)"
+    )
 
 
 def _jsonable(v):

@@ -59,6 +59,7 @@ def export(
     from terralod.terrain import _is_sqlite, open_terrain
 
     if fmt == "site":
+        require_extra("export --format site", "change")  # the pairs are measured as `terralod change` does
         _run_site(store, output, overwrite)
         return
     if _is_dem(store, _is_sqlite):

@@ -53,6 +53,13 @@ _TERRAIN = re.compile(r"^/terrain/(\d{1,2})/(\d{1,9})/(\d{1,9})\.terrain$")
 _EPOCH = re.compile(r"^/e/([^/]{1,64})(/.*)$")
 
 
+def _change_available() -> bool:
+    """Whether the change extra (xdem, shapely) is installed: the site's pairs are measured with it."""
+    import importlib.util
+
+    return all(importlib.util.find_spec(m) is not None for m in ("xdem", "shapely"))
+
+
 class _LRU:
     def __init__(self, max_bytes: int) -> None:
         self.max_bytes = max_bytes
@@ -128,6 +135,10 @@ class TileService:
 
         names = list(self.terrain.epochs)
         qm = self.qm()
+        if not _change_available():  # without the change extra the page shows the epochs, no difference
+            log.warning("the change extra is not installed: the page shows the epochs without their change")
+            return manifest(Path(str(self.terrain.path)).stem if self.terrain.path else "terrain", names or ["terrain"],
+                            [], qm.bbox, self.terrain.elevation_range_m)  # fmt: skip
         title = Path(str(self.terrain.path)).stem if self.terrain.path else "terrain"
         if len(names) >= 2:
             title += ": how the ground changed"
@@ -139,7 +150,7 @@ class TileService:
         from terralod.site.data import epoch_label, pair_payload, pairs_of
 
         pairs = pairs_of(list(self.terrain.epochs))
-        if k >= len(pairs):
+        if k >= len(pairs) or not _change_available():
             return None
         got = self._pairs.get(k)
         if got is None:
