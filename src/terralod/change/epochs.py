@@ -285,6 +285,8 @@ def edit_store(
 ) -> tuple[EditResult, Any]:
     """Edit epoch ``base`` (default: the latest) of a store and write the result as new epoch ``epoch``
     (default ``edit-N``), rebuilding only the tiles the edit touches. Returns (the edit, the UpdateReport).
+    Raises :class:`EditAlreadyDone` when the store already holds this very edit (the same polygon file and
+    depth, or patch) as that epoch, or, without ``epoch``, as the latest one (a rerun after a finished edit).
     """
     from terralod.pyramid.update import update_store
 
