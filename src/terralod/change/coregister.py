@@ -359,6 +359,10 @@ def coregister(
         try:
             if method == "xdem":
                 s1, iters = _fit_xdem(pair, sg.fit, seed)
+                # xdem's binned fit, polished by least squares on the unsmoothed surfaces: on gentle or
+                # noisy ground its bins leave a tenth of a cell that the cells themselves can resolve
+                s1, more = _fit_terralod(pair, sg.fit, seed, start=s1)
+                iters += more
             else:
                 s1, iters = _fit_terralod(pair, sg.fit, seed)
             res.iterations += iters
@@ -458,9 +462,16 @@ def _fit_xdem(pair: AlignedPair, mask: np.ndarray, seed: int) -> tuple[tuple[flo
 
 # -- own estimator -------------------------------------------------------------------------------------
 def _fit_terralod(
-    pair: AlignedPair, mask: np.ndarray, seed: int, *, tol_px: float = 1e-3, max_iter: int = 30
+    pair: AlignedPair,
+    mask: np.ndarray,
+    seed: int,
+    *,
+    tol_px: float = 1e-3,
+    max_iter: int = 30,
+    start: tuple[float, float, float] | None = None,
 ) -> tuple[tuple[float, float, float], int]:
-    """Gauss-Newton on ``r(t) = A(x − t_xy) + t_z − B(x)`` over stable cells, coarse to fine."""
+    """Gauss-Newton on ``r(t) = A(x − t_xy) + t_z − B(x)`` over stable cells, coarse to fine (only on the
+    unsmoothed surfaces when starting from ``start``, another estimator's answer)."""
     from scipy import ndimage
 
     before, after = pair.before, pair.after
@@ -475,7 +486,9 @@ def _fit_terralod(
     b_full = before.elevation_m.astype(np.float64)
     a_full = after.elevation_m.astype(np.float64)
     px = float(min(before.spacing_m))
-    for sigma_px in (4.0, 2.0, 1.0, 0.0):
+    if start is not None:
+        t[:] = start
+    for sigma_px in (4.0, 2.0, 1.0, 0.0) if start is None else (0.0,):
         b_s = ndimage.gaussian_filter(b_full, sigma_px) if sigma_px else b_full
         a_s = ndimage.gaussian_filter(a_full, sigma_px * px / min(dxa, dya)) if sigma_px else a_full
         b = b_s[rows, cols]
