@@ -24,7 +24,7 @@ python -m pip install -e ".[all,dev,fast-tin]"
 # CesiumJS, the Khronos glTF validator and puppeteer-core (drives the system Chromium: no browser download)
 if command -v npm >/dev/null 2>&1; then
   PUPPETEER_SKIP_DOWNLOAD=1 npm ci --no-audit --no-fund
-  # the viewer's CesiumJS into the package (src/terralod/serve/static/cesium, package data of the wheel)
+  # the viewer's CesiumJS into the package (src/terralod/site/cesium, package data of the wheel)
   python scripts/vendor_cesium.py
 fi
 # compile and cache every numba kernel now, so the first build / render / demo does not sit silent

@@ -1,6 +1,6 @@
 """Copy CesiumJS's browser build into the package, so the wheel carries the viewer's globe.
 
-``node_modules/cesium/Build/Cesium`` (after ``npm ci``) goes to ``src/terralod/serve/static/cesium/`` with
+``node_modules/cesium/Build/Cesium`` (after ``npm ci``) goes to ``src/terralod/site/cesium/`` with
 cesium's ``LICENSE.md`` (Apache-2.0, third-party notices included). The Node bundles (``index.cjs``,
 ``index.js``: the ``require``/``import`` entry points for bundlers) are left out; the browser loads
 ``Cesium.js`` with its ``Workers``, ``Assets``, ``ThirdParty`` and ``Widgets``. The target is gitignored and
@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-TARGET = ROOT / "src" / "terralod" / "serve" / "static" / "cesium"
+TARGET = ROOT / "src" / "terralod" / "site" / "cesium"
 #: Node-only entry points of Build/Cesium (not loaded by a browser page).
 NODE_ONLY = {"index.cjs", "index.js", "package.json"}
 

@@ -19,7 +19,7 @@ BASE = {"terralod.errors", "terralod.kernels", "terralod.tiles", "terralod.fill"
 #: Stages, in the order data flows (DESIGN.md): a stage may import stages to its left and the base.
 STAGES = ["terralod.io", "terralod.fractal", "terralod.store_epochs", "terralod.store", "terralod.pyramid",
           "terralod.tin", "terralod.integrity", "terralod.runtime", "terralod.terrain", "terralod.render", "terralod.change",
-          "terralod.export", "terralod.serve", "terralod.warmup", "terralod.cli"]  # fmt: skip
+          "terralod.export", "terralod.site", "terralod.serve", "terralod.warmup", "terralod.cli"]  # fmt: skip
 
 
 def _module_name(path: Path) -> str:

@@ -31,7 +31,7 @@ AFTER = DATA / "st_helens_crater_2007-07-05_10m.tif"
 pytestmark = [
     pytest.mark.skipif(not BEFORE.exists(), reason="../shared/data (St Helens pair) is absent"),
     pytest.mark.skipif(
-        not (SRC / "serve" / "static" / "cesium" / "Cesium.js").is_file(),
+        not (SRC / "site" / "cesium" / "Cesium.js").is_file(),
         reason="CesiumJS is not vendored (npm ci, then python scripts/vendor_cesium.py: scripts/install.sh)",
     ),
 ]
@@ -89,8 +89,8 @@ def wheel_venv(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Pa
 def test_wheel_carries_the_package_and_cesium(wheel_venv) -> None:
     wheel, venv, work, env = wheel_venv
     names = zipfile.ZipFile(wheel).namelist()
-    assert "terralod/serve/static/cesium/Cesium.js" in names
-    assert "terralod/serve/static/cesium/LICENSE.md" in names
+    assert "terralod/site/cesium/Cesium.js" in names
+    assert "terralod/site/cesium/LICENSE.md" in names
     assert "terralod/site/static/index.html" in names and "terralod/site/static/site.js" in names
     assert not any(n.endswith(("cesium/index.cjs", "cesium/index.js")) for n in names)  # Node bundles
     meta = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
@@ -126,14 +126,14 @@ def test_wheel_serve_viewer_and_cesium(wheel_venv) -> None:
         assert " on http://" in line, line + proc.stderr.read()
         url = line.split(" on ", 1)[1].split()[0]
         with urllib.request.urlopen(url, timeout=30) as resp:
-            assert resp.status == 200 and b"/cesium/Cesium.js" in resp.read()
+            assert resp.status == 200 and b"cesium/Cesium.js" in resp.read()
         with urllib.request.urlopen(url + "cesium/Cesium.js", timeout=30) as resp:
             body = resp.read()
             if resp.headers.get("Content-Encoding") == "gzip":
                 import gzip
 
                 body = gzip.decompress(body)
-        assert body == (SRC / "serve" / "static" / "cesium" / "Cesium.js").read_bytes()
+        assert body == (SRC / "site" / "cesium" / "Cesium.js").read_bytes()
     finally:
         proc.terminate()
         proc.wait(timeout=30)

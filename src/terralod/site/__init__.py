@@ -23,5 +23,6 @@ What the page reads (relative URLs, so a folder on any static host works; ``serv
 """
 
 from terralod.site.build import site_from_change, site_from_store
+from terralod.site.cesium import cesium_dir
 
-__all__ = ["site_from_change", "site_from_store"]
+__all__ = ["cesium_dir", "site_from_change", "site_from_store"]

@@ -80,7 +80,7 @@ def copy_page(dest: Path) -> None:
 def copy_cesium(dest: Path) -> None:
     """CesiumJS's browser build (with its licence) into ``dest/cesium``."""
     from terralod.errors import TerralodError
-    from terralod.serve import cesium_dir
+    from terralod.site.cesium import cesium_dir
 
     src = cesium_dir()
     if src is None:
