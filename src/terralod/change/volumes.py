@@ -4,10 +4,13 @@ and a series' volume against time; :func:`measure_change` runs the whole chain o
 Uncertainty (what a geoscientist signs)
 ---------------------------------------
 - σ, the vertical uncertainty of one DoD cell: the NMAD of the co-registered DoD on stable ground
-  (:func:`terralod.change.coregister.stable_ground`), or the given ``sigma_m`` (``--sigma-m``). The given
-  value wins when there is one; without it, too little stable ground (< 100 cells) or an NMAD of exactly 0
-  (stable ground copied from one DEM into the other, as in the St Helens epochs) leaves σ unknown, and a
-  stated default (:data:`ASSUMED_SIGMA_M`) is used with a warning. ``sigma_source`` says which.
+  (:func:`terralod.change.coregister.find_stable_ground`: valid in both, outside the change, off water
+  surfaces and ``--exclude``), or the given ``sigma_m`` (``--sigma-m``). The given value wins when there is
+  one. σ is refused — a stated default (:data:`ASSUMED_SIGMA_M`) is used, with a warning and a plain
+  statement — when the stable ground cannot give it: fewer than 100 cells, a difference exactly 0 or
+  constant (copied, not surveyed twice), or a difference no larger than the resampling's own error (or
+  explained by it cell by cell): a copy of one survey, resampled. Cells whose difference is exactly 0
+  among others that are not (a copied patch) are left out of σ, said so. ``sigma_source`` says which.
 - Level of detection: LoD = t·σ with t the two-sided normal quantile of the confidence (1.96 at 95 %),
   the minimum level of detection of GCD (Wheaton et al. 2010, ESPL 35).
 - Volume uncertainty, spatially correlated errors (Rolstad, Haug and Denby 2009, J. Glaciol. 55(192),
@@ -18,12 +21,19 @@ Uncertainty (what a geoscientist signs)
 
       σ_mean² = c0 · a / A + c1 · min(1, π L² / (5 A)),     a = one cell's area,
 
-  and of the volume σ_V = A · σ_mean; the ± figures are t · σ_V (95 %). Without stable ground to fit on,
-  ``L`` is the given ``corr_range_m`` or :data:`ASSUMED_RANGE_M`, all of σ² in the spherical part. Each
-  volume takes the area it sums over: every valid cell for ``net_m3``, the gain (loss) cells for
-  ``gain_m3`` (``loss_m3``), the cells beyond the LoD for the ``_above_lod`` figures. Not propagated:
-  the interpolation error of resampling and the uncertainty of the co-registration itself (both small
-  against σ after a fit; the co-registration's NMAD before and after is reported).
+  and of the volume σ_V = A · σ_mean. Without a fitted variogram ``L`` is the given ``corr_range_m`` or
+  :data:`ASSUMED_RANGE_M`, all of σ² in the spherical part, said so in a plain statement. Each volume takes
+  the area it sums over: every valid cell for ``net_m3``, the gain (loss) cells for ``gain_m3``
+  (``loss_m3``), the cells beyond the LoD for the ``_above_lod`` figures. Two more terms, in quadrature:
+
+  - the fitted vertical bias's own uncertainty, a fully correlated error of every cell: 1.2533 · σ_mean over
+    the stable area (the standard error of a median), doubled when only the bias could be fitted (the
+    horizontal alignment could not be checked); A · σ_bias per volume;
+  - the resampling's own error when AFTER was resampled or reprojected onto BEFORE's grid
+    (:func:`resampling_error`: BEFORE taken through AFTER's grid and back by the same path, halved), summed
+    over the volume's cells: interpolation smooths peaks and pits, an error that does not average out.
+
+  The ± figures are t · sqrt(σ_V² + (A σ_bias)² + (Σ e · a)²).
 """
 
 from __future__ import annotations

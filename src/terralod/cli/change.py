@@ -14,7 +14,12 @@ Contract (scripts rely on it): ``OUT/summary.json`` with ``gain_m3``, ``loss_m3`
 cell, no threshold; gain and loss positive), the same with ``_above_lod``, ``net_uncertainty_m3`` (95 %),
 ``area_gain_m2``, ``area_loss_m2`` (beyond the level of detection), ``sigma_m``, ``level_of_detection_m``,
 ``max_rise_m``, ``max_drop_m`` (positive), ``shift_m`` ([dx, dy, dz] metres applied to AFTER to align it
-with BEFORE) and ``zones`` (one object per polygon of ``--zones``, empty without); ``OUT/dod.tif``;
+with BEFORE) and ``zones`` (one object per polygon of ``--zones``, empty without); also
+``coregistration`` (``mode``: "shift and bias", "bias only", "identical" or "none", and ``statement``, one
+plain sentence), ``stable_ground`` (cells, what was left out and ``description``, e.g. "fitted on 41 % of
+the area: ground outside the change with slopes above 3°; left out: 1 flat water surface …"),
+``fit_description`` and ``uncertainty`` (variogram, bias σ, resampling error, ``statements``). Inputs are
+named by their file names only; ``OUT/dod.tif``;
 ``OUT/report.html`` (plus the report's PNGs in ``OUT/figures/``). Exit 0, or 2 on bad input with one line
 naming the file. OUT is written to a temporary folder beside it and renamed into place at the end.
 """
@@ -289,16 +294,18 @@ def _without_folders(v, paths: list[str]):
 
 def _write_site(dest: Path, result, hfs: list, dates: list, options: dict) -> None:  # noqa: ANN001
     """OUT/site/ (:mod:`terralod.site`): each epoch's 3D Tiles, the first → last pair (this run's result) and,
-    for a series, each consecutive pair measured the same way."""
+    for a series, the other pairs a site carries (:func:`terralod.site.data.pairs_of`) measured the same way."""
     from terralod.change.volumes import measure_change
     from terralod.site import site_from_change
+    from terralod.site.data import pairs_of
 
     names = [d or f"survey-{i + 1}" for i, d in enumerate(dates)]
+    index = {n: i for i, n in enumerate(names)}
     pairs = [(names[0], names[-1], result)]
-    for i in range(1, len(hfs)):
-        if len(hfs) > 2:
-            r = measure_change(hfs[i - 1], hfs[i], dates=(dates[i - 1], dates[i]), **options)
-            pairs.append((names[i - 1], names[i], r))
+    for a, b in pairs_of(names)[1:]:
+        i, j = index[a], index[b]
+        r = measure_change(hfs[i], hfs[j], dates=(dates[i], dates[j]), **options)
+        pairs.append((a, b, r))
     rep = site_from_change(hfs, names, pairs, dest)
     console.print(
         f"site: {rep.bytes / 1e6:.1f} MB in {dest.name}/ (open it with `python -m http.server` there)"
