@@ -65,6 +65,12 @@ TARGET_FRACTION = 0.25
 #: Greedy-insertion target at the finest zoom of a lattice export at most this (m): the zoom CesiumJS
 #: shows up close and never refines, holding the DEM's detail (SRTM heights are whole metres).
 FINEST_ERROR_M = 3.0
+#: RMS error (m) the zoom below the finest aims at on a lattice export: a tile whose RMS at the level's
+#: target is above it is meshed again at a target scaled down to it (once; the measured errors are what
+#: the tile declares either way). It puts one zoom of the pyramid at the RMS of the finest tiles other
+#: tools serve (Cesium Terrain Builder's z12 on SRTM3: 6-9 m), between the level's quarter of CesiumJS's
+#: error and the finest zoom's full detail.
+RMS_GOAL_M = 8.0
 #: Extension ids of the format.
 EXT_NORMALS, EXT_WATERMASK, EXT_METADATA = 1, 2, 4
 
@@ -134,22 +140,127 @@ def _spread10(a: np.ndarray) -> np.ndarray:
     return (a | (a << 1)) & 0x55555555
 
 
+@njit(cache=True)
+def _free(nbr, seen, t):  # pragma: no cover - numba
+    """How many unvisited neighbours triangle t has."""
+    k = 0
+    for q in range(3):
+        m = nbr[3 * t + q]
+        if m >= 0 and not seen[m]:
+            k += 1
+    return k
+
+
+@njit(cache=True)
+def _walk_order(tris, seeds, nv):  # pragma: no cover - numba
+    """Triangle order: a depth-first walk across shared edges (each next triangle shares an edge with the
+    one before wherever it can, so two of its three indices are recent ones and the high-water-mark codes
+    stay small), going on to the unvisited neighbour that comes first in ``seeds`` (Morton order of the
+    centroids), restarting at the next unvisited seed when the walk is stuck."""
+    nt = tris.shape[0]
+    keys = np.empty(3 * nt, np.int64)
+    for t in range(nt):
+        for q in range(3):
+            a = tris[t, q]
+            b = tris[t, (q + 1) % 3]
+            keys[3 * t + q] = min(a, b) * nv + max(a, b)
+    o = np.argsort(keys)
+    nbr = np.full(3 * nt, -1, np.int64)
+    for i in range(3 * nt - 1):
+        if keys[o[i]] == keys[o[i + 1]]:
+            nbr[o[i]] = o[i + 1] // 3
+            nbr[o[i + 1]] = o[i] // 3
+    rank = np.empty(nt, np.int64)
+    for i in range(nt):
+        rank[seeds[i]] = i
+    seen = np.zeros(nt, np.bool_)
+    out = np.empty(nt, np.int64)
+    no = 0
+    stack = np.empty(2 * nt + 1, np.int64)
+    sp = 0
+    for s in seeds:
+        if seen[s]:
+            continue
+        cur = s
+        while True:
+            seen[cur] = True
+            out[no] = cur
+            no += 1
+            best = -1
+            for q in range(3):
+                m = nbr[3 * cur + q]
+                if m >= 0 and not seen[m]:
+                    if best < 0:
+                        best = m
+                    elif _free(nbr, seen, m) * nt + rank[m] < _free(nbr, seen, best) * nt + rank[best]:
+                        stack[sp] = best
+                        sp += 1
+                        best = m
+                    else:
+                        stack[sp] = m
+                        sp += 1
+            if best < 0:
+                while sp > 0:
+                    sp -= 1
+                    if not seen[stack[sp]]:
+                        best = stack[sp]
+                        break
+            if best < 0:
+                break
+            cur = best
+    return out
+
+
+@njit(cache=True)
+def _rotate_after(tris):  # pragma: no cover - numba
+    """Each triangle rotated (its winding kept) so that the vertex it does not share with the triangle
+    before comes last: a walk's triangles then read (shared, shared, new)."""
+    out = tris.copy()
+    for t in range(1, tris.shape[0]):
+        for q in range(3):
+            i = tris[t, q]
+            if i != out[t - 1, 0] and i != out[t - 1, 1] and i != out[t - 1, 2]:
+                out[t, 0] = tris[t, (q + 1) % 3]
+                out[t, 1] = tris[t, (q + 2) % 3]
+                out[t, 2] = i
+                break
+    return out
+
+
+@njit(cache=True)
+def _first_use(tris, nv):  # pragma: no cover - numba
+    """Vertices renumbered in first-use order of ``tris`` (unused ones last): (order, renumbered tris)."""
+    remap = np.full(nv, -1, np.int64)
+    order = np.empty(nv, np.int64)
+    k = 0
+    out = np.empty_like(tris)
+    for t in range(tris.shape[0]):
+        for q in range(3):
+            i = tris[t, q]
+            if remap[i] < 0:
+                remap[i] = k
+                order[k] = i
+                k += 1
+            out[t, q] = remap[i]
+    for i in range(nv):
+        if remap[i] < 0:
+            remap[i] = k
+            order[k] = i
+            k += 1
+    return order, out
+
+
 def _reorder(uvh: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Triangles in Morton order of their centroids and vertices renumbered in first-use order of them
-    (what high-water-mark coding wants; neighbours come together, so the zig-zag deltas and the index
-    codes are small and gzip well)."""
+    """Triangles in a walk across shared edges seeded in Morton order of their centroids, vertices
+    renumbered in first-use order of them (what high-water-mark coding wants; neighbours come together,
+    so the zig-zag deltas and the index codes are small and gzip well)."""
+    tris = np.ascontiguousarray(tris, np.int64)
     if len(tris):
         cu = uvh[tris, 0].sum(axis=1) // 96  # centroid / 32: 10 bits
         cv = uvh[tris, 1].sum(axis=1) // 96
-        tris = tris[np.argsort(_spread10(cu) | (_spread10(cv) << 1), kind="stable")]
-    flat = tris.ravel()
-    _, first = np.unique(flat, return_index=True)
-    order = flat[np.sort(first)]
-    unused = np.setdiff1d(np.arange(len(uvh)), order)
-    order = np.concatenate([order, unused])
-    remap = np.empty(len(uvh), np.int64)
-    remap[order] = np.arange(len(uvh))
-    return order, remap[tris]
+        seeds = np.argsort(_spread10(cu) | (_spread10(cv) << 1), kind="stable")
+        tris = _rotate_after(tris[_walk_order(tris, seeds, len(uvh))])
+    return _first_use(tris, len(uvh))
 
 
 #: WGS 84 radii (a, a, b), metres: the ellipsoid's scaled space of the horizon-occlusion point.
@@ -393,7 +504,9 @@ class QuantizedMesh:
     (:func:`terralod.export.source.source_from_dem`).
     """
 
-    def __init__(self, terrain: Any, *, target_fraction: float = TARGET_FRACTION) -> None:
+    def __init__(
+        self, terrain: Any, *, target_fraction: float = TARGET_FRACTION, normals: bool = False
+    ) -> None:
         from terralod.export.lattice import Lattice
         from terralod.export.source import SourceGrid, TinSource, source_for
 
@@ -407,6 +520,7 @@ class QuantizedMesh:
             self.ref = source_for(terrain, Geodesy(terrain.crs, where))
             self.name = Path(str(terrain.path)).stem if terrain.path is not None else "terrain"
         self.target_fraction = target_fraction
+        self.normals = bool(normals)
         self.bbox = self.ref.bbox
         # a geographic DEM is meshed on its own lattice (no resampling); anything else on 257² tile grids
         geographic = not isinstance(self.ref, TinSource) and getattr(self.ref, "identity", False)
@@ -467,7 +581,7 @@ class QuantizedMesh:
             "bounds": list(self.bbox),
             "minzoom": 0,
             "maxzoom": self.max_zoom,
-            "extensions": ["octvertexnormals", "watermask"],
+            "extensions": (["octvertexnormals"] if self.normals else []) + ["watermask"],
             "available": [[dict(zip(("startX", "startY", "endX", "endY"), self.level_range(z), strict=True))]
                           for z in range(self.max_zoom + 1)],
             "terralod": {"heights": "as read (no geoid change)",
@@ -501,6 +615,11 @@ class QuantizedMesh:
         target = self.target_error_m(z) if target_m is None else float(target_m)
         if self.lattice is not None and not regular:
             t = self._lattice_tile(z, x, y, rect, target)
+            if target_m is None and z == self.max_zoom - 1 and t.samples:
+                rms = math.sqrt(t.sumsq_m2 / t.samples)
+                if rms > RMS_GOAL_M:  # RMS is about proportional to the target: scale it down once
+                    low = max(target * RMS_GOAL_M / rms, self.target_error_m(self.max_zoom))
+                    t = self._lattice_tile(z, x, y, rect, low)
             if target_m is None:
                 self._errors[(z, x, y)] = t.error_m
             return t
@@ -529,7 +648,7 @@ class QuantizedMesh:
         o = np.column_stack([lon, lat])[tris[:, 0]]
         cr = (a[:, 0] - o[:, 0]) * (b[:, 1] - o[:, 1]) - (a[:, 1] - o[:, 1]) * (b[:, 0] - o[:, 0])
         tris[cr < 0] = tris[cr < 0][:, ::-1]
-        normals = self._normals(filled, rows, cols, rect, lon, lat)
+        normals = self._normals(filled, rows, cols, rect, lon, lat) if self.normals else None
         wmask = water[1:-1, 1:-1][:256, :256]
         if not wmask.any():
             wm: np.ndarray | int = 0
@@ -583,10 +702,12 @@ class QuantizedMesh:
         tris[area[area != 0] < 0] = tris[area[area != 0] < 0][:, ::-1]  # counter-clockwise (east, north)
         lon = w + u / 32767.0 * (e - w)
         lat = s + v / 32767.0 * (n - s)
-        enu = lat_.normals_enu(fr, fc, lat, stride)
-        ea, no, up = enu_frame(lon, lat)
-        normals = ea * enu[:, :1] + no * enu[:, 1:2] + up * enu[:, 2:3]
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = None
+        if self.normals:
+            enu = lat_.normals_enu(fr, fc, lat, stride)
+            ea, no, up = enu_frame(lon, lat)
+            normals = ea * enu[:, :1] + no * enu[:, 1:2] + up * enu[:, 2:3]
+            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         wm = lat_.water_mask(rect)
         kind = "some" if isinstance(wm, np.ndarray) else ("all" if wm == 255 else "none")
         raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
@@ -617,6 +738,7 @@ def export_quantized_mesh(
     epoch: str | None = None,
     overwrite: bool = False,
     gzip_tiles: bool = False,
+    normals: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> ExportReport:
     """Write ``out/layer.json``, ``out/errors.json`` (measured error per tile) and ``out/Z/X/Y.terrain``.
@@ -634,7 +756,7 @@ def export_quantized_mesh(
             terrain = terrain.with_epoch(epoch)
     else:
         check_output(out, overwrite)
-    qm = QuantizedMesh(terrain)
+    qm = QuantizedMesh(terrain, normals=normals)
     rep = ExportReport(Path(out))
     per_level: dict[int, float] = {}
     per_tile: dict[str, float] = {}
