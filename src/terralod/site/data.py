@@ -196,13 +196,16 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
 
 
 def pairs_of(epochs: list[str]) -> list[tuple[str, str]]:
-    """The pairs a site carries: first → last, then each consecutive pair (no repeats)."""
+    """The pairs a site carries: first → last, each consecutive pair, then first → every other epoch (the
+    page drapes "the change since the first date" on each date of a series), no repeats."""
     out: list[tuple[str, str]] = []
     if len(epochs) >= 2:
         out.append((epochs[0], epochs[-1]))
     for a, b in zip(epochs[:-1], epochs[1:], strict=True):
         if (a, b) not in out:
             out.append((a, b))
+    for b in epochs[2:-1]:
+        out.append((epochs[0], b))
     return out
 
 

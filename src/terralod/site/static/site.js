@@ -201,7 +201,9 @@
     async function drape(i, a, b) {
       const sh = tilesets[i].customShader;
       if (!$("drape").checked || a === null || pairIndex(a, b) < 0) {
-        sh.setUniform("u_drape", 0.0); drapeOn.delete(i); return null;
+        sh.setUniform("u_drape", 0.0); drapeOn.delete(i);
+        if (!drapeOn.size) $("legend").hidden = true;
+        return null;
       }
       const P = await loadPair(a, b);
       const D = P.drape;
@@ -227,6 +229,7 @@
       const big = Math.max(L.max_m, -L.min_m) >= 20;
       $("legend-ticks").innerHTML = ticks.map((v) => `<span style="left:${pos(v)}%">${v === 0 ? "0" : (v > 0 ? "+" : "−") + Math.abs(v).toFixed(big ? 0 : 1)} m</span>`).join("");
       $("legend-lod").innerHTML = `<i></i> grey: within ±${L.lod_m.toFixed(1)} m, no measurable change`;
+      $("legend-title").textContent = `Change in ground height, ${labelOf(P.from)} to ${labelOf(P.to)}`;
       $("legend").hidden = false;
     }
 
@@ -428,15 +431,13 @@
   }
 
   async function drawChart(labelOf) {
-    // cumulative net volume since the first date, from the consecutive pairs (± added in quadrature)
+    // net volume since the first date, each date's own pair (first -> that date) with its ±
     const pts = [{ x: 0, v: 0, u: 0 }];
-    let v = 0, u2 = 0;
     for (let i = 1; i < S.epochs.length; i++) {
-      const k = pairIndex(S.epochs[i - 1], S.epochs[i]);
+      const k = pairIndex(S.epochs[0], S.epochs[i]);
       if (k < 0) return;
       const meta = await (await fetch(site.pairs[k].url)).json();
-      v += meta.totals.net_m3; u2 += meta.totals.net_uncertainty_m3 ** 2;
-      pts.push({ x: i, v, u: Math.sqrt(u2) });
+      pts.push({ x: i, v: meta.totals.net_m3, u: meta.totals.net_uncertainty_m3 });
     }
     const W = 320, H = 150, pad = 34;
     const lo = Math.min(0, ...pts.map((p) => p.v - p.u)), hi = Math.max(0, ...pts.map((p) => p.v + p.u));
