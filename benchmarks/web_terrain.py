@@ -3,7 +3,8 @@ from PyPI, on SRTM DEMs of ../shared/data.
 
     python benchmarks/web_terrain.py [--runs 3] [--dems srtm3_N41E001,srtm3_N42E001,srtm1_N48W125]
 
-terralod: ``terralod export DEM --format quantized-mesh -o DIR`` (a fresh process: start-up included).
+terralod: ``terralod export DEM --format quantized-mesh -o DIR`` (a fresh process: start-up included), and
+the same with ``--normals`` (oct-encoded vertex normals, as ``ctb-tile -N`` writes them).
 The PyPI pipeline (a fresh process too): per tile of Cesium's geographic scheme, the DEM resampled
 bilinearly onto the tile's 257² grid (numpy/scipy over the whole DEM read with rasterio), pymartini
 (Martini, RTIN) at the zoom's error (a quarter of CesiumJS's level error, half that at the finest zoom,
@@ -206,12 +207,14 @@ def run_dem(name: str, runs: int, tmp: Path) -> dict:
     cmds = {
         "terralod": lambda o: [sys.executable, "-m", "terralod", "export", str(dem), "--format",
                                "quantized-mesh", "-o", str(o), "--overwrite"],
+        "terralod --normals": lambda o: [sys.executable, "-m", "terralod", "export", str(dem), "--format",
+                                         "quantized-mesh", "-o", str(o), "--overwrite", "--normals"],
         "pypi (pymartini + quantized-mesh-encoder)": lambda o: [sys.executable, __file__, "--peer", str(dem),
                                                                 str(o)],
     }  # fmt: skip
     src = source_from_dem(dem)
-    for label, cmd in cmds.items():
-        folder = tmp / f"{name}-{label.split()[0]}"
+    for k, (label, cmd) in enumerate(cmds.items()):
+        folder = tmp / f"{name}-{k}"
         ts = []
         for _ in range(runs):
             if folder.exists():
@@ -266,18 +269,20 @@ def table(results: list[dict]) -> str:
                 lines.append(f"| {res['dem']} | {label} | {z} | {r['tiles']} | {r['triangles']:,} "
                              f"| {r['gzip_bytes'] / 1e6:.3f} | {r['max_m']:.1f} | {r['rms_m']:.2f} |")  # fmt: skip
     lines += ["", "Against ctb's finest zoom (the zoom with the fewest bytes at or below its true max and RMS errors; "
-              "bytes vs 0.5 x ctb's):", "", "| DEM | pipeline | vs ctb | zoom | gzip MB | ≤ 0.5 x ctb bytes |",
-              "|---|---|---|---|---|---|"]  # fmt: skip
+              "bytes vs 0.5 x ctb's):", "", "| DEM | pipeline | vs ctb | zoom | triangles | gzip MB | B/triangle | max / RMS m | ≤ 0.5 x ctb bytes |",
+              "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for res in results:
         for label, p in res["pipelines"].items():
             for k, c in CTB.items():
                 pick = _pick(p["zooms"], c)
                 if pick is None:
-                    lines.append(f"| {res['dem']} | {label} | {k} | none | – | no |")
+                    lines.append(f"| {res['dem']} | {label} | {k} | none | – | – | – | – | no |")
                     continue
                 z, r = pick
                 mb = r["gzip_bytes"] / 1e6
-                lines.append(f"| {res['dem']} | {label} | {k} | {z} | {mb:.3f} | {'yes' if mb <= 0.5 * c['gzip_mb'] else 'no'} |")  # fmt: skip
+                lines.append(f"| {res['dem']} | {label} | {k} | {z} | {r['triangles']:,} | {mb:.3f} "
+                             f"| {r['gzip_bytes'] / max(r['triangles'], 1):.2f} | {r['max_m']:.1f} / {r['rms_m']:.2f} "
+                             f"| {'yes' if mb <= 0.5 * c['gzip_mb'] else 'no'} ({0.5 * c['gzip_mb']:.3f}) |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
 

@@ -158,18 +158,30 @@ def _walk_order(tris, seeds, nv):  # pragma: no cover - numba
     stay small), going on to the unvisited neighbour that comes first in ``seeds`` (Morton order of the
     centroids), restarting at the next unvisited seed when the walk is stuck."""
     nt = tris.shape[0]
-    keys = np.empty(3 * nt, np.int64)
+    # the triangles around each vertex (CSR), then each edge's other triangle among its first vertex's
+    start = np.zeros(nv + 1, np.int64)
+    for t in range(nt):
+        for q in range(3):
+            start[tris[t, q] + 1] += 1
+    for i in range(nv):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    inc = np.empty(3 * nt, np.int64)
+    for t in range(nt):
+        for q in range(3):
+            i = tris[t, q]
+            inc[fill[i]] = t
+            fill[i] += 1
+    nbr = np.full(3 * nt, -1, np.int64)
     for t in range(nt):
         for q in range(3):
             a = tris[t, q]
             b = tris[t, (q + 1) % 3]
-            keys[3 * t + q] = min(a, b) * nv + max(a, b)
-    o = np.argsort(keys)
-    nbr = np.full(3 * nt, -1, np.int64)
-    for i in range(3 * nt - 1):
-        if keys[o[i]] == keys[o[i + 1]]:
-            nbr[o[i]] = o[i + 1] // 3
-            nbr[o[i + 1]] = o[i] // 3
+            for j in range(start[a], start[a + 1]):
+                m = inc[j]
+                if m != t and (tris[m, 0] == b or tris[m, 1] == b or tris[m, 2] == b):
+                    nbr[3 * t + q] = m
+                    break
     rank = np.empty(nt, np.int64)
     for i in range(nt):
         rank[seeds[i]] = i
@@ -248,6 +260,45 @@ def _first_use(tris, nv):  # pragma: no cover - numba
             order[k] = i
             k += 1
     return order, out
+
+
+@njit(cache=True)
+def _merge_uv(tris, u, v):  # pragma: no cover - numba
+    """One vertex per quantised (u, v) among those ``tris`` uses (the lowest index of each, in index
+    order; open-addressing hash of u * 32768 + v): (kept indices, tris renumbered to them)."""
+    n = u.size
+    used = np.zeros(n, np.bool_)
+    for t in range(tris.shape[0]):
+        for q in range(3):
+            used[tris[t, q]] = True
+    cap = 16
+    while cap < 2 * n:
+        cap *= 2
+    slot_key = np.full(cap, -1, np.int64)
+    slot_val = np.empty(cap, np.int64)
+    remap = np.full(n, -1, np.int64)
+    keep = np.empty(n, np.int64)
+    k = 0
+    for i in range(n):
+        if not used[i]:
+            continue
+        key = u[i] * 32768 + v[i]
+        h = (key * 2654435761) & (cap - 1)
+        while slot_key[h] >= 0 and slot_key[h] != key:
+            h = (h + 1) & (cap - 1)
+        if slot_key[h] == key:
+            remap[i] = slot_val[h]
+        else:
+            slot_key[h] = key
+            slot_val[h] = k
+            remap[i] = k
+            keep[k] = i
+            k += 1
+    out = np.empty_like(tris)
+    for t in range(tris.shape[0]):
+        for q in range(3):
+            out[t, q] = remap[tris[t, q]]
+    return keep[:k], out
 
 
 def _reorder(uvh: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -687,13 +738,7 @@ class QuantizedMesh:
         # one vertex per quantised u/v (clipping makes the same edge crossing in both neighbours)
         u = np.rint(np.clip((fc - (c0 + xw * stride)) / ((xe - xw) * stride), 0, 1) * 32767).astype(np.int64)
         v = np.rint(np.clip(((r0 + ys * stride) - fr) / ((ys - yn) * stride), 0, 1) * 32767).astype(np.int64)
-        used = np.unique(tris)
-        key = u[used] * 32768 + v[used]
-        _, first, inv = np.unique(key, return_index=True, return_inverse=True)
-        keep = used[first]
-        remap = np.full(len(px), -1, np.int64)
-        remap[used] = inv.ravel()
-        tris = remap[tris]
+        keep, tris = _merge_uv(np.ascontiguousarray(tris, np.int64), u, v)
         fc, fr, hv, u, v = fc[keep], fr[keep], ph[keep], u[keep], v[keep]
         area = (u[tris[:, 1]] - u[tris[:, 0]]) * (v[tris[:, 2]] - v[tris[:, 0]]) - (
             v[tris[:, 1]] - v[tris[:, 0]]
