@@ -30,7 +30,9 @@ try {
   const origin = new URL(pageUrl).origin;
   page.on("request", (r) => {
     const u = r.url();
-    if (u.startsWith(origin) || u.startsWith("data:") || u.startsWith("blob:")) r.continue();
+    // the page's own origin, or another loopback server (terralod serve beside the static host)
+    const loop = /^http:\/\/(127\.0\.0\.1|localhost)(:\d+)?\//.test(u);
+    if (u.startsWith(origin) || loop || u.startsWith("data:") || u.startsWith("blob:")) r.continue();
     else { out.blocked.push(u); r.abort(); }
   });
   page.on("requestfailed", (r) => out.failedRequests.push(r.url() + " " + (r.failure() || {}).errorText));
