@@ -102,3 +102,9 @@ def enu_frame(lon_deg: np.ndarray, lat_deg: np.ndarray) -> tuple[np.ndarray, np.
     north = np.stack([-sa * co, -sa * so, ca], axis=-1)
     up = np.stack([ca * co, ca * so, sa], axis=-1)
     return east, north, up
+
+
+def tile_rectangle(z: int, x: int, y: int) -> tuple[float, float, float, float]:
+    """(west, south, east, north) degrees of geographic-scheme tile z/x/y (TMS: y = 0 at the south pole)."""
+    d = 180.0 / (1 << z)
+    return (-180.0 + x * d, -90.0 + y * d, -180.0 + (x + 1) * d, -90.0 + (y + 1) * d)

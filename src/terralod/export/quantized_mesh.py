@@ -46,7 +46,7 @@ import numpy as np
 from numba import njit
 
 from terralod.export.common import atomic_folder, check_exportable, check_output
-from terralod.export.geodesy import WGS84_A_M, Geodesy, ecef_lonlat, enu_frame
+from terralod.export.geodesy import WGS84_A_M, Geodesy, ecef_lonlat, enu_frame, tile_rectangle
 from terralod.export.tiles3d import ExportReport
 
 __all__ = [
@@ -78,12 +78,6 @@ EXT_NORMALS, EXT_WATERMASK, EXT_METADATA = 1, 2, 4
 def level_max_error_m(z: int) -> float:
     """CesiumJS's level maximum geometric error of the geographic scheme (a 65² heightmap's, 0.25 quality)."""
     return WGS84_A_M * 2.0 * math.pi * 0.25 / (65 * 2) / (1 << z)
-
-
-def tile_rectangle(z: int, x: int, y: int) -> tuple[float, float, float, float]:
-    """(west, south, east, north) degrees of geographic-scheme tile z/x/y (TMS: y = 0 at the south pole)."""
-    d = 180.0 / (1 << z)
-    return (-180.0 + x * d, -90.0 + y * d, -180.0 + (x + 1) * d, -90.0 + (y + 1) * d)
 
 
 # -- the binary format ---------------------------------------------------------------------------------
