@@ -128,6 +128,9 @@ class StableGround:
     level_patches: int
     change_cells: int
     flat_cells: int
+    #: every sloping cell that could be stable (the change not yet taken out): the first fit's cells when a
+    #: misregistration makes too much sloping ground look changed
+    candidates: np.ndarray | None = None
 
     @property
     def cells(self) -> int:
@@ -283,7 +286,7 @@ def find_stable_ground(
     return StableGround(
         mask=mask, fit=fit, slope_min_deg=slope_min_deg, valid_cells=int(valid.sum()), user_mask_cells=user,
         excluded_cells=n_excl, level_cells=int((level & valid).sum()), level_patches=n_level,
-        change_cells=change, flat_cells=int((mask & ~fit).sum()),
+        change_cells=change, flat_cells=int((mask & ~fit).sum()), candidates=base & (sl >= slope_min_deg),
     )  # fmt: skip
 
 
@@ -351,20 +354,25 @@ def coregister(
     dod = dod0
     why = ""
     for _round in range(3):
+        cells = sg.fit
         if sg.fit_cells < MIN_FIT_CELLS:
-            why = (
-                f"only {sg.fit_cells:,} stable cells have slopes above {slope_min_deg:g}° (< {MIN_FIT_CELLS})"
-            )
-            break
+            if _round == 0 and sg.candidates is not None and sg.candidates.sum() >= MIN_FIT_CELLS:
+                cells = sg.candidates  # the fit's own outlier rejection takes the change out
+            else:
+                why = (
+                    f"only {sg.fit_cells:,} stable cells have slopes above {slope_min_deg:g}° "
+                    f"(< {MIN_FIT_CELLS})"
+                )
+                break
         try:
             if method == "xdem":
-                s1, iters = _fit_xdem(pair, sg.fit, seed)
+                s1, iters = _fit_xdem(pair, cells, seed)
                 # xdem's binned fit, polished by least squares on the unsmoothed surfaces: on gentle or
                 # noisy ground its bins leave a tenth of a cell that the cells themselves can resolve
-                s1, more = _fit_terralod(pair, sg.fit, seed, start=s1)
+                s1, more = _fit_terralod(pair, cells, seed, start=s1)
                 iters += more
             else:
-                s1, iters = _fit_terralod(pair, sg.fit, seed)
+                s1, iters = _fit_terralod(pair, cells, seed)
             res.iterations += iters
         except Exception as exc:  # noqa: BLE001 - an estimator's failure is a note and a fall-back
             msg = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
@@ -430,6 +438,8 @@ def coregister(
 
 
 def _bias_cells(sg: StableGround, bias_only: bool) -> np.ndarray:
+    """Cells the vertical bias is the median of: all the stable ground after a horizontal fit; without one,
+    its flatter part (an unknown shift moves sloping cells' differences most)."""
     flat = sg.mask & ~sg.fit
     return flat if bias_only and flat.sum() >= MIN_STABLE_CELLS else sg.mask
 
