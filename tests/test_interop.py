@@ -345,9 +345,9 @@ def test_stock_cesium_quantized_mesh(site: dict, static_server: str, tmp_path: P
            "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
     r = _stock(static_server, f"terrain=qm_geo/&hmin={z.min()}&hmax={z.max()}", cfg, tmp_path)
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
-    assert r["views"][0]["tileResponses"] > 0 and r["tileResponses"] >= 3, {
-        k: v for k, v in r.items() if k != "heights"
-    }
+    assert r["views"][0]["tileResponses"] > 0 and r["tileResponses"] >= 3, str(
+        {k: v for k, v in r.items() if k != "heights"}
+    )
     err = np.abs(np.array(r["heights"], np.float64) - pz)
     assert err.max() <= layer["terralod"]["error_m"][layer["maxzoom"]] + 2e-3, err
     for v in ("whole", "ridge", "oblique"):

@@ -466,3 +466,66 @@ def test_serve_cli_binds_loopback_by_default(alpine_store: Path) -> None:
             proc.terminate()
             _, err = proc.communicate(timeout=20)
         assert ("warning" in err) == warn, err
+
+
+# -- the DEM's own lattice: nodata fill, error kernel ------------------------------------------------
+@settings(max_examples=25, deadline=None)
+@given(h=st.integers(1, 40), w=st.integers(1, 40), seed=st.integers(0, 2**31 - 1), frac=st.floats(0.0, 0.99))
+def test_push_pull_fill(h: int, w: int, seed: int, frac: float) -> None:
+    """Valid samples unchanged, every hole filled with a finite value between the valid extremes."""
+    from terralod.export.source import fill_push_pull
+
+    rng = np.random.default_rng(seed)
+    z = rng.normal(500.0, 200.0, (h, w)).astype(np.float32)
+    valid = rng.random((h, w)) >= frac
+    valid.flat[rng.integers(h * w)] = True
+    before = z.copy()
+    fill_push_pull(z, valid)
+    assert np.array_equal(z[valid], before[valid])
+    assert np.isfinite(z).all()
+    lo, hi = before[valid].min(), before[valid].max()
+    assert z.min() >= lo - 1e-3 and z.max() <= hi + 1e-3
+
+
+def test_lattice_error_against_independent_kernel(shared_data: Path) -> None:
+    """On real SRTM3 samples (coast, nodata): each finest and next tile's lattice error equals the
+    scattered-point kernel's max over the same samples, counts every valid sample inside the tile once,
+    and a triangle taken out of the decoded tile is reported as a hole."""
+    import rasterio
+    from rasterio.windows import Window
+
+    from terralod.export.lattice import lattice_error
+    from terralod.export.quantized_mesh import QuantizedMesh, true_error_m
+    from terralod.export.source import SourceGrid, fill_push_pull
+
+    with rasterio.open(shared_data / "dem" / "srtm3_N41E001.tif") as ds:
+        win = Window(900, 200, 300, 260)
+        a = ds.read(1, window=win, masked=True)
+        t = ds.window_transform(win)
+    valid = ~np.ma.getmaskarray(a)
+    valid[40:60, 100:130] = False  # a void inside the land as well
+    z = np.ma.getdata(a).astype(np.float32)
+    fill_push_pull(z, valid)
+    qm = QuantizedMesh(SourceGrid(z, valid, t, "EPSG:4326", "crop"))
+    lat = qm.lattice
+    for zz in (qm.max_zoom, qm.max_zoom - 1):
+        x0, y0, x1, y1 = qm.level_range(zz)
+        for x, y in ((x0, y0), (x1, y1)):
+            rect = tile_rectangle(zz, x, y)
+            d = decode_tile(qm.tile(zz, x, y).raw, rect)
+            err, sumsq, count = lattice_error(lat, d, rect)
+            plon, plat, pz = qm.ref.points_in(zz, x, y)
+            assert count == plon.size
+            assert err == pytest.approx(true_error_m(d, rect, plon, plat, pz), abs=1e-6)
+            assert sumsq <= count * err * err + 1e-6
+            if count:
+                # every triangle whose bounding box holds one of the samples: that sample is uncovered
+                w, s, e, n = rect
+                pu = (plon[count // 2] - w) / (e - w) * 32767
+                pv = (plat[count // 2] - s) / (n - s) * 32767
+                tu, tv = d["u"][d["triangles"]], d["v"][d["triangles"]]
+                hold = (tu.min(1) <= pu) & (tu.max(1) >= pu) & (tv.min(1) <= pv) & (tv.max(1) >= pv)
+                assert hold.any()
+                cut = dict(d, triangles=d["triangles"][~hold])
+                with pytest.raises(RuntimeError, match="hole"):
+                    lattice_error(lat, cut, rect)

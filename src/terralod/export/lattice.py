@@ -11,8 +11,9 @@ samples themselves, never an average that moves a peak). Outside the DEM the lat
 columns already carry), so a coarse tile that spans far beyond the DEM holds no empty grid.
 
 The error of a decoded tile against the source (:func:`lattice_error`) walks each triangle's rows of the
-lattice window inside the tile, testing only the samples between its edges, and writes the vertical
-distance at every valid sample (NaN where no triangle covers one: a hole is detected, not skipped).
+lattice window inside the tile, testing only the samples between its edges, and accumulates the max
+and the sum of squares of the vertical distance over every valid sample (a valid sample no triangle
+covers is counted: a hole is detected, not skipped).
 """
 
 from __future__ import annotations
@@ -43,7 +44,6 @@ class Lattice:
         # the same expressions as the source's sample positions (a sample on a tile edge is in both tiles)
         self.lon_c = self.c_deg + (np.arange(self.w) + 0.5) * self.a_deg
         self.lat_r = self.f_deg + (np.arange(self.h) + 0.5) * self.e_deg
-        self.zmeas = np.where(self.valid, self.z, np.nan)  # what the error is measured against
         self.water = ~self.valid | (self.z == 0.0)  # nodata and sea at exactly 0 m
         self.any_water = bool(self.water.any())
         w, s, e, n = ref.bbox
@@ -150,14 +150,20 @@ class Lattice:
 
 
 @njit(cache=True)
-def _lattice_error_kernel(tu, tv, th, tris, pu, pv, zwin, out):  # pragma: no cover - numba
+def _lattice_error_kernel(tu, tv, th, tris, pu, pv, zwin, vwin):  # pragma: no cover - numba
     """Vertical distance between triangles (tu, tv, th; u/v units) and the lattice points (pu[k], pv[j])
-    of heights zwin[j, k] (NaN: not a sample), written to out[j, k]; returns the max. pu increases, pv
-    decreases (north row first). Each triangle tests the points of its rows between its edges (a small
-    margin, then the same barycentric test as the scattered-point kernel: edges included)."""
+    of heights zwin[j, k] where vwin[j, k] (a valid sample). Returns (max over every test, sum of squares
+    and count over the samples, each once: at the first triangle that covers it, valid samples that no
+    triangle covers). pu increases, pv decreases (north row first). Each triangle tests the points of its
+    rows between its edges (a small margin, then the same barycentric test as the scattered-point kernel:
+    edges included). Only a (rows, cols) byte array besides the inputs: a tile that spans the whole DEM
+    needs one byte per sample."""
     nj, nk = zwin.shape
     if nj == 0 or nk == 0:
-        return 0.0
+        return 0.0, 0.0, 0, 0
+    seen = np.zeros((nj, nk), np.uint8)
+    sumsq = 0.0
+    count = 0
     pu0 = pu[0]
     du = (pu[nk - 1] - pu[0]) / (nk - 1) if nk > 1 else 1.0
     pv0 = pv[0]
@@ -204,19 +210,26 @@ def _lattice_error_kernel(tu, tv, th, tris, pu, pv, zwin, out):  # pragma: no co
             k0 = max(int(math.floor((lo - pu0) / du)) - 1, 0)
             k1 = min(int(math.ceil((hi - pu0) / du)) + 1, nk - 1)
             for k in range(k0, k1 + 1):
-                zz = zwin[j, k]
-                if zz != zz:
+                if not vwin[j, k]:
                     continue
                 x = pu[k]
                 la = ((vb - vc) * (x - uc) + (uc - ub) * (y - vc)) / det
                 lb = ((vc - va) * (x - uc) + (ua - uc) * (y - vc)) / det
                 lc = 1.0 - la - lb
                 if la >= -tol and lb >= -tol and lc >= -tol:
-                    d = abs(la * th[a] + lb * th[b] + lc * th[c] - zz)
-                    out[j, k] = d
+                    d = abs(la * th[a] + lb * th[b] + lc * th[c] - zwin[j, k])
                     if d > err:
                         err = d
-    return err
+                    if seen[j, k] == 0:
+                        seen[j, k] = 1
+                        sumsq += d * d
+                        count += 1
+    missed = 0
+    for j in range(nj):
+        for k in range(nk):
+            if vwin[j, k] and seen[j, k] == 0:
+                missed += 1
+    return err, sumsq, count, missed
 
 
 @njit(cache=True)
@@ -325,16 +338,10 @@ def lattice_error(lat: Lattice, tile: dict[str, Any], rect: tuple[float, float, 
     w, s, e, n = rect
     pu = np.clip((lat.lon_c[c0:c1] - w) / (e - w), 0.0, 1.0) * 32767.0
     pv = np.clip((lat.lat_r[r0:r1] - s) / (n - s), 0.0, 1.0) * 32767.0
-    zwin = lat.zmeas[r0:r1, c0:c1]
-    out = np.full(zwin.shape, np.nan)
-    err = _lattice_error_kernel(
+    err, sumsq, count, missed = _lattice_error_kernel(
         tile["u"].astype(np.float64), tile["v"].astype(np.float64), np.asarray(tile["height"], np.float64),
-        np.ascontiguousarray(tile["triangles"], np.int64), pu, pv, np.ascontiguousarray(zwin), out,
+        np.ascontiguousarray(tile["triangles"], np.int64), pu, pv, lat.z[r0:r1, c0:c1], lat.valid[r0:r1, c0:c1],
     )  # fmt: skip
-    valid = lat.valid[r0:r1, c0:c1]
-    hit = np.isfinite(out)
-    missed = int(valid.sum() - hit.sum())
     if missed:
         raise RuntimeError(f"{missed} samples fall outside every triangle of the tile (a hole in its mesh)")
-    d = out[hit]
-    return float(err), float((d * d).sum()), int(d.size)
+    return float(err), float(sumsq), int(count)

@@ -20,10 +20,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from terralod.errors import InputError
 
-__all__ = ["SourceGrid", "TinSource", "source_for", "source_from_dem"]
+__all__ = ["SourceGrid", "TinSource", "fill_push_pull", "source_for", "source_from_dem"]
 
 
 def _is_lonlat_wgs84(crs: Any) -> bool:
@@ -42,7 +43,9 @@ class SourceGrid:
     def __init__(self, z_m: np.ndarray, valid: np.ndarray, transform: Any, crs: Any, name: str) -> None:
         from pyproj import CRS, Transformer
 
-        self.z_m = np.ascontiguousarray(z_m, np.float64)
+        # float32 stays float32 (an integer DEM read exactly, half the memory); anything else float64
+        zt = np.float32 if np.asarray(z_m).dtype == np.float32 else np.float64
+        self.z_m = np.ascontiguousarray(z_m, zt)
         self.valid = np.ascontiguousarray(valid, bool)
         self.t = transform
         self.crs = CRS.from_user_input(crs)
@@ -233,12 +236,20 @@ class TinSource(SourceGrid):
         return np.zeros(np.shape(lon), bool)
 
 
+#: Samples per strip when a DEM is read (a few MB at a time beside the one array of heights).
+READ_STRIP_SAMPLES = 1 << 22
+
+
 def _native_grid(path: Path) -> SourceGrid | None:
     """The samples of a geographic or Web Mercator GeoTIFF on its own lattice (the store holds them
-    resampled to UTM); None for other inputs (their metric heightfield already is the user's grid)."""
-    import rasterio
+    resampled to UTM); None for other inputs (their metric heightfield already is the user's grid).
 
-    from terralod.fill import fill_nodata
+    Read in strips of rows straight into one array of heights (float32 for integer and float32 DEMs
+    without scale/offset: exact, 4 bytes a sample; float64 otherwise) and one of validity; nodata filled
+    by :func:`fill_push_pull` (a third more memory at most, no full-size index arrays)."""
+    import rasterio
+    from rasterio.windows import Window
+
     from terralod.io.raster import _is_mercator, north_up
 
     try:
@@ -246,19 +257,94 @@ def _native_grid(path: Path) -> SourceGrid | None:
             crs, t = ds.crs, ds.transform
             if crs is None or t.is_identity or not (crs.is_geographic or _is_mercator(crs)):
                 return None
-            data = ds.read(1, masked=True)
             scale = float((ds.scales or (1.0,))[0] or 1.0)
             offset = float((ds.offsets or (0.0,))[0] or 0.0)
+            exact32 = ds.dtypes[0] in ("int8", "uint8", "int16", "uint16", "float32")
+            dt = np.float32 if exact32 and scale == 1.0 and offset == 0.0 else np.float64
+            h, w = ds.height, ds.width
+            values = np.empty((h, w), dt)
+            valid = np.empty((h, w), bool)
+            step = max(1, READ_STRIP_SAMPLES // max(w, 1))
+            for r0 in range(0, h, step):
+                n = min(step, h - r0)
+                a = ds.read(1, window=Window(0, r0, w, n), masked=True)
+                zz, vv = values[r0 : r0 + n], valid[r0 : r0 + n]
+                zz[...] = np.ma.getdata(a)
+                if scale != 1.0:
+                    zz *= scale
+                if offset != 0.0:
+                    zz += offset
+                vv[...] = ~np.ma.getmaskarray(a)
+                vv &= np.isfinite(zz)
             wkt = crs.to_wkt()
     except Exception:  # noqa: BLE001 - not a GDAL raster: the caller uses the metric heightfield
         return None
-    values = np.ma.getdata(data).astype(np.float64) * scale + offset
-    valid = ~np.ma.getmaskarray(data) & np.isfinite(values)
     values, valid, t, _ = north_up(values, valid, t, str(path))
     if not valid.any():
         raise InputError("has no valid samples", str(path))
-    z = values if valid.all() else fill_nodata(np.where(valid, values, 0.0), valid)
-    return SourceGrid(z, valid, t, wkt, str(path))
+    if not valid.all():
+        values = np.ascontiguousarray(values)
+        valid = np.ascontiguousarray(valid)
+        fill_push_pull(values, valid)
+    return SourceGrid(values, valid, t, wkt, str(path))
+
+
+@njit(cache=True)
+def _pull_down(z, v):  # pragma: no cover - numba
+    """One coarser level: each cell the mean of its valid children (up to 2 x 2), valid if any is."""
+    h, w = z.shape
+    hp, wp = (h + 1) // 2, (w + 1) // 2
+    zp = np.zeros((hp, wp), np.float64)
+    vp = np.zeros((hp, wp), np.bool_)
+    for i in range(hp):
+        for j in range(wp):
+            s = 0.0
+            k = 0
+            for a in range(2 * i, min(2 * i + 2, h)):
+                for b in range(2 * j, min(2 * j + 2, w)):
+                    if v[a, b]:
+                        s += z[a, b]
+                        k += 1
+            if k:
+                zp[i, j] = s / k
+                vp[i, j] = True
+    return zp, vp
+
+
+@njit(cache=True)
+def _push_up(z, v, zp):  # pragma: no cover - numba
+    """Invalid cells of a level take the bilinear surface of the (filled) coarser level at their centre."""
+    h, w = z.shape
+    hp, wp = zp.shape
+    for i in range(h):
+        for j in range(w):
+            if v[i, j]:
+                continue
+            y = min(max((i + 0.5) / 2.0 - 0.5, 0.0), hp - 1.0)
+            x = min(max((j + 0.5) / 2.0 - 0.5, 0.0), wp - 1.0)
+            i0 = min(int(y), max(hp - 2, 0))
+            j0 = min(int(x), max(wp - 2, 0))
+            i1 = min(i0 + 1, hp - 1)
+            j1 = min(j0 + 1, wp - 1)
+            fy, fx = y - i0, x - j0
+            top = zp[i0, j0] * (1.0 - fx) + zp[i0, j1] * fx
+            bot = zp[i1, j0] * (1.0 - fx) + zp[i1, j1] * fx
+            z[i, j] = top * (1.0 - fy) + bot * fy
+
+
+def fill_push_pull(z: np.ndarray, valid: np.ndarray) -> None:
+    """Fill the invalid samples of ``z`` in place (valid ones unchanged): push-pull interpolation (a
+    pyramid of valid-sample means, each level's holes filled from the bilinear surface of the one above,
+    coarse to fine; Gortler et al. 1996's hole filling): smooth across holes, O(samples), a third of
+    ``z``'s size in extra memory. ``valid`` needs at least one True."""
+    levels = [(z, valid)]
+    while not levels[-1][1].all():
+        zc, vc = levels[-1]
+        if zc.shape == (1, 1):
+            raise ValueError("no valid sample to fill from")
+        levels.append(_pull_down(zc, vc))
+    for k in range(len(levels) - 2, -1, -1):
+        _push_up(levels[k][0], levels[k][1], levels[k + 1][0])
 
 
 def _from_heightfield(hf: Any) -> SourceGrid:
