@@ -17,11 +17,22 @@ own cohesion mesher needs the store's quantised lattice, which does not exist in
 greedy insertion is the closest method that meshes an arbitrary sample grid to an error target (deviation
 from the issue's "store's own method", and why).
 
-Nodata: outside the source footprint the tile has height 0 (the ellipsoid); inside, nodata samples keep
-the store's fill. Both are marked: the water-mask extension (255 = nodata) and ``terralod.nodata_fraction``
-in the metadata extension. Normals (oct-encoded extension) are the normals of the continuous sampled
-surface at each vertex (central differences on the samples, ENU → ECEF), so the tiles of one level have
-identical normals at their shared borders. CesiumJS adds its own skirts from the edge indices.
+A geographic DEM (``terralod export dem.tif``, or a store whose source DEM is one) is meshed on its own
+lattice instead (:mod:`terralod.export.lattice`): every sample at the two finest zooms, every 2nd, 4th...
+below; the finest zoom at FINEST_ERROR_M, the one below it at its level target, tiles whose RMS is then
+above RMS_GOAL_M meshed again at a target scaled to it.
+
+Nodata: outside the source footprint the surface continues the data's edge values; inside, nodata samples
+keep the fill (the store's; the push-pull fill of :func:`terralod.export.source.fill_push_pull` for a DEM
+read on its lattice). The water-mask extension marks nodata and sea at 0 m where a tile holds any (one
+byte elsewhere). Normals (oct-encoded extension, only with ``normals=True``: about 0.7 B a triangle
+gzip'd, and CesiumJS asks for them only with ``requestVertexNormals``) are the normals of the continuous
+sampled surface at each vertex (central differences on the samples, ENU → ECEF), so the tiles of one
+level have identical normals at their shared borders. CesiumJS adds its own skirts from the edge indices.
+
+Bytes: triangles in a walk across shared edges seeded in Morton order, each rotated to (shared, shared,
+new), vertices in first-use order: high-water-mark codes are mostly 0 and small offsets, the zig-zag
+deltas of neighbours small (SRTM3: 2.7-3.4 B per triangle gzip'd without normals).
 
 The binary is written by :func:`encode_tile` following the format's specification (header, zig-zag delta
 u/v/h, high-water-mark indices, edge lists, extensions), with the horizon-occlusion point computed as CesiumJS's ellipsoidal occluder describes it.
