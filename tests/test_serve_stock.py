@@ -7,7 +7,6 @@ samples at source samples lie within the declared errors. The store is the bundl
 
 from __future__ import annotations
 
-import json
 import re
 import shutil
 import subprocess
@@ -17,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from test_interop import _stock  # the stock page's driver: one copy
 
 REPO = Path(__file__).resolve().parents[1]
 WEB = REPO / "tests" / "web"
@@ -75,18 +76,11 @@ def _points(hf, service, k: int = 20) -> tuple[list, np.ndarray]:
     x, y = tr.c + (cols + 0.5) * tr.a + (rows + 0.5) * tr.b, tr.f + (cols + 0.5) * tr.d + (rows + 0.5) * tr.e
     from pyproj import Transformer
 
-    lon, lat = Transformer.from_crs(hf.crs, "EPSG:4326", always_xy=True).transform(np.asarray(x), np.asarray(y))
+    lon, lat = Transformer.from_crs(hf.crs, "EPSG:4326", always_xy=True).transform(
+        np.asarray(x), np.asarray(y)
+    )
     z = np.asarray(hf.elevation_m, np.float64)[rows, cols]
     return np.column_stack([lon, lat]).tolist(), z
-
-
-def _run(page: str, query: str, cfg: dict, tmp: Path) -> dict:
-    (tmp / "cfg.json").write_text(json.dumps(cfg))
-    res = subprocess.run(["node", str(WEB / "stock_check.mjs"), f"{page}/stock_cesium.html?{query}",
-                          str(tmp / "cfg.json"), str(tmp / "shot_"), "90000"],
-                         capture_output=True, text=True, timeout=400, cwd=REPO)  # fmt: skip
-    assert res.returncode == 0, res.stderr[-2000:]
-    return json.loads(res.stdout.strip().splitlines()[-1])
 
 
 def test_stock_cesium_loads_serve_quantized_mesh_and_3dtiles(serve_and_page: dict, tmp_path: Path) -> None:
@@ -94,7 +88,7 @@ def test_stock_cesium_loads_serve_quantized_mesh_and_3dtiles(serve_and_page: dic
     pts, z = _points(s["hf"], s["service"])
     w, so, e, n = s["service"].qm().bbox
     views = [{"name": "whole", "rect": [w, so, e, n]}]
-    r = _run(s["page"], f"terrain={s['serve']}/terrain/&hmin={z.min()}&hmax={z.max()}",
+    r = _stock(s["page"], f"terrain={s['serve']}/terrain/&hmin={z.min()}&hmax={z.max()}",
              {"kind": "terrain", "views": views, "points": pts}, tmp_path)  # fmt: skip
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
     assert r["tileResponses"] > 0
@@ -102,7 +96,7 @@ def test_stock_cesium_loads_serve_quantized_mesh_and_3dtiles(serve_and_page: dic
     qm = s["service"].qm()  # the tiles serve encoded for those samples, each measured as it was encoded
     declared = max(v for (zz, _, _), v in qm._errors.items() if zz == qm.max_zoom)
     assert err.max() <= declared + 2e-3, (err.max(), declared)
-    r3 = _run(s["page"], f"tileset={s['serve']}/3dtiles/tileset.json", {"kind": "tileset", "views": views,
+    r3 = _stock(s["page"], f"tileset={s['serve']}/3dtiles/tileset.json", {"kind": "tileset", "views": views,
               "points": pts}, tmp_path)  # fmt: skip
     assert not r3["errors"] and not r3["badResponses"] and not r3["blocked"], r3
     assert r3["views"][0]["tileResponses"] >= 1

@@ -188,28 +188,17 @@ def _folder_bytes(p: Path) -> int:
 def _atomic_site(
     out: Path, overwrite: bool, inputs: Sequence[Path], fill: Callable[[Path], SiteReport]
 ) -> SiteReport:
+    """``fill`` a temporary folder that becomes ``out`` whole (the exports' :func:`atomic_folder`); an
+    output that is or holds an input is refused first, even with ``overwrite``."""
     from terralod.errors import InputError
+    from terralod.export.common import atomic_folder
 
     o = out.resolve()
     for src in inputs:
-        s = Path(src).resolve()
-        if s == o or o in s.parents:
+        if Path(src).resolve() == o or o in Path(src).resolve().parents:
             raise InputError(f"is (or holds) the input {src}; writing there would destroy it", str(out))
-    if out.exists() and not out.is_dir():
-        raise InputError("exists and is not a folder; a site is a folder", str(out))
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise InputError("already exists; pass --overwrite to replace it", str(out))
-    if not o.parent.is_dir():
-        raise InputError(f"output folder {o.parent} does not exist", str(out))
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=o.parent))
-    try:
+    with atomic_folder(out, overwrite) as tmp:
         rep = fill(tmp)
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     rep.path = out
     return rep
 
