@@ -331,7 +331,20 @@ def main() -> None:
         + pairs_table(pairs)
     )
     if args.pairs_only:
-        write_results("change_pairs", {"pairs": pairs}, "# Terrain change: planted pairs\n" + pairs_md)
+        # section 3 replaced in change.{json,md}; sections 1-2 kept as they were measured
+        import json
+
+        from _common import RESULTS
+
+        jp, mp = RESULTS / "change.json", RESULTS / "change.md"
+        if jp.is_file() and mp.is_file():
+            payload = json.loads(jp.read_text())
+            payload["pairs"] = pairs
+            md = mp.read_text()
+            head = md.split("\n## Planted real pairs")[0].rstrip("\n") + "\n"
+            write_results("change", {k: v for k, v in payload.items() if k != "machine"}, head + pairs_md)
+        else:
+            write_results("change_pairs", {"pairs": pairs}, "# Terrain change: planted pairs\n" + pairs_md)
         return
 
     series, per_epoch_s = helens_series(args.sigma_m)
