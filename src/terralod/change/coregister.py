@@ -728,9 +728,10 @@ def _fit_on_after_grid(
     """The Gauss-Newton fit of :func:`_fit_terralod` on AFTER's coarser grid, like with like: each AFTER
     sample against BEFORE (the finer, cubic spline) at that sample's shifted position,
     ``r(t) = A(p) + t_z − B(p + t_xy)``, with BEFORE's gradient taken there. Fitting on BEFORE's grid
-    instead compares AFTER's spline (which lost what AFTER's coarser cells could not hold) with BEFORE's
-    full detail: the shift comes out short (regression dilution), by 0.07 cell on gentle 1 m ground with a
-    1.5x coarser AFTER and no noise at all (``benchmarks/change.py``)."""
+    instead uses AFTER's spline, which spreads each noisy AFTER sample over several BEFORE cells (whose
+    residuals also chose the stable ground): on the 1 m prairie LiDAR with a 1.5x coarser AFTER under 1.2 m
+    of noise that fit was 0.07 cell off where this one is 0.008 (without noise both are exact), and the
+    NMAD of those spread residuals understated the shift's standard error."""
     from scipy import ndimage
 
     before, after = pair.before, pair.after
