@@ -602,6 +602,7 @@ class QuantizedMesh:
             while 180.0 / (1 << self.max_zoom) / (SAMPLES - 1) > self.ref.spacing_deg and self.max_zoom < 22:
                 self.max_zoom += 1
         self._errors: dict[tuple[int, int, int], float] = {}
+        self._rms_ratio: dict[tuple[int, int, int], float] = {}  # RMS / target of each lattice tile made
 
     def target_error_m(self, z: int) -> float:
         """Greedy-insertion target of level z: a fraction of CesiumJS's level error; 2x finer at the last
@@ -684,12 +685,18 @@ class QuantizedMesh:
         rect = tile_rectangle(z, x, y)
         target = self.target_error_m(z) if target_m is None else float(target_m)
         if self.lattice is not None and not regular:
+            goal_zoom = target_m is None and z == self.max_zoom - 1
+            floor_m = self.target_error_m(self.max_zoom)
+            ratio = self._rms_ratio.get((z - 1, x // 2, y // 2)) if goal_zoom else None
+            if ratio:  # the parent's RMS per metre of target predicts this tile's (same terrain)
+                target = min(target, max(RMS_GOAL_M / ratio, floor_m))
             t = self._lattice_tile(z, x, y, rect, target)
-            if target_m is None and z == self.max_zoom - 1 and t.samples:
+            if t.samples and target > 0:
                 rms = math.sqrt(t.sumsq_m2 / t.samples)
-                if rms > RMS_GOAL_M:  # RMS is about proportional to the target: scale it down once
-                    low = max(target * RMS_GOAL_M / rms, self.target_error_m(self.max_zoom))
-                    t = self._lattice_tile(z, x, y, rect, low)
+                self._rms_ratio[(z, x, y)] = rms / target
+                # RMS is about proportional to the target: scale it down once where still above the goal
+                if goal_zoom and rms > 1.05 * RMS_GOAL_M and target > floor_m:
+                    t = self._lattice_tile(z, x, y, rect, max(target * RMS_GOAL_M / rms, floor_m))
             if target_m is None:
                 self._errors[(z, x, y)] = t.error_m
             return t
