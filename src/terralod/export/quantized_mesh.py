@@ -163,30 +163,28 @@ def _walk_order(tris, seeds, nv):  # pragma: no cover - numba
     stay small), going on to the unvisited neighbour that comes first in ``seeds`` (Morton order of the
     centroids), restarting at the next unvisited seed when the walk is stuck."""
     nt = tris.shape[0]
-    # the triangles around each vertex (CSR), then each edge's other triangle among its first vertex's
-    start = np.zeros(nv + 1, np.int64)
-    for t in range(nt):
-        for q in range(3):
-            start[tris[t, q] + 1] += 1
-    for i in range(nv):
-        start[i + 1] += start[i]
-    fill = start[:-1].copy()
-    inc = np.empty(3 * nt, np.int64)
-    for t in range(nt):
-        for q in range(3):
-            i = tris[t, q]
-            inc[fill[i]] = t
-            fill[i] += 1
+    # each undirected edge's two triangles through an open-addressing table of edge keys (one pass)
+    cap = 16
+    while cap < 6 * nt:
+        cap *= 2
+    slot_key = np.full(cap, -1, np.int64)
+    slot_half = np.empty(cap, np.int64)
     nbr = np.full(3 * nt, -1, np.int64)
     for t in range(nt):
         for q in range(3):
             a = tris[t, q]
             b = tris[t, (q + 1) % 3]
-            for j in range(start[a], start[a + 1]):
-                m = inc[j]
-                if m != t and (tris[m, 0] == b or tris[m, 1] == b or tris[m, 2] == b):
-                    nbr[3 * t + q] = m
-                    break
+            key = min(a, b) * nv + max(a, b)
+            h = (key * 2654435761) & (cap - 1)
+            while slot_key[h] >= 0 and slot_key[h] != key:
+                h = (h + 1) & (cap - 1)
+            if slot_key[h] == key:
+                o = slot_half[h]
+                nbr[3 * t + q] = o // 3
+                nbr[o] = t
+            else:
+                slot_key[h] = key
+                slot_half[h] = 3 * t + q
     rank = np.empty(nt, np.int64)
     for i in range(nt):
         rank[seeds[i]] = i
