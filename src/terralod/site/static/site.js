@@ -129,14 +129,14 @@
     const viewer = new Cesium.Viewer("globe", {
       baseLayer: false, baseLayerPicker: false, geocoder: false, timeline: false, animation: false, homeButton: false,
       sceneModePicker: false, navigationHelpButton: false, fullscreenButton: false, infoBox: false,
-      selectionIndicator: false, contextOptions: { webgl: { preserveDrawingBuffer: true } },
+      selectionIndicator: false, skyBox: false, skyAtmosphere: false,
+      contextOptions: { webgl: { preserveDrawingBuffer: true } },
     });
     S.viewer = viewer;
     const scene = viewer.scene;
     scene.globe.show = false;  // 3D Tiles carry the terrain; no empty globe around (or through) it
-    scene.skyAtmosphere.show = false;
-    scene.skyBox.show = false;
-    scene.sun.show = false; scene.moon.show = false;
+    if (scene.sun) scene.sun.show = false;
+    if (scene.moon) scene.moon.show = false;
     scene.backgroundColor = Cesium.Color.fromCssColorString("#dfe6ec");
     scene.fog.enabled = false;
 
