@@ -342,22 +342,6 @@ def horizon_occlusion_point(ecef: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return d * float((1.0 / den).max())
 
 
-def _height_range(lo: float, hi: float) -> tuple[np.float32, np.float32]:
-    """The header's float32 height range holding [lo, hi]. Where the heights span at least 1 m it starts
-    at a whole metre and spans 32767 / k metres (k whole): a whole-metre height (SRTM's) is then exactly a
-    multiple of k in the 15-bit code, so the zig-zag deltas share their low bits and gzip well (the step
-    is at most the one of the tight range; the error is measured on the decoded tile either way)."""
-    lo32 = np.float32(math.floor(lo)) if hi - lo >= 1.0 else np.float32(lo)
-    lo32 = lo32 if lo32 <= lo else np.nextafter(lo32, np.float32(-np.inf))
-    hi32 = np.float32(hi)
-    if hi - lo >= 1.0:
-        k = math.floor(32767.0 / (math.ceil(hi) - float(lo32)))
-        if k >= 1:
-            hi32 = np.float32(float(lo32) + 32767.0 / k)
-    hi32 = hi32 if hi32 >= hi else np.nextafter(hi32, np.float32(np.inf))
-    return lo32, hi32
-
-
 def encode_tile(
     lon: np.ndarray, lat: np.ndarray, h: np.ndarray, tris: np.ndarray, rect: tuple[float, float, float, float],
     *, normals: np.ndarray | None = None, watermask: np.ndarray | int | None = None,
@@ -372,7 +356,9 @@ def encode_tile(
     u = np.rint(np.clip((lon - w) / (e - w), 0, 1) * 32767).astype(np.int64)
     v = np.rint(np.clip((lat - s) / (n - s), 0, 1) * 32767).astype(np.int64)
     # the height range as the header stores it (float32), widened to hold every height
-    lo32, hi32 = _height_range(float(h.min()), float(h.max()))
+    lo32, hi32 = np.float32(h.min()), np.float32(h.max())
+    lo32 = lo32 if lo32 <= h.min() else np.nextafter(lo32, np.float32(-np.inf))
+    hi32 = hi32 if hi32 >= h.max() else np.nextafter(hi32, np.float32(np.inf))
     hmin, hmax = float(lo32), float(hi32)
     hq = np.rint((h - hmin) / max(hmax - hmin, 1e-9) * 32767).astype(np.int64) if hmax > hmin else 0 * u
     order, t = _reorder(np.column_stack([u, v]), np.asarray(tris, np.int64))
