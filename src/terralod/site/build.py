@@ -5,6 +5,7 @@ interrupted run leaves nothing half-written."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import tempfile
@@ -159,7 +160,6 @@ def share_tiles(epochs_dir: Path, n: int) -> int:
     """Tiles an epoch has in common with an earlier one (the same bytes: an update rebuilds only the tiles
     whose samples changed) are kept once: the later tileset.json points at the earlier file (a relative URI,
     which 3D Tiles resolves against the tileset). Returns the bytes saved."""
-    import hashlib
 
     seen: dict[str, str] = {}
     saved = 0
@@ -230,12 +230,18 @@ def _write(tmp: Path, title: str, between: str, epochs: list[str], terrains: lis
     rep.keep_error_m = keep_m
     rep.parts["tiles_shared"] = share_tiles(tmp / "epochs", len(terrains))
     (tmp / "pairs").mkdir()
+    written: dict[str, str] = {}  # content digest -> file: a raster several pairs share is written once
     for k, (a, b, result) in enumerate(pair_results):
         dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
         meta, files = pair_payload(result, dates, (a, b), str(k))
+        for role, name in list(meta["files"].items()):
+            digest = hashlib.sha256(files[name]).hexdigest()
+            if digest in written:
+                meta["files"][role] = written[digest]
+            else:
+                written[digest] = name
+                (tmp / name).write_bytes(files[name])
         (tmp / "pairs" / f"{k}.json").write_text(json.dumps(meta, separators=(",", ":")))
-        for name, data in files.items():
-            (tmp / name).write_bytes(data)
     pairs = [(a, b) for a, b, _ in pair_results]
     (tmp / "site.json").write_text(json.dumps(manifest(title, epochs, pairs, bounds, zrange), indent=1))
     copy_page(tmp)
