@@ -411,3 +411,53 @@ def test_export_straight_from_a_dem_cli(site: dict, tmp_path: Path, capsys: pyte
     err = capsys.readouterr().err
     assert ex.value.code == 2 and "DEM" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "c").exists()
+
+
+def _scaled_point_visible(camera_ecef: np.ndarray, occludee_scaled: np.ndarray) -> bool:
+    """CesiumJS's EllipsoidalOccluder.isScaledSpacePointVisible, on the WGS 84 ellipsoid."""
+    radii = np.array([6378137.0, 6378137.0, 6356752.314245179])
+    cv = camera_ecef / radii
+    vh2 = float(cv @ cv) - 1.0
+    vt = occludee_scaled - cv
+    vt_dot_vc = -float(vt @ cv)
+    if vh2 < 0:
+        return not vt_dot_vc > 0
+    return not (vt_dot_vc > vh2 and vt_dot_vc * vt_dot_vc / float(vt @ vt) > vh2)
+
+
+@pytest.mark.parametrize("name", ["qm_geo", "qm_utm"])
+def test_horizon_occlusion_point_never_hides_a_tile_seen_from_above(site: dict, name: str) -> None:
+    """Every tile's horizon-occlusion point is visible from 10 km above the terrain inside the tile (CesiumJS
+    culls a tile whose point is below the horizon: a wrong point at zoom 0 hid the whole terrain from a
+    camera above it), and its bounding sphere holds every decoded vertex."""
+    from terralod.export.geodesy import ecef_lonlat
+    from terralod.export.quantized_mesh import decode_tile, tile_rectangle
+
+    root = site["root"] / name
+    bw, bs, be, bn = json.loads((root / "layer.json").read_text())["bounds"]
+    n = 0
+    for f in sorted(root.rglob("*.terrain")):
+        z, x, y = int(f.parent.parent.name), int(f.parent.name), int(f.stem)
+        d = decode_tile(f.read_bytes())
+        w, s, e, nn = tile_rectangle(z, x, y)
+        if max(w, bw) > min(e, be) or max(s, bs) > min(nn, bn):
+            continue  # a zoom-0 tile beside the data (both are always there)
+        # above the part of the tile that holds data (a camera over the terrain must see its tiles)
+        lon_c = 0.5 * (max(w, bw) + min(e, be))
+        lat_c = 0.5 * (max(s, bs) + min(nn, bn))
+        cam = ecef_lonlat(np.array([lon_c]), np.array([lat_c]), np.array([10_000.0]))[0]
+        assert _scaled_point_visible(cam, np.asarray(d["occlusion"], np.float64)), (
+            name,
+            z,
+            x,
+            y,
+            d["occlusion"],
+        )
+        lon = w + np.asarray(d["u"]) / 32767.0 * (e - w)
+        lat = s + np.asarray(d["v"]) / 32767.0 * (nn - s)
+        h = d["min_height"] + np.asarray(d["hq"]) / 32767.0 * (d["max_height"] - d["min_height"])
+        p = ecef_lonlat(lon, lat, h)
+        c = np.asarray(d["sphere"][:3])
+        assert np.sqrt(((p - c) ** 2).sum(axis=1)).max() <= d["sphere"][3] + 1e-3
+        n += 1
+    assert n > 10

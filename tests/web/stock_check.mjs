@@ -46,10 +46,15 @@ try {
   page.on("console", (m) => { if (m.type() === "error" && !benign(m.text())) out.errors.push("console: " + m.text()); });
   await page.goto(pageUrl, { waitUntil: "load", timeout });
   await page.waitForFunction(() => window.stock && (stock.ready || stock.errors.length), { timeout, polling: 200 });
+  // frames drawn since the view was set: "all tiles loaded" means nothing until the scene has drawn a few
+  // frames with the new camera (on a busy machine SwiftShader's first frames take seconds, and before any
+  // frame the globe has no tile queued, so it reads as loaded)
+  await page.evaluate(() => { stock.frames = 0; stock.viewer.scene.postRender.addEventListener(() => { stock.frames++; }); });
   for (const v of config.views) {
     const before = tileResponses;
     const v0 = Date.now();
     await page.evaluate((v) => {
+      stock.frames = 0;
       const cam = stock.viewer.camera;
       if (v.rect) cam.setView({ destination: Cesium.Rectangle.fromDegrees(...v.rect) });
       else cam.setView({ destination: Cesium.Cartesian3.fromDegrees(v.lon, v.lat, v.height),
@@ -58,7 +63,8 @@ try {
     // loaded: the globe's (or the tileset's) tiles all loaded on 5 consecutive polls after at least 1 s
     await page.waitForFunction((kind) => {
       const s = stock.viewer.scene;
-      const done = kind === "terrain" ? s.globe.tilesLoaded : stock.tileset.tilesLoaded;
+      s.requestRender();
+      const done = stock.frames >= 5 && (kind === "terrain" ? s.globe.tilesLoaded : stock.tileset.tilesLoaded);
       stock.quiet = done ? (stock.quiet || 0) + 1 : 0;
       return stock.quiet >= 5;
     }, { timeout, polling: 200 }, config.kind);

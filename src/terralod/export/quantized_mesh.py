@@ -371,7 +371,11 @@ def encode_tile(
     centre = 0.5 * (lo + hi)
     sc = centre  # the box centre and the farthest vertex (a tight enough sphere, in double precision)
     radius = float(np.sqrt(((ecef - sc) ** 2).sum(axis=1).max())) + 1e-3
-    occ = horizon_occlusion_point(ecef, sc)
+    # the occlusion point's direction is the tile rectangle's centre on the ellipsoid, as CesiumJS's own
+    # tessellators take it: the box centre of a tile that spans a hemisphere (zooms 0-1) lies near the
+    # Earth's centre, and the direction it gives culled tile 0/1/0 from a camera above it
+    towards = ecef_lonlat(np.array([0.5 * (w + e)]), np.array([0.5 * (s + n)]), np.array([0.0]))[0]
+    occ = horizon_occlusion_point(ecef, towards)
     out = io.BytesIO()
     out.write(struct.pack("<3d2f4d3d", *centre, hmin, hmax, *sc, radius, *occ))
     nv = len(u)
