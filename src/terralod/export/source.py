@@ -148,7 +148,7 @@ class SourceGrid:
     def points_in(self, z: int, x: int, y: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(lon, lat, height) of the valid samples inside geographic tile z/x/y, its edges included (a
         sample on a shared edge belongs to both tiles: CesiumJS may sample it from either)."""
-        from terralod.export.quantized_mesh import tile_rectangle
+        from terralod.export.geodesy import tile_rectangle
 
         order, groups = self._bucketed(z)
         wd, sd, ed, nd = tile_rectangle(z, x, y)
