@@ -36,14 +36,19 @@ def make_site(inputs: list[Path], out: Path) -> tuple[Path, float]:
 
 
 def size_figures(site: Path) -> dict:
-    parts = {p: sum(f.stat().st_size for f in (site / p).rglob("*") if f.is_file()) for p in ("epochs", "pairs", "cesium")}
+    parts = {
+        p: sum(f.stat().st_size for f in (site / p).rglob("*") if f.is_file())
+        for p in ("epochs", "pairs", "cesium")
+    }
     total = sum(f.stat().st_size for f in site.rglob("*") if f.is_file())
     m = json.loads((site / "site.json").read_text())
     pair = json.loads((site / m["pairs"][0]["url"]).read_text())
     h, w = pair["grid"]["shape"]
     cells_km2 = h * w * pair["grid"]["cell_area_m2"] / 1e6
     glb = list((site / "epochs").rglob("*.glb"))
-    refs = sum(json.loads(t.read_text()).__repr__().count(".glb") for t in (site / "epochs").glob("*/tileset.json"))
+    refs = sum(
+        json.loads(t.read_text()).__repr__().count(".glb") for t in (site / "epochs").glob("*/tileset.json")
+    )
     return {"bytes": total, "parts": parts, "epochs": len(m["epochs"]), "pairs": len(m["pairs"]), "area_km2": cells_km2,
             "bytes_per_km2": total / cells_km2, "data_bytes_per_km2": (total - parts["cesium"]) / cells_km2,
             "epoch_bytes_each": parts["epochs"] / len(m["epochs"]), "glb_files": len(glb), "tile_references": refs}  # fmt: skip
@@ -105,9 +110,24 @@ def main() -> None:
         "# The change site: size and load times\n\n"
         f"`python benchmarks/site.py` — served by `python -m http.server`, headless Chromium {a.runs} runs, "
         f"renderer: {renderer} (software WebGL: absolute times are this machine's CPU, not a GPU's).\n\n"
-        + md_table(["site", "epochs", "pairs", "MB in all", "of which CesiumJS MB", "data MB per km²",
-                    "tiles MB per epoch", "glb files / tile references", "open → first full view s",
-                    "epoch switch ms (median)", "swipe ms", "console errors", "`change --site` s"], rows)  # fmt: skip
+        + md_table(
+            [
+                "site",
+                "epochs",
+                "pairs",
+                "MB in all",
+                "of which CesiumJS MB",
+                "data MB per km²",
+                "tiles MB per epoch",
+                "glb files / tile references",
+                "open → first full view s",
+                "epoch switch ms (median)",
+                "swipe ms",
+                "console errors",
+                "`change --site` s",
+            ],
+            rows,
+        )  # fmt: skip
     )
     write_results("site", payload, md)
 
