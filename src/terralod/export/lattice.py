@@ -24,6 +24,8 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from terralod.kernels.error import triangle_gap
+
 __all__ = ["Lattice", "lattice_error"]
 
 #: Most lattice samples per tile side at the finest zoom (the water mask is 256², Cesium's heightmaps 65²).
@@ -213,11 +215,8 @@ def _lattice_error_kernel(tu, tv, th, tris, pu, pv, zwin, vwin):  # pragma: no c
                 if not vwin[j, k]:
                     continue
                 x = pu[k]
-                la = ((vb - vc) * (x - uc) + (uc - ub) * (y - vc)) / det
-                lb = ((vc - va) * (x - uc) + (ua - uc) * (y - vc)) / det
-                lc = 1.0 - la - lb
-                if la >= -tol and lb >= -tol and lc >= -tol:
-                    d = abs(la * th[a] + lb * th[b] + lc * th[c] - zwin[j, k])
+                d = triangle_gap(ua, va, ub, vb, uc, vc, det, th[a], th[b], th[c], x, y, zwin[j, k], tol)
+                if d >= 0.0:
                     if d > err:
                         err = d
                     if seen[j, k] == 0:

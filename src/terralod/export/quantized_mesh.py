@@ -59,6 +59,7 @@ from numba import njit
 from terralod.export.common import atomic_folder, check_exportable, check_output
 from terralod.export.geodesy import WGS84_A_M, Geodesy, ecef_lonlat, enu_frame, tile_rectangle
 from terralod.export.tiles3d import ExportReport
+from terralod.kernels.error import triangle_gap
 
 __all__ = [
     "QuantizedMesh",
@@ -496,11 +497,10 @@ def _max_vertical_error_kernel(tu, tv, th, tris, pu, pv, pz):  # pragma: no cove
                 k = cy * nb + cx
                 for j in range(start[k], start[k + 1]):
                     i = order[j]
-                    la = ((vb - vc) * (pu[i] - uc) + (uc - ub) * (pv[i] - vc)) / det
-                    lb = ((vc - va) * (pu[i] - uc) + (ua - uc) * (pv[i] - vc)) / det
-                    lc = 1.0 - la - lb
-                    if la >= -tol and lb >= -tol and lc >= -tol:
-                        d = abs(la * th[a] + lb * th[b] + lc * th[c] - pz[i])
+                    d = triangle_gap(
+                        ua, va, ub, vb, uc, vc, det, th[a], th[b], th[c], pu[i], pv[i], pz[i], tol
+                    )
+                    if d >= 0.0:
                         if d > err:
                             err = d
                         covered[i] = True

@@ -90,6 +90,20 @@ _SEED_BUCKETS = 16
 
 
 @leaf
+def triangle_gap(ua, va, ub, vb, uc, vc, det, ha, hb, hc, x, y, z, tol):  # pragma: no cover - numba
+    """|z - surface| at (x, y) of the triangle (ua, va, ha), (ub, vb, hb), (uc, vc, hc), linear in u/v as
+    a quantized-mesh client interpolates it; -1.0 when (x, y) is outside (edges within ``tol`` count as
+    inside). ``det`` = (vb - vc)(ua - uc) + (uc - ub)(va - vc), non-zero: the caller skips flat ones. The
+    one barycentric test of both web-export error kernels (scattered points and lattice rows)."""
+    la = ((vb - vc) * (x - uc) + (uc - ub) * (y - vc)) / det
+    lb = ((vc - va) * (x - uc) + (ua - uc) * (y - vc)) / det
+    lc = 1.0 - la - lb
+    if la < -tol or lb < -tol or lc < -tol:
+        return -1.0
+    return abs(la * ha + lb * hb + lc * hc - z)
+
+
+@leaf
 def _canonical_edge(ax, ay, bx, by):
     """Start point and direction of segment a-b, lexicographically smaller endpoint first."""
     if ax < bx or (ax == bx and ay <= by):
