@@ -384,8 +384,10 @@ def source_for(terrain: Any, geo: Any) -> SourceGrid:
                 return native
         return _from_heightfield(hf)
     if hasattr(terrain, "heightfield") and not getattr(terrain, "epochs", None):
+        from terralod.errors import StoreError
+
         try:
             return _from_heightfield(terrain.heightfield())
-        except Exception:  # noqa: BLE001 - a store without its samples: its finest meshes below
+        except StoreError:  # keeps no samples and its source is gone or changed: its finest meshes below
             pass
     return TinSource(terrain, geo)

@@ -353,7 +353,7 @@ class _Handler(BaseHTTPRequestHandler):
             try:
                 self.rfile.read(n)
                 return
-            except OSError:
+            except OSError:  # the client went away mid-body: fall through and close
                 pass
         self.close_connection = True
 
