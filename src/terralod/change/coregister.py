@@ -621,23 +621,39 @@ def _fit_terralod(
             a = ndimage.map_coordinates(a_coef, coords, order=3, mode="nearest", prefilter=False)
             _, ok = sample_surface(after, r, c, order=1)
             res = a + t[2] - b
-            med = np.median(res[ok])
-            s = max(nmad(res[ok]), 1e-9)
-            use = ok & (np.abs(res - med) <= OUTLIER_NMAD * s)
-            if use.sum() < MIN_STABLE_CELLS:
-                break
             # r(t + δ) ≈ r(t) − ∇A(x − t)·δ + δz, and ∇A(x − t) ≈ ∇B(x) near the solution
-            m = np.column_stack([gx[use], gy[use], -np.ones(int(use.sum()))])
-            delta, *_ = np.linalg.lstsq(m, res[use], rcond=None)
+            delta = _robust_step(res, ok, gx, gy)
+            if delta is None:
+                break
             t += delta
             if np.hypot(delta[0], delta[1]) < tol_px * px and abs(delta[2]) < 1e-4:
                 break
-    # final vertical offset: the median residual of the unsmoothed surfaces on the inliers
+    return _with_final_offset(pair, mask, t), iters
+
+
+def _robust_step(res: np.ndarray, ok: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> np.ndarray | None:
+    """One Gauss-Newton step (δx, δy, δz) of the residuals ``res`` against the gradient (gx, gy), on the
+    valid cells within ``OUTLIER_NMAD`` NMAD of their median; None when too few are left."""
+    if ok.sum() < MIN_STABLE_CELLS:
+        return None
+    med = np.median(res[ok])
+    s = max(nmad(res[ok]), 1e-9)
+    use = ok & (np.abs(res - med) <= OUTLIER_NMAD * s)
+    if use.sum() < MIN_STABLE_CELLS:
+        return None
+    m = np.column_stack([gx[use], gy[use], -np.ones(int(use.sum()))])
+    delta, *_ = np.linalg.lstsq(m, res[use], rcond=None)
+    return delta
+
+
+def _with_final_offset(pair: AlignedPair, mask: np.ndarray, t: np.ndarray) -> tuple[float, float, float]:
+    """The fitted shift with its vertical offset taken from the median difference of the unsmoothed
+    surfaces on the stable ground it leaves."""
     d = dem_of_difference(pair, tuple(t))
     st = stable_ground(d, mask)
     if st.sum() >= MIN_STABLE_CELLS:
         t[2] -= float(np.median(d[st]))
-    return (float(t[0]), float(t[1]), float(t[2])), iters
+    return (float(t[0]), float(t[1]), float(t[2]))
 
 
 #: AFTER is fitted on its own grid when its cells are at least this much larger (area) than BEFORE's
@@ -748,23 +764,13 @@ def _fit_on_after_grid(
         for _ in range(max_iter):
             iters += 1
             res, gx, gy, ok = _after_grid_residual(pair, b_coef, gx_b, gy_b, a, x, y, t)
-            if ok.sum() < MIN_STABLE_CELLS:
+            delta = _robust_step(res, ok, gx, gy)
+            if delta is None:
                 break
-            med = np.median(res[ok])
-            s = max(nmad(res[ok]), 1e-9)
-            use = ok & (np.abs(res - med) <= OUTLIER_NMAD * s)
-            if use.sum() < MIN_STABLE_CELLS:
-                break
-            m = np.column_stack([gx[use], gy[use], -np.ones(int(use.sum()))])
-            delta, *_ = np.linalg.lstsq(m, res[use], rcond=None)
             t += delta
             if np.hypot(delta[0], delta[1]) < tol_px * px and abs(delta[2]) < 1e-4:
                 break
-    d = dem_of_difference(pair, tuple(t))
-    st = stable_ground(d, mask)
-    if st.sum() >= MIN_STABLE_CELLS:
-        t[2] -= float(np.median(d[st]))
-    return (float(t[0]), float(t[1]), float(t[2])), iters
+    return _with_final_offset(pair, mask, t), iters
 
 
 def _num(v: float):
