@@ -19,7 +19,7 @@ c. triangles drawn along a scripted camera path (a circle over the terrain, 20 d
 Targets (issue 3): at equal vertex count cohesion's max error <= 0.8 x Chunked LOD's on mountainous DEMs;
 at equal error <= 0.5 x the triangles; build <= 50 ms per 65² tile per core.
 
-Usage: ``python benchmarks/cohesion_vs_chunked.py [--quick] [--frames N]`` (or ``terralod bench cohesion``);
+Usage: ``python benchmarks/cohesion_vs_chunked.py [--quick] [--frames N]``;
 writes benchmarks/results/cohesion_vs_chunked.{json,md,png}. Stores are cached in $TERRALOD_BENCH_CACHE.
 """
 

@@ -2,8 +2,10 @@
 runs ``terralod demo``, ``terralod serve`` (the viewer page and the CesiumJS it carries) and ``terralod
 change`` on the St Helens pair.
 
-The venv sees the current environment's site-packages (``--system-site-packages``: the dependencies come
-from there, the wheel is installed with ``--no-deps``); every command runs from a folder outside the
+The venv sees the running interpreter's own site-packages through a ``.pth`` file (the dependencies come
+from there, the wheel is installed with ``--no-deps``): ``--system-site-packages`` would give it the *base*
+interpreter's, which inside a virtual environment lacks them; the ``.pth`` lists plain folders, so the
+running environment's editable terralod (a ``.pth`` hook of its own) is not picked up; every command runs from a folder outside the
 repository, and the test proves that the ``terralod`` imported there is the wheel's (``terralod.__file__``
 inside the venv, its sources byte-identical to the tree's). The numba kernels' on-disk caches of the source
 tree are copied next to the installed modules (same code, the sources' timestamps carried over), so the
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import site
 import subprocess
 import sys
 import urllib.request
@@ -69,8 +72,12 @@ def wheel_venv(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Pa
     _run([sys.executable, "-m", "build", "--wheel", "--outdir", str(dist), str(ROOT)], ROOT, dict(os.environ))
     (wheel,) = dist.glob("terralod-*.whl")
     venv = tmp / "venv"
-    _run([sys.executable, "-m", "venv", "--system-site-packages", str(venv)], tmp, dict(os.environ))
+    _run([sys.executable, "-m", "venv", str(venv)], tmp, dict(os.environ))
     py = venv / "bin" / "python"
+    venv_site = Path(_run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], tmp,
+                          dict(os.environ)).stdout.strip())  # fmt: skip
+    parent = [p for p in dict.fromkeys(site.getsitepackages() + [site.getusersitepackages()]) if Path(p).is_dir()]
+    (venv_site / "_terralod_test_parent_env.pth").write_text("\n".join(parent) + "\n")
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "TERRALOD_CESIUM_DIR", "DISPLAY")}
     env.update(PYTHONUNBUFFERED="1", PIP_DISABLE_PIP_VERSION_CHECK="1", PATH=f"{venv / 'bin'}:{env['PATH']}")
     _run(

@@ -40,3 +40,8 @@ class BuildMismatchError(TerralodError, ValueError):
 class WorkerLostError(TerralodError, RuntimeError):
     """A distributed build lost the workers of one work unit more times than it retries (out of memory,
     usually): the tiles committed so far are kept."""
+
+
+class DisplayError(TerralodError, RuntimeError):
+    """No OpenGL context or window could be made (no GPU driver, no EGL, no display): the machine's
+    set-up, not a bug of terralod."""

@@ -1,4 +1,4 @@
-"""Epochs of a ``.terra`` store for the change analysis, and edits that write a new epoch (issue 15).
+"""Epochs of a ``.terra`` store for the change analysis, and edits that write a new epoch.
 
 - :func:`epoch_heightfield` — the elevation grid of one epoch, exactly as it was built (the samples the
   store keeps with each epoch; see :mod:`terralod.store_epochs`).

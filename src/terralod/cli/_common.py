@@ -258,9 +258,10 @@ def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, enc
     if tile_zxy:
         try:
             tile = tuple(int(v) for v in tile_zxy.replace(",", "/").split("/"))
-            assert len(tile) == 3
-        except (ValueError, AssertionError):
-            raise click.BadParameter(f"expected Z/X/Y, got {tile_zxy!r}", param_hint="--tile") from None
+        except ValueError:
+            tile = ()
+        if len(tile) != 3:
+            raise click.BadParameter(f"expected Z/X/Y, got {tile_zxy!r}", param_hint="--tile")
     from terralod.errors import InputError
 
     try:
@@ -302,11 +303,10 @@ def triple(text: str, name: str) -> tuple[float, float, float]:
 def size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(a) for a in text.lower().split("x"))
-        assert 16 <= w <= 8192 and 16 <= h <= 8192
-    except (ValueError, AssertionError):
-        raise click.BadParameter(
-            f"expected WIDTHxHEIGHT between 16 and 8192, got {text!r}", param_hint="--size"
-        ) from None
+    except ValueError:
+        w = h = 0
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise click.BadParameter(f"expected WIDTHxHEIGHT between 16 and 8192, got {text!r}", param_hint="--size")
     return w, h
 
 
@@ -552,11 +552,10 @@ def render_settings(background: str | None, mode: str, wireframe: bool):
     if background:
         try:
             rgb = tuple(float(a) for a in background.split(","))
-            assert len(rgb) == 3
-        except (ValueError, AssertionError):
-            raise click.BadParameter(
-                f"expected R,G,B, got {background!r}", param_hint="--background"
-            ) from None
+        except ValueError:
+            rgb = ()
+        if len(rgb) != 3:
+            raise click.BadParameter(f"expected R,G,B, got {background!r}", param_hint="--background")
         st.background = tuple(c / 255.0 if max(rgb) > 1.0 else c for c in rgb)  # type: ignore[assignment]
     return st
 
@@ -742,7 +741,5 @@ def run_main(group: click.Group, argv: list[str] | None) -> None:
     except OSError as exc:
         name = getattr(exc, "filename", None)
         _fail(f"{str(name) + ': ' if name else ''}{exc.strerror or exc}")
-    except RuntimeError as exc:  # no GPU context / no window
-        _fail(str(exc))
     except Exception as exc:  # a bug: still one line (the traceback with -v), never a crash dump
         _fail(f"internal error ({type(exc).__name__}: {exc}); run with -v for the traceback and report it")

@@ -1,4 +1,4 @@
-"""Epoch options shared by ``render``, ``flythrough`` and ``view`` (issue 15): which epoch to draw, and the
+"""Epoch options shared by ``render``, ``flythrough`` and ``view``: which epoch to draw, and the
 change overlay (gain / loss since another epoch, greyed below a level of detection)."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """``terralod edit STORE --polygon cut.geojson --depth-m 12`` (or ``--patch slide.tif``): an excavation, a
-fill (negative depth) or a pasted raster as a new epoch, rebuilding only the tiles it touches (issue 15)."""
+fill (negative depth) or a pasted raster as a new epoch, rebuilding only the tiles it touches."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``terralod epochs STORE [--delete DATE]``: the epochs of a store (issue 15), or remove one."""
+"""``terralod epochs STORE [--delete DATE]``: the epochs of a store, or remove one."""
 
 from __future__ import annotations
 

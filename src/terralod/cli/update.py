@@ -1,5 +1,5 @@
 """``terralod update STORE DEM --epoch DATE``: add an epoch of the same terrain to a store, rebuilding only
-the tiles whose source windows changed (issue 15; :mod:`terralod.pyramid.update`)."""
+the tiles whose source windows changed (:mod:`terralod.pyramid.update`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Add an epoch to a store: rebuild only the tiles whose source windows changed (issue 15, item 1).
+"""Add an epoch to a store: rebuild only the tiles whose source windows changed.
 
 A tile's *source window* is every sample its mesher reads: the tile's own samples ``[r0, r0 + span]`` x
 ``[c0, c0 + span]`` (clipped to the data, whose last row and column stand in for the padding), widened by

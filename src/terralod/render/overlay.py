@@ -1,4 +1,4 @@
-"""The change overlay and the captions drawn on frames for non-experts (issue 15, item 3).
+"""The change overlay and the captions drawn on frames for non-experts.
 
 :class:`ChangeOverlay` is the elevation change of one epoch relative to another on the store's grid
 (metres, ``after - before``). The renderer samples it per fragment from a float texture laid over the

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from terralod.errors import DisplayError
+
 _SHADERS = Path(__file__).resolve().parent / "shaders"
 
 #: Hypsometric ramp stops (fraction of the height range → RGB 0..1): water-blue lowlands to snow.
@@ -45,10 +47,17 @@ LEVEL_COLOURS = np.array(
 
 
 def create_offscreen_context(require: int = 330):
-    """A standalone EGL OpenGL context (no display needed)."""
+    """A standalone EGL OpenGL context (no display needed); :class:`~terralod.errors.DisplayError` when the
+    machine has no EGL/OpenGL driver that gives one."""
     import moderngl
 
-    return moderngl.create_context(standalone=True, backend="egl", require=require)
+    try:
+        return moderngl.create_context(standalone=True, backend="egl", require=require)
+    except Exception as exc:  # moderngl raises plain Exception subclasses for a missing driver
+        raise DisplayError(
+            f"no OpenGL {require // 100}.{require % 100 // 10} context through EGL ({exc}); install Mesa's EGL "
+            "(libegl1 libegl-mesa0 libgl1-mesa-dri) or a GPU driver"
+        ) from exc
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -245,7 +254,7 @@ class TerrainRenderer:
         if draw_mode == "auto":
             draw_mode = "indirect" if self.ctx.version_code >= 430 else "plain"
         elif draw_mode == "indirect" and self.ctx.version_code < 430:
-            raise RuntimeError(f"Indirect draws need OpenGL 4.3, this context has {self.ctx.version_code}")
+            raise DisplayError(f"Indirect draws need OpenGL 4.3, this context has {self.ctx.version_code}")
         self.draw_mode = draw_mode
         self.gl_renderer = str(self.ctx.info.get("GL_RENDERER", "?"))
         self.width_px, self.height_px = int(width_px), int(height_px)

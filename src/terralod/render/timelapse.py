@@ -1,4 +1,4 @@
-"""Frames and time-lapse videos of a terrain's epochs, for people who are not terrain experts (issue 15).
+"""Frames and time-lapse videos of a terrain's epochs, for people who are not terrain experts.
 
 - :func:`epoch_frame`: one frame of one epoch, optionally with the change overlay (gain / loss relative to
   another epoch, :mod:`terralod.render.overlay`) and the date and legend burnt in.

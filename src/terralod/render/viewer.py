@@ -103,11 +103,13 @@ class Viewer:
         import glfw
         import moderngl
 
+        from terralod.errors import DisplayError
+
         terrain = as_terrain(terrain)
         cull_options(cull)
 
         if not glfw.init():
-            raise RuntimeError("glfw could not initialise (no display?)")
+            raise DisplayError("glfw could not initialise (no display?)")
         glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
         glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
         glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
@@ -115,7 +117,7 @@ class Viewer:
         self.window = glfw.create_window(width_px, height_px, title, None, None)
         if not self.window:
             glfw.terminate()
-            raise RuntimeError("glfw could not open a window")
+            raise DisplayError("glfw could not open a window")
         glfw.make_context_current(self.window)
         glfw.swap_interval(0)
         self.glfw = glfw

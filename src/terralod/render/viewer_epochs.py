@@ -1,4 +1,4 @@
-"""The window viewer's epoch controls (issue 15): an epoch slider (keys and an on-screen control), the change
+"""The window viewer's epoch controls: an epoch slider (keys and an on-screen control), the change
 overlay toggle, the date on screen, and the elevation and change under the cursor in the HUD.
 
 Keys: ``[`` / ``]`` or PageUp / PageDown previous / next epoch, Home / End first / last, C change overlay
