@@ -278,16 +278,11 @@ def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, enc
 
 
 def crs_name(crs: str | None) -> str:
-    if not crs:
-        return "none (local metric frame)"
-    try:
-        from rasterio.crs import CRS
+    """The CRS in words: horizontal name, EPSG code and unit, vertical CRS when there is one; never WKT
+    (:func:`terralod.io.georef.describe_crs`)."""
+    from terralod.io.georef import describe_crs
 
-        c = CRS.from_user_input(crs)
-        epsg = c.to_epsg()
-        return f"EPSG:{epsg}" if epsg else c.to_string()[:60]
-    except Exception:  # noqa: BLE001 - a name is cosmetic
-        return crs[:60]
+    return describe_crs(crs)
 
 
 def triple(text: str, name: str) -> tuple[float, float, float]:

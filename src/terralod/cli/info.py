@@ -32,10 +32,12 @@ def store_info(p: Path) -> dict[str, Any]:
         meta["size_bytes"] = p.stat().st_size
         if meta.get("bounds_m"):
             meta.update(extent_info(meta.get("crs"), meta["bounds_m"]))
+        meta["crs_name"] = crs_name(meta.get("crs"))
         return meta
     with open_store(p) as s:
         summary = store_summary(s)
-        summary["crs"] = crs_name(s.crs)
+        summary["crs"] = s.crs
+        summary["crs_name"] = crs_name(s.crs)
         summary["source"] = s.meta.get("source")
         summary["method"] = s.meta.get("method")
         summary["epochs"] = [{"name": r["name"], "state": r["state"], **r["info"]} for r in s.epoch_rows()]
@@ -109,14 +111,12 @@ def info(path: str, as_json: bool, **read: Any) -> None:
         if as_json:
             click.echo(json.dumps(d, indent=2, default=str))
         elif d.get("method") == TIN_METHOD:
-            console.print(
-                f"source {d.get('source')}, method tin (Ai et al., 2019), CRS {crs_name(d.get('crs'))}"
-            )
+            console.print(f"source {d.get('source')}, method tin (Ai et al., 2019), CRS {d['crs_name']}")
             if "bounds_m" in d:
                 print_extent(d)
             print_tin_summary(d)
         else:
-            console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs']}")
+            console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs_name']}")
             print_extent(d)
             print_nodata(d)
             print_store_summary(d)
@@ -141,20 +141,25 @@ def info(path: str, as_json: bool, **read: Any) -> None:
         console.print(f"  kind         LAS {d['las_version']} point cloud, point format {d['point_format']}")
         console.print(f"  points       {d['points']:,} (header)")
         w, s, e, n = d["bounds"]
+        console.print(f"  CRS          {d['crs_name']}")
         console.print(f"  bounds       {w:.2f}, {s:.2f} .. {e:.2f}, {n:.2f} (file units)")
-        console.print(f"  z            {d['z_range'][0]:.2f} .. {d['z_range'][1]:.2f}")
-        console.print(f"  CRS          {crs_name(d['crs'])}")
+        if d.get("bounds_lonlat"):
+            lw, ls, le, ln = d["bounds_lonlat"]
+            console.print(f"  lon/lat      W {lw:.5f}  S {ls:.5f}  E {le:.5f}  N {ln:.5f} deg")
+        console.print(f"  z            {d['z_range'][0]:.2f} .. {d['z_range'][1]:.2f} (file units; "
+                      f"{d['z_range'][0] * d['z_unit_m']:.2f} .. {d['z_range'][1] * d['z_unit_m']:.2f} m)")  # fmt: skip
         for note in d["notes"]:
             console.print(f"  note         {note}")
         return
     hf = load(path, **read)
     d = heightfield_info(hf)
+    d["crs_name"] = crs_name(hf.crs)
     if as_json:
         click.echo(json.dumps(d, indent=2))
         return
     console.print(f"[bold]{d['source']}[/bold]")
     console.print(f"  size         {d['size'][0]} x {d['size'][1]} samples")
-    console.print(f"  CRS          {crs_name(d['crs'])}")
+    console.print(f"  CRS          {d['crs_name']}")
     console.print(f"  spacing      {d['spacing_m'][0]:.3f} x {d['spacing_m'][1]:.3f} m")
     print_extent(d)
     print_nodata(d)

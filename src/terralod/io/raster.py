@@ -7,9 +7,13 @@ north-up and axis-aligned. How each kind of georeferencing gets there:
 - **Projected CRS in metres**: the CRS's own coordinates, unchanged (no resampling).
 - **Projected CRS in feet** (international or US survey foot, any non-metre linear unit): x/y are
   multiplied by the unit's size in metres and the CRS is re-expressed as the same projection with metre
-  units (checked by transforming a point through both; refused when that check fails). Elevations are
-  *not* converted: a raster's vertical unit is not given by its horizontal CRS, so pass
-  ``vertical_scale=0.3048`` for foot elevations.
+  axes (:func:`terralod.io.georef.metric_crs`: datum and parameters kept, checked by transforming a point
+  through both; refused when that check fails). Elevations follow the CRS's *vertical* axis only: a
+  compound CRS whose vertical part is in feet scales them (unless ``vertical_scale`` or a band scale tag is
+  given); a horizontal CRS in feet says nothing of heights, so pass ``vertical_scale=0.3048`` for foot
+  elevations there.
+- **Area of use**: coordinates far outside the CRS's area of use (a unit mix-up, usually) are refused
+  (:func:`terralod.io.georef.check_area_of_use`), a CRS with no transformation to WGS 84 too.
 - **Geographic CRS** (degrees) and **Mercator** projections (EPSG:3857 web mercator, EPSG:3395), whose
   'metres' are not ground metres away from the equator: reprojected *once* with
   :func:`rasterio.warp.reproject` to the UTM zone of the raster's centre (north/south by latitude; UPS
@@ -46,6 +50,7 @@ from terralod.errors import InputError
 from terralod.fill import check_dimensions, prepare_elevation
 from terralod.heightfield import Heightfield
 from terralod.io.encodings import decode_rgb
+from terralod.io.georef import check_area_of_use, crs_summary, metric_crs
 
 #: Web-mercator (EPSG:3857) world width, metres: one XYZ tile at zoom z spans this / 2**z.
 EARTH_CIRCUMFERENCE_M = 40075016.686
@@ -172,6 +177,10 @@ def read_raster(
             valid &= raw != nodata
     scale = float(vertical_scale) if vertical_scale is not None else float(scale_tag or 1.0)
     offset = float(vertical_offset) if vertical_offset is not None else float(offset_tag or 0.0)
+    vunit = vertical_unit_m(crs) if has_transform else None
+    if vunit is not None and vertical_scale is None and scale == 1.0:
+        scale = vunit[1]  # heights in the unit the CRS's vertical axis names
+        notes = (*notes, f"heights in {vunit[0]} (the CRS's vertical axis): x {vunit[1]:.10g} to metres")
     values, note = apply_vertical(values, scale, offset, src)
     notes = (*notes, *note)
 
@@ -362,7 +371,8 @@ def georeferenced_heightfield(
             f"has a rotated or sheared geotransform {tuple(t)[:6]}; warp it north-up first", source
         )
     values, valid, t, flips = north_up(values, valid, t, source)
-    notes = (*notes, *flips)
+    h, w = values.shape
+    notes = (*notes, *flips, *check_area_of_use(crs, (t.c, t.f + h * t.e, t.c + w * t.a, t.f), source))
     if crs.is_geographic or _is_mercator(crs):
         values, valid, t, crs, note, src_nodata, margin = reproject_to_utm(values, valid, t, crs, source)
         hf = _metric(values, valid, t, crs, source, (*notes, note))
@@ -548,38 +558,32 @@ def reproject_to_utm(
 
 def _metric_units(crs: Any, t: Affine, source: str) -> tuple[Any, Affine, tuple[str, ...]]:
     """Convert a projected CRS in feet (or any non-metre unit) to the same projection in metres."""
-    from rasterio.crs import CRS
-    from rasterio.warp import transform as warp_points
+    crs, t, _, notes = metric_frame(crs, t, source)
+    return crs, t, notes
 
+
+def metric_frame(crs: Any, t: Affine, source: str) -> tuple[Any, Affine, float | None, tuple[str, ...]]:
+    """(the CRS with metre axes, the transform in metres, metres per unit of the CRS's vertical axis or
+    None, notes) of a north-up projected grid (:func:`terralod.io.georef.metric_crs`); elevations are the
+    caller's (see :func:`vertical_unit_m`)."""
+    metric, factor, fv, notes = metric_crs(crs, t @ (0.5, 0.5), source)
+    if factor != 1.0:
+        t = Affine(t.a * factor, 0.0, t.c * factor, 0.0, t.e * factor, t.f * factor)
+    return metric, t, fv, notes
+
+
+def vertical_unit_m(crs: Any) -> tuple[str, float] | None:
+    """(unit, metres per unit) of a CRS's vertical axis when it has one in another unit than metres
+    (a compound CRS with a vertical part in feet), else None (also for an unreadable CRS: reported later)."""
+    if crs is None:
+        return None
     try:
-        unit, factor = crs.linear_units_factor
-    except Exception:
-        raise InputError(
-            f"CRS {_crs_name(crs)} is neither geographic nor projected with a known linear unit; "
-            "reproject it to a metric CRS first (gdalwarp -t_srs EPSG:<UTM zone>)",
-            source,
-        ) from None
-    if factor == 1.0:
-        return crs, t, ()
-    params = {k: v for k, v in crs.to_dict().items() if k not in ("units", "to_meter", "vunits", "vto_meter")}
-    cx, cy = t @ (0.5, 0.5)
-    try:
-        metric = CRS.from_dict({**params, "units": "m"})
-        (mx,), (my,) = warp_points(crs, metric, [cx], [cy])
-    except Exception:
-        mx = my = math.nan
-    if not (abs(mx - cx * factor) < 1e-3 and abs(my - cy * factor) < 1e-3):
-        raise InputError(
-            f"CRS {_crs_name(crs)} is in {unit} and could not be re-expressed in metres; reproject it to a "
-            "metric CRS first (gdalwarp -t_srs ...)",
-            source,
-        )
-    t = Affine(t.a * factor, 0.0, t.c * factor, 0.0, t.e * factor, t.f * factor)
-    note = (
-        f"x/y converted from {unit} to metres (x {factor:.10g}); CRS {_crs_name(crs)} re-expressed with "
-        "metre units (elevations unchanged)"
-    )
-    return metric, t, (note,)
+        s = crs_summary(crs)
+    except InputError:
+        return None
+    if s.vertical_unit_m is None or s.vertical_unit_m == 1.0:
+        return None
+    return s.vertical_unit or "?", s.vertical_unit_m
 
 
 def _scale_note(t: Affine, crs: Any, shape: tuple[int, int]) -> tuple[str, ...]:
@@ -599,8 +603,15 @@ def _metric(
     values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, source: str, notes: tuple[str, ...]
 ) -> Heightfield:
     z, ok, how = prepare_elevation(values, valid, source)
-    wkt = None if crs is None else crs.to_wkt()
+    wkt = None if crs is None else crs_text(crs)
     return Heightfield(z, ok, t, crs=wkt, source=source, fill_method=how, notes=tuple(notes))
+
+
+def crs_text(crs: Any) -> str:
+    """The WKT stored for a CRS: GDAL's WKT1, or WKT2 for a CRS terralod re-expressed in metres (whose
+    REMARK saying so WKT1 cannot hold)."""
+    wkt2 = crs.to_wkt(version="WKT2_2019")
+    return wkt2 if "REMARK[" in wkt2 else crs.to_wkt()
 
 
 def _with_notes(hf: Heightfield, *notes: str) -> Heightfield:

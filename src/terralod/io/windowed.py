@@ -53,6 +53,7 @@ from affine import Affine
 from terralod.errors import InputError, InputNotFoundError
 from terralod.fill import MIN_SIDE, fill_nodata
 from terralod.heightfield import Heightfield
+from terralod.io.raster import vertical_unit_m
 
 __all__ = ["ArraySource", "RasterSource", "WindowSource", "open_source"]
 
@@ -200,6 +201,13 @@ class RasterSource(WindowSource):
         self.transform, self.crs, self.notes, self.flip_rows, self.flip_cols = _metric_frame(
             ds, spacing_m, src
         )
+        vunit = vertical_unit_m(ds.crs) if self.crs is not None else None
+        if vunit is not None and vertical_scale is None and self.scale == 1.0:
+            self.scale = vunit[1]  # heights in the unit the CRS's vertical axis names
+            self.notes = (
+                *self.notes,
+                f"heights in {vunit[0]} (the CRS's vertical axis): x {vunit[1]:.10g} to metres",
+            )
         if self.scale != 1.0 or self.offset != 0.0:
             self.notes = (*self.notes, f"elevation_m = stored value * {self.scale:g} + {self.offset:g}")
 
@@ -336,7 +344,8 @@ def open_source(paths: str | Path | Sequence[str | Path], **options: Any) -> Ras
 def _metric_frame(ds, spacing_m, src: str) -> tuple[Affine, str | None, tuple[str, ...], bool, bool]:
     """(north-up metric transform, CRS WKT or None, notes, flip rows, flip cols) of a dataset, as
     :func:`terralod.io.raster.read_raster` places it; geographic and Mercator CRSs are refused."""
-    from terralod.io.raster import _is_mercator, _metric_units, _scale_note
+    from terralod.io.georef import check_area_of_use
+    from terralod.io.raster import _is_mercator, _metric_units, _scale_note, crs_text
 
     t, crs = ds.transform, ds.crs
     has_transform = not t.is_identity
@@ -368,9 +377,10 @@ def _metric_frame(ds, spacing_m, src: str) -> tuple[Affine, str | None, tuple[st
     if flip_cols:
         t = Affine(-t.a, 0.0, t.c + t.a * w, 0.0, t.e, t.f)
         notes.append("columns flipped: the source runs east to west")
+    notes += check_area_of_use(crs, (t.c, t.f + h * t.e, t.c + w * t.a, t.f), src)
     crs_m, t, unit_notes = _metric_units(crs, t, src)
     notes += [*unit_notes, *_scale_note(t, crs_m, (h, w))]
-    return t, crs_m.to_wkt(), tuple(notes), flip_rows, flip_cols
+    return t, crs_text(crs_m), tuple(notes), flip_rows, flip_cols
 
 
 # -- mosaics -------------------------------------------------------------------------------------------

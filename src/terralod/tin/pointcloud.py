@@ -6,12 +6,14 @@ cloud was processed ... such as points filtering and thinning"). The paper gives
 - **Ground only.** A classified cloud (any point of class 2, ASPRS "ground") keeps its class-2 points, the
   bare earth a terrain TIN should show; an unclassified cloud keeps every point. ``ground_only=True``
   demands class 2, ``False`` keeps everything.
-- **Units.** Coordinates become metres from the file's CRS: the linear unit of the WKT VLR (read with
-  GDAL through rasterio: international foot 0.3048, US survey foot 1200/3937, …), else the GeoTIFF keys
-  (ProjLinearUnitsGeoKey, VerticalUnitsGeoKey, or the EPSG code of ProjectedCSTypeGeoKey), else metres
-  with a note. Elevations take the vertical unit when the CRS names one (a VERT_CS in a COMPD_CS WKT, or
-  VerticalUnitsGeoKey) and the horizontal unit otherwise (the LAS habit: Autzen stores x, y and z in
-  international feet). A geographic CRS (degrees) is refused: reproject first.
+- **CRS and units.** The file's CRS is its WKT record or its GeoTIFF keys (read by GDAL from a one-pixel
+  GeoTIFF carrying them; when both exist and disagree, :func:`las_crs` says which is taken or refuses).
+  x/y become metres by the unit of the CRS's axes (international foot 0.3048, US survey foot 1200/3937,
+  ...), and the CRS stored with them is the same CRS with metre axes (:func:`terralod.io.georef.metric_crs`),
+  so the coordinates and the CRS always agree. z takes the unit of the CRS's vertical axis when it has one
+  (a compound CRS) and the horizontal unit otherwise (the LAS habit: Autzen stores x, y and z in
+  international feet). No CRS: metres in a local frame, with a note. A geographic CRS (degrees) is
+  refused (reproject first), and so are points far outside the CRS's area of use.
 - **Thinning.** Points whose xy fall in the same ``tol_m`` square cell (cells anchored at the cloud's
   south-west corner) are one location; the **lowest** point is kept (for LiDAR the lowest return of a
   location is the one nearest the ground). Two points closer than ``tol_m`` but on either side of a cell
@@ -21,6 +23,7 @@ cloud was processed ... such as points filtering and thinning"). The paper gives
 from __future__ import annotations
 
 import logging
+import math
 import os
 import re
 import struct
@@ -315,9 +318,11 @@ def _records_in_file(p: Path, header) -> int | None:
         return None
 
 
-def describe_las(path: str | os.PathLike[str]) -> dict[str, Any]:
+def describe_las(path: str | os.PathLike[str], *, crs: Any = None) -> dict[str, Any]:
     """What ``terralod info`` says about a LAS/LAZ cloud, from its header (points are not read):
-    version, point format, header point count, records in the file, bounds and CRS."""
+    version, point format, header point count, records in the file, bounds (file units and lon/lat) and
+    CRS (``crs_name``: the file's CRS named; ``crs``: the WKT of the metre frame a build uses).
+    Georeferencing :func:`read_las` would refuse is refused here too (InputError)."""
     import laspy
 
     p = Path(path)
@@ -338,30 +343,188 @@ def describe_las(path: str | os.PathLike[str]) -> dict[str, Any]:
                 "z_range": [float(h.mins[2]), float(h.maxs[2])],
                 "compressed": bool(h.are_points_compressed),
             }
-            wkt = _wkt_of(h)
     except (KeyboardInterrupt, SystemExit):
         raise
     except BaseException as exc:  # laspy raises its own, OSError/ValueError, and lazrs pyo3 PanicException
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from None
-    d["crs"] = wkt
     n_file = _records_in_file(p, h)
     d["records_in_file"] = n_file
-    d["notes"] = (
+    notes = (
         [f"header point count {d['points']} disagrees with the {n_file} records in the file"]
         if n_file is not None and n_file != d["points"]
         else []
     )
+    wkt, fh, fv, crs_notes, file_crs = _las_frame(h, src, crs, None)
+    d["crs"] = wkt  # the CRS of the metre coordinates a build makes
+    from terralod.io.georef import describe_crs
+
+    d["crs_name"] = describe_crs(file_crs)
+    d["unit_m"], d["z_unit_m"] = fh, fv
+    d["notes"] = notes + [n for n in crs_notes if not n.startswith(("CRS from", "CRS given"))]
+    d["bounds_lonlat"] = None
+    if wkt is not None:
+        from rasterio.warp import transform_bounds
+
+        w, s_, e, n = (v * fh for v in d["bounds"])
+        try:
+            d["bounds_lonlat"] = [
+                float(v) for v in transform_bounds(wkt, "EPSG:4326", w, s_, e, n, densify_pts=21)
+            ]
+        except Exception:  # noqa: BLE001 - placed by check_area_of_use already; lon/lat is a courtesy
+            d["bounds_lonlat"] = None
     return d
 
 
+def _crs_records(header) -> list[Any]:
+    """The VLRs and extended VLRs of a header (a LAS 1.4 file may keep its WKT in an EVLR)."""
+    return [*header.vlrs, *(getattr(header, "evlrs", None) or [])]
+
+
 def _wkt_of(header) -> str | None:
-    for vlr in header.vlrs:
+    for vlr in _crs_records(header):
         if type(vlr).__name__ == "WktCoordinateSystemVlr":
             s = vlr.string
-            return (
-                s.decode("ascii", "replace").strip("\x00") if isinstance(s, bytes) else str(s).strip("\x00")
-            )
+            text = s.decode("ascii", "replace") if isinstance(s, bytes) else str(s)
+            return text.strip("\x00").strip() or None
     return None
+
+
+def _geotiff_with_keys(directory: bytes, doubles: bytes, ascii_: bytes) -> bytes:
+    """A 1x1 GeoTIFF carrying a LAS file's GeoTIFF key records (GeoKeyDirectoryTag 34735,
+    GeoDoubleParamsTag 34736, GeoAsciiParamsTag 34737), so GDAL (libgeotiff) turns the keys into a CRS
+    exactly as it does for a raster: user-defined projections and vertical keys included."""
+    # (tag, TIFF type, count, value bytes): SHORT 3, LONG 4, DOUBLE 12, ASCII 2
+    if len(ascii_) and not ascii_.endswith(b"\x00"):
+        ascii_ += b"\x00"
+    entries = [
+        (256, 3, 1, struct.pack("<H", 1)), (257, 3, 1, struct.pack("<H", 1)), (258, 3, 1, struct.pack("<H", 8)),
+        (259, 3, 1, struct.pack("<H", 1)), (262, 3, 1, struct.pack("<H", 1)), (273, 4, 1, b""),
+        (277, 3, 1, struct.pack("<H", 1)), (278, 3, 1, struct.pack("<H", 1)), (279, 4, 1, struct.pack("<I", 1)),
+        (33550, 12, 3, struct.pack("<3d", 1.0, 1.0, 0.0)), (33922, 12, 6, struct.pack("<6d", 0, 0, 0, 0, 0, 0)),
+        (34735, 3, len(directory) // 2, directory),
+    ]  # fmt: skip
+    if doubles:
+        entries.append((34736, 12, len(doubles) // 8, doubles))
+    if ascii_:
+        entries.append((34737, 2, len(ascii_), ascii_))
+    ifd_size = 2 + 12 * len(entries) + 4
+    data_at = 8 + ifd_size
+    pixel_at = data_at + sum(len(v) + (len(v) & 1) for *_, v in entries if len(v) > 4)
+    ifd = [struct.pack("<H", len(entries))]
+    blobs = []
+    for tag, typ, count, value in entries:
+        if tag == 273:
+            value = struct.pack("<I", pixel_at)
+        if len(value) <= 4:
+            ifd.append(struct.pack("<HHI", tag, typ, count) + value.ljust(4, b"\x00"))
+        else:
+            ifd.append(struct.pack("<HHII", tag, typ, count, data_at))
+            pad = value + b"\x00" * (len(value) & 1)
+            blobs.append(pad)
+            data_at += len(pad)
+    ifd.append(struct.pack("<I", 0))
+    return b"II*\x00" + struct.pack("<I", 8) + b"".join(ifd) + b"".join(blobs) + b"\x00"
+
+
+def _geokeys_crs(header) -> str | None:
+    """The CRS (WKT) the GeoTIFF keys of a LAS header define, read by GDAL; None without keys or when GDAL
+    makes no CRS of them."""
+    recs = {type(v).__name__: v for v in _crs_records(header)}
+    keys = recs.get("GeoKeyDirectoryVlr")
+    if keys is None:
+        return None
+    try:
+        import rasterio
+        from rasterio.io import MemoryFile
+
+        def raw(name: str) -> bytes:
+            v = recs.get(name)
+            return bytes(v.record_data_bytes()) if v is not None else b""
+
+        d = raw("GeoKeyDirectoryVlr")
+        shorts = struct.unpack(f"<{len(d) // 2}H", d[: len(d) // 2 * 2])
+        n = min(shorts[3], (len(shorts) - 4) // 4)
+        entries = [shorts[4 + 4 * k : 8 + 4 * k] for k in range(n) if shorts[4 + 4 * k] != 0]  # id 0: padding
+        d = struct.pack(
+            f"<{4 + 4 * len(entries)}H", *shorts[:3], len(entries), *(v for e in entries for v in e)
+        )
+        tif = _geotiff_with_keys(d, raw("GeoDoubleParamsVlr"), raw("GeoAsciiParamsVlr"))
+        with rasterio.Env(GTIFF_REPORT_COMPD_CS="YES"), MemoryFile(tif) as mem, mem.open() as ds:
+            return None if ds.crs is None else ds.crs.to_wkt(version="WKT2_2019")
+    except Exception:  # noqa: BLE001 - keys GDAL cannot read: the simple key reading below decides
+        g = _units_from_geokeys(header)
+        return g[3] if g is not None else None
+
+
+def _lonlat_gap_m(a: Any, b: Any, xs: list[float], ys: list[float]) -> float:
+    """Largest ground distance (metres, spherical) between the lon/lat of the same x/y read in CRS ``a`` and
+    in CRS ``b``; inf when either cannot place them."""
+    from rasterio.warp import transform
+
+    try:
+        la, pa = transform(a, "EPSG:4326", xs, ys)
+        lb, pb = transform(b, "EPSG:4326", xs, ys)
+    except Exception:  # noqa: BLE001 - one of them cannot be placed
+        return math.inf
+    gap = 0.0
+    for x1, y1, x2, y2 in zip(la, pa, lb, pb, strict=True):
+        d = math.hypot((x1 - x2) * math.cos(math.radians(y1)), y1 - y2) * 111_320.0
+        gap = max(gap, d if math.isfinite(d) else math.inf)
+    return gap
+
+
+def las_crs(header, source: str) -> tuple[str | None, tuple[str, ...]]:
+    """(the CRS of a LAS/LAZ file as WKT, or None when it has none; notes) from its WKT record and its
+    GeoTIFF keys.
+
+    When both are there and place the points more than 1 m apart or give other units, they disagree: a
+    LAS 1.4 file flagged WKT takes its WKT (the specification's rule); otherwise the one whose area of use
+    holds the points is taken; when both or neither do, the file is refused (ambiguous). A taken one is
+    said in a note and a warning."""
+    from terralod.io.georef import check_area_of_use, crs_summary, describe_crs, to_crs
+
+    wkt = _wkt_of(header)
+    keys = _geokeys_crs(header)
+    if wkt is None or keys is None:
+        text = wkt or keys
+        if text is None:
+            return None, ()
+        what = "WKT record" if wkt else "GeoTIFF keys"
+        to_crs(text, source)  # InputError: not a CRS PROJ can use
+        return text, (f"CRS from the {what}: {describe_crs(text)}",)
+    cw, ck = to_crs(wkt, source), to_crs(keys, source)
+    bounds = (float(header.mins[0]), float(header.mins[1]), float(header.maxs[0]), float(header.maxs[1]))
+    xs = [bounds[0], bounds[2], bounds[0], bounds[2], (bounds[0] + bounds[2]) / 2]
+    ys = [bounds[1], bounds[1], bounds[3], bounds[3], (bounds[1] + bounds[3]) / 2]
+    sw, sk = crs_summary(cw), crs_summary(ck)
+    same_units = sw.unit_m == sk.unit_m and (sw.vertical_unit_m or sw.unit_m) == (
+        sk.vertical_unit_m or sk.unit_m
+    )
+    if same_units and _lonlat_gap_m(cw, ck, xs, ys) <= 1.0:
+        return wkt, (f"CRS from the WKT record (the GeoTIFF keys agree): {describe_crs(wkt)}",)
+    both = f"the WKT record says {describe_crs(cw)!r}, the GeoTIFF keys say {describe_crs(ck)!r}"
+    if bool(header.global_encoding.wkt) and int(header.version.minor) >= 4:
+        chosen, why = "WKT record", "the header flags WKT (LAS 1.4)"
+    else:
+        fits = []
+        for name, c in (("WKT record", cw), ("GeoTIFF keys", ck)):
+            try:
+                check_area_of_use(c, bounds, source)
+                fits.append(name)
+            except InputError:
+                pass
+        if len(fits) != 1:
+            raise InputError(
+                f"its CRS records disagree: {both}; the points lie in "
+                + ("the area of use of both" if fits else "the area of use of neither")
+                + ", so terralod cannot tell which is right: rewrite the file with one CRS "
+                "(e.g. pdal translate --writers.las.a_srs=EPSG:<code>), or pass the CRS (read_las(crs=...))",
+                source,
+            )
+        chosen, why = fits[0], "only its area of use holds the points"
+    note = f"CRS records disagree: {both}; took the {chosen} ({why})"
+    log.warning("%s: %s", source, note)
+    return (wkt if chosen == "WKT record" else keys), (note,)
 
 
 def read_las(
@@ -369,6 +532,7 @@ def read_las(
     *,
     ground_only: bool | None = None,
     units: str | float | None = None,
+    crs: Any = None,
 ) -> PointCloud:
     """Read a LAS/LAZ cloud as metres, ground points only when it is classified.
 
@@ -379,6 +543,7 @@ def read_las(
         class 2 points; False keeps every point.
     units : override the file's unit: "m", "ft" (international foot), "us-ft" (US survey foot), or
         metres per unit as a number (applied to x, y and z).
+    crs : the CRS of the file's coordinates (EPSG code, WKT, PROJ string), instead of the file's own.
 
     Returns
     -------
@@ -444,40 +609,9 @@ def read_las(
     if n_read == 0:
         raise InputError("the file has no point records", src)
 
-    # Units: explicit, WKT, GeoTIFF keys, else metres.
-    wkt = _wkt_of(header)
-    if units is not None:
-        if isinstance(units, str):
-            if units.lower() not in _UNIT_NAMES:
-                raise InputError(f"Expected units in {sorted(_UNIT_NAMES)} or a number, got {units!r}", src)
-            fh = fv = _UNIT_NAMES[units.lower()]
-        else:
-            fh = fv = float(units)
-            if not (fh > 0 and np.isfinite(fh)):
-                raise InputError(f"Expected a positive metres-per-unit factor, got {units}", src)
-        notes.append(f"units given: {units} ({fh} m per unit)")
-    else:
-        found = None
-        if wkt:
-            try:
-                name, fh, fvv = unit_factor_from_wkt(wkt)
-            except InputError as exc:
-                raise InputError(exc.message, src) from exc
-            found = (name, fh, fvv)
-        else:
-            g = _units_from_geokeys(header)
-            if g is not None:
-                found = g[:3]
-                wkt = g[3]
-        if found is None:
-            fh = fv = 1.0
-            notes.append("no CRS in the file: coordinates taken as metres (pass units= to override)")
-            log.info("%s: no CRS; coordinates taken as metres", src)
-        else:
-            name, fh, fvv = found
-            fv = fvv if fvv is not None else fh
-            if fh != 1.0 or fv != 1.0:
-                notes.append(f"coordinates in {name}: x, y scaled by {fh}, z by {fv} to metres")
+    # CRS: given, else the file's (WKT record, GeoTIFF keys); units: given, else the CRS's axes.
+    wkt, fh, fv, crs_notes, _ = _las_frame(header, src, crs, units)
+    notes += crs_notes
 
     # Ground class.
     classified = n_ground > 0
@@ -497,3 +631,66 @@ def read_las(
         raise InputError("the file has no points", src)
     xyz = check_points(xyz, src)
     return PointCloud(xyz, wkt, src, n_read, classified, tuple(notes))
+
+
+def _las_frame(
+    header, src: str, crs: Any, units: str | float | None
+) -> tuple[str | None, float, float, tuple[str, ...], str | None]:
+    """(the CRS of the metre coordinates as WKT or None, metres per x/y unit, metres per z unit, notes, the
+    CRS of the file's own coordinates) of a LAS/LAZ header, with the ``crs`` and ``units`` overrides of
+    :func:`read_las`."""
+    from terralod.io.georef import check_area_of_use, describe_crs, metric_crs, to_crs
+    from terralod.io.raster import crs_text
+
+    notes: list[str] = []
+    if crs is not None:
+        text: str | None = to_crs(crs, src).to_wkt(version="WKT2_2019")
+        notes.append(f"CRS given: {describe_crs(text)} (the file's own is ignored)")
+    else:
+        text, found = las_crs(header, src)
+        notes += found
+    user: float | None = None
+    if units is not None:
+        if isinstance(units, str):
+            if units.lower() not in _UNIT_NAMES:
+                raise InputError(f"Expected units in {sorted(_UNIT_NAMES)} or a number, got {units!r}", src)
+            user = _UNIT_NAMES[units.lower()]
+        else:
+            user = float(units)
+            if not (user > 0 and np.isfinite(user)):
+                raise InputError(f"Expected a positive metres-per-unit factor, got {units}", src)
+        notes.append(f"units given: {units} ({user} m per unit)")
+    if text is None:
+        f = 1.0 if user is None else user
+        if user is None:
+            notes.append(
+                "no CRS in the file: coordinates taken as metres in a local frame, not placed on the globe"
+            )
+            log.info("%s: no CRS; coordinates taken as metres in a local frame", src)
+        return None, f, f, tuple(notes), None
+    c = to_crs(text, src)
+    if c.is_geographic:
+        raise InputError(
+            "coordinates are geographic (degrees); reproject the cloud to a projected CRS first", src
+        )
+    x0, y0, x1, y1 = (
+        float(header.mins[0]),
+        float(header.mins[1]),
+        float(header.maxs[0]),
+        float(header.maxs[1]),
+    )
+    metric, fh, fv_crs, unit_notes = metric_crs(c, ((x0 + x1) / 2, (y0 + y1) / 2), src)
+    k = 1.0 if user is None else user / fh  # file units -> CRS units
+    notes += check_area_of_use(c, (x0 * k, y0 * k, x1 * k, y1 * k), src, what="the points")
+    if user is not None:
+        return crs_text(metric), user, user, tuple(notes), text
+    notes += unit_notes
+    fv = fh if fv_crs is None else fv_crs  # no vertical axis: z in the horizontal unit (the LAS habit)
+    if fv != 1.0 or fh != 1.0:
+        why = (
+            "the CRS's vertical axis"
+            if fv_crs is not None
+            else "the horizontal unit: the CRS names no vertical one"
+        )
+        notes.append(f"z scaled by {fv:.10g} to metres ({why})")
+    return crs_text(metric), fh, fv, tuple(notes), text
