@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "terralod"
 
 #: The shared base: pure math, kernels, the heightfield and its measured error. It imports no stage.
 BASE = {"terralod.errors", "terralod.kernels", "terralod.tiles", "terralod.fill", "terralod.heightfield",
-        "terralod.error"}  # fmt: skip
+        "terralod.error", "terralod.output"}  # fmt: skip
 #: Stages, in the order data flows (DESIGN.md): a stage may import stages to its left and the base.
 STAGES = ["terralod.io", "terralod.fractal", "terralod.store_epochs", "terralod.store", "terralod.pyramid",
           "terralod.tin", "terralod.integrity", "terralod.runtime", "terralod.terrain", "terralod.render", "terralod.change",

@@ -100,8 +100,10 @@ def base_store(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, np.ndarr
 @needs_data
 @posix
 def test_killed_change_temporaries_are_cleaned_and_live_ones_kept(tmp_path: Path) -> None:
+    from terralod.output import Lock, work_path
+
     out = tmp_path / "c"
-    # a real kill (SIGKILL) while the output is being written into its temporary folder
+    # a real kill (SIGKILL) while the output is being written into its work folder
     code = (
         "import os, signal\n"
         "import terralod.change.report as report\n"
@@ -112,20 +114,24 @@ def test_killed_change_temporaries_are_cleaned_and_live_ones_kept(tmp_path: Path
     )
     p = python(code)
     assert p.returncode == -signal.SIGKILL, p.stderr[-2000:]
-    stale = list(tmp_path.glob(".c.tmp-*"))
-    assert len(stale) == 1 and (stale[0] / "dod.tif").is_file()  # what the kill left
-    # a run in progress (this very process is alive) and a folder that is no one's temporary
-    live = tmp_path / f".c.tmp-{os.getpid()}"
-    live.mkdir()
-    (live / "summary.json").write_text("{}")
-    other = tmp_path / ".c.tmp-notapid"
+    work = work_path(out)
+    assert (work / "out" / "dod.tif").is_file()  # what the kill left
+    other = tmp_path / ".c.tmp-notapid"  # a folder that is no one's temporary
     other.mkdir()
     p = terralod("change", str(BEFORE), str(AFTER), "-o", str(out), "--no-views")
     assert p.returncode == 0, p.stderr
-    assert not stale[0].exists()  # the dead run's temporary is gone
-    assert (live / "summary.json").read_text() == "{}" and other.is_dir()  # the live one untouched
+    assert not work.exists()  # the dead run's work folder is gone
     assert json.loads((out / "summary.json").read_text())["net_m3"] != 0
-    assert sorted(x.name for x in tmp_path.iterdir()) == sorted(["c", live.name, other.name])
+    assert sorted(x.name for x in tmp_path.iterdir()) == sorted(["c", other.name])
+    # a run in progress (this very process is alive): its work folder is never touched, the run refused
+    live = tmp_path / "d"
+    (work_path(live) / "out").mkdir(parents=True)
+    (work_path(live) / "out" / "summary.json").write_text("{}")
+    Lock.mine(None, "terralod change (live)").write(work_path(live))
+    p = terralod("change", str(BEFORE), str(AFTER), "-o", str(live), "--no-views")
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert f"pid {os.getpid()}" in p.stderr and "being written" in p.stderr
+    assert (work_path(live) / "out" / "summary.json").read_text() == "{}" and not live.exists()
 
 
 # -- 48.5: check names the exact command that finishes an interrupted update or edit -----------------------

@@ -45,3 +45,7 @@ class WorkerLostError(TerralodError, RuntimeError):
 class DisplayError(TerralodError, RuntimeError):
     """No OpenGL context or window could be made (no GPU driver, no EGL, no display): the machine's
     set-up, not a bug of terralod."""
+
+
+class OutputBusyError(TerralodError, OSError):
+    """Another run, still alive, is writing the same output (its work folder's lock names it)."""

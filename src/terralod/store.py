@@ -51,6 +51,7 @@ from affine import Affine
 
 from terralod.errors import CorruptStoreError, StoreError
 from terralod.kernels.codec import triangle_codes16, triangle_codes32, undo_zigzag_delta, vertex_codes
+from terralod.output import remove_stale_temporaries, temporary_path
 from terralod.store_epochs import TILE_COLUMNS, EpochTables
 from terralod.tiles import TileCode, TilePyramid
 
@@ -164,29 +165,15 @@ def _check_header(p: Path) -> None:
 
 # -- atomic files --------------------------------------------------------------------------------------
 def _temporary_path(p: Path) -> Path:
-    """A hidden name in ``p``'s folder for a file being written (same file system, so a rename is atomic)."""
-    return p.with_name(f".{p.name}.{os.getpid()}.tmp")
+    """A hidden name in ``p``'s folder for a file being written (``.NAME.PID.tmp``: same file system, so a
+    rename is atomic; :func:`terralod.output.temporary_path`)."""
+    return temporary_path(p)
 
 
 def _remove_stale_temporaries(p: Path) -> None:
-    """Remove temporaries of ``p`` left by processes that died (``.<name>.<pid>.tmp``, pid not running)."""
-    for f in p.parent.glob(f".{p.name}.*.tmp"):
-        try:
-            pid = int(f.name[len(p.name) + 2 : -4])
-        except ValueError:
-            continue
-        if pid != os.getpid() and not _pid_alive(pid):
-            remove_store_files(f)
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:
-        return True
-    return True
+    """Remove temporaries of ``p`` left by processes that died, with their SQLite side files (the rule of
+    every output's temporaries, :func:`terralod.output.remove_stale_temporaries`)."""
+    remove_stale_temporaries(p, remove=remove_store_files)
 
 
 def _link_into_place(tmp: Path, p: Path) -> None:

@@ -20,12 +20,17 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from terralod.output import check_target
+
 console = Console(stderr=False, width=None if sys.stdout.isatty() else 160)
 err_console = Console(stderr=True)
 VERBOSE = {"on": False}
 #: The DEM the command read last: a failure for want of memory names it (run_main).
 LAST_INPUT: dict[str, str | None] = {"path": None}
 log = logging.getLogger("terralod.cli")
+#: The ``-o`` / ``--overwrite`` rule of file outputs (stores, images, videos); folder outputs are
+#: :class:`terralod.output.Output`'s.
+check_output = check_target
 
 
 def is_store(path: Path) -> bool:
@@ -38,58 +43,6 @@ def is_store(path: Path) -> bool:
             return fh.read(16) == b"SQLite format 3\x00"
     except OSError:
         return False
-
-
-def same_file(a: str | Path, b: str | Path) -> bool:
-    """True when ``a`` and ``b`` are one existing file or folder (same path, hard link or symlink)."""
-    try:
-        return os.path.samefile(a, b)
-    except (OSError, ValueError):
-        return False
-
-
-def check_output(
-    output: str | Path,
-    inputs: tuple[str | Path, ...] | list[str | Path] = (),
-    *,
-    overwrite: bool = False,
-    resume: bool = False,
-    suffixes: tuple[str, ...] = (),
-    what: str = "output",
-) -> Path:
-    """The one ``-o`` / ``--overwrite`` rule of every command, for file and folder outputs alike.
-
-    - never onto an input: refused when ``output`` is one of ``inputs`` or their sidecars ``<stem>.json``
-      (same path, hard link or symlink: compared by inode, ``os.path.samefile``), even with --overwrite;
-    - an existing output needs ``--overwrite`` (or ``--resume`` where the command resumes);
-    - ``suffixes``: the accepted name endings (e.g. ``(".png",)``), refused otherwise;
-    - the folder the output goes into must exist.
-
-    Raises :class:`terralod.errors.InputError` (one line, exit 2). Commands that write the store they are
-    given by design (``check --repair``, ``update``) do not call this.
-    """
-    from terralod.errors import InputError
-
-    out = Path(output)
-    name = str(out)
-    if suffixes and out.suffix.lower() not in suffixes:
-        got = f"'{out.suffix}'" if out.suffix else "no extension"
-        raise InputError(f"{what} must end in {' or '.join(suffixes)} (got {got})", name)
-    for src in inputs:
-        for cand in (Path(src), Path(src).with_suffix(".json")):
-            if (out.exists() or out.is_symlink()) and same_file(out, cand):
-                kind = "input" if cand == Path(src) else "input's sidecar"
-                raise InputError(
-                    f"is the {kind} {cand}; writing there would destroy it; choose another {what}", name
-                )
-            if not out.exists() and out.resolve() == cand.resolve():
-                raise InputError(f"is the {what} and an input at once; choose another {what}", name)
-    if out.exists() or out.is_symlink():
-        if not (overwrite or resume):
-            raise InputError("already exists; pass --overwrite to replace it", name)
-    elif not out.resolve().parent.is_dir():
-        raise InputError(f"output folder {out.resolve().parent} does not exist", name)
-    return out
 
 
 #: The optional parts of terralod (``pip install 'terralod[EXTRA]'``) and the modules each one brings.
@@ -133,22 +86,6 @@ def require_extra(command: str, extra: str) -> None:
         raise MissingExtra(f"terralod {command} needs the {extra} extra: pip install 'terralod[{extra}]'")
 
 
-def refuse_output_holding_inputs(
-    output: str | Path, inputs: tuple[str | Path, ...] | list[str | Path]
-) -> None:
-    """Refuse an output folder that is, or holds (at any depth), one of ``inputs``: replacing it with
-    ``--overwrite`` would delete the input. One line naming the output (exit 2), checked before anything
-    is written, even with ``--overwrite``."""
-    from terralod.errors import InputError
-
-    o = Path(output).resolve()
-    for src in inputs:
-        s = Path(src).resolve()
-        if s == o or o in s.parents:
-            raise InputError(f"is (or holds) the input {src}; replacing it would delete it; choose another output",
-                             str(output))  # fmt: skip
-
-
 def check_raster_size(path: str | Path) -> None:
     """The one size limit (:func:`terralod.fill.check_dimensions`), checked up front from the raster's
     header, never its samples: every command that reads a DEM calls it before reading or writing anything.
@@ -166,45 +103,6 @@ def check_raster_size(path: str | Path) -> None:
     from terralod.fill import check_dimensions
 
     check_dimensions(height, width, str(path))
-
-
-def pid_alive(pid: int) -> bool:
-    """True unless process ``pid`` is known to be gone (off POSIX, and for another user's, assumed alive)."""
-    if os.name != "posix" or pid <= 0:
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:  # EPERM: alive, someone else's
-        return True
-    return True
-
-
-def remove_stale_temporaries(out: str | Path) -> list[Path]:
-    """Remove the ``.OUT.tmp-PID`` folders beside ``out`` that a killed run left (PID no longer running),
-    and its ``.OUT.old-PID`` once OUT exists again (the swap finished); a live run's are never touched.
-    Returns what was removed."""
-    import re
-    import shutil
-
-    o = Path(out).resolve()
-    pattern = re.compile(rf"\.{re.escape(o.name)}\.(tmp|old)-(\d+)")
-    try:
-        entries = list(o.parent.iterdir())
-    except OSError:
-        return []
-    removed = []
-    for e in entries:
-        m = pattern.fullmatch(e.name)
-        if m is None or e.is_symlink() or not e.is_dir():
-            continue
-        pid = int(m.group(2))
-        if pid == os.getpid() or pid_alive(pid) or (m.group(1) == "old" and not o.exists()):
-            continue
-        shutil.rmtree(e, ignore_errors=True)
-        removed.append(e)
-    return removed
 
 
 def out_of_memory(path: str | Path) -> str:

@@ -21,7 +21,8 @@ the area: ground outside the change with slopes above 3°; left out: 1 flat wate
 ``fit_description`` and ``uncertainty`` (variogram, bias σ, resampling error, ``statements``). Inputs are
 named by their file names only; ``OUT/dod.tif``;
 ``OUT/report.html`` (plus the report's PNGs in ``OUT/figures/``). Exit 0, or 2 on bad input with one line
-naming the file. OUT is written to a temporary folder beside it and renamed into place at the end.
+naming the file. OUT is written in its work folder ``.OUT.work`` beside it and renamed into place at the end
+(:class:`terralod.output.Output`); a run still writing OUT is never disturbed.
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -43,22 +43,6 @@ _DATE = re.compile(r"(\d{4}-\d{2}-\d{2})")
 def _date_of(path: str) -> str | None:
     m = _DATE.search(Path(path).name)
     return m.group(1) if m else None
-
-
-def _check_out(out: Path, inputs: list[str], overwrite: bool) -> None:
-    from terralod.errors import InputError
-
-    o = out.resolve()
-    for src in inputs:
-        s = Path(src).resolve()
-        if s == o or o in s.parents:
-            raise InputError(f"is (or holds) the input {src}; writing there would destroy it", str(out))
-    if out.exists() and not out.is_dir():
-        raise InputError("exists and is not a folder; the change output is a folder", str(out))
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise InputError("already exists; pass --overwrite to replace it", str(out))
-    if not o.parent.is_dir():
-        raise InputError(f"output folder {o.parent} does not exist", str(out))
 
 
 def _read_npz_series(path: str):
@@ -173,9 +157,13 @@ def change(
     from terralod.change.report import plain_summary, write_report
     from terralod.change.volumes import measure_change, series_volumes
     from terralod.errors import InputError
+    from terralod.output import Output
 
     out = Path(output)
-    _check_out(out, [*inputs, *(p for p in (zones, stable, exclude) if p)], overwrite)
+    output_of = Output(
+        out, inputs=[*inputs, *(p for p in (zones, stable, exclude) if p)], overwrite=overwrite
+    )
+    output_of.check()  # refusals first, before the long measurement
     first = inputs[0]
     notes: list[str] = []
     series_hf = None
@@ -222,14 +210,8 @@ def change(
                                 confidence=confidence, coregistration=not no_coregister, method=coreg_method)  # fmt: skip
         result.summary["series"] = series
 
-    from terralod.cli._common import remove_stale_temporaries
-
-    remove_stale_temporaries(out)  # what killed runs into OUT left (their PID gone); a live run's are kept
-    tmp = out.resolve().parent / f".{out.name}.tmp-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    try:
+    with output_of as o:
+        tmp = o.folder
         s = result.summary
         write_dod(tmp / "dod.tif", result.dod, before, {
             "sigma_m": s["sigma_m"], "level_of_detection_m": s["level_of_detection_m"],
@@ -243,16 +225,6 @@ def change(
             _write_site(tmp / "site", result, series_hf or [before, after], list(ds) if series_hf else list(pair_dates),
                         dict(sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
                              coregistration=not no_coregister, method=coreg_method))  # fmt: skip
-        old = None
-        if out.exists():
-            old = out.resolve().parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     for w in [*result.uncertainty.warnings, *result.summary.get("report_notes", [])]:
         click.echo(f"terralod: warning: {w}", err=True)
     for line in plain_summary(result, pair_dates):

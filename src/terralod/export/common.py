@@ -1,18 +1,15 @@
-"""What both web exports share: the source samples behind a store, atomic output folders, the epoch choice.
+"""What both web exports share: the source samples behind a store, the epoch choice, what an export's
+output is made of (its inputs, its key).
 
-An export is written into a temporary folder beside the output and renamed into place at the end, so an
-interrupted export leaves nothing half-written under the output name (a leftover ``.DIR.tmp-*`` folder is
-removed by the next export; an old output set aside by a kill between the two renames of a replacement is
-put back first). An output folder that exists and is not empty needs ``overwrite``.
+An export writes through :class:`terralod.output.Output`: into a work folder beside the output, renamed into
+place at the end, so an interrupted export leaves nothing half-written under the output name; with
+``resume`` the tiles an interrupted export of the same key finished are kept (a tile is a pure function of
+its code, so the result is byte for byte the uninterrupted one); with ``update`` only the files whose bytes
+change are rewritten. An output folder that exists and is not empty needs ``overwrite``.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +19,9 @@ from terralod.errors import InputError, StoreError
 
 __all__ = [
     "apply_affine",
-    "atomic_folder",
     "check_exportable",
-    "check_output",
-    "restore_set_aside",
+    "export_inputs",
+    "export_key",
     "source_heightfield",
     "valid_at",
 ]
@@ -90,58 +86,18 @@ def valid_at(hf: Any, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
-def check_output(out: str | os.PathLike[str], overwrite: bool) -> None:
-    """Refuse an output that is a file, a non-empty folder without ``overwrite``, or in a missing or
-    read-only folder (an old output a killed replacement set aside is put back first)."""
-    dst = Path(out)
-    restore_set_aside(dst)
-    if dst.exists() and not dst.is_dir():
-        raise InputError("exists and is not a folder", str(dst))
-    if dst.is_dir() and any(dst.iterdir()) and not overwrite:
-        raise InputError("output folder is not empty (pass --overwrite to replace it)", str(dst))
-    parent = dst.resolve().parent
-    if not parent.is_dir():
-        raise InputError(f"output folder {parent} does not exist", str(dst))
-    if not os.access(parent, os.W_OK):
-        raise InputError(f"output folder {parent} is not writable", str(dst))
+def export_inputs(terrain: Any) -> list[Path]:
+    """The files an export of ``terrain`` reads (a store, a DEM): its output may be none of them."""
+    path = getattr(terrain, "path", None) or getattr(terrain, "name", None)
+    return [Path(path)] if path is not None and Path(path).exists() else []
 
 
-def restore_set_aside(out: str | os.PathLike[str]) -> bool:
-    """Put back an output folder that an export killed between its two renames left aside.
-
-    Replacing ``out`` renames it to ``.OUT.tmp-old-*/x`` and then the new folder to ``out``; a kill in
-    between leaves no ``out``. The old folder is then still whole: it is moved back (True), so a killed
-    export leaves either the old output or the new one, never none.
-    """
-    dst = Path(out)
-    if dst.exists() or dst.is_symlink():
-        return False
-    for old in sorted(dst.resolve().parent.glob(f".{dst.name}.tmp-old-*")):
-        if (old / "x").is_dir():
-            os.replace(old / "x", dst)
-            shutil.rmtree(old, ignore_errors=True)
-            return True
-    return False
-
-
-@contextmanager
-def atomic_folder(out: str | os.PathLike[str], overwrite: bool) -> Iterator[Path]:
-    """Yield a temporary folder that becomes ``out`` when the block ends without error."""
-    check_output(out, overwrite)
-    dst = Path(out)
-    parent = dst.resolve().parent
-    for stale in parent.glob(f".{dst.name}.tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=parent))
-    try:
-        yield tmp
-        if dst.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-old-", dir=parent))
-            os.replace(dst, old / "x")  # a kill between these two renames: the next export puts it back
-            os.replace(tmp, dst)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, dst)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+def export_key(terrain: Any, fmt: str, **options: Any) -> dict[str, Any]:
+    """What an export writes, for :class:`terralod.output.Output`'s resume: the format, its options, the
+    epoch and the input file (resolved path, size, mtime): an interrupted export is resumed only by the
+    same export of the same, unchanged input."""
+    ident = None
+    for f in export_inputs(terrain):
+        st = f.stat()
+        ident = [str(f.resolve()), st.st_size, st.st_mtime_ns]
+    return {"format": fmt, "epoch": getattr(terrain, "epoch", None), "input": ident, **options}

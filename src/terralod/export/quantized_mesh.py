@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from terralod.export.common import atomic_folder, check_exportable, check_output
+from terralod.export.common import check_exportable, export_inputs, export_key
 from terralod.export.geodesy import WGS84_A_M, Geodesy, ecef_lonlat, enu_frame, tile_rectangle
 from terralod.export.tiles3d import ExportReport
 from terralod.kernels.error import triangle_gap
@@ -798,6 +798,8 @@ def export_quantized_mesh(
     overwrite: bool = False,
     gzip_tiles: bool = False,
     normals: bool = False,
+    resume: bool = False,
+    update: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> ExportReport:
     """Write ``out/layer.json``, ``out/errors.json`` (measured error per tile) and ``out/Z/X/Y.terrain``.
@@ -805,16 +807,21 @@ def export_quantized_mesh(
     ``terrain`` is a store or a DEM's samples (:func:`terralod.export.source.source_from_dem`). Tiles are
     uncompressed (any static host serves them as they are); ``gzip_tiles`` writes them gzip'd, for a host
     that sends ``Content-Encoding: gzip`` with them (CesiumJS cannot read gzip'd tiles without it).
+    ``resume``: the tiles an interrupted export of the same terrain and options finished are not encoded
+    again; ``update``: only the files whose bytes change are rewritten (``extra["rewritten"]``). The output
+    is written through :class:`terralod.output.Output`.
     """
     from terralod.export.source import SourceGrid
+    from terralod.output import Output
 
     t0 = time.perf_counter()
     if not isinstance(terrain, SourceGrid):
         check_exportable(terrain, epoch)
         if epoch is not None and epoch != getattr(terrain, "epoch", None):
             terrain = terrain.with_epoch(epoch)
-    else:
-        check_output(out, overwrite)
+    output = Output(out, inputs=export_inputs(terrain), overwrite=overwrite, resume=resume, update=update,
+                    key=export_key(terrain, "quantized-mesh", gzip=bool(gzip_tiles), normals=bool(normals)))  # fmt: skip
+    output.check()  # refusals first, before the tiler's set-up
     qm = QuantizedMesh(terrain, normals=normals)
     rep = ExportReport(Path(out))
     per_level: dict[int, float] = {}
@@ -822,25 +829,29 @@ def export_quantized_mesh(
     raw_bytes = gz_bytes = 0
     water = {"none": 0, "all": 0, "some": 0}
     level_sq: dict[int, list] = {}
-    with atomic_folder(out, overwrite) as tmp:
+    with output as o:
         codes = qm.tile_codes()
         for i, (z, x, y) in enumerate(codes):
-            t = qm.tile(z, x, y)
-            data = t.data if gzip_tiles else t.raw
-            f = tmp / str(z) / str(x) / f"{y}.terrain"
-            f.parent.mkdir(parents=True, exist_ok=True)
-            f.write_bytes(data)
+            rel = f"{z}/{x}/{y}.terrain"
+            r = o.record(rel)  # finished by the interrupted export this one resumes
+            if r is None:
+                t = qm.tile(z, x, y)
+                data = t.data if gzip_tiles else t.raw
+                r = {"bytes": len(data), "raw": len(t.raw), "gz": len(t.data) if gzip_tiles else 0,
+                     "triangles": int(t.triangles), "sumsq_m2": float(t.sumsq_m2), "samples": int(t.samples),
+                     "water": t.water, "error_m": float(t.error_m)}  # fmt: skip
+                o.write(rel, data, r)
             rep.tiles += 1
-            rep.bytes += len(data)
-            raw_bytes += len(t.raw)
-            gz_bytes += len(t.data) if gzip_tiles else 0
-            rep.triangles += t.triangles
+            rep.bytes += r["bytes"]
+            raw_bytes += r["raw"]
+            gz_bytes += r["gz"]
+            rep.triangles += r["triangles"]
             sq = level_sq.setdefault(z, [0.0, 0])
-            sq[0] += t.sumsq_m2
-            sq[1] += t.samples
-            water[t.water] += 1
-            per_level[z] = max(per_level.get(z, 0.0), t.error_m)
-            per_tile[f"{z}/{x}/{y}"] = t.error_m
+            sq[0] += r["sumsq_m2"]
+            sq[1] += r["samples"]
+            water[r["water"]] += 1
+            per_level[z] = max(per_level.get(z, 0.0), r["error_m"])
+            per_tile[f"{z}/{x}/{y}"] = r["error_m"]
             if progress is not None:
                 progress(i + 1, len(codes))
         layer = qm.layer()
@@ -852,9 +863,10 @@ def export_quantized_mesh(
             ]
         layer["terralod"]["gzip"] = bool(gzip_tiles)
         js = json.dumps(layer, indent=1)
-        (tmp / "layer.json").write_text(js)
-        (tmp / "errors.json").write_text(json.dumps({"unit": "m", "tiles": per_tile}, separators=(",", ":")))
+        o.write("layer.json", js.encode())
+        o.write("errors.json", json.dumps({"unit": "m", "tiles": per_tile}, separators=(",", ":")).encode())
         rep.bytes += len(js)
+        changes = {"rewritten": list(o.rewritten), "removed": o.prune()} if update else {}
     rep.seconds = time.perf_counter() - t0
     rep.extra = {
         "format": "quantized-mesh",
@@ -864,5 +876,7 @@ def export_quantized_mesh(
         "tile_bytes_gzip": gz_bytes if gzip_tiles else None,
         "water_masks": water,
         "error_m_per_level": layer["terralod"]["error_m"],
+        "resumed": o.adopted is not None,
+        **changes,
     }
     return rep

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from terralod.export.common import atomic_folder, check_exportable, source_heightfield, valid_at
+from terralod.export.common import check_exportable, export_inputs, export_key, source_heightfield, valid_at
 from terralod.export.geodesy import Geodesy
 
 __all__ = ["ExportReport", "Tiles3D", "export_3dtiles", "node_uri"]
@@ -315,34 +315,49 @@ def export_3dtiles(
     metric: str = "hausdorff",
     epoch: str | None = None,
     overwrite: bool = False,
+    resume: bool = False,
+    update: bool = False,
     progress: Callable[[int, int], None] | None = None,
 ) -> ExportReport:
-    """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree."""
+    """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree.
+
+    ``resume``: the glbs an interrupted export of the same terrain and options finished are not encoded
+    again; ``update``: only the files whose bytes change are rewritten (``extra["rewritten"]``). The output
+    is written through :class:`terralod.output.Output`.
+    """
+    from terralod.output import Output
+
     t0 = time.perf_counter()
     check_exportable(terrain, epoch)
     if epoch is not None and epoch != getattr(terrain, "epoch", None):
         terrain = terrain.with_epoch(epoch)
+    output = Output(out, inputs=export_inputs(terrain), overwrite=overwrite, resume=resume, update=update,
+                    key=export_key(terrain, "3dtiles", metric=metric))  # fmt: skip
+    output.check()  # refusals first, before the view's set-up
     view = Tiles3D(terrain, metric=metric)
     rep = ExportReport(Path(out))
-    with atomic_folder(out, overwrite) as tmp:
+    with output as o:
         codes = [n.code for n in view.tree]
         for i, code in enumerate(codes):
             if not view.has_content(code):
                 continue
-            data = view.glb(code)
-            f = tmp / node_uri(code)
-            f.parent.mkdir(parents=True, exist_ok=True)
-            f.write_bytes(data)
+            r = o.record(node_uri(code))  # finished by the interrupted export this one resumes
+            if r is None:
+                data = view.glb(code)
+                r = {"bytes": len(data)}
+                o.write(node_uri(code), data, r)
             rep.tiles += 1
-            rep.bytes += len(data)
+            rep.bytes += r["bytes"]
             if progress is not None:
                 progress(i + 1, len(codes))
         ts = json.dumps(view.tileset(), separators=(",", ":"))
-        (tmp / "tileset.json").write_text(ts)
+        o.write("tileset.json", ts.encode())
         rep.bytes += len(ts)
+        changes = {"rewritten": list(o.rewritten), "removed": o.prune()} if update else {}
     rep.triangles = int(sum(len(t) for g in view._meshes.values() for _, t in g.values()))
     rep.seconds = time.perf_counter() - t0
     rep.extra = {"format": "3dtiles", "metric": metric, "max_error_m": max(view.error_m(c) for c in view.nodes),
                  "levels": len({c[0] for c in view.nodes}), "geometric_error_root": math.nan}  # fmt: skip
     rep.extra["geometric_error_root"] = json.loads(ts)["geometricError"]
+    rep.extra.update(resumed=o.adopted is not None, **changes)
     return rep

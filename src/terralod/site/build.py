@@ -1,14 +1,13 @@
 """Write the change site: a self-contained folder (the page, CesiumJS, each epoch's 3D Tiles, each pair's
 difference raster and drape, the manifest, a README.txt for whoever hosts it) that works from any static web
-host and offline. Written in a temporary folder beside the output and renamed into place at the end, so an
-interrupted run leaves nothing half-written."""
+host and offline. Written through :class:`terralod.output.Output` (a work folder beside the output, renamed
+into place at the end), so an interrupted run leaves nothing half-written."""
 
 from __future__ import annotations
 
 import hashlib
 import json
 import shutil
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
@@ -198,17 +197,12 @@ def _folder_bytes(p: Path) -> int:
 def _atomic_site(
     out: Path, overwrite: bool, inputs: Sequence[Path], fill: Callable[[Path], SiteReport]
 ) -> SiteReport:
-    """``fill`` a temporary folder that becomes ``out`` whole (the exports' :func:`atomic_folder`); an
-    output that is or holds an input is refused first, even with ``overwrite``."""
-    from terralod.errors import InputError
-    from terralod.export.common import atomic_folder
+    """``fill`` the work folder of ``out`` (:class:`terralod.output.Output`), which becomes ``out`` whole; an
+    output on, in or around an input is refused first, even with ``overwrite``."""
+    from terralod.output import Output
 
-    o = out.resolve()
-    for src in inputs:
-        if Path(src).resolve() == o or o in Path(src).resolve().parents:
-            raise InputError(f"is (or holds) the input {src}; writing there would destroy it", str(out))
-    with atomic_folder(out, overwrite) as tmp:
-        rep = fill(tmp)
+    with Output(out, inputs=inputs, overwrite=overwrite) as o:
+        rep = fill(o.folder)
     rep.path = out
     return rep
 
@@ -314,9 +308,10 @@ def _epoch_name(name: str, i: int) -> str:
 
 def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results: Sequence[tuple[str, str, Any]],
                      out: str | Path, *, title: str | None = None, workers: int | None = None) -> SiteReport:  # fmt: skip
-    """The site of a ``terralod change`` run (``--site``): one store with an epoch per DEM (built in a
-    temporary folder; later DEMs on the first one's grid, so the tiles they share are written once) for the
+    """The site of a ``terralod change`` run (``--site``): one store with an epoch per DEM (built in the
+    output's scratch folder, never part of the site; later DEMs on the first one's grid, so the tiles they share are written once) for the
     3D Tiles; ``results`` are the measured pairs (from, to, ChangeResult)."""
+    from terralod.output import Output
     from terralod.pyramid.builder import build_store
     from terralod.pyramid.update import update_store
     from terralod.terrain import open_terrain
@@ -325,8 +320,8 @@ def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results:
     epochs = [_epoch_name(n, i) for i, n in enumerate(names)]
     rename = dict(zip(names, epochs, strict=True))
     pairs = [(rename[a], rename[b], r) for a, b, r in results]
-    with tempfile.TemporaryDirectory(prefix=".terralod-site-", dir=out.resolve().parent) as work:
-        store = Path(work) / "epochs.terra"
+    with Output(out) as o:  # the epochs' store in its scratch folder, the site in its folder
+        store = o.scratch / "epochs.terra"
         first = heightfields[0]
         build_store(first, store, workers=workers, epoch=epochs[0])
         for hf, name in zip(heightfields[1:], epochs[1:], strict=True):
@@ -336,5 +331,7 @@ def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results:
             lo, hi = terrain.elevation_range_m
             area = float(first.valid.sum()) * abs(first.transform.a * first.transform.e) / 1e6
             ttl = title or "How the ground changed"
-            return _atomic_site(out, False, [], lambda tmp: _write(
-                tmp, ttl, _between(epochs), epochs, terrains, pairs, lonlat_bounds(first), (lo, hi), area))  # fmt: skip
+            rep = _write(o.folder, ttl, _between(epochs), epochs, terrains, pairs, lonlat_bounds(first), (lo, hi),
+                         area)  # fmt: skip
+    rep.path = out
+    return rep
