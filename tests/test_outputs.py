@@ -287,3 +287,53 @@ def test_export_killed_then_resumed_gives_the_uninterrupted_bytes(tmp_path: Path
     out = tmp_path / "out"
     reused = [f for f, ino in kept.items() if (out / f.relative_to(work)).stat().st_ino == ino]
     assert len(reused) >= len(kept) - 1  # the finished tiles were kept, not encoded again
+
+
+# -- export --update after terralod update ---------------------------------------------------------------
+def _dem_with_bump(src: Path, dst: Path) -> Path:
+    """``src`` with a 20 m mound in one corner (the rest byte for byte the same)."""
+    import rasterio
+
+    with rasterio.open(src) as s:
+        profile, z = s.profile, s.read(1)
+    y, x = np.mgrid[0 : z.shape[0], 0 : z.shape[1]]
+    z = z + (20.0 * np.exp(-((x - 30) ** 2 + (y - 30) ** 2) / 80.0)).astype(np.float32)
+    with rasterio.open(dst, "w", **profile) as d:
+        d.write(z, 1)
+    return dst
+
+
+@pytest.mark.parametrize("fmt", ["quantized-mesh", "3dtiles"])
+def test_export_update_rewrites_only_the_changed_tiles(tmp_path: Path, fmt: str) -> None:
+    pytest.importorskip("pydelatin")
+    pytest.importorskip("pyproj")
+    dem = _small_dem(tmp_path / "small.tif")
+    _dem_with_bump(dem, tmp_path / "later.tif")
+    for args in (["build", "small.tif", "-o", "s.terra", "--epoch", "2000-01-01"],
+                 ["export", "s.terra", "--format", fmt, "-o", "web"],
+                 ["update", "s.terra", "later.tif", "--epoch", "2001-01-01"],
+                 ["export", "s.terra", "--format", fmt, "-o", "want"]):  # fmt: skip
+        p = _terralod(*args, cwd=tmp_path)
+        assert p.returncode == 0, (args, p.stderr)
+    web = tmp_path / "web"
+    old = _tree(web)
+    want = _tree(tmp_path / "want")
+    changed = sorted(f for f in want if old.get(f) != want[f])
+    assert 0 < len(changed) < len(want) // 2  # a local change: most tiles are the same
+    past = time.time() - 3600
+    for f in web.rglob("*"):
+        if f.is_file():
+            os.utime(f, (past, past))
+    seen = {f: (p.stat().st_ino, p.stat().st_mtime_ns) for f in old if (p := web / f).is_file()}
+    p = _terralod("export", "s.terra", "--format", fmt, "-o", "web", "--update", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert _tree(web) == want  # the updated output is the fresh export, byte for byte
+    printed = sorted(
+        line.split()[-1] for line in p.stdout.splitlines() if line.strip().startswith("rewritten ")
+    )
+    assert printed == changed, p.stdout
+    assert f"{len(changed)} file(s) rewritten, 0 removed" in p.stdout
+    for f, was in seen.items():
+        now = ((web / f).stat().st_ino, (web / f).stat().st_mtime_ns)
+        assert (now == was) == (f not in changed), f  # unchanged files: same inode, same mtime
+    assert sorted(x.name for x in tmp_path.iterdir() if x.name.startswith(".")) == []  # no work folder left
