@@ -30,6 +30,7 @@ from terralod.errors import InputError
 
 __all__ = [
     "AREA_MARGIN_DEG",
+    "area_of_use",
     "CrsSummary",
     "check_area_of_use",
     "check_on_globe",
@@ -256,9 +257,19 @@ def crs_summary(crs: Any) -> CrsSummary:
         unit_name, unit_m = unit if unit else (None, None)
     vu = _axis_unit(vert) if vert is not None else None
     remark = main.child("REMARK") or tree.child("REMARK")
+    name = horiz.text() or "unnamed"
+    if name.lower() in ("unknown", "unnamed", ""):  # GDAL's name for a CRS built from parameters
+        conv = horiz.child("CONVERSION")
+        datum = next((n for n in horiz.walk() if n.keyword.upper() in ("DATUM", "ENSEMBLE")), None)
+        dname = datum.text() if datum is not None else None
+        parts = [
+            conv.text() or "" if conv is not None else "",
+            f"datum {dname}" if dname and dname != "unknown" else "",
+        ]
+        name = "unnamed CRS" + (f" ({', '.join(p for p in parts if p)})" if any(parts) else "")
     return CrsSummary(
         kind=kind,
-        name=horiz.text() or "unnamed",
+        name=name,
         epsg=epsg,
         unit=unit_name,
         unit_m=unit_m,
@@ -267,7 +278,7 @@ def crs_summary(crs: Any) -> CrsSummary:
         vertical_unit=vu[0] if vu else None,
         vertical_unit_m=vu[1] if vu else None,
         remark=(remark.text() or "").removeprefix(_REMARK_PREFIX) or None if remark is not None else None,
-        area_deg=_area(tree),
+        area_deg=area_of_use(c),
     )
 
 
@@ -322,6 +333,29 @@ def _area(tree: WktNode) -> tuple[float, float, float, float] | None:
     return None
 
 
+def area_of_use(crs: Any) -> tuple[float, float, float, float] | None:
+    """(west, south, east, north) degrees where a CRS is meant to be used: its WKT's ``USAGE``, else the
+    EPSG definition's when GDAL identifies the CRS (a CRS read from GeoTIFF keys carries no usage)."""
+    c = to_crs(crs)
+    tree = _wkt2_tree(c)
+    area = _area(tree) if tree is not None else None
+    if area is not None or tree is None or _main_node(tree).child("REMARK") is not None:
+        return area
+    try:
+        code = _epsg(_main_node(tree)) or c.to_epsg(confidence_threshold=90)
+    except Exception:  # noqa: BLE001 - no identification: no area
+        code = None
+    if not code:
+        return None
+    from rasterio.crs import CRS
+
+    try:
+        full = _wkt2_tree(CRS.from_epsg(code))
+    except Exception:  # noqa: BLE001 - a code GDAL's database lacks
+        return None
+    return _area(full) if full is not None else None
+
+
 def _lonlat(crs: Any, xs: list[float], ys: list[float]) -> tuple[list[float], list[float]] | None:
     from rasterio.warp import transform
 
@@ -372,8 +406,7 @@ def check_area_of_use(
     if ll is None:
         check_on_globe(c, bounds, source)
         return ()
-    tree = _wkt2_tree(c)
-    area = _area(tree) if tree is not None else None
+    area = area_of_use(c)
     if area is None:
         return ()
     aw, as_, ae, an = area
