@@ -223,6 +223,23 @@ def test_update_rewrites_only_changed_files_and_leaves_the_others_untouched(tmp_
             pass
 
 
+@posix
+def test_a_resumed_update_keeps_what_the_dead_run_wrote(tmp_path: Path) -> None:
+    out = tmp_path / "web"
+    with Output(out) as o:
+        o.write("a", b"a")
+        o.write("b", b"b")
+        o.write("gone", b"x")
+    work = _plant(tmp_path / "web", _dead_pid(), {"a": b"A"}, key="k")  # an update run killed after "a"
+    for f in ("b", "gone"):
+        os.link(out / f, work / "out" / f)
+    with Output(out, update=True, resume=True, key="k") as o:
+        assert o.done("a") and not o.done("b")
+        o.write("b", b"b")
+        assert o.prune() == ["gone"] and o.rewritten == ["a"]
+    assert _tree(out) == {"a": hashlib.sha256(b"A").hexdigest(), "b": hashlib.sha256(b"b").hexdigest()}
+
+
 # -- an export killed, then resumed --------------------------------------------------------------------------
 def _small_dem(path: Path) -> Path:
     """A 200 x 200 georeferenced GeoTIFF (UTM 31N, 30 m): a smooth hill, no file of /work/shared needed."""

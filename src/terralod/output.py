@@ -332,7 +332,6 @@ class Output:
         self.adopted: Lock | None = None
         self.rewritten: list[str] = []
         self._records: dict[str, dict[str, Any]] = {}
-        self._written: set[str] = set()
         self._journal: Any = None
         self._open = False
 
@@ -390,7 +389,6 @@ class Output:
         self._journal.write(json.dumps({"path": rel, "record": record, "changed": changed}) + "\n")
         self._journal.flush()
         self._records[rel] = record or {}
-        self._written.add(rel)
         if changed and self.update and rel not in self.rewritten:
             self.rewritten.append(rel)
         return changed
@@ -400,9 +398,9 @@ class Output:
         return sorted(f.relative_to(self.folder).as_posix() for f in self.folder.rglob("*") if f.is_file())
 
     def prune(self) -> list[str]:
-        """Remove the files of the work folder that this run did not :meth:`write` (with ``update``: what the
-        new output no longer has); returns them."""
-        gone = [f for f in self.files() if f not in self._written]
+        """Remove the files of the work folder that were not :meth:`write`-n (by this run or the run it
+        resumed): with ``update``, what the new output no longer has. Returns them."""
+        gone = [f for f in self.files() if f not in self._records]
         for f in gone:
             self.path(f).unlink()
         for d in sorted((d for d in self.folder.rglob("*") if d.is_dir()), key=lambda d: -len(d.parts)):
