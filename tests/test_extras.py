@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from terralod.cli._common import EXTRAS
+from terralod.cli._errors import EXTRAS
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "change"
 BEFORE = DATA / "st_helens_crater_2000-09-25_10m.tif"

@@ -198,7 +198,7 @@ def test_info_answers_where_and_how_high(tmp_path: Path) -> None:
 def test_plain_progress_lines(capsys: pytest.CaptureFixture[str]) -> None:
     import io
 
-    from terralod.cli._common import PlainProgress
+    from terralod.cli._console import PlainProgress
 
     buf = io.StringIO()
     with PlainProgress("building", every_s=0.0, stream=buf) as p:
@@ -212,7 +212,7 @@ def test_plain_progress_lines(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_view_cache_goes_to_the_user_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from terralod.cli._common import cache_store_path
+    from terralod.cli._inputs import cache_store_path
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     src = tmp_path / "ro" / "dem.tif"

@@ -63,7 +63,7 @@ def test_build_fractal_levels_are_used_by_render(tmp_path: Path) -> None:
                            capture_output=True, text=True, timeout=300)  # fmt: skip
         assert p.returncode == 0, p.stderr
         assert out.exists()
-    from terralod.cli._common import with_fractal as _with_fractal
+    from terralod.cli._inputs import with_fractal as _with_fractal
 
     read = dict.fromkeys(("spacing", "vertical_scale", "vertical_offset", "encoding", "tile_zxy"))
     with open_store(store) as s:

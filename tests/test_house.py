@@ -65,7 +65,7 @@ def _group_raising(exc: BaseException) -> click.Group:
 
 
 def test_a_runtime_error_is_reported_as_an_internal_error(capsys: pytest.CaptureFixture[str]) -> None:
-    from terralod.cli._common import run_main
+    from terralod.cli._errors import run_main
 
     with pytest.raises(SystemExit) as e:
         run_main(_group_raising(RuntimeError("5 samples fall outside every triangle of the tile")), ["boom"])
@@ -75,7 +75,7 @@ def test_a_runtime_error_is_reported_as_an_internal_error(capsys: pytest.Capture
 
 
 def test_a_missing_display_is_one_plain_line(capsys: pytest.CaptureFixture[str]) -> None:
-    from terralod.cli._common import run_main
+    from terralod.cli._errors import run_main
     from terralod.errors import DisplayError
 
     with pytest.raises(SystemExit) as e:

@@ -2,7 +2,9 @@
 
 User mistakes (missing file, wrong format, no valid samples, unwritable output, corrupt store) print one
 line ``terralod: <file>: <problem>`` and exit with code 2; ``-v`` adds diagnostics and the traceback.
-Shared options, parsing, progress and the error mapping live in :mod:`terralod.cli._common`; a new command
+Shared by the commands, by concern: :mod:`~terralod.cli._options` (options and their parsing),
+:mod:`~terralod.cli._console` (what is printed, progress), :mod:`~terralod.cli._errors` (failures as one line,
+exit 2), :mod:`~terralod.cli._inputs` (opening an input as a terrain); a new command
 is a module here with one click command, added to :data:`COMMANDS`.
 """
 
@@ -14,7 +16,7 @@ import sys
 
 import click
 
-from terralod.cli._common import VERBOSE, quiet_libraries, run_main
+from terralod.cli._errors import VERBOSE, quiet_libraries, run_main
 
 #: (module, command name) of every command, in ``--help`` order.
 COMMANDS = [

@@ -6,7 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from terralod.cli._common import parse_pair, progress
+from terralod.cli._console import progress
+from terralod.cli._options import parse_pair
 
 #: A single GDAL raster of more samples than this builds out of core without being asked.
 OUT_OF_CORE_SAMPLES = 1 << 28

@@ -6,7 +6,8 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import check_output, console, load, read_options
+from terralod.cli._console import console
+from terralod.cli._options import check_output, load, read_options
 
 
 @click.command()

@@ -9,17 +9,10 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import (
-    check_output,
-    check_raster_size,
-    console,
-    load,
-    print_store_summary,
-    print_tin_summary,
-    read_options,
-    require_extra,
-    run_build,
-)
+from terralod.cli._console import console, print_store_summary, print_tin_summary
+from terralod.cli._errors import require_extra
+from terralod.cli._inputs import run_build
+from terralod.cli._options import check_output, check_raster_size, load, read_options
 
 
 @click.command()

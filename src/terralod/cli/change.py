@@ -35,7 +35,9 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import console, is_store, load, read_options, require_extra
+from terralod.cli._console import console
+from terralod.cli._errors import require_extra
+from terralod.cli._options import is_store, load, read_options
 
 _DATE = re.compile(r"(\d{4}-\d{2}-\d{2})")
 

@@ -10,7 +10,7 @@ import sys
 
 import click
 
-from terralod.cli._common import console, one_line
+from terralod.cli._console import console, one_line
 
 #: Problems printed before "... and N more" (the verdict stays on one screen).
 MAX_LINES = 20

@@ -8,14 +8,9 @@ from pathlib import Path
 
 import click
 
-from terralod.cli._common import (
-    console,
-    crs_name,
-    heightfield_info,
-    missing_modules,
-    print_store_summary,
-    run_build,
-)
+from terralod.cli._console import console, crs_name, heightfield_info, print_store_summary
+from terralod.cli._errors import missing_modules
+from terralod.cli._inputs import run_build
 
 
 @click.command()

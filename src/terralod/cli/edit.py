@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import click
 
-from terralod.cli._common import console
+from terralod.cli._console import console
 
 
 @click.command()

@@ -6,7 +6,7 @@ import json
 
 import click
 
-from terralod.cli._common import console
+from terralod.cli._console import console
 
 
 def epoch_table(rows: list[dict]) -> None:

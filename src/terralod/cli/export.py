@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import click
 
-from terralod.cli._common import check_raster_size, console, progress, require_extra
+from terralod.cli._console import console, progress
+from terralod.cli._errors import require_extra
+from terralod.cli._options import check_raster_size
 from terralod.output import Lock, Output, refuse_inputs, work_path
 
 

@@ -7,17 +7,10 @@ from typing import Any
 import click
 import numpy as np
 
-from terralod.cli._common import (
-    aim_options,
-    aimed_pose,
-    check_output,
-    console,
-    open_terrain_arg,
-    read_options,
-    size,
-    view_options,
-)
+from terralod.cli._console import console
 from terralod.cli._epochs import at_epoch, caption, epoch_options, overlay_for
+from terralod.cli._inputs import open_terrain_arg
+from terralod.cli._options import aim_options, aimed_pose, check_output, read_options, size, view_options
 
 
 def timelapse_video(terrain, output: str, epochs_text: str, **kw: Any) -> dict[str, Any]:

@@ -8,18 +8,16 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import (
+from terralod.cli._console import (
     console,
     crs_name,
     extent_info,
     heightfield_info,
-    is_store,
-    load,
     print_extent,
     print_store_summary,
     print_tin_summary,
-    read_options,
 )
+from terralod.cli._options import is_store, load, read_options
 
 
 def store_info(p: Path) -> dict[str, Any]:

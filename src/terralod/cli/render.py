@@ -7,20 +7,19 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import (
+from terralod.cli._console import console, frame_table
+from terralod.cli._epochs import at_epoch, caption, epoch_options, overlay_for
+from terralod.cli._inputs import open_terrain_arg
+from terralod.cli._options import (
     aim_options,
     aimed_pose,
     check_output,
-    console,
-    frame_table,
-    open_terrain_arg,
     read_options,
     render_settings,
     size,
     triple,
     view_options,
 )
-from terralod.cli._epochs import at_epoch, caption, epoch_options, overlay_for
 
 #: Image files ``render -o`` writes (Pillow picks the format by suffix).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".webp", ".tif", ".tiff", ".bmp")

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import click
 
-from terralod.cli._common import console, err_console, require_extra
+from terralod.cli._console import console, err_console
+from terralod.cli._errors import require_extra
 
 
 @click.command()

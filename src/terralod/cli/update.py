@@ -7,7 +7,8 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import console, load, progress, read_options
+from terralod.cli._console import console, progress
+from terralod.cli._options import load, read_options
 
 
 def print_update(rep: Any) -> None:

@@ -8,14 +8,9 @@ from typing import Any
 
 import click
 
-from terralod.cli._common import (
-    open_terrain_arg,
-    read_options,
-    require_extra,
-    size,
-    view_options,
-    water_option,
-)
+from terralod.cli._errors import require_extra
+from terralod.cli._inputs import open_terrain_arg
+from terralod.cli._options import read_options, size, view_options, water_option
 
 
 @click.command()

@@ -7,7 +7,7 @@ import time
 
 import click
 
-from terralod.cli._common import err_console
+from terralod.cli._console import err_console
 
 
 @click.command()
