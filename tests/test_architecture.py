@@ -132,3 +132,19 @@ def test_the_named_rules_of_design_md() -> None:
     assert "terralod.render" not in g.get("terralod.runtime", set()), "the runtime never imports the renderer"
     kernels = {d for m, deps in _imports().items() if m.startswith("terralod.kernels") for d in deps}
     assert all(d.startswith("terralod.kernels") for d in kernels), "kernels import only kernels"
+
+
+def test_numba_only_in_kernels() -> None:
+    """Every numba kernel lives in terralod.kernels (one decorator, one cache, one warm-up): no module
+    outside it imports numba, wherever the import sits."""
+    bad = []
+    for f in sorted(SRC.rglob("*.py")):
+        mod = _module_name(f)
+        if mod == "terralod.kernels" or mod.startswith("terralod.kernels."):
+            continue
+        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else []
+            if isinstance(node, ast.ImportFrom) and node.level == 0:
+                names = [node.module or ""]
+            bad += [f"{mod} imports {n}" for n in names if n == "numba" or n.startswith("numba.")]
+    assert bad == []

@@ -469,22 +469,37 @@ def test_serve_cli_binds_loopback_by_default(alpine_store: Path) -> None:
 
 
 # -- the DEM's own lattice: nodata fill, error kernel ------------------------------------------------
-@settings(max_examples=25, deadline=None)
-@given(h=st.integers(1, 40), w=st.integers(1, 40), seed=st.integers(0, 2**31 - 1), frac=st.floats(0.0, 0.99))
-def test_push_pull_fill(h: int, w: int, seed: int, frac: float) -> None:
-    """Valid samples unchanged, every hole filled with a finite value between the valid extremes."""
-    from terralod.export.source import fill_push_pull
+@settings(max_examples=15, deadline=None)
+@given(h=st.integers(2, 30), w=st.integers(2, 30), seed=st.integers(0, 2**31 - 1), frac=st.floats(0.0, 0.9))
+def test_dem_export_fills_nodata_as_a_store_does(h: int, w: int, seed: int, frac: float) -> None:
+    """A geographic DEM read for a direct export (its own lattice) has the store's fill, bit for bit
+    (terralod.fill.prepare_elevation); valid samples unchanged, holes between the valid extremes."""
+    import tempfile
+
+    import rasterio
+    from affine import Affine
+
+    from terralod.export.source import source_from_dem
+    from terralod.fill import prepare_elevation
 
     rng = np.random.default_rng(seed)
-    z = rng.normal(500.0, 200.0, (h, w)).astype(np.float32)
+    z = rng.integers(-50, 3000, (h, w)).astype(np.int16)
     valid = rng.random((h, w)) >= frac
     valid.flat[rng.integers(h * w)] = True
-    before = z.copy()
-    fill_push_pull(z, valid)
-    assert np.array_equal(z[valid], before[valid])
-    assert np.isfinite(z).all()
-    lo, hi = before[valid].min(), before[valid].max()
-    assert z.min() >= lo - 1e-3 and z.max() <= hi + 1e-3
+    z[~valid] = -32768
+    with tempfile.TemporaryDirectory() as tmp:
+        p = Path(tmp) / "dem.tif"
+        prof = {"driver": "GTiff", "width": w, "height": h, "count": 1, "dtype": "int16", "nodata": -32768,
+                "crs": "EPSG:4326", "transform": Affine(1 / 1200, 0.0, 1.0, 0.0, -1 / 1200, 42.0)}  # fmt: skip
+        with rasterio.open(p, "w", **prof) as ds:
+            ds.write(z, 1)
+        got = source_from_dem(p)
+    store_z, store_valid, _ = prepare_elevation(z.astype(np.float64), valid, "dem.tif")
+    assert got.identity and np.array_equal(got.valid, store_valid)
+    assert got.z_m.dtype == np.float32 and np.array_equal(got.z_m, store_z)
+    assert np.array_equal(got.z_m[valid], z[valid])
+    lo, hi = z[valid].min(), z[valid].max()
+    assert got.z_m.min() >= lo - 1e-3 and got.z_m.max() <= hi + 1e-3
 
 
 def test_lattice_error_against_independent_kernel(shared_data: Path) -> None:
@@ -496,7 +511,8 @@ def test_lattice_error_against_independent_kernel(shared_data: Path) -> None:
 
     from terralod.export.lattice import lattice_error
     from terralod.export.quantized_mesh import QuantizedMesh, true_error_m
-    from terralod.export.source import SourceGrid, fill_push_pull
+    from terralod.export.source import SourceGrid
+    from terralod.fill import fill_nodata
 
     with rasterio.open(shared_data / "dem" / "srtm3_N41E001.tif") as ds:
         win = Window(900, 200, 300, 260)
@@ -505,7 +521,7 @@ def test_lattice_error_against_independent_kernel(shared_data: Path) -> None:
     valid = ~np.ma.getmaskarray(a)
     valid[40:60, 100:130] = False  # a void inside the land as well
     z = np.ma.getdata(a).astype(np.float32)
-    fill_push_pull(z, valid)
+    z = fill_nodata(z, valid).astype(np.float32)
     qm = QuantizedMesh(SourceGrid(z, valid, t, "EPSG:4326", "crop"))
     lat = qm.lattice
     for zz in (qm.max_zoom, qm.max_zoom - 1):

@@ -5,7 +5,9 @@ sample (Euclidean distance in pixels, ``scipy.ndimage.distance_transform_edt``),
 alone are relaxed by 4-neighbour averaging (Jacobi iterations with the valid samples held fixed) so a
 hole becomes a smooth membrane spanning its rim — never a cliff down to a nodata value, never a step
 between Voronoi cells. Valid samples are never changed, and the mask of filled cells is kept so error
-measurement ignores them.
+measurement ignores them. It is the one fill of the package: a store's heightfield, the window sources'
+blocks (:mod:`terralod.io.windowed`) and a DEM read on its own lattice for a web export
+(:mod:`terralod.export.source`) all fill holes with :func:`fill_nodata`.
 """
 
 from __future__ import annotations

@@ -4,16 +4,16 @@ The kernels are compiled with ``cache=True`` (:mod:`terralod.kernels`): the mach
 to each module (``__pycache__/*.nbi``/``*.nbc``, or under ``NUMBA_CACHE_DIR``) and later processes load it
 in milliseconds. :func:`warm_up` runs a small version of everything the commands do (a build with every
 registered method over a heightfield with nodata, selection + stitching + normals of each, fractal
-levels below a store, a detail-increment TIN and its selection), which compiles every kernel for the
-argument types the commands use. ``scripts/install.sh`` runs it (``python -m terralod warmup``).
+levels below a store, a detail-increment TIN and its selection, quantized-mesh tiles of a projected and
+of a geographic grid) and calls the few kernels no command reaches with its defaults, which compiles every
+entry point of :func:`terralod.kernels.dispatchers` (and with them every helper kernel) for the argument
+types the commands use. ``scripts/install.sh`` runs it (``python -m terralod warmup``).
 :func:`kernels_cold` tells a command that the cache is empty, so it can say why it is about to wait.
 """
 
 from __future__ import annotations
 
-import importlib
 import os
-import pkgutil
 import tempfile
 import time
 from collections.abc import Callable
@@ -24,21 +24,6 @@ import numpy as np
 #: Seconds of CPU a cold compile takes (``terralod warmup`` with an empty cache: 166 s user + 10 s system,
 #: measured; one core does it, so an idle machine takes about this long, a loaded one longer).
 COLD_COMPILE_S = 180
-
-
-def kernel_dispatchers() -> list:
-    """Every numba kernel of :mod:`terralod.kernels` (imports the modules)."""
-    from numba.core.registry import CPUDispatcher
-
-    import terralod.kernels as k
-
-    out = []
-    for m in pkgutil.iter_modules(k.__path__):
-        mod = importlib.import_module(f"{k.__name__}.{m.name}")
-        for v in vars(mod).values():
-            if isinstance(v, CPUDispatcher) and v.py_func.__module__ == mod.__name__:
-                out.append(v)
-    return out
 
 
 def kernels_cold() -> bool:
@@ -90,6 +75,52 @@ def _frames(terrain) -> None:
             eng.close()
 
 
+def _web_tiles(hf) -> None:
+    """Quantized-mesh tiles, with normals, of a projected grid (257² samples a tile, errors against
+    scattered samples) and of a geographic one (its own lattice: clipping, u/v merge, lattice errors, the
+    goal zoom's parent), the three finest zooms of each: every export kernel."""
+    from affine import Affine
+
+    from terralod.export.quantized_mesh import QuantizedMesh
+    from terralod.export.source import SourceGrid
+
+    z, valid = np.asarray(hf.elevation_m, np.float64), np.asarray(hf.valid)
+    arc3 = 1.0 / 1200.0  # SRTM3's spacing, degrees
+    for src in (
+        SourceGrid(z, valid, hf.transform, "EPSG:32631", "warmup-utm"),
+        SourceGrid(
+            z.astype(np.float32), valid, Affine(arc3, 0.0, 1.0, 0.0, -arc3, 42.0), "EPSG:4326", "warmup"
+        ),
+    ):
+        qm = QuantizedMesh(src, normals=True)
+        for zoom in range(max(qm.max_zoom - 2, 0), qm.max_zoom + 1):
+            x0, y0, _, _ = qm.level_range(zoom)
+            qm.tile(zoom, x0, y0)
+
+
+def _library_kernels(hf) -> None:
+    """The kernels no step above reaches: options the commands leave at their defaults (cohesion without
+    refinement), big meshes (32-bit triangle codes), the renderer's near plane, fractal statistics."""
+    from terralod.fractal import FractalDetail
+    from terralod.kernels import noise
+    from terralod.kernels.cull import min_distance_to_triangles
+    from terralod.pyramid.cohesion import make_mesher
+    from terralod.store import encode_triangles
+    from terralod.tiles import TilePyramid
+
+    pyramid = TilePyramid(hf.width, hf.height, 17)
+    make_mesher(refine=False)(
+        hf.elevation_m, hf.valid, pyramid, (pyramid.max_level - 1, 1, 1), spacing_m=hf.spacing_m
+    )
+    for dt in (np.int32, np.int64):
+        encode_triangles(np.array([[0, 1, 70000]], dt))
+    tri = np.array([[0, 1, 2]], np.int64)
+    min_distance_to_triangles(np.eye(3) * 10.0, tri, 0.0, 0.0, 0.0)
+    _ = FractalDetail(hf).hurst_map
+    noise.axis_variogram(np.asarray(hf.elevation_m, np.float64), 2)
+    noise.gauss_grid(1, 3, 0, 0, 2, 2)
+
+
 def warm_up(report: Callable[[str], None] | None = None) -> dict[str, float]:
     """Compile (and cache) every kernel the commands use. Returns seconds per step."""
     from terralod.pyramid.builder import METHODS, build_store
@@ -139,4 +170,15 @@ def warm_up(report: Callable[[str], None] | None = None) -> dict[str, float]:
             say(f"  tin: {out['tin']:.1f} s")
         except Exception as exc:  # noqa: BLE001
             say(f"  tin skipped ({exc})")
+    t0 = time.perf_counter()
+    try:
+        _web_tiles(hf)
+        out["web tiles"] = time.perf_counter() - t0
+        say(f"  web tiles: {out['web tiles']:.1f} s")
+    except ImportError as exc:  # the web extra (pydelatin, pyproj) is not installed
+        say(f"  web tiles skipped ({exc})")
+    t0 = time.perf_counter()
+    _library_kernels(hf)
+    out["library kernels"] = time.perf_counter() - t0
+    say(f"  library kernels: {out['library kernels']:.1f} s")
     return out

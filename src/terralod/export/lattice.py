@@ -14,6 +14,11 @@ The error of a decoded tile against the source (:func:`lattice_error`) walks eac
 lattice window inside the tile, testing only the samples between its edges, and accumulates the max
 and the sum of squares of the vertical distance over every valid sample (a valid sample no triangle
 covers is counted: a hole is detected, not skipped).
+
+Where a tile's bytes are decided: this module gives a lattice tile's grid, normals, water mask and
+error; :meth:`terralod.export.quantized_mesh.QuantizedMesh.tile` chooses its target and meshes it, and
+:mod:`terralod.export.quantized_mesh_format` writes the bytes. The kernels (clipping, the error walk) are in
+:mod:`terralod.kernels.lattice` and :mod:`terralod.kernels.error`.
 """
 
 from __future__ import annotations
@@ -22,9 +27,8 @@ import math
 from typing import Any
 
 import numpy as np
-from numba import njit
 
-from terralod.kernels.error import triangle_gap
+from terralod.kernels.error import lattice_vertical_error
 
 __all__ = ["Lattice", "lattice_error"]
 
@@ -151,182 +155,6 @@ class Lattice:
         return m.astype(np.uint8) * np.uint8(255)
 
 
-@njit(cache=True)
-def _lattice_error_kernel(tu, tv, th, tris, pu, pv, zwin, vwin):  # pragma: no cover - numba
-    """Vertical distance between triangles (tu, tv, th; u/v units) and the lattice points (pu[k], pv[j])
-    of heights zwin[j, k] where vwin[j, k] (a valid sample). Returns (max over every test, sum of squares
-    and count over the samples, each once: at the first triangle that covers it, valid samples that no
-    triangle covers). pu increases, pv decreases (north row first). Each triangle tests the points of its
-    rows between its edges (a small margin, then the same barycentric test as the scattered-point kernel:
-    edges included). Only a (rows, cols) byte array besides the inputs: a tile that spans the whole DEM
-    needs one byte per sample."""
-    nj, nk = zwin.shape
-    if nj == 0 or nk == 0:
-        return 0.0, 0.0, 0, 0
-    seen = np.zeros((nj, nk), np.uint8)
-    sumsq = 0.0
-    count = 0
-    pu0 = pu[0]
-    du = (pu[nk - 1] - pu[0]) / (nk - 1) if nk > 1 else 1.0
-    pv0 = pv[0]
-    dv = (pv[0] - pv[nj - 1]) / (nj - 1) if nj > 1 else 1.0
-    if du <= 0.0:
-        du = 1.0
-    if dv <= 0.0:
-        dv = 1.0
-    err = 0.0
-    tol = 1e-9
-    for t in range(tris.shape[0]):
-        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        ua, va, ub, vb, uc, vc = tu[a], tv[a], tu[b], tv[b], tu[c], tv[c]
-        det = (vb - vc) * (ua - uc) + (uc - ub) * (va - vc)
-        if det == 0.0:
-            continue
-        vmin = min(va, vb, vc)
-        vmax = max(va, vb, vc)
-        j0 = max(int(math.floor((pv0 - vmax) / dv)) - 1, 0)
-        j1 = min(int(math.ceil((pv0 - vmin) / dv)) + 1, nj - 1)
-        for j in range(j0, j1 + 1):
-            y = pv[j]
-            if y < vmin - 1e-6 or y > vmax + 1e-6:
-                continue
-            lo = 1e300
-            hi = -1e300
-            for q in range(3):
-                if q == 0:
-                    u1, v1, u2, v2 = ua, va, ub, vb
-                elif q == 1:
-                    u1, v1, u2, v2 = ub, vb, uc, vc
-                else:
-                    u1, v1, u2, v2 = uc, vc, ua, va
-                if v1 == v2:
-                    if abs(y - v1) <= 1e-6:
-                        lo = min(lo, u1, u2)
-                        hi = max(hi, u1, u2)
-                elif min(v1, v2) - 1e-6 <= y <= max(v1, v2) + 1e-6:
-                    x = u1 + (y - v1) * (u2 - u1) / (v2 - v1)
-                    lo = min(lo, x)
-                    hi = max(hi, x)
-            if hi < lo:
-                continue
-            k0 = max(int(math.floor((lo - pu0) / du)) - 1, 0)
-            k1 = min(int(math.ceil((hi - pu0) / du)) + 1, nk - 1)
-            for k in range(k0, k1 + 1):
-                if not vwin[j, k]:
-                    continue
-                x = pu[k]
-                d = triangle_gap(ua, va, ub, vb, uc, vc, det, th[a], th[b], th[c], x, y, zwin[j, k], tol)
-                if d >= 0.0:
-                    if d > err:
-                        err = d
-                    if seen[j, k] == 0:
-                        seen[j, k] = 1
-                        sumsq += d * d
-                        count += 1
-    missed = 0
-    for j in range(nj):
-        for k in range(nk):
-            if vwin[j, k] and seen[j, k] == 0:
-                missed += 1
-    return err, sumsq, count, missed
-
-
-@njit(cache=True)
-def clip_mesh(px, py, ph, tris, x0, x1, y0, y1):  # pragma: no cover - numba
-    """Clip a triangulation (vertices px, py, heights ph) to the rectangle [x0, x1] x [y0, y1]
-    (Sutherland-Hodgman per triangle, each clipped polygon fanned): the surface inside is unchanged, new
-    vertices lie on the triangles' edges with heights interpolated along them. Returns (x, y, h, tris);
-    vertices outside the rectangle stay in the arrays, unreferenced."""
-    nv = px.size
-    nt = tris.shape[0]
-    cap = nv + 12 * nt + 8
-    vx = np.empty(cap)
-    vy = np.empty(cap)
-    vh = np.empty(cap)
-    vx[:nv] = px
-    vy[:nv] = py
-    vh[:nv] = ph
-    m = nv
-    out = np.empty((5 * nt + 1, 3), np.int64)
-    no = 0
-    eps = 1e-9
-    ax = np.empty(12)
-    ay = np.empty(12)
-    ah = np.empty(12)
-    ai = np.empty(12, np.int64)
-    bx = np.empty(12)
-    by = np.empty(12)
-    bh = np.empty(12)
-    bi = np.empty(12, np.int64)
-    for t in range(nt):
-        ins = 0
-        for q in range(3):
-            i = tris[t, q]
-            if x0 - eps <= px[i] <= x1 + eps and y0 - eps <= py[i] <= y1 + eps:
-                ins += 1
-        if ins == 3:
-            out[no, 0] = tris[t, 0]
-            out[no, 1] = tris[t, 1]
-            out[no, 2] = tris[t, 2]
-            no += 1
-            continue
-        n = 3
-        for q in range(3):
-            i = tris[t, q]
-            ax[q] = px[i]
-            ay[q] = py[i]
-            ah[q] = ph[i]
-            ai[q] = i
-        for plane in range(4):
-            k = 0
-            for q in range(n):
-                r = (q + 1) % n
-                if plane == 0:
-                    dp, dq = ax[q] - x0, ax[r] - x0
-                elif plane == 1:
-                    dp, dq = x1 - ax[q], x1 - ax[r]
-                elif plane == 2:
-                    dp, dq = ay[q] - y0, ay[r] - y0
-                else:
-                    dp, dq = y1 - ay[q], y1 - ay[r]
-                if dp >= -eps:
-                    bx[k], by[k], bh[k], bi[k] = ax[q], ay[q], ah[q], ai[q]
-                    k += 1
-                if (dp > eps and dq < -eps) or (dp < -eps and dq > eps):
-                    f = dp / (dp - dq)
-                    bx[k] = ax[q] + f * (ax[r] - ax[q])
-                    by[k] = ay[q] + f * (ay[r] - ay[q])
-                    bh[k] = ah[q] + f * (ah[r] - ah[q])
-                    if plane == 0:
-                        bx[k] = x0
-                    elif plane == 1:
-                        bx[k] = x1
-                    elif plane == 2:
-                        by[k] = y0
-                    else:
-                        by[k] = y1
-                    bi[k] = -1
-                    k += 1
-            n = k
-            for q in range(n):
-                ax[q], ay[q], ah[q], ai[q] = bx[q], by[q], bh[q], bi[q]
-            if n < 3:
-                break
-        if n < 3:
-            continue
-        for q in range(n):
-            if ai[q] < 0:
-                vx[m], vy[m], vh[m] = ax[q], ay[q], ah[q]
-                ai[q] = m
-                m += 1
-        for q in range(1, n - 1):
-            out[no, 0] = ai[0]
-            out[no, 1] = ai[q]
-            out[no, 2] = ai[q + 1]
-            no += 1
-    return vx[:m], vy[:m], vh[:m], out[:no]
-
-
 def lattice_error(lat: Lattice, tile: dict[str, Any], rect: tuple[float, float, float, float]
                   ) -> tuple[float, float, int]:  # fmt: skip
     """(max, sum of squares, count) of the vertical distance between a decoded tile (:func:`decode_tile`)
@@ -337,7 +165,7 @@ def lattice_error(lat: Lattice, tile: dict[str, Any], rect: tuple[float, float, 
     w, s, e, n = rect
     pu = np.clip((lat.lon_c[c0:c1] - w) / (e - w), 0.0, 1.0) * 32767.0
     pv = np.clip((lat.lat_r[r0:r1] - s) / (n - s), 0.0, 1.0) * 32767.0
-    err, sumsq, count, missed = _lattice_error_kernel(
+    err, sumsq, count, missed = lattice_vertical_error(
         tile["u"].astype(np.float64), tile["v"].astype(np.float64), np.asarray(tile["height"], np.float64),
         np.ascontiguousarray(tile["triangles"], np.int64), pu, pv, lat.z[r0:r1, c0:c1], lat.valid[r0:r1, c0:c1],
     )  # fmt: skip

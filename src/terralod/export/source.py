@@ -6,11 +6,17 @@ the user has are the original ones on the geographic lattice. :func:`source_for`
 digest) or, for a TIN store, the TIN's own vertices (:class:`TinSource`). :func:`source_from_dem` reads a
 DEM file directly (``terralod export dem.tif --format quantized-mesh``: no store, no UTM round trip).
 
-Both kinds answer the same questions in WGS 84 longitude/latitude degrees: ``height_at`` (the surface
-through the samples: bilinear on the grid, linear on the TIN's triangles; outside the data the edge values
-extend outward, so a tile that reaches past the data continues the terrain instead of dropping to 0 m),
-``water_at`` (nodata or sea at exactly 0 m at the nearest sample), ``points_in`` (the valid samples inside
-a rectangle: what a tile's error is measured against) and ``bbox``.
+Both kinds are a :class:`SampleSource` and answer the same questions in WGS 84 longitude/latitude degrees:
+``height_at`` (the surface through the samples: bilinear on the grid, linear on the TIN's triangles; outside
+the data the edge values extend outward, so a tile that reaches past the data continues the terrain instead
+of dropping to 0 m), ``water_at`` (nodata or sea at exactly 0 m at the nearest sample), ``points_in`` (the
+valid samples inside a rectangle: what a tile's error is measured against), ``bbox``, ``spacing_deg`` and
+``identity`` (samples on a WGS 84 lon/lat lattice, which the quantized-mesh tiler meshes as they are).
+
+Where a tile's bytes are decided: not here. This module decides the samples every web tile is made from
+and measured against (and their nodata fill, :func:`terralod.fill.fill_nodata`, the store's); the tilers
+(:mod:`terralod.export.quantized_mesh`, :mod:`terralod.export.lattice`) choose the meshes and
+:mod:`terralod.export.quantized_mesh_format` writes them.
 """
 
 from __future__ import annotations
@@ -20,11 +26,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numba import njit
 
 from terralod.errors import InputError
+from terralod.fill import fill_nodata
 
-__all__ = ["SourceGrid", "TinSource", "fill_push_pull", "source_for", "source_from_dem"]
+__all__ = ["SampleSource", "SourceGrid", "TinSource", "source_for", "source_from_dem"]
 
 
 def _is_lonlat_wgs84(crs: Any) -> bool:
@@ -34,7 +40,91 @@ def _is_lonlat_wgs84(crs: Any) -> bool:
         return False
 
 
-class SourceGrid:
+class SampleSource:
+    """The samples an export is made from and measured against, in WGS 84 longitude/latitude degrees.
+
+    Every source defines ``name`` (the file or store, for messages and layer names), ``bbox`` (west,
+    south, east, north of the valid samples, degrees), ``spacing_deg`` (the ground spacing, in degrees
+    of latitude) and ``identity`` (True only for samples on a WGS 84 lon/lat lattice, which the
+    quantized-mesh tiler meshes on that lattice), and answers :meth:`height_at`, :meth:`water_at` and,
+    from the valid samples a subclass gives in ``_flat`` (lon, lat, height), :meth:`points_in`.
+    """
+
+    name: str
+    bbox: tuple[float, float, float, float]
+    spacing_deg: float
+    #: True for samples on a WGS 84 longitude/latitude lattice (a geographic DEM read as it is).
+    identity: bool = False
+
+    def __init__(self) -> None:
+        self._flat: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._buckets: dict[int, tuple[np.ndarray, dict[int, tuple[int, int]]]] = {}
+
+    def _points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """lon, lat, height of the valid samples, flat."""
+        if self._flat is None:
+            raise NotImplementedError(f"{type(self).__name__} gives no samples")
+        return self._flat
+
+    @property
+    def lon(self) -> np.ndarray:
+        return self._points()[0]
+
+    @property
+    def lat(self) -> np.ndarray:
+        return self._points()[1]
+
+    @property
+    def zv(self) -> np.ndarray:
+        return self._points()[2]
+
+    def height_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        """Height (m) of the surface through the samples at lon/lat; edge values extended outside."""
+        raise NotImplementedError
+
+    def water_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        """True where the nearest sample is nodata or sea (exactly 0 m)."""
+        raise NotImplementedError
+
+    def points_in(self, z: int, x: int, y: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(lon, lat, height) of the valid samples inside geographic tile z/x/y, its edges included (a
+        sample on a shared edge belongs to both tiles: CesiumJS may sample it from either)."""
+        from terralod.export.geodesy import tile_rectangle
+
+        order, groups = self._bucketed(z)
+        wd, sd, ed, nd = tile_rectangle(z, x, y)
+        out = []
+        for bx in (x - 1, x, x + 1):
+            for by in (y - 1, y, y + 1):
+                g = groups.get(bx * (1 << z) + by)
+                if g is not None:
+                    out.append(order[g[0] : g[1]])
+        if not out:
+            e = np.zeros(0)
+            return e, e, e
+        idx = np.concatenate(out)
+        lo, la = self.lon[idx], self.lat[idx]
+        keep = (lo >= wd) & (lo <= ed) & (la >= sd) & (la <= nd)
+        idx = idx[keep]
+        return self.lon[idx], self.lat[idx], self.zv[idx]
+
+    def _bucketed(self, z: int) -> tuple[np.ndarray, dict[int, tuple[int, int]]]:
+        """The valid samples sorted by their tile of level z: (order, {bucket key: (start, end)}); one
+        level kept at a time (the export walks level by level); safe to call from several threads."""
+        got = self._buckets.get(z)
+        if got is None:
+            d = 180.0 / (1 << z)
+            bx = np.floor((self.lon + 180.0) / d).astype(np.int64)
+            by = np.floor((self.lat + 90.0) / d).astype(np.int64)
+            key = bx * (1 << z) + by
+            order = np.argsort(key, kind="stable")
+            ks, first, counts = np.unique(key[order], return_index=True, return_counts=True)
+            got = (order, {int(k): (int(f), int(f + c)) for k, f, c in zip(ks, first, counts, strict=True)})
+            self._buckets = {z: got}
+        return got
+
+
+class SourceGrid(SampleSource):
     """A north-up grid of samples in its own CRS (geographic or projected; pixel-corner ``transform``).
 
     ``z_m`` holds filled heights (nodata filled, as the store fills it), ``valid`` the real samples.
@@ -43,6 +133,7 @@ class SourceGrid:
     def __init__(self, z_m: np.ndarray, valid: np.ndarray, transform: Any, crs: Any, name: str) -> None:
         from pyproj import CRS, Transformer
 
+        super().__init__()
         # float32 stays float32 (an integer DEM read exactly, half the memory); anything else float64
         zt = np.float32 if np.asarray(z_m).dtype == np.float32 else np.float64
         self.z_m = np.ascontiguousarray(z_m, zt)
@@ -61,7 +152,6 @@ class SourceGrid:
             raise InputError("has no valid samples", name)
         r0, r1 = int(np.argmax(rows_any)), int(h - 1 - np.argmax(rows_any[::-1]))
         c0, c1 = int(np.argmax(cols_any)), int(w - 1 - np.argmax(cols_any[::-1]))
-        self._flat: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         if self.identity:  # the valid samples' bounding box of centres (no per-sample arrays: big DEMs)
             lons = (self.t.c + (c0 + 0.5) * self.t.a, self.t.c + (c1 + 0.5) * self.t.a)
             lats = (self.t.f + (r0 + 0.5) * self.t.e, self.t.f + (r1 + 0.5) * self.t.e)
@@ -79,7 +169,6 @@ class SourceGrid:
             self.spacing_deg = float(min(abs(self.t.a) * cos_lat, abs(self.t.e)))
         else:
             self.spacing_deg = float(min(abs(self.t.a), abs(self.t.e))) / 111320.0
-        self._buckets: dict[int, tuple[np.ndarray, dict[int, tuple[int, int]]]] = {}
 
     def _points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """lon, lat, height of the valid samples (pixel centres), flat; made on first use."""
@@ -90,18 +179,6 @@ class SourceGrid:
             lon, lat = self._lonlat(x, y)
             self._flat = (lon, lat, self.z_m[rr, cc])
         return self._flat
-
-    @property
-    def lon(self) -> np.ndarray:
-        return self._points()[0]
-
-    @property
-    def lat(self) -> np.ndarray:
-        return self._points()[1]
-
-    @property
-    def zv(self) -> np.ndarray:
-        return self._points()[2]
 
     def _lonlat(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.identity:
@@ -145,47 +222,14 @@ class SourceGrid:
         ri, ci = np.rint(r).astype(np.int64), np.rint(c).astype(np.int64)
         return inside & (~self.valid[ri, ci] | (self.z_m[ri, ci] == 0.0))
 
-    def points_in(self, z: int, x: int, y: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(lon, lat, height) of the valid samples inside geographic tile z/x/y, its edges included (a
-        sample on a shared edge belongs to both tiles: CesiumJS may sample it from either)."""
-        from terralod.export.geodesy import tile_rectangle
 
-        order, groups = self._bucketed(z)
-        wd, sd, ed, nd = tile_rectangle(z, x, y)
-        out = []
-        for bx in (x - 1, x, x + 1):
-            for by in (y - 1, y, y + 1):
-                g = groups.get(bx * (1 << z) + by)
-                if g is not None:
-                    out.append(order[g[0] : g[1]])
-        if not out:
-            e = np.zeros(0)
-            return e, e, e
-        idx = np.concatenate(out)
-        lo, la = self.lon[idx], self.lat[idx]
-        keep = (lo >= wd) & (lo <= ed) & (la >= sd) & (la <= nd)
-        idx = idx[keep]
-        return self.lon[idx], self.lat[idx], self.zv[idx]
-
-    def _bucketed(self, z: int) -> tuple[np.ndarray, dict[int, tuple[int, int]]]:
-        if z not in self._buckets:
-            d = 180.0 / (1 << z)
-            bx = np.floor((self.lon + 180.0) / d).astype(np.int64)
-            by = np.floor((self.lat + 90.0) / d).astype(np.int64)
-            key = bx * (1 << z) + by
-            order = np.argsort(key, kind="stable")
-            ks, first, counts = np.unique(key[order], return_index=True, return_counts=True)
-            groups = {int(k): (int(f), int(f + c)) for k, f, c in zip(ks, first, counts, strict=True)}
-            self._buckets = {z: (order, groups)}  # one level at a time (the export walks level by level)
-        return self._buckets[z]
-
-
-class TinSource(SourceGrid):
+class TinSource(SampleSource):
     """A TIN store's finest surface: its vertices are the samples, its triangles the surface."""
 
     def __init__(self, terrain: Any, geo: Any) -> None:
         import matplotlib.tri as mtri
 
+        super().__init__()
         tree = terrain.lod_tree()
         parents = {n.parent for n in tree}
         vs, ts, base = [], [], 0
@@ -220,7 +264,6 @@ class TinSource(SourceGrid):
         )
         w, s, e, n = terrain.bounds_m
         self.spacing_deg = math.sqrt((e - w) * (n - s) / max(len(xyz), 1)) / 111320.0
-        self._buckets = {}
 
     def height_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         w, s, e, n = self.bbox
@@ -246,7 +289,7 @@ def _native_grid(path: Path) -> SourceGrid | None:
 
     Read in strips of rows straight into one array of heights (float32 for integer and float32 DEMs
     without scale/offset: exact, 4 bytes a sample; float64 otherwise) and one of validity; nodata filled
-    by :func:`fill_push_pull` (a third more memory at most, no full-size index arrays)."""
+    as a store fills it (:func:`terralod.fill.fill_nodata`: while it runs, about 24 bytes a sample more)."""
     import rasterio
     from rasterio.windows import Window
 
@@ -282,69 +325,10 @@ def _native_grid(path: Path) -> SourceGrid | None:
     values, valid, t, _ = north_up(values, valid, t, str(path))
     if not valid.any():
         raise InputError("has no valid samples", str(path))
-    if not valid.all():
-        values = np.ascontiguousarray(values)
+    if not valid.all():  # the store's fill, so a DEM exported directly has a store's filled surface
         valid = np.ascontiguousarray(valid)
-        fill_push_pull(values, valid)
+        values = fill_nodata(values, valid).astype(values.dtype)
     return SourceGrid(values, valid, t, wkt, str(path))
-
-
-@njit(cache=True)
-def _pull_down(z, v):  # pragma: no cover - numba
-    """One coarser level: each cell the mean of its valid children (up to 2 x 2), valid if any is."""
-    h, w = z.shape
-    hp, wp = (h + 1) // 2, (w + 1) // 2
-    zp = np.zeros((hp, wp), np.float64)
-    vp = np.zeros((hp, wp), np.bool_)
-    for i in range(hp):
-        for j in range(wp):
-            s = 0.0
-            k = 0
-            for a in range(2 * i, min(2 * i + 2, h)):
-                for b in range(2 * j, min(2 * j + 2, w)):
-                    if v[a, b]:
-                        s += z[a, b]
-                        k += 1
-            if k:
-                zp[i, j] = s / k
-                vp[i, j] = True
-    return zp, vp
-
-
-@njit(cache=True)
-def _push_up(z, v, zp):  # pragma: no cover - numba
-    """Invalid cells of a level take the bilinear surface of the (filled) coarser level at their centre."""
-    h, w = z.shape
-    hp, wp = zp.shape
-    for i in range(h):
-        for j in range(w):
-            if v[i, j]:
-                continue
-            y = min(max((i + 0.5) / 2.0 - 0.5, 0.0), hp - 1.0)
-            x = min(max((j + 0.5) / 2.0 - 0.5, 0.0), wp - 1.0)
-            i0 = min(int(y), max(hp - 2, 0))
-            j0 = min(int(x), max(wp - 2, 0))
-            i1 = min(i0 + 1, hp - 1)
-            j1 = min(j0 + 1, wp - 1)
-            fy, fx = y - i0, x - j0
-            top = zp[i0, j0] * (1.0 - fx) + zp[i0, j1] * fx
-            bot = zp[i1, j0] * (1.0 - fx) + zp[i1, j1] * fx
-            z[i, j] = top * (1.0 - fy) + bot * fy
-
-
-def fill_push_pull(z: np.ndarray, valid: np.ndarray) -> None:
-    """Fill the invalid samples of ``z`` in place (valid ones unchanged): push-pull interpolation (a
-    pyramid of valid-sample means, each level's holes filled from the bilinear surface of the one above,
-    coarse to fine; Gortler et al. 1996's hole filling): smooth across holes, O(samples), a third of
-    ``z``'s size in extra memory. ``valid`` needs at least one True."""
-    levels = [(z, valid)]
-    while not levels[-1][1].all():
-        zc, vc = levels[-1]
-        if zc.shape == (1, 1):
-            raise ValueError("no valid sample to fill from")
-        levels.append(_pull_down(zc, vc))
-    for k in range(len(levels) - 2, -1, -1):
-        _push_up(levels[k][0], levels[k][1], levels[k + 1][0])
 
 
 def _from_heightfield(hf: Any) -> SourceGrid:
@@ -369,7 +353,7 @@ def source_from_dem(path: str | Path) -> SourceGrid:
     return _from_heightfield(hf)
 
 
-def source_for(terrain: Any, geo: Any) -> SourceGrid:
+def source_for(terrain: Any, geo: Any) -> SampleSource:
     """The samples behind a store: its source DEM on its own lattice when it can be read again and is the
     one the store was built from; the store's grid when only that is known; a TIN store's vertices."""
     from terralod.export.common import source_heightfield

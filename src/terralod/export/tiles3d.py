@@ -1,5 +1,10 @@
 """OGC 3D Tiles 1.1 export of any terrain: ``tileset.json`` + one binary glTF 2.0 per LOD node.
 
+Where a tile's bytes are decided: all here. The mesh is the store's own node (no re-meshing), the
+normals, skirts and ECEF positions are made in :meth:`Tiles3D.glb` and written by ``_write_glb``. A glb is
+a function of the store and the node's code alone (each level's normals are computed from the whole
+level at once), whatever was encoded before it.
+
 The tileset is the terrain's static LOD tree (:meth:`terralod.terrain.Terrain.lod_tree`) as stored:
 REPLACE refinement. ``geometricError`` as the specification defines it: a tile's is the error of drawing it
 instead of its children, i.e. the node's *measured* error in metres (the one-sided Hausdorff ``error_m``, or

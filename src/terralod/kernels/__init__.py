@@ -21,6 +21,9 @@ most of the time of a Delaunay insertion (:mod:`terralod.kernels.adaptive`), of 
 (:mod:`terralod.kernels.cohesion`) and of the rasterisation of a small triangle (:mod:`terralod.kernels.error`).
 The arithmetic is the same (results bit for bit); a leaf that allocated would fail to compile. Leaves are
 called from kernels only, not from Python.
+
+:func:`dispatchers` lists the kernels (the entry points, or every one): ``terralod warmup`` compiles them
+and its test checks it. numba is imported nowhere else in the package (tests/test_architecture.py).
 """
 
 from __future__ import annotations
@@ -68,4 +71,39 @@ def _tolerate_cache_write_errors() -> None:
 
 _tolerate_cache_write_errors()
 
-__all__ = ["jit", "leaf"]
+
+def dispatchers(*, helpers: bool = False) -> list[Any]:
+    """The kernels of this package (numba dispatchers, in module and definition order); imports every
+    kernel module.
+
+    By default the entry points only: the kernels no other kernel calls, which the API layer calls from
+    Python. ``helpers=True`` adds the kernels and leaves that other kernels call: each compiles inside its
+    callers (and is cached with them), so its own dispatcher holds no signature when its callers come from
+    the on-disk cache. ``terralod warmup`` compiles every entry point, hence every kernel."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    found: list[Any] = []
+    called: set[int] = set()
+    for m in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+        mod = importlib.import_module(f"{__name__}.{m.name}")
+        space = vars(mod)
+        for v in list(space.values()):
+            if isinstance(v, CPUDispatcher) and v.py_func.__module__ == mod.__name__:
+                found.append(v)
+                called.update(id(c) for c in _callees(v.py_func.__code__, space, CPUDispatcher) if c is not v)
+    return found if helpers else [d for d in found if id(d) not in called]
+
+
+def _callees(code: Any, space: dict[str, Any], kind: type) -> list[Any]:
+    """The dispatchers a function's code names (its nested code objects included), looked up in ``space``."""
+    out = [space[n] for n in code.co_names if isinstance(space.get(n), kind)]
+    for c in code.co_consts:
+        if hasattr(c, "co_names"):
+            out += _callees(c, space, kind)
+    return out
+
+
+__all__ = ["dispatchers", "jit", "leaf"]

@@ -47,6 +47,12 @@ Several meshes of one window that differ in a few triangles (a mesher's candidat
 a changed triangle reaches (rows are independent in pass 1, so this is bit-identical); the statistics and
 pass 2 run on the whole window as always.
 
+Web-export tiles (:func:`points_vertical_error`, :func:`lattice_vertical_error`): the vertical distance
+between a decoded quantized-mesh tile (u/v units, linear in u/v as a client interpolates it) and the source
+samples inside it, scattered points (bucketed) or a lattice window (each triangle's row spans), through the
+one barycentric test :func:`triangle_gap`; a valid sample that no triangle covers is counted (a hole is
+reported by the caller, never skipped).
+
 Memory: the per-sample array (8 bytes a sample, at most 16 MiB) or one bucket of scratch; the bucket
 index (1 to 4 int64 a triangle) and, in pass 2, per-triangle boxes (6 float64 a triangle).
 """
@@ -902,3 +908,138 @@ def _tile_error(verts, tris, z, valid, dx, dy, bucket_size, vall, dirty):
         start, items = _bin_centroids(uv, tris, nbr, nbc, bs)
     hd2, wh = _hausdorff_pass(uv, verts, tris, z, valid, dx, dy, bs, nbr, nbc, start, items, vall, bmax, barg)
     return max_v, sumsq, n, math.sqrt(hd2), wv // w, wv % w, wh // w, wh % w
+
+
+# -- web-export tiles (u/v units, vertical distance only) ------------------------------------------------
+@jit
+def points_vertical_error(tu, tv, th, tris, pu, pv, pz):  # pragma: no cover - numba
+    """Max |surface - z| over points (pu, pv, pz) of the triangles (tu, tv, th) in u/v units, and how many
+    points no triangle covered (the points are bucketed on a square grid; each triangle visits the
+    buckets of its bounding box; a point on a shared edge is tested by both triangles)."""
+    n = pu.size
+    nb = max(1, min(256, int(math.sqrt(n / 4.0)) + 1))
+    scale = nb / 32768.0
+    cell = np.empty(n, np.int64)
+    start = np.zeros(nb * nb + 1, np.int64)
+    for i in range(n):
+        cx = min(max(int(pu[i] * scale), 0), nb - 1)
+        cy = min(max(int(pv[i] * scale), 0), nb - 1)
+        cell[i] = cy * nb + cx
+        start[cell[i] + 1] += 1
+    for k in range(nb * nb):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    covered = np.zeros(n, np.bool_)
+    err = 0.0
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ua, va, ub, vb, uc, vc = tu[a], tv[a], tu[b], tv[b], tu[c], tv[c]
+        det = (vb - vc) * (ua - uc) + (uc - ub) * (va - vc)
+        if det == 0.0:
+            continue
+        x0 = min(max(int(min(ua, ub, uc) * scale), 0), nb - 1)
+        x1 = min(max(int(max(ua, ub, uc) * scale), 0), nb - 1)
+        y0 = min(max(int(min(va, vb, vc) * scale), 0), nb - 1)
+        y1 = min(max(int(max(va, vb, vc) * scale), 0), nb - 1)
+        tol = 1e-9
+        for cy in range(y0, y1 + 1):
+            for cx in range(x0, x1 + 1):
+                k = cy * nb + cx
+                for j in range(start[k], start[k + 1]):
+                    i = order[j]
+                    d = triangle_gap(
+                        ua, va, ub, vb, uc, vc, det, th[a], th[b], th[c], pu[i], pv[i], pz[i], tol
+                    )
+                    if d >= 0.0:
+                        if d > err:
+                            err = d
+                        covered[i] = True
+    missed = 0
+    for i in range(n):
+        if not covered[i]:
+            missed += 1
+    return err, missed
+
+
+@jit
+def lattice_vertical_error(tu, tv, th, tris, pu, pv, zwin, vwin):  # pragma: no cover - numba
+    """Vertical distance between triangles (tu, tv, th; u/v units) and the lattice points (pu[k], pv[j])
+    of heights zwin[j, k] where vwin[j, k] (a valid sample). Returns (max over every test, sum of squares
+    and count over the samples, each once: at the first triangle that covers it, valid samples that no
+    triangle covers). pu increases, pv decreases (north row first). Each triangle tests the points of its
+    rows between its edges (a small margin, then the same barycentric test as the scattered-point kernel:
+    edges included). Only a (rows, cols) byte array besides the inputs: a tile that spans the whole DEM
+    needs one byte per sample."""
+    nj, nk = zwin.shape
+    if nj == 0 or nk == 0:
+        return 0.0, 0.0, 0, 0
+    seen = np.zeros((nj, nk), np.uint8)
+    sumsq = 0.0
+    count = 0
+    pu0 = pu[0]
+    du = (pu[nk - 1] - pu[0]) / (nk - 1) if nk > 1 else 1.0
+    pv0 = pv[0]
+    dv = (pv[0] - pv[nj - 1]) / (nj - 1) if nj > 1 else 1.0
+    if du <= 0.0:
+        du = 1.0
+    if dv <= 0.0:
+        dv = 1.0
+    err = 0.0
+    tol = 1e-9
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ua, va, ub, vb, uc, vc = tu[a], tv[a], tu[b], tv[b], tu[c], tv[c]
+        det = (vb - vc) * (ua - uc) + (uc - ub) * (va - vc)
+        if det == 0.0:
+            continue
+        vmin = min(va, vb, vc)
+        vmax = max(va, vb, vc)
+        j0 = max(int(math.floor((pv0 - vmax) / dv)) - 1, 0)
+        j1 = min(int(math.ceil((pv0 - vmin) / dv)) + 1, nj - 1)
+        for j in range(j0, j1 + 1):
+            y = pv[j]
+            if y < vmin - 1e-6 or y > vmax + 1e-6:
+                continue
+            lo = 1e300
+            hi = -1e300
+            for q in range(3):
+                if q == 0:
+                    u1, v1, u2, v2 = ua, va, ub, vb
+                elif q == 1:
+                    u1, v1, u2, v2 = ub, vb, uc, vc
+                else:
+                    u1, v1, u2, v2 = uc, vc, ua, va
+                if v1 == v2:
+                    if abs(y - v1) <= 1e-6:
+                        lo = min(lo, u1, u2)
+                        hi = max(hi, u1, u2)
+                elif min(v1, v2) - 1e-6 <= y <= max(v1, v2) + 1e-6:
+                    x = u1 + (y - v1) * (u2 - u1) / (v2 - v1)
+                    lo = min(lo, x)
+                    hi = max(hi, x)
+            if hi < lo:
+                continue
+            k0 = max(int(math.floor((lo - pu0) / du)) - 1, 0)
+            k1 = min(int(math.ceil((hi - pu0) / du)) + 1, nk - 1)
+            for k in range(k0, k1 + 1):
+                if not vwin[j, k]:
+                    continue
+                x = pu[k]
+                d = triangle_gap(ua, va, ub, vb, uc, vc, det, th[a], th[b], th[c], x, y, zwin[j, k], tol)
+                if d >= 0.0:
+                    if d > err:
+                        err = d
+                    if seen[j, k] == 0:
+                        seen[j, k] = 1
+                        sumsq += d * d
+                        count += 1
+    missed = 0
+    for j in range(nj):
+        for k in range(nk):
+            if vwin[j, k] and seen[j, k] == 0:
+                missed += 1
+    return err, sumsq, count, missed

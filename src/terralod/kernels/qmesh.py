@@ -1,0 +1,175 @@
+"""Quantized-mesh ordering kernels: the triangle and vertex order a tile is written in, and the merge of
+vertices that quantise to one (u, v).
+
+The format (Cesium quantized-mesh 1.0) writes indices with high-water-mark coding and vertices as zig-zag
+deltas: both are small, and gzip well, when each next triangle shares an edge with the one before and
+vertices are numbered in first use. :func:`walk_order` gives that triangle order, :func:`rotate_after`
+turns each triangle to (shared, shared, new), :func:`first_use` renumbers the vertices; the encoder
+(:mod:`terralod.export.quantized_mesh_format`) calls them. :func:`merge_uv` keeps one vertex per quantised
+(u, v) (clipped meshes make the same edge crossing in two neighbours). Pure functions on arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from terralod.kernels import jit, leaf
+
+
+@leaf
+def _free(nbr, seen, t):  # pragma: no cover - numba
+    """How many unvisited neighbours triangle t has."""
+    k = 0
+    for q in range(3):
+        m = nbr[3 * t + q]
+        if m >= 0 and not seen[m]:
+            k += 1
+    return k
+
+
+@jit
+def walk_order(tris, seeds, nv):  # pragma: no cover - numba
+    """Triangle order: a depth-first walk across shared edges (each next triangle shares an edge with the
+    one before wherever it can, so two of its three indices are recent ones and the high-water-mark codes
+    stay small), going on to the unvisited neighbour that comes first in ``seeds`` (Morton order of the
+    centroids), restarting at the next unvisited seed when the walk is stuck."""
+    nt = tris.shape[0]
+    # each undirected edge's two triangles through an open-addressing table of edge keys (one pass)
+    cap = 16
+    while cap < 6 * nt:
+        cap *= 2
+    slot_key = np.full(cap, -1, np.int64)
+    slot_half = np.empty(cap, np.int64)
+    nbr = np.full(3 * nt, -1, np.int64)
+    for t in range(nt):
+        for q in range(3):
+            a = tris[t, q]
+            b = tris[t, (q + 1) % 3]
+            key = min(a, b) * nv + max(a, b)
+            h = (key * 2654435761) & (cap - 1)
+            while slot_key[h] >= 0 and slot_key[h] != key:
+                h = (h + 1) & (cap - 1)
+            if slot_key[h] == key:
+                o = slot_half[h]
+                nbr[3 * t + q] = o // 3
+                nbr[o] = t
+            else:
+                slot_key[h] = key
+                slot_half[h] = 3 * t + q
+    rank = np.empty(nt, np.int64)
+    for i in range(nt):
+        rank[seeds[i]] = i
+    seen = np.zeros(nt, np.bool_)
+    out = np.empty(nt, np.int64)
+    no = 0
+    stack = np.empty(2 * nt + 1, np.int64)
+    sp = 0
+    for s in seeds:
+        if seen[s]:
+            continue
+        cur = s
+        while True:
+            seen[cur] = True
+            out[no] = cur
+            no += 1
+            best = -1
+            for q in range(3):
+                m = nbr[3 * cur + q]
+                if m >= 0 and not seen[m]:
+                    if best < 0:
+                        best = m
+                    elif _free(nbr, seen, m) * nt + rank[m] < _free(nbr, seen, best) * nt + rank[best]:
+                        stack[sp] = best
+                        sp += 1
+                        best = m
+                    else:
+                        stack[sp] = m
+                        sp += 1
+            if best < 0:
+                while sp > 0:
+                    sp -= 1
+                    if not seen[stack[sp]]:
+                        best = stack[sp]
+                        break
+            if best < 0:
+                break
+            cur = best
+    return out
+
+
+@jit
+def rotate_after(tris):  # pragma: no cover - numba
+    """Each triangle rotated (its winding kept) so that the vertex it does not share with the triangle
+    before comes last: a walk's triangles then read (shared, shared, new)."""
+    out = tris.copy()
+    for t in range(1, tris.shape[0]):
+        for q in range(3):
+            i = tris[t, q]
+            if i != out[t - 1, 0] and i != out[t - 1, 1] and i != out[t - 1, 2]:
+                out[t, 0] = tris[t, (q + 1) % 3]
+                out[t, 1] = tris[t, (q + 2) % 3]
+                out[t, 2] = i
+                break
+    return out
+
+
+@jit
+def first_use(tris, nv):  # pragma: no cover - numba
+    """Vertices renumbered in first-use order of ``tris`` (unused ones last): (order, renumbered tris)."""
+    remap = np.full(nv, -1, np.int64)
+    order = np.empty(nv, np.int64)
+    k = 0
+    out = np.empty_like(tris)
+    for t in range(tris.shape[0]):
+        for q in range(3):
+            i = tris[t, q]
+            if remap[i] < 0:
+                remap[i] = k
+                order[k] = i
+                k += 1
+            out[t, q] = remap[i]
+    for i in range(nv):
+        if remap[i] < 0:
+            remap[i] = k
+            order[k] = i
+            k += 1
+    return order, out
+
+
+@jit
+def merge_uv(tris, u, v):  # pragma: no cover - numba
+    """One vertex per quantised (u, v) among those ``tris`` uses (the lowest index of each, in index
+    order; open-addressing hash of u * 32768 + v): (kept indices, tris renumbered to them)."""
+    n = u.size
+    used = np.zeros(n, np.bool_)
+    for t in range(tris.shape[0]):
+        for q in range(3):
+            used[tris[t, q]] = True
+    cap = 16
+    while cap < 2 * n:
+        cap *= 2
+    slot_key = np.full(cap, -1, np.int64)
+    slot_val = np.empty(cap, np.int64)
+    remap = np.full(n, -1, np.int64)
+    keep = np.empty(n, np.int64)
+    k = 0
+    for i in range(n):
+        if not used[i]:
+            continue
+        key = u[i] * 32768 + v[i]
+        h = (key * 2654435761) & (cap - 1)
+        while slot_key[h] >= 0 and slot_key[h] != key:
+            h = (h + 1) & (cap - 1)
+        if slot_key[h] == key:
+            remap[i] = slot_val[h]
+        else:
+            slot_key[h] = key
+            slot_val[h] = k
+            remap[i] = k
+            keep[k] = i
+            k += 1
+    out = np.empty_like(tris)
+    for t in range(tris.shape[0]):
+        for q in range(3):
+            out[t, q] = remap[tris[t, q]]
+    return keep[:k], out
