@@ -39,9 +39,10 @@ def ecef_lonlat(lon: Any, lat: Any, h: Any) -> np.ndarray:
 
 
 class Geodesy:
-    """Transforms of one store's CRS (WKT or any pyproj input). Raises InputError on an unknown CRS."""
+    """Transforms of one store's CRS (WKT or any pyproj input). Raises InputError on an unknown CRS, and on
+    a geographic one unless ``geographic`` (the web exports need metres; a page's lon/lat lattice does not)."""
 
-    def __init__(self, crs: str | None, where: str | None = None) -> None:
+    def __init__(self, crs: str | None, where: str | None = None, *, geographic: bool = False) -> None:
         from pyproj import CRS, Transformer
         from pyproj.exceptions import CRSError
 
@@ -53,7 +54,7 @@ class Geodesy:
             self.crs = CRS.from_user_input(crs)
         except CRSError as exc:
             raise InputError(f"unknown CRS ({str(exc)[:80]})", where) from exc
-        if self.crs.is_geographic:
+        if self.crs.is_geographic and not geographic:
             raise InputError("has a geographic CRS; expected a projected (metric) CRS", where)
         try:
             self._to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
@@ -80,6 +81,18 @@ class Geodesy:
         v = np.asarray(vertices_m, np.float64)
         lon, lat = self.lonlat(v[:, 0], v[:, 1])
         return self.ecef_lonlat(lon, lat, v[:, 2])
+
+    def lonlat_bounds(
+        self, box_m: tuple[float, float, float, float], n: int = 65
+    ) -> tuple[float, float, float, float]:
+        """(west, south, east, north) degrees around a CRS box (w, s, e, n), its edges sampled at ``n``
+        points each (a projected box is curved in longitude/latitude)."""
+        w, s, e, nn = box_m
+        t = np.linspace(0.0, 1.0, n)
+        xs = np.concatenate([w + (e - w) * t, np.full(n, e), w + (e - w) * t, np.full(n, w)])
+        ys = np.concatenate([np.full(n, s), s + (nn - s) * t, np.full(n, nn), s + (nn - s) * t])
+        lon, lat = self.lonlat(xs, ys)
+        return float(lon.min()), float(lat.min()), float(lon.max()), float(lat.max())
 
     def region(self, box_m: tuple[float, ...], drop_m: float = 0.0, n: int = 9) -> list[float]:
         """3D Tiles ``region`` (west, south, east, north radians, min, max height) around a CRS box
