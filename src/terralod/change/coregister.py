@@ -22,7 +22,7 @@ BEFORE's grid), same output (the translation applied to AFTER, metres):
   (:func:`_fit_on_after_grid`, like with like).
   ``benchmarks/change.py`` measures both on known shifts of real DEMs (accuracy, time, memory).
 
-"Stable ground" (:func:`find_stable_ground`) is where the fit and σ may look: cells valid in both DEMs,
+"Stable ground" (:class:`StableGroundFinder`) is where the fit and σ may look: cells valid in both DEMs,
 inside ``--stable`` when given, outside ``--exclude`` (glaciers, lakes, the known change), off *level
 surfaces* (connected patches of BEFORE — or AFTER on the same grid — whose elevation is exactly constant:
 the sea at 0 m, lakes, reservoirs; a water surface says nothing about survey error and can change level
@@ -258,43 +258,57 @@ def slope_deg(hf) -> np.ndarray:
     return np.degrees(np.arctan(np.hypot(gx / dx, gy / dy)))
 
 
-def find_stable_ground(
-    pair: AlignedPair,
-    dod: np.ndarray,
-    *,
-    given: np.ndarray | None = None,
-    exclude: np.ndarray | None = None,
-    slope_min_deg: float = SLOPE_MIN_DEG,
-) -> StableGround:
-    """Stable ground of a DoD and its sloping part (module docstring)."""
-    before = pair.before
-    valid = np.isfinite(dod)
-    level, n_level = level_surfaces(before.elevation_m, before.valid)
-    if pair.same_grid:
-        lv2, _ = level_surfaces(pair.after.elevation_m, pair.after.valid)
-        if (lv2 & ~level).any():
-            from scipy import ndimage
+class StableGroundFinder:
+    """The stable ground of one pair for any DoD of it (module docstring).
 
-            level |= lv2
-            n_level = int(ndimage.label(level, structure=np.ones((3, 3), bool))[1])
-    base = valid & ~level
-    user = None
-    if given is not None:
-        user = int((given & valid).sum())
-        base &= given
-    n_excl = 0
-    if exclude is not None:
-        n_excl = int((exclude & valid & ~level).sum())
-        base &= ~exclude
-    mask = stable_ground(dod, base)
-    change = int((base & ~mask).sum())
-    sl = slope_deg(before)
-    fit = mask & (sl >= slope_min_deg)
-    return StableGround(
-        mask=mask, fit=fit, slope_min_deg=slope_min_deg, valid_cells=int(valid.sum()), user_mask_cells=user,
-        excluded_cells=n_excl, level_cells=int((level & valid).sum()), level_patches=n_level,
-        change_cells=change, flat_cells=int((mask & ~fit).sum()), candidates=base & (sl >= slope_min_deg), base=base,
-    )  # fmt: skip
+    What depends only on the pair and the user's masks is computed once, here: the level surfaces (of
+    BEFORE, and of AFTER on the same grid), BEFORE's slopes and so its sloping cells. Each call takes a DoD
+    (its valid cells and its change) and returns a :class:`StableGround`; the result is the same as
+    recomputing everything for that DoD."""
+
+    def __init__(
+        self,
+        pair: AlignedPair,
+        *,
+        given: np.ndarray | None = None,
+        exclude: np.ndarray | None = None,
+        slope_min_deg: float = SLOPE_MIN_DEG,
+    ) -> None:
+        before = pair.before
+        level, n_level = level_surfaces(before.elevation_m, before.valid)
+        if pair.same_grid:
+            lv2, _ = level_surfaces(pair.after.elevation_m, pair.after.valid)
+            if (lv2 & ~level).any():
+                from scipy import ndimage
+
+                level |= lv2
+                n_level = int(ndimage.label(level, structure=np.ones((3, 3), bool))[1])
+        self.given = given
+        self.exclude = exclude
+        self.slope_min_deg = slope_min_deg
+        self.level = level
+        self.level_patches = n_level
+        self.sloping = slope_deg(before) >= slope_min_deg
+
+    def __call__(self, dod: np.ndarray) -> StableGround:
+        valid = np.isfinite(dod)
+        base = valid & ~self.level
+        user = None
+        if self.given is not None:
+            user = int((self.given & valid).sum())
+            base &= self.given
+        n_excl = 0
+        if self.exclude is not None:
+            n_excl = int((self.exclude & valid & ~self.level).sum())
+            base &= ~self.exclude
+        mask = stable_ground(dod, base)
+        fit = mask & self.sloping
+        return StableGround(
+            mask=mask, fit=fit, slope_min_deg=self.slope_min_deg, valid_cells=int(valid.sum()),
+            user_mask_cells=user, excluded_cells=n_excl, level_cells=int((self.level & valid).sum()),
+            level_patches=self.level_patches, change_cells=int((base & ~mask).sum()),
+            flat_cells=int((mask & ~fit).sum()), candidates=base & self.sloping, base=base,
+        )  # fmt: skip
 
 
 def shift_standard_error_cells(
@@ -337,24 +351,52 @@ def coregister(
     method: str = "xdem",
     seed: int = 0,
     slope_min_deg: float = SLOPE_MIN_DEG,
+    ground: StableGroundFinder | None = None,
 ) -> Coregistration:
     """Fit the translation of AFTER onto BEFORE on stable ground (``stable``: a mask on BEFORE's grid, or
-    None for "outside the change"; ``exclude``: cells never stable). Returns a :class:`Coregistration`
-    (not yet applied) with :attr:`~Coregistration.statement` saying what was fitted."""
+    None for "outside the change"; ``exclude``: cells never stable; ``ground``: the pair's
+    :class:`StableGroundFinder` when the caller has one, which then stands for those three). Returns a
+    :class:`Coregistration` (not yet applied) with :attr:`~Coregistration.statement` saying what was fitted.
+
+    The recipe: find the stable ground of the raw difference; stop if it is too small or identical; fit a
+    horizontal shift in rounds on its sloping part; keep the shift only if its standard error allows; without
+    one, look for the bias through a searched shift; settle the vertical bias; say what was done."""
     if method not in METHODS:
         raise ValueError(f"Expected a co-registration method in {METHODS}, got {method!r}")
     t0 = time.perf_counter()
+    if ground is None:
+        ground = StableGroundFinder(pair, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
     dod0 = dem_of_difference(pair)
-    sg = find_stable_ground(pair, dod0, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+    sg = ground(dod0)
     res = Coregistration(method=method, stable_cells=sg.cells, nmad_before_m=nmad(dod0[sg.mask]))
+    if _nothing_to_fit(res, sg, dod0):
+        res.seconds = time.perf_counter() - t0
+        return res
+    cand, sg, why = _fit_shift_rounds(pair, ground, sg, dod0, method, seed, res)
+    shift, why = _accepted_shift(pair, sg, cand, why, res, ground.slope_min_deg)
+    bias_only = shift is None
+    searched = None
+    if shift is None:
+        shift, sg, searched = _bias_ground_without_a_shift(pair, ground, sg, dod0, seed, res)
+    if searched is None:
+        shift, sg, d = _settle_bias(pair, ground, sg, shift, bias_only)
+    else:
+        d = dem_of_difference(pair, shift)
+    _conclude(res, sg, shift, d, bias_only, why, method)
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def _nothing_to_fit(res: Coregistration, sg: StableGround, dod0: np.ndarray) -> bool:
+    """Whether there is nothing to fit: too little stable ground, or a difference exactly 0 on it (never
+    concluded from an NMAD of 0). Fills ``res`` when so."""
     if sg.cells < MIN_STABLE_CELLS:
         res.notes.append(f"co-registration skipped: {sg.cells} stable cells (< {MIN_STABLE_CELLS})")
         res.statement = (
             f"The surveys were not lined up: only {sg.cells} cells of stable ground were left to do it on."
         )
         res.method = "none"
-        res.seconds = time.perf_counter() - t0
-        return res
+        return True
     if bool(np.all(dod0[sg.mask] == 0.0)):
         res.notes.append(
             "stable ground is identical in both DEMs (difference exactly 0): shift 0, nothing to fit"
@@ -362,10 +404,36 @@ def coregister(
         res.statement = "The two surveys are identical on unchanged ground, so no alignment was needed."
         res.nmad_after_m = 0.0
         res.method, res.mode = "none", "identical"
-        res.seconds = time.perf_counter() - t0
-        return res
-    # rounds: fit on the sloping stable ground, re-find the stable ground on the improved difference (a
-    # misregistered survey makes sloping ground look changed), fit again; keep a fit only if it helps
+        return True
+    return False
+
+
+def _fit_once(
+    pair: AlignedPair, cells: np.ndarray, method: str, seed: int
+) -> tuple[tuple[float, float, float], int]:
+    """One horizontal fit on ``cells`` with ``method`` (xdem's binned fit is polished by least squares on the
+    unsmoothed surfaces: on gentle or noisy ground its bins leave a tenth of a cell that the cells themselves
+    can resolve)."""
+    if method == "xdem":
+        s1, iters = _fit_xdem(pair, cells, seed)
+        s1, more = _fit_terralod(pair, cells, seed, start=s1)
+        return s1, iters + more
+    return _fit_terralod(pair, cells, seed)
+
+
+def _fit_shift_rounds(
+    pair: AlignedPair,
+    ground: StableGroundFinder,
+    sg: StableGround,
+    dod0: np.ndarray,
+    method: str,
+    seed: int,
+    res: Coregistration,
+) -> tuple[tuple[float, float, float] | None, StableGround, str]:
+    """Up to three rounds: fit on the sloping stable ground, re-find the stable ground on the improved
+    difference (a misregistered survey makes sloping ground look changed), fit again; a later round's fit is
+    kept only if it lowers the NMAD on the sloping ground. Returns (the shift or None, the stable ground, why
+    no shift could be fitted)."""
     cand: tuple[float, float, float] | None = None
     dod = dod0
     why = ""
@@ -376,19 +444,12 @@ def coregister(
                 cells = sg.candidates  # the fit's own outlier rejection takes the change out
             else:
                 why = (
-                    f"only {sg.fit_cells:,} stable cells have slopes above {slope_min_deg:g}° "
+                    f"only {sg.fit_cells:,} stable cells have slopes above {ground.slope_min_deg:g}° "
                     f"(< {MIN_FIT_CELLS})"
                 )
                 break
         try:
-            if method == "xdem":
-                s1, iters = _fit_xdem(pair, cells, seed)
-                # xdem's binned fit, polished by least squares on the unsmoothed surfaces: on gentle or
-                # noisy ground its bins leave a tenth of a cell that the cells themselves can resolve
-                s1, more = _fit_terralod(pair, cells, seed, start=s1)
-                iters += more
-            else:
-                s1, iters = _fit_terralod(pair, cells, seed)
+            s1, iters = _fit_once(pair, cells, method, seed)
             res.iterations += iters
         except Exception as exc:  # noqa: BLE001 - an estimator's failure is a note and a fall-back
             msg = str(exc).splitlines()[0][:160] if str(exc) else type(exc).__name__
@@ -399,74 +460,112 @@ def coregister(
         if cand is not None and not nmad(d1[sg.fit]) < nmad(dod[sg.fit]):
             break
         cand, dod = s1, d1 - float(np.nanmedian(d1[sg.mask]))
-        sg2 = find_stable_ground(pair, dod, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+        sg2 = ground(dod)
         if sg2.cells < MIN_STABLE_CELLS or np.array_equal(sg2.mask, sg.mask):
             break
         sg = sg2
-    bias_only = True
-    if cand is not None:
-        d1 = dem_of_difference(pair, cand)
-        se = shift_standard_error_cells(pair, sg.fit, d1, cand)
-        res.shift_se_cells = se
-        if se <= MAX_SHIFT_SE_CELLS:
-            bias_only = False
-            shift = cand
-        else:
-            why = (
-                f"the sloping stable ground ({sg.fit_cells:,} cells above {slope_min_deg:g}°) leaves the "
-                f"shift uncertain by ±{se:.2f} cells"
+    return cand, sg, why
+
+
+def _accepted_shift(
+    pair: AlignedPair,
+    sg: StableGround,
+    cand: tuple[float, float, float] | None,
+    why: str,
+    res: Coregistration,
+    slope_min_deg: float,
+) -> tuple[tuple[float, float, float] | None, str]:
+    """The fitted shift when its standard error is at most :data:`MAX_SHIFT_SE_CELLS` (recorded in
+    ``res``), else None and why not."""
+    if cand is None:
+        return None, why
+    d1 = dem_of_difference(pair, cand)
+    se = shift_standard_error_cells(pair, sg.fit, d1, cand)
+    res.shift_se_cells = se
+    if se <= MAX_SHIFT_SE_CELLS:
+        return cand, why
+    return None, (
+        f"the sloping stable ground ({sg.fit_cells:,} cells above {slope_min_deg:g}°) leaves the "
+        f"shift uncertain by ±{se:.2f} cells"
+    )
+
+
+def _bias_ground_without_a_shift(
+    pair: AlignedPair,
+    ground: StableGroundFinder,
+    sg: StableGround,
+    dod0: np.ndarray,
+    seed: int,
+    res: Coregistration,
+) -> tuple[tuple[float, float, float], StableGround, tuple[float, float] | None]:
+    """No horizontal shift could be fitted: the stable ground the vertical bias is measured on. A shift of a
+    cell or more found by :func:`_search_shift` (polished by least squares when that stays within a cell) is
+    looked through, not applied: the bias is the trimmed mean on the stable ground it leaves, so that an
+    unfitted shift of several cells does not pollute it. Returns (the shift: (0, 0, dz) through a searched
+    shift, else zero; the stable ground the bias is measured on; the searched shift or None)."""
+    shift = (0.0, 0.0, 0.0)
+    searched = _search_shift(pair, sg.base if sg.base is not None else sg.mask)
+    px = min(pair.before.spacing_m)
+    if searched is not None and math.hypot(*searched) < SEARCH_USE_CELLS * px:
+        searched = None  # under a cell the flatter ground's median is barely moved by the shift
+    if searched is not None:
+        ds = dem_of_difference(pair, (searched[0], searched[1], 0.0))
+        sgs = ground(ds - float(np.nanmedian(ds[sg.base])))
+        if sgs.cells >= MIN_STABLE_CELLS:
+            # polished by least squares on that ground (slopes of any size), for the bias only
+            pol, _ = _fit_terralod(pair, sgs.mask, seed, start=(searched[0], searched[1], 0.0))
+            if math.hypot(pol[0] - searched[0], pol[1] - searched[1]) <= px:
+                searched = (pol[0], pol[1])
+                ds = dem_of_difference(pair, (searched[0], searched[1], 0.0))
+            for _ in range(2):
+                sgs2 = ground(ds - _trimmed_mean(ds[sgs.mask]))
+                if sgs2.cells < MIN_STABLE_CELLS:
+                    break
+                sgs = sgs2
+            shift = (0.0, 0.0, -_trimmed_mean(ds[sgs.mask]))
+            res.notes.append(
+                f"vertical bias measured with AFTER moved by ({searched[0]:+.1f}, {searched[1]:+.1f}) m, "
+                "found by a direct search on the land left (not applied: too imprecise to report)"
             )
-    searched = None
-    if bias_only:
-        shift = (0.0, 0.0, 0.0)
-        dod = dod0
-        searched = _search_shift(pair, sg.base if sg.base is not None else sg.mask)
-        px = min(pair.before.spacing_m)
-        if searched is not None and math.hypot(*searched) < SEARCH_USE_CELLS * px:
-            searched = None  # under a cell the flatter ground's median is barely moved by the shift
-        if searched is not None:
-            # the bias on the stable ground seen through the searched shift (which is not applied: it is
-            # not precise enough to report), so that an unfitted shift of several cells does not pollute it
-            ds = dem_of_difference(pair, (searched[0], searched[1], 0.0))
-            sgs = find_stable_ground(pair, ds - float(np.nanmedian(ds[sg.base])), given=stable,
-                                     exclude=exclude, slope_min_deg=slope_min_deg)  # fmt: skip
-            if sgs.cells >= MIN_STABLE_CELLS:
-                # polished by least squares on that ground (slopes of any size), for the bias only
-                pol, _ = _fit_terralod(pair, sgs.mask, seed, start=(searched[0], searched[1], 0.0))
-                if math.hypot(pol[0] - searched[0], pol[1] - searched[1]) <= px:
-                    searched = (pol[0], pol[1])
-                    ds = dem_of_difference(pair, (searched[0], searched[1], 0.0))
-                for _ in range(2):
-                    med = _trimmed_mean(ds[sgs.mask])
-                    sgs2 = find_stable_ground(pair, ds - med, given=stable, exclude=exclude,
-                                              slope_min_deg=slope_min_deg)  # fmt: skip
-                    if sgs2.cells < MIN_STABLE_CELLS:
-                        break
-                    sgs = sgs2
-                shift = (0.0, 0.0, -_trimmed_mean(ds[sgs.mask]))
-                res.notes.append(
-                    f"vertical bias measured with AFTER moved by ({searched[0]:+.1f}, {searched[1]:+.1f}) m, "
-                    "found by a direct search on the land left (not applied: too imprecise to report)"
-                )
-            else:
-                searched = None
-        base_bias = -shift[2] if searched is not None else float(np.nanmedian(dod0[_bias_cells(sg, True)]))
-        sg = find_stable_ground(pair, dod0 - base_bias, given=stable, exclude=exclude,
-                                slope_min_deg=slope_min_deg)  # fmt: skip
-    # the vertical bias: the median difference on the stable ground (its flatter part when no horizontal
-    # shift could be fitted: an unknown shift moves sloping cells' differences most), twice
-    for _ in range(0 if searched is not None else 2):
+        else:
+            searched = None
+    base_bias = -shift[2] if searched is not None else float(np.nanmedian(dod0[_bias_cells(sg, True)]))
+    return shift, ground(dod0 - base_bias), searched
+
+
+def _settle_bias(
+    pair: AlignedPair,
+    ground: StableGroundFinder,
+    sg: StableGround,
+    shift: tuple[float, float, float],
+    bias_only: bool,
+) -> tuple[tuple[float, float, float], StableGround, np.ndarray]:
+    """The vertical bias: the median difference on the stable ground (its flatter part when no horizontal
+    shift could be fitted: an unknown shift moves sloping cells' differences most), twice, the stable ground
+    re-found on each. Returns (the shift with its bias, the stable ground, the difference through it)."""
+    for _ in range(2):
         d = dem_of_difference(pair, shift)
         med = float(np.nanmedian(d[_bias_cells(sg, bias_only)]))
         shift = (shift[0], shift[1], shift[2] - med)
         d = d - med
-        sg2 = find_stable_ground(pair, d, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+        sg2 = ground(d)
         if sg2.cells < MIN_STABLE_CELLS:
             break
         sg = sg2
-    if searched is not None:
-        d = dem_of_difference(pair, shift)
-    res.shift_m = tuple(float(v) for v in shift)
+    return shift, sg, d
+
+
+def _conclude(
+    res: Coregistration,
+    sg: StableGround,
+    shift: tuple[float, float, float],
+    d: np.ndarray,
+    bias_only: bool,
+    why: str,
+    method: str,
+) -> None:
+    """Fill ``res`` with the shift, the cells it was fitted on and a plain statement of what was fitted."""
+    res.shift_m = (float(shift[0]), float(shift[1]), float(shift[2]))
     res.fit_cells = sg.cells if bias_only else sg.fit_cells
     res.stable_cells = sg.cells
     res.nmad_after_m = nmad(d[sg.mask])
@@ -483,8 +582,6 @@ def coregister(
         res.statement = (
             f"The later survey was lined up with the earlier one on {sg.describe(False).split(': ', 1)[1]}."
         )
-    res.seconds = time.perf_counter() - t0
-    return res
 
 
 #: Largest horizontal shift the direct search looks for, cells
@@ -493,9 +590,6 @@ SEARCH_MAX_CELLS = 6
 SEARCH_USE_CELLS = 1.0
 #: The search's best shift is used only when it lowers the NMAD on the land by at least this fraction
 SEARCH_MIN_GAIN = 0.1
-_FLAT = False
-_AGG = np.nanmedian
-_POLISH = True
 
 
 def _search_shift(pair: AlignedPair, land: np.ndarray) -> tuple[float, float] | None:

@@ -4,7 +4,7 @@ and a series' volume against time; :func:`measure_change` runs the whole chain o
 Uncertainty (what a geoscientist signs)
 ---------------------------------------
 - σ, the vertical uncertainty of one DoD cell: the NMAD of the co-registered DoD on stable ground
-  (:func:`terralod.change.coregister.find_stable_ground`: valid in both, outside the change, off water
+  (:class:`terralod.change.coregister.StableGroundFinder`: valid in both, outside the change, off water
   surfaces and ``--exclude``), or the given ``sigma_m`` (``--sigma-m``). The given value wins when there is
   one. σ is refused — a stated default (:data:`ASSUMED_SIGMA_M`) is used, with a warning and a plain
   statement — when the stable ground cannot give it: fewer than 100 cells, a difference exactly 0 or
@@ -49,8 +49,8 @@ from terralod.change.coregister import (
     SLOPE_MIN_DEG,
     Coregistration,
     StableGround,
+    StableGroundFinder,
     coregister,
-    find_stable_ground,
     nmad,
 )
 from terralod.change.difference import (
@@ -424,15 +424,16 @@ def measure_change(
     The result's ``summary`` holds the contract keys of ``terralod change`` (see :mod:`terralod.cli.change`).
     """
     pair = pair or align(before, after)
+    ground = StableGroundFinder(pair, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
     if coregistration:
-        co = coregister(pair, stable=stable, exclude=exclude, method=method, slope_min_deg=slope_min_deg)
+        co = coregister(pair, method=method, ground=ground)
         co.applied = co.method != "none"
     else:
         co = Coregistration(method="none", notes=["co-registration skipped (--no-coregister)"])
         co.statement = "The surveys were compared as they are, without lining them up (--no-coregister)."
     shift = co.shift_m if co.applied else (0.0, 0.0, 0.0)
     dod = dem_of_difference(pair, shift)
-    sg = find_stable_ground(pair, dod, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
+    sg = ground(dod)
     st = sg.mask
     rerr = resampling_error(pair, after, shift)
     unc = estimate_uncertainty(
