@@ -74,10 +74,17 @@ def read_options(f: Callable[..., Any]) -> Callable[..., Any]:
         "--encoding", type=click.Choice(["terrain-rgb", "terrarium"]), help="RGB-encoded elevation tiles."
     )(f)
     f = click.option("--tile", "tile_zxy", help="Z/X/Y of an XYZ web-map tile (georeferences it).")(f)
+    f = click.option(
+        "--crs", "crs", default=None,
+        help="CRS of the input (EPSG:32610, WKT or PROJ string): assigns one to a file without, or overrides "
+        "the file's own (said in the notes).",
+    )(f)  # fmt: skip
     return f
 
 
-def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, encoding=None, tile_zxy=None):
+def load(
+    path: str, spacing=None, vertical_scale=None, vertical_offset=None, encoding=None, tile_zxy=None, crs=None
+):
     """Read a DEM with the reader options of :func:`read_options` → :class:`terralod.Heightfield`."""
     from terralod.io.reader import read_heightfield
 
@@ -101,6 +108,7 @@ def load(path: str, spacing=None, vertical_scale=None, vertical_offset=None, enc
             vertical_offset=vertical_offset,
             encoding=encoding,
             tile=tile,
+            crs=crs,
         )
     except MemoryError:
         raise InputError(out_of_memory(path), str(path)) from None

@@ -45,6 +45,7 @@ def run_windowed_build(
         spacing_m=parse_pair(read.get("spacing"), "--spacing"),
         vertical_scale=read.get("vertical_scale"),
         vertical_offset=read.get("vertical_offset"),
+        crs=read.get("crs"),
     )
     client = None
     if dask_address:

@@ -178,7 +178,8 @@ def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: floa
     try:
         if Path(input_path).suffix.lower() in (".las", ".laz"):
             model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction,
-                                                  workers=workers, executor=executor, timings=stages)  # fmt: skip
+                                                  workers=workers, executor=executor, timings=stages,
+                                                  crs=read.get("crs"))  # fmt: skip
         else:
             model = DetailIncrementModel.from_heightfield(load(input_path, **read), sub_blocks=blocks,
                                                           base_fraction=base_fraction, workers=workers,

@@ -131,7 +131,7 @@ def info(path: str, as_json: bool, **read: Any) -> None:
     if p.suffix.lower() in (".las", ".laz"):
         from terralod.tin.pointcloud import describe_las
 
-        d = describe_las(p)
+        d = describe_las(p, crs=read.get("crs"))
         if as_json:
             click.echo(json.dumps(d, indent=2))
             return

@@ -29,6 +29,7 @@ from typing import Any
 from terralod.errors import InputError
 
 __all__ = [
+    "assign_crs",
     "AREA_MARGIN_DEG",
     "area_of_use",
     "CrsSummary",
@@ -155,6 +156,17 @@ def to_crs(crs: Any, source: str | None = None) -> Any:
     except Exception as exc:  # noqa: BLE001 - CRSError, and SystemError on text PROJ's decoder chokes on
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
         raise InputError(f"its CRS {_short(crs)!r} is not one PROJ can use ({first})", source) from None
+
+
+def assign_crs(given: Any, own: Any, source: str | None = None) -> tuple[Any, str]:
+    """(CRS, note) for a CRS given from outside the file (``--crs``): it assigns one to a file without a
+    CRS, or overrides the file's own; the note says which, naming both."""
+    crs = to_crs(given, source)
+    if own is None or not str(own):
+        return crs, f"CRS given with --crs: {describe_crs(crs)} (the file has none)"
+    if to_crs(own, source) == crs:
+        return crs, f"CRS given with --crs: {describe_crs(crs)} (the file says the same)"
+    return crs, f"CRS given with --crs: {describe_crs(crs)}, overriding the file's {describe_crs(own)}"
 
 
 def _wkt2_tree(crs: Any) -> WktNode | None:

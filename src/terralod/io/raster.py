@@ -50,7 +50,7 @@ from terralod.errors import InputError
 from terralod.fill import check_dimensions, prepare_elevation
 from terralod.heightfield import Heightfield
 from terralod.io.encodings import decode_rgb
-from terralod.io.georef import check_area_of_use, crs_summary, metric_crs
+from terralod.io.georef import assign_crs, check_area_of_use, crs_summary, metric_crs
 
 #: Web-mercator (EPSG:3857) world width, metres: one XYZ tile at zoom z spans this / 2**z.
 EARTH_CIRCUMFERENCE_M = 40075016.686
@@ -102,6 +102,7 @@ def read_raster(
     nodata: float | None = None,
     hints: FrameHints | None = None,
     notes: tuple[str, ...] = (),
+    crs: Any = None,
 ) -> Heightfield:
     """Read one band of a raster GDAL can open into a metric :class:`Heightfield`.
 
@@ -115,6 +116,7 @@ def read_raster(
     nodata : stored value that marks missing samples, used only when the band has no nodata of its own.
     hints : georeferencing used only when the file has no CRS (see :class:`FrameHints`).
     notes : notes carried into the Heightfield (e.g. which sidecar was read).
+    crs : a CRS (EPSG code, WKT, PROJ string) that assigns or overrides the file's own (CLI ``--crs``).
 
     Returns
     -------
@@ -131,9 +133,13 @@ def read_raster(
             ds = rasterio.open(path)
     except Exception as exc:  # GDAL raises several unrelated classes; all mean "cannot read this file"
         raise InputError(f"not a raster GDAL can read ({error_line(exc)})", src) from None
+    given = crs
     with ds:
         check_dimensions(ds.height, ds.width, src)
         t, crs = ds.transform, ds.crs
+        if given is not None:
+            crs, given_note = assign_crs(given, crs, src)
+            notes = (*notes, given_note)
         has_transform = not t.is_identity
         if has_transform and (t.b != 0 or t.d != 0):
             raise InputError(

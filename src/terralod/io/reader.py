@@ -87,6 +87,7 @@ def read_heightfield(
     encoding: str | None = None,
     tile: tuple[int, int, int] | None = None,
     band: int = 1,
+    crs: Any = None,
 ) -> Heightfield:
     """Read a DEM into a :class:`Heightfield` (elevation metres, metric world frame, nodata mask).
 
@@ -101,6 +102,8 @@ def read_heightfield(
     tile : (z, x, y) XYZ web-map tile address (y down from the north), which georeferences a tile in
         EPSG:3857; the tile is then reprojected to UTM like any geographic raster.
     band : 1-based raster band (GDAL rasters).
+    crs : a CRS (EPSG code, WKT, PROJ string) that assigns or overrides the input's own (CLI ``--crs``);
+        for a heightmap without georeferencing it is the CRS of the sidecar's transform / origin / bounds.
 
     Returns
     -------
@@ -129,6 +132,10 @@ def read_heightfield(
         "tile": None if tile is None else _tile(tile, src),
     }
     opts = {**side, **{k: v for k, v in explicit.items() if v is not None}}
+    if crs is not None:
+        from terralod.io.georef import to_crs
+
+        opts["crs"] = to_crs(crs, src).to_wkt()
     hints = _hints(opts, src)
     suffix = p.suffix.lower()
     if suffix in IMAGE_SUFFIXES or suffix in ARRAY_SUFFIXES:
@@ -153,6 +160,7 @@ def read_heightfield(
         encoding=opts.get("encoding"),
         nodata=opts.get("nodata"),
         hints=hints,
+        crs=crs,
     )
 
 

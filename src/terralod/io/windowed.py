@@ -53,6 +53,7 @@ from affine import Affine
 from terralod.errors import InputError, InputNotFoundError
 from terralod.fill import MIN_SIDE, fill_nodata
 from terralod.heightfield import Heightfield
+from terralod.io.georef import to_crs
 from terralod.io.raster import vertical_unit_m
 
 __all__ = ["ArraySource", "RasterSource", "WindowSource", "open_source"]
@@ -160,6 +161,7 @@ class RasterSource(WindowSource):
         vertical_offset: float | None = None,
         nodata: float | None = None,
         spacing_m: float | tuple[float, float] | None = None,
+        crs: Any = None,
     ) -> None:
         plist = [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
         if not plist:
@@ -199,9 +201,9 @@ class RasterSource(WindowSource):
         self.file_height, self.file_width = ds.height, ds.width
         self.width, self.height = ds.width, ds.height
         self.transform, self.crs, self.notes, self.flip_rows, self.flip_cols = _metric_frame(
-            ds, spacing_m, src
+            ds, spacing_m, src, crs
         )
-        vunit = vertical_unit_m(ds.crs) if self.crs is not None else None
+        vunit = vertical_unit_m(ds.crs if crs is None else to_crs(crs, src)) if self.crs is not None else None
         if vunit is not None and vertical_scale is None and self.scale == 1.0:
             self.scale = vunit[1]  # heights in the unit the CRS's vertical axis names
             self.notes = (
@@ -341,19 +343,25 @@ def open_source(paths: str | Path | Sequence[str | Path], **options: Any) -> Ras
 
 
 # -- frame ---------------------------------------------------------------------------------------------
-def _metric_frame(ds, spacing_m, src: str) -> tuple[Affine, str | None, tuple[str, ...], bool, bool]:
+def _metric_frame(
+    ds, spacing_m, src: str, given_crs: Any = None
+) -> tuple[Affine, str | None, tuple[str, ...], bool, bool]:
     """(north-up metric transform, CRS WKT or None, notes, flip rows, flip cols) of a dataset, as
-    :func:`terralod.io.raster.read_raster` places it; geographic and Mercator CRSs are refused."""
-    from terralod.io.georef import check_area_of_use
+    :func:`terralod.io.raster.read_raster` places it (``given_crs``: ``--crs``, assigned or overriding);
+    geographic and Mercator CRSs are refused."""
+    from terralod.io.georef import assign_crs, check_area_of_use
     from terralod.io.raster import _is_mercator, _metric_units, _scale_note, crs_text
 
     t, crs = ds.transform, ds.crs
+    notes: list[str] = []
+    if given_crs is not None:
+        crs, note = assign_crs(given_crs, crs, src)
+        notes.append(note)
     has_transform = not t.is_identity
     if has_transform and (t.b != 0 or t.d != 0):
         raise InputError(f"has a rotated or sheared geotransform {tuple(t)[:6]}; warp it north-up first "
                          "(gdalwarp -t_srs <its CRS>)", src)  # fmt: skip
     h, w = ds.height, ds.width
-    notes: list[str] = []
     if crs is None or not has_transform:
         if spacing_m is None:
             raise InputError("has no CRS; pass spacing_m (CLI --spacing DX[,DY]) in metres for a local frame",

@@ -303,16 +303,17 @@ class DetailIncrementModel:
         workers: int | None = None,
         timings: dict[str, float] | None = None,
         executor: Any = None,
+        crs: Any = None,
     ) -> DetailIncrementModel:
         """:meth:`from_points` of a LAS/LAZ file's points (ground only when classified, metres).
 
-        See :func:`terralod.tin.pointcloud.read_las` for ``ground_only`` and ``units``, :meth:`from_points`
+        See :func:`terralod.tin.pointcloud.read_las` for ``ground_only``, ``units`` and ``crs``, :meth:`from_points`
         for ``workers``, ``timings`` (plus "read") and ``executor``.
         """
         from terralod.tin.pointcloud import read_las
 
         clock = _Clock(timings)
-        pc = read_las(path, ground_only=ground_only, units=units)
+        pc = read_las(path, ground_only=ground_only, units=units, crs=crs)
         clock("read")
         return cls.from_points(
             pc.xyz_m,
