@@ -9,10 +9,12 @@ if [ "$(id -u)" != "0" ]; then SUDO="sudo"; fi
 APT=(env DEBIAN_FRONTEND=noninteractive apt-get -o DPkg::Lock::Timeout=600 -y -qq)
 if command -v apt-get >/dev/null 2>&1; then
   echo "install.sh: apt packages: Mesa EGL/OpenGL (libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0)," \
-    "Xvfb (xvfb xauth), Chromium, and Node/npm if missing"
+    "Xvfb (xvfb xauth), PROJ's geoid grids (proj-data), Chromium, and Node/npm if missing"
   $SUDO "${APT[@]}" update
   $SUDO "${APT[@]}" install --no-install-recommends \
     libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 xvfb xauth >/dev/null
+  # PROJ's geoid grids (egm96_15.gtx): heights above EGM96 made ellipsoidal for the web exports
+  $SUDO "${APT[@]}" install --no-install-recommends proj-data >/dev/null
   # the web viewer and its browser tests: Debian's Chromium (software WebGL) and Node for CesiumJS
   $SUDO "${APT[@]}" install --no-install-recommends chromium >/dev/null
   command -v npm >/dev/null 2>&1 || $SUDO "${APT[@]}" install --no-install-recommends nodejs npm >/dev/null

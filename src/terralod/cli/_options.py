@@ -79,11 +79,24 @@ def read_options(f: Callable[..., Any]) -> Callable[..., Any]:
         help="CRS of the input (EPSG:32610, WKT or PROJ string): assigns one to a file without, or overrides "
         "the file's own (said in the notes).",
     )(f)  # fmt: skip
+    f = click.option(
+        "--vertical-datum", "vertical_datum", default=None,
+        help="What the heights are measured from when the file does not say: egm96 (SRTM, Copernicus), "
+        "egm2008, navd88, ellipsoid, or a vertical CRS (EPSG:5773). The web exports then write heights above "
+        "the WGS 84 ellipsoid.",
+    )(f)  # fmt: skip
     return f
 
 
 def load(
-    path: str, spacing=None, vertical_scale=None, vertical_offset=None, encoding=None, tile_zxy=None, crs=None
+    path: str,
+    spacing=None,
+    vertical_scale=None,
+    vertical_offset=None,
+    encoding=None,
+    tile_zxy=None,
+    crs=None,
+    vertical_datum=None,
 ):
     """Read a DEM with the reader options of :func:`read_options` → :class:`terralod.Heightfield`."""
     from terralod.io.reader import read_heightfield
@@ -109,6 +122,7 @@ def load(
             encoding=encoding,
             tile=tile,
             crs=crs,
+            vertical_datum=vertical_datum,
         )
     except MemoryError:
         raise InputError(out_of_memory(path), str(path)) from None

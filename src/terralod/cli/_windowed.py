@@ -47,6 +47,11 @@ def run_windowed_build(
         vertical_offset=read.get("vertical_offset"),
         crs=read.get("crs"),
     )
+    if read.get("vertical_datum"):
+        from terralod.io.reader import crs_with_vertical_datum
+
+        src.crs, note = crs_with_vertical_datum(src.crs, read["vertical_datum"], src.source)
+        src.notes = (*src.notes, note)
     client = None
     if dask_address:
         client = dask_client(dask_address, n_workers=dask_workers, threads=workers)

@@ -1,9 +1,10 @@
 """Geodesy at the export boundary: the store's CRS → WGS 84 longitude/latitude and ECEF, through pyproj.
 
-Heights are the DEM's heights in metres as read: they are used as heights above the WGS 84 ellipsoid
-(no geoid change), which is what both web formats expect of a height and what the issue's contract asks.
-The horizontal coordinates go through pyproj (datum shifts included where the CRS has them); ECEF is
-pyproj's EPSG:4979 → EPSG:4978 conversion (exact, double precision).
+Heights: both web formats take heights above the WGS 84 ellipsoid. When the store's CRS names its vertical
+datum (a compound CRS, e.g. after ``--vertical-datum egm96``), :meth:`Geodesy.ellipsoidal` adds the geoid
+undulation through PROJ (:mod:`terralod.export.vertical`); otherwise heights are written as read, and the
+outputs say so. The horizontal coordinates go through pyproj (datum shifts included where the CRS has them);
+ECEF is pyproj's EPSG:4979 → EPSG:4978 conversion (exact, double precision).
 """
 
 from __future__ import annotations
@@ -42,9 +43,14 @@ class Geodesy:
     """Transforms of one store's CRS (WKT or any pyproj input). Raises InputError on an unknown CRS, and on
     a geographic one unless ``geographic`` (the web exports need metres; a page's lon/lat lattice does not)."""
 
-    def __init__(self, crs: str | None, where: str | None = None, *, geographic: bool = False) -> None:
+    def __init__(
+        self, crs: str | None, where: str | None = None, *, geographic: bool = False,
+        vertical_datum: str | None = None,
+    ) -> None:  # fmt: skip
         from pyproj import CRS, Transformer
         from pyproj.exceptions import CRSError
+
+        from terralod.export.vertical import resolve_vertical_datum
 
         if not crs:
             raise InputError(
@@ -54,6 +60,13 @@ class Geodesy:
             self.crs = CRS.from_user_input(crs)
         except CRSError as exc:
             raise InputError(f"unknown CRS ({str(exc)[:80]})", where) from exc
+        self.vertical = resolve_vertical_datum(vertical_datum, crs, where)
+        self._where = where
+        self._geoid: list[Any] = []
+        if self.crs.is_compound:
+            self.crs = self.crs.sub_crs_list[0]  # the horizontal part places x, y; the vertical is above
+        elif len(self.crs.axis_info) == 3:
+            self.crs = self.crs.to_2d()
         if self.crs.is_geographic and not geographic:
             raise InputError("has a geographic CRS; expected a projected (metric) CRS", where)
         try:
@@ -76,11 +89,50 @@ class Geodesy:
         """(N,) degrees, degrees, ellipsoidal metres → (N, 3) ECEF metres."""
         return ecef_lonlat(lon, lat, h)
 
+    @property
+    def geoid(self) -> Any:
+        """The conversion of the stored heights to ellipsoidal ones (:class:`~terralod.export.vertical.
+        GeoidConverter`), None when none is needed or the datum is unknown; made on first use (PROJ's
+        operation lookup), an InputError when PROJ lacks the datum's grid."""
+        if not self._geoid:
+            self._geoid.append(self.vertical.converter(self._where))
+        return self._geoid[0]
+
+    def ellipsoidal(self, lon: Any, lat: Any, h: Any) -> np.ndarray:
+        """Heights as stored (above the store's vertical datum) → heights above the WGS 84 ellipsoid; as
+        stored when the datum is the ellipsoid or unknown."""
+        if self.geoid is None:
+            return np.asarray(h, np.float64)
+        return self.geoid.to_ellipsoidal(lon, lat, h)
+
+    def undulation_spread_m(self, box_m: tuple[float, ...], n: int = 9) -> float:
+        """max − min of the geoid undulation over a CRS box (w, s, zmin, e, n, zmax), sampled on an n × n
+        lattice: shifting each vertex by its own undulation moves a surface between vertices by at most
+        this against samples shifted by theirs, so a declared error grows by it (0 without a geoid)."""
+        if self.geoid is None:
+            return 0.0
+        w, s, _, e, nn, _ = box_m
+        gx, gy = np.meshgrid(np.linspace(w, e, n), np.linspace(s, nn, n))
+        lon, lat = self.lonlat(gx.ravel(), gy.ravel())
+        und = self.geoid.undulation_m(lon, lat)
+        return float(np.nanmax(und) - np.nanmin(und)) if np.isfinite(und).any() else 0.0
+
+    def vertical_record(self) -> dict[str, Any]:
+        """What an output says of its heights: the datum, and the operation that made them ellipsoidal."""
+        if self.geoid is not None:
+            return self.geoid.to_json()
+        if self.vertical.is_ellipsoidal:
+            return {**self.vertical.to_json(), "converted_to": "none needed (ellipsoidal heights)"}
+        return {
+            **self.vertical.to_json(),
+            "converted_to": "none: heights written as read, used as ellipsoidal",
+        }
+
     def ecef(self, vertices_m: np.ndarray) -> np.ndarray:
-        """(N, 3) CRS metres with heights as read → (N, 3) ECEF metres."""
+        """(N, 3) CRS metres with heights as stored → (N, 3) ECEF metres (heights made ellipsoidal)."""
         v = np.asarray(vertices_m, np.float64)
         lon, lat = self.lonlat(v[:, 0], v[:, 1])
-        return self.ecef_lonlat(lon, lat, v[:, 2])
+        return self.ecef_lonlat(lon, lat, self.ellipsoidal(lon, lat, v[:, 2]))
 
     def lonlat_bounds(
         self, box_m: tuple[float, float, float, float], n: int = 65
@@ -103,8 +155,12 @@ class Geodesy:
         ys = np.concatenate([np.full(n, s), s + (nn - s) * t, np.full(n, nn), s + (nn - s) * t])
         lon, lat = self.lonlat(xs, ys)
         r = np.radians
-        return [float(r(lon.min())), float(r(lat.min())), float(r(lon.max())), float(r(lat.max())),
-                float(zmin - drop_m), float(zmax)]  # fmt: skip
+        lo, hi = float(zmin - drop_m), float(zmax)
+        if self.geoid is not None:  # the box's heights made ellipsoidal, over its whole area
+            gx, gy = np.meshgrid(np.linspace(w, e, n), np.linspace(s, nn, n))
+            und = self.geoid.undulation_m(*self.lonlat(gx.ravel(), gy.ravel()))
+            lo, hi = lo + float(np.nanmin(und)), hi + float(np.nanmax(und))
+        return [float(r(lon.min())), float(r(lat.min())), float(r(lon.max())), float(r(lat.max())), lo, hi]
 
 
 def enu_frame(lon_deg: np.ndarray, lat_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

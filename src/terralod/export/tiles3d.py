@@ -97,19 +97,28 @@ class Tiles3D:
     Used by :func:`export_3dtiles` (every node to files) and by ``terralod serve`` (on request).
     """
 
-    def __init__(self, terrain: Any, *, metric: str = "hausdorff", drop_nodata: bool = True) -> None:
+    def __init__(
+        self,
+        terrain: Any,
+        *,
+        metric: str = "hausdorff",
+        drop_nodata: bool = True,
+        vertical_datum: str | None = None,
+    ) -> None:
         if metric not in ("hausdorff", "vertical"):
             raise ValueError(f"Expected metric hausdorff or vertical, got {metric!r}")
         self.terrain = terrain
         self.metric = metric
         where = str(terrain.path) if terrain.path is not None else None
-        self.geo = Geodesy(terrain.crs, where)
+        self.geo = Geodesy(terrain.crs, where, vertical_datum=vertical_datum)
+        self.geo.geoid  # noqa: B018 - fail now, not mid-export, when PROJ lacks the datum's geoid grid
         self.tree = terrain.lod_tree()
         self.nodes = {n.code: n for n in self.tree}
         self.children: dict[Any, list[Any]] = {}
         for n in self.tree:
             self.children.setdefault(n.parent, []).append(n.code)
         self._tile_errors: dict[Any, float] = {}
+        self._spread: dict[Any, float] = {}
         self._normals: dict[int, dict[Any, np.ndarray]] = {}
         self._meshes: dict[int, dict[Any, tuple[np.ndarray, np.ndarray]]] = {}
         self._hf = source_heightfield(terrain) if drop_nodata else None
@@ -118,8 +127,17 @@ class Tiles3D:
 
     # -- errors ------------------------------------------------------------------------------------------
     def error_m(self, code: Any) -> float:
+        """The node's measured error, plus the spread of the geoid undulation over it when heights are made
+        ellipsoidal (each vertex moves by its own undulation, each sample by its own)."""
         n = self.nodes[code]
-        return float(n.vertical_error_m if self.metric == "vertical" else n.error_m)
+        return float(n.vertical_error_m if self.metric == "vertical" else n.error_m) + self._geoid_m(code)
+
+    def _geoid_m(self, code: Any) -> float:
+        if self.geo.geoid is None:
+            return 0.0
+        if code not in self._spread:
+            self._spread[code] = self.geo.undulation_spread_m(self.nodes[code].box_m)
+        return self._spread[code]
 
     def tile_error_m(self, code: Any) -> float:
         """A tile's ``geometricError``: the error of drawing it instead of its children, i.e. its measured
@@ -141,7 +159,8 @@ class Tiles3D:
     def skirt_m(self, code: Any) -> float:
         n = self.nodes[code]
         up = self.nodes[n.parent].vertical_error_m if n.parent is not None else n.vertical_error_m
-        return max(float(n.vertical_error_m) + float(up), MIN_SKIRT_M)
+        spread = self._geoid_m(code) + (self._geoid_m(n.parent) if n.parent is not None else 0.0)
+        return max(float(n.vertical_error_m) + float(up) + spread, MIN_SKIRT_M)
 
     # -- tileset -----------------------------------------------------------------------------------------
     def _tile_json(self, code: Any, above: np.ndarray) -> dict[str, Any]:
@@ -190,7 +209,7 @@ class Tiles3D:
             "asset": {"version": "1.1", "generator": "terralod", "tilesetVersion": "1"},
             "geometricError": nothing,
             "extras": {"terralod": {"metric": self.metric, "crs": self.geo.crs.to_string()[:120],
-                                    "error": "measured, metres", "heights": "as read (no geoid change)"}},
+                                    "error": "measured, metres", "heights": self.geo.vertical_record()}},
             "root": root,
         }  # fmt: skip
 
@@ -234,7 +253,8 @@ class Tiles3D:
         v, t, nrm = self.mesh(code)
         n = self.nodes[code]
         lon, lat = self.geo.lonlat(v[:, 0], v[:, 1])
-        ecef = self.geo.ecef_lonlat(lon, lat, v[:, 2])
+        h = self.geo.ellipsoidal(lon, lat, v[:, 2])
+        ecef = self.geo.ecef_lonlat(lon, lat, h)
         nrm_ecef = _enu_to_ecef(nrm, lon, lat)
         be = boundary_edges(t)
         if be.size:
@@ -242,7 +262,7 @@ class Tiles3D:
             ends = np.unique(be)
             low = np.full(len(v), -1, np.int64)
             low[ends] = len(v) + np.arange(ends.size)
-            ecef = np.concatenate([ecef, self.geo.ecef_lonlat(lon[ends], lat[ends], v[ends, 2] - depth)])
+            ecef = np.concatenate([ecef, self.geo.ecef_lonlat(lon[ends], lat[ends], h[ends] - depth)])
             nrm_ecef = np.concatenate([nrm_ecef, nrm_ecef[ends]])
             a, b = be[:, 0], be[:, 1]
             walls = np.concatenate([np.stack([a, low[b], b], 1), np.stack([a, low[a], low[b]], 1)])
@@ -323,8 +343,12 @@ def export_3dtiles(
     resume: bool = False,
     update: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    vertical_datum: str | None = None,
 ) -> ExportReport:
     """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree.
+
+    ``vertical_datum``: what the stored heights are above, when the store's CRS does not say (see
+    :mod:`terralod.export.vertical`); heights are then written above the WGS 84 ellipsoid.
 
     ``resume``: the glbs an interrupted export of the same terrain and options finished are not encoded
     again; ``update``: only the files whose bytes change are rewritten (``extra["rewritten"]``). The output
@@ -337,9 +361,9 @@ def export_3dtiles(
     if epoch is not None and epoch != getattr(terrain, "epoch", None):
         terrain = terrain.with_epoch(epoch)
     output = Output(out, inputs=export_inputs(terrain), overwrite=overwrite, resume=resume, update=update,
-                    key=export_key(terrain, "3dtiles", metric=metric))  # fmt: skip
+                    key=export_key(terrain, "3dtiles", metric=metric, vertical_datum=vertical_datum))  # fmt: skip
     output.check()  # refusals first, before the view's set-up
-    view = Tiles3D(terrain, metric=metric)
+    view = Tiles3D(terrain, metric=metric, vertical_datum=vertical_datum)
     rep = ExportReport(Path(out))
     with output as o:
         codes = [n.code for n in view.tree]
@@ -362,7 +386,8 @@ def export_3dtiles(
     rep.triangles = int(sum(len(t) for g in view._meshes.values() for _, t in g.values()))
     rep.seconds = time.perf_counter() - t0
     rep.extra = {"format": "3dtiles", "metric": metric, "max_error_m": max(view.error_m(c) for c in view.nodes),
-                 "levels": len({c[0] for c in view.nodes}), "geometric_error_root": math.nan}  # fmt: skip
+                 "levels": len({c[0] for c in view.nodes}), "geometric_error_root": math.nan,
+                 "heights": view.geo.vertical_record()}  # fmt: skip
     rep.extra["geometric_error_root"] = json.loads(ts)["geometricError"]
     rep.extra.update(resumed=o.adopted is not None, **changes)
     return rep

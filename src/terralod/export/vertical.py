@@ -33,7 +33,7 @@ _NAMED = {
     "egm96": ("EGM96 geoid", "EPSG:5773"),
     "egm2008": ("EGM2008 geoid", "EPSG:3855"),
     "navd88": ("NAVD88", "EPSG:5703"),
-    "ellipsoid": ("WGS 84 ellipsoid", None),
+    "ellipsoid": ("the WGS 84 ellipsoid", None),
 }
 VERTICAL_DATUM_CHOICES = ("egm96", "egm2008", "navd88", "ellipsoid", "a geoid grid file (.gtx, .tif)")
 
@@ -136,8 +136,10 @@ def vertical_datum_from_crs(crs: str | None) -> VerticalDatum | None:
                     if code is not None and epsg is not None and code == f"EPSG:{epsg}":
                         return VerticalDatum(key, name, "file")
                 return VerticalDatum(f"EPSG:{epsg}" if epsg else sub.name, sub.name, "file")
-    if c.is_geographic and len(c.axis_info) == 3:
-        return VerticalDatum("ellipsoid", "WGS 84 ellipsoid" if c.to_epsg() == 4979 else c.name, "file")
+    if len(c.axis_info) == 3 and any("ellipsoidal height" in a.name.lower() for a in c.axis_info):
+        ell = c.ellipsoid.name if c.ellipsoid is not None else ""
+        named = ell and ell.lower() != "unknown"
+        return VerticalDatum("ellipsoid", f"the {ell} ellipsoid" if named else "the CRS's ellipsoid", "file")
     return None
 
 

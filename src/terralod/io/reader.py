@@ -88,6 +88,7 @@ def read_heightfield(
     tile: tuple[int, int, int] | None = None,
     band: int = 1,
     crs: Any = None,
+    vertical_datum: str | None = None,
 ) -> Heightfield:
     """Read a DEM into a :class:`Heightfield` (elevation metres, metric world frame, nodata mask).
 
@@ -104,6 +105,10 @@ def read_heightfield(
     band : 1-based raster band (GDAL rasters).
     crs : a CRS (EPSG code, WKT, PROJ string) that assigns or overrides the input's own (CLI ``--crs``);
         for a heightmap without georeferencing it is the CRS of the sidecar's transform / origin / bounds.
+    vertical_datum : what the heights are measured from when the file does not say (CLI
+        ``--vertical-datum``): ``egm96``, ``egm2008``, ``navd88``, ``ellipsoid`` or a vertical CRS
+        (``EPSG:5773``); carried in the Heightfield's CRS (compound, or 3D for the ellipsoid), so a store and
+        its web exports know it.
 
     Returns
     -------
@@ -115,6 +120,10 @@ def read_heightfield(
     InputError : the file cannot be decoded, is not georeferenced and no spacing is known, has no valid
         samples, or is too small or too large; the message names the file.
     """
+    if vertical_datum is not None:
+        hf = read_heightfield(path, vertical_scale=vertical_scale, vertical_offset=vertical_offset,
+                              spacing_m=spacing_m, encoding=encoding, tile=tile, band=band, crs=crs)  # fmt: skip
+        return with_vertical_datum(hf, vertical_datum)
     p = Path(path)
     src = str(p)
     if not p.exists():
@@ -162,6 +171,51 @@ def read_heightfield(
         hints=hints,
         crs=crs,
     )
+
+
+#: ``--vertical-datum`` names and their vertical CRS (``ellipsoid``: the CRS made 3D, ellipsoidal height).
+VERTICAL_DATUMS = {"egm96": "EPSG:5773", "egm2008": "EPSG:3855", "navd88": "EPSG:5703", "ellipsoid": None}
+
+
+def with_vertical_datum(hf: Heightfield, vertical_datum: str) -> Heightfield:
+    """``hf`` with its heights declared above ``vertical_datum`` (see :func:`crs_with_vertical_datum`).
+    Heights are not changed; the web exports convert them."""
+    import dataclasses
+
+    crs, note = crs_with_vertical_datum(hf.crs, vertical_datum, hf.source)
+    return dataclasses.replace(hf, crs=crs, notes=(*hf.notes, note))
+
+
+def crs_with_vertical_datum(crs_text: str | None, vertical_datum: str, source: str) -> tuple[str, str]:
+    """(WKT, note): ``crs_text`` with heights above ``vertical_datum`` (a name of :data:`VERTICAL_DATUMS` or
+    a vertical CRS such as ``EPSG:5773``): compound (horizontal + vertical), or 3D with an ellipsoidal height
+    axis for ``ellipsoid``."""
+    if crs_text is None:
+        raise InputError("has no CRS, so no vertical datum can be attached to it (give --crs too)", source)
+    try:
+        import pyproj
+        from pyproj.crs import CompoundCRS
+    except ImportError:
+        raise InputError("--vertical-datum needs pyproj: pip install 'terralod[web]'", source) from None
+    key = vertical_datum.strip().lower()
+    horizontal = pyproj.CRS.from_user_input(crs_text)
+    if horizontal.is_compound:
+        horizontal = horizontal.sub_crs_list[0]
+    if key == "ellipsoid":
+        return horizontal.to_3d().to_wkt(), "heights above the WGS 84 ellipsoid (--vertical-datum)"
+    code = VERTICAL_DATUMS.get(key, vertical_datum.strip())
+    try:
+        vertical = pyproj.CRS.from_user_input(code)
+    except Exception:  # noqa: BLE001 - pyproj raises CRSError and others
+        vertical = None
+    if vertical is None or not vertical.is_vertical:
+        names = ", ".join(VERTICAL_DATUMS)
+        raise InputError(
+            f"--vertical-datum: expected one of {names} or a vertical CRS (EPSG:5773), got {vertical_datum!r}",
+            source,
+        )
+    crs = CompoundCRS(f"{horizontal.name} + {vertical.name}", [horizontal, vertical])
+    return crs.to_wkt(), f"heights above {vertical.name} (--vertical-datum)"
 
 
 def sample_heightfield() -> Heightfield:
