@@ -117,10 +117,10 @@ def _liguria_store(tmp_path: Path, vertical_datum: str | None) -> Path:
 def test_3dtiles_heights_are_ellipsoidal_with_a_known_datum(tmp_path: Path) -> None:
     pytest.importorskip("pygltflib")
     from pyproj import Transformer
+    from tests.test_web import _decode_glb
 
     from terralod.export.tiles3d import Tiles3D
     from terralod.terrain import open_terrain
-    from tests.test_web import _decode_glb
 
     conv = _egm96()
     geo = open_terrain(_liguria_store(tmp_path, "egm96"))
