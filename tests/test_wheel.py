@@ -76,7 +76,11 @@ def wheel_venv(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Pa
     py = venv / "bin" / "python"
     venv_site = Path(_run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], tmp,
                           dict(os.environ)).stdout.strip())  # fmt: skip
-    parent = [p for p in dict.fromkeys(site_module.getsitepackages() + [site_module.getusersitepackages()]) if Path(p).is_dir()]
+    parent = [
+        p
+        for p in dict.fromkeys(site_module.getsitepackages() + [site_module.getusersitepackages()])
+        if Path(p).is_dir()
+    ]
     (venv_site / "_terralod_test_parent_env.pth").write_text("\n".join(parent) + "\n")
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "TERRALOD_CESIUM_DIR", "DISPLAY")}
     env.update(PYTHONUNBUFFERED="1", PIP_DISABLE_PIP_VERSION_CHECK="1", PATH=f"{venv / 'bin'}:{env['PATH']}")
