@@ -4,8 +4,9 @@ Routes (GET and HEAD; everything else is 405; any other path is 404, never a fil
 
 - ``/`` the page of :mod:`terralod.site` (``/site.js``, ``/site.css``: package data), the same page an exported
   site folder holds, answering the same paths: ``/site.json`` (the manifest), ``/epochs/I/tileset.json`` and
-  its tiles (3D Tiles of epoch I), ``/pairs/K.json`` and its rasters (pair K measured as ``terralod change``
-  measures it, on the first request, then kept);
+  its tiles (3D Tiles of epoch I, pruned as the site's are), ``/pairs/K.json`` and its rasters: one
+  :class:`terralod.site.plan.SitePlan` (the plan the site writer writes), made on the first request that
+  needs it under its own lock (never the encoders'), then kept;
 - ``/cesium/...`` CesiumJS's browser build, the copy the package carries (:func:`terralod.serve.cesium_dir`;
   resolved paths must stay inside that folder);
 - ``/3dtiles/tileset.json``, ``/3dtiles/tiles/L/X_Y.glb`` (:class:`terralod.export.tiles3d.Tiles3D`);
@@ -88,7 +89,7 @@ class _LRU:
 class TileService:
     """What the handler asks for: bytes by URL path (None = 404), encoded once and cached."""
 
-    def __init__(self, terrain: Any, *, cache_bytes: int = 256 << 20) -> None:
+    def __init__(self, terrain: Any, *, cache_bytes: int = 256 << 20, site_options: Any = None) -> None:
         from terralod.export.common import check_exportable
         from terralod.export.geodesy import Geodesy
 
@@ -100,7 +101,9 @@ class TileService:
         self._views: dict[str | None, dict[str, Any]] = {}
         self.cesium = cesium_dir()
         self.stats = {"requests": 0, "encoded": 0, "hits": 0}
-        self._pairs: dict[int, tuple[dict[str, Any], dict[str, bytes]]] = {}
+        self.site_options = site_options
+        self._plan: Any = None
+        self._plan_lock = threading.Lock()
 
     # lazily built views (their set-up reads the whole LOD tree / the source), one set per epoch
     def _view(self, epoch: str | None, kind: str) -> Any:
@@ -129,36 +132,78 @@ class TileService:
     def _site_epochs(self) -> list[str | None]:
         return list(self.terrain.epochs) or [None]
 
-    def site_manifest(self) -> dict[str, Any]:
-        from terralod.site.build import manifest
-        from terralod.site.data import pairs_of
+    def site_plan(self) -> Any:
+        """The site's :class:`~terralod.site.plan.SitePlan` (pairs measured as ``terralod change`` measures
+        them, co-registered as ``site_options`` say), made once under its own lock on a connection of its
+        own: a tile request never waits for it."""
+        with self._plan_lock:
+            if self._plan is None:
+                from terralod.site.plan import SiteOptions, plan_store_site
+                from terralod.terrain import open_terrain
 
-        names = list(self.terrain.epochs)
-        qm = self.qm()
-        if not _change_available():  # without the change extra the page shows the epochs, no difference
-            log.warning("the change extra is not installed: the page shows the epochs without their change")
-            return manifest(Path(str(self.terrain.path)).stem if self.terrain.path else "terrain", names or ["terrain"],
-                            [], qm.bbox, self.terrain.elevation_range_m)  # fmt: skip
-        title = Path(str(self.terrain.path)).stem if self.terrain.path else "terrain"
-        if len(names) >= 2:
-            title += ": how the ground changed"
-        return manifest(title, names or [title], pairs_of(names), qm.bbox, self.terrain.elevation_range_m)
+                if not _change_available():  # without the change extra the page shows the epochs only
+                    log.warning(
+                        "the change extra is not installed: the page shows the epochs without their change"
+                    )
+                options = self.site_options or SiteOptions()
+                if self.terrain.path is None:
+                    self._plan = plan_store_site(self.terrain, options, measure=_change_available())
+                else:
+                    with open_terrain(self.terrain.path) as own:
+                        self._plan = plan_store_site(own, options, measure=_change_available())
+            return self._plan
+
+    def site_manifest(self) -> dict[str, Any]:
+        return self.site_plan().manifest()  # type: ignore[no-any-return]
 
     def site_pair(self, k: int) -> tuple[dict[str, Any], dict[str, bytes]] | None:
-        """Pair ``k`` of the manifest, measured as ``terralod change`` measures it (once, then kept)."""
-        from terralod.change.volumes import measure_change
-        from terralod.site.data import epoch_label, pair_payload, pairs_of
-
-        pairs = pairs_of(list(self.terrain.epochs))
-        if k >= len(pairs) or not _change_available():
+        """Pair ``k`` of the plan: its description and the files it names."""
+        plan = self.site_plan()
+        if k >= len(plan.pairs):
             return None
-        got = self._pairs.get(k)
-        if got is None:
-            a, b = pairs[k]
-            dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
-            res = measure_change(self.terrain.heightfield(a), self.terrain.heightfield(b), dates=dates)
-            got = self._pairs[k] = pair_payload(res, dates, (a, b), str(k))
-        return got
+        return plan.pair_meta[k], plan.pair_files(k)
+
+    def _site_tileset(self, i: int) -> dict[str, Any] | None:
+        """Epoch ``i``'s tileset as the site writes it: pruned at the plan's ``keep_error_m``."""
+        import copy
+
+        from terralod.site.build import prune_tileset
+
+        epochs = self._site_epochs()
+        if i >= len(epochs):
+            return None
+        keep = self.site_plan().keep_error_m
+        with self.lock:
+            ts = copy.deepcopy(self.tiles3d(epochs[i]).tileset())
+        prune_tileset(ts, keep)
+        return ts
+
+    def _planned(self, path: str) -> tuple[bytes, str, bool] | None:
+        """A path the site plan answers (``/site.json``, ``/pairs/...``, ``/epochs/I/tileset.json``), or
+        None; computed outside the encoder lock."""
+        if path == "/site.json":
+            return json.dumps(self.site_manifest()).encode(), "application/json", False
+        m = _SITE_TILES.match(path)
+        if m and m.group(2) == "/tileset.json":
+            ts = self._site_tileset(int(m.group(1)))
+            return (
+                None
+                if ts is None
+                else (json.dumps(ts, separators=(",", ":")).encode(), "application/json", False)
+            )
+        m = _SITE_PAIR.match(path)
+        if m:
+            got = self.site_pair(int(m.group(1)))
+            if got is None:
+                return None
+            meta, files = got
+            if m.group(2) == ".json":
+                return json.dumps(meta, separators=(",", ":")).encode(), "application/json", False
+            role = {"-dod.f32.gz": "dod", "-before.f32.gz": "before", "-overlay.png": "overlay"}[m.group(2)]
+            body = files.get(meta["files"][role])
+            ctype = "image/png" if m.group(2).endswith(".png") else "application/gzip"
+            return (body, ctype, False) if body is not None else None
+        return None
 
     def info(self) -> dict[str, Any]:
         qm = self.qm()
@@ -174,27 +219,14 @@ class TileService:
         epoch: str | None = None
         if path == "/info.json":
             return json.dumps(self.info()).encode(), "application/json", False
-        if path == "/site.json":
-            return json.dumps(self.site_manifest()).encode(), "application/json", False
         m = _SITE_TILES.match(path)
-        if m:
+        if m:  # a tile of epoch I (its tileset is planned: _planned)
             epochs = self._site_epochs()
             i = int(m.group(1))
             if i >= len(epochs):
                 return None
             epoch = epochs[i]
             path = "/3dtiles" + m.group(2)
-        m = _SITE_PAIR.match(path)
-        if m:
-            got = self.site_pair(int(m.group(1)))
-            if got is None:
-                return None
-            meta, files = got
-            if m.group(2) == ".json":
-                return json.dumps(meta, separators=(",", ":")).encode(), "application/json", False
-            body = files.get(f"pairs/{m.group(1)}{m.group(2)}")
-            ctype = "image/png" if m.group(2).endswith(".png") else "application/gzip"
-            return (body, ctype, False) if body is not None else None
         m = _EPOCH.match(path)
         if m:
             if m.group(1) not in self.terrain.epochs:
@@ -231,14 +263,16 @@ class TileService:
         static = self._static(path)
         if static is not None:
             return static
-        with self.lock:
-            hit = self.cache.get(path)
-            if hit is not None:
-                return hit
-            got = self._encode(path)
-            if got is None:
-                return None
-            self.stats["encoded"] += 1
+        got = self._planned(path)  # the site plan: its own lock, never the encoders'
+        if got is None:
+            with self.lock:
+                hit = self.cache.get(path)
+                if hit is not None:
+                    return hit
+                got = self._encode(path)
+                if got is None:
+                    return None
+                self.stats["encoded"] += 1
         body, ctype, gz = got
         if not gz and len(body) > 1024 and not ctype.startswith("image/") and ctype != "application/gzip":
             body, gz = gzip.compress(body, 6, mtime=0), True
@@ -403,12 +437,18 @@ class _Server(ThreadingHTTPServer):
 
 
 def make_server(
-    terrain: Any, host: str = "127.0.0.1", port: int = 8000, *, request_timeout_s: float = REQUEST_TIMEOUT_S
+    terrain: Any,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    *,
+    request_timeout_s: float = REQUEST_TIMEOUT_S,
+    site_options: Any = None,
 ) -> tuple[ThreadingHTTPServer, TileService]:
-    """A server (not started: call ``serve_forever``) and its service for ``terrain``.
+    """A server (not started: call ``serve_forever``) and its service for ``terrain``; ``site_options``
+    (:class:`terralod.site.plan.SiteOptions`) say how the page's pairs are measured, as for an exported site.
 
     The service is made first, so a store error is raised as itself (a :class:`terralod.errors.StoreError`
     naming the store), never reported as a failure to listen."""
-    service = TileService(terrain)
+    service = TileService(terrain, site_options=site_options)
     handler = type("Handler", (_Handler,), {"service": service, "timeout": request_timeout_s})
     return _Server((host, port), handler), service

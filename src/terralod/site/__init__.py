@@ -11,7 +11,8 @@ exactly as ``terralod change --zones`` counts them (cells whose centre lies insi
 
 What the page reads (relative URLs, so a folder on any static host works; ``serve`` answers the same paths):
 
-- ``site.json`` — the manifest (:func:`terralod.site.data.manifest`): epochs (name, label, tileset URL),
+- ``site.json`` — the manifest (:meth:`terralod.site.plan.SitePlan.manifest`, the plan both the writer and
+  ``serve`` read): epochs (name, label, tileset URL),
   pairs (names, the URL of each pair's description), bounds and heights;
 - ``pairs/K.json`` — one pair (:func:`terralod.site.data.pair_payload`): the grid (shape, affine transform),
   a lon/lat lattice of grid coordinates (the page maps a point to its cell without a projection library),

@@ -14,7 +14,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from terralod.site.data import epoch_label, lonlat_bounds, pair_payload, pairs_of
+from terralod.site.plan import SiteOptions, SitePlan, plan_site, plan_store_site
 
 #: The page's files (package data of :mod:`terralod.site`).
 PAGE_FILES = ("index.html", "site.js", "site.css")
@@ -106,39 +106,19 @@ def copy_cesium(dest: Path) -> None:
                 shutil.copy2(cand, dest / "cesium" / "LICENSE.md")
 
 
-def manifest(title: str, epochs: Sequence[str], pairs: Sequence[tuple[str, str]], bounds_deg: Sequence[float],
-             elevation_range_m: Sequence[float]) -> dict[str, Any]:  # fmt: skip
-    """``site.json``: the epochs (oldest first), their tilesets, the pairs and where each is described."""
-    return {
-        "generator": "terralod",
-        "title": title,
-        "bounds_deg": [float(v) for v in bounds_deg],
-        "elevation_range_m": [float(v) for v in elevation_range_m],
-        "epochs": [
-            {"name": e, "label": epoch_label(e), "tileset": f"epochs/{i}/tileset.json"}
-            for i, e in enumerate(epochs)
-        ],  # fmt: skip
-        "pairs": [{"from": a, "to": b, "url": f"pairs/{k}.json"} for k, (a, b) in enumerate(pairs)],
-    }
-
-
-def prune_tiles(root: Path, keep_error_m: float) -> int:
-    """Make every tile whose measured error is at most ``keep_error_m`` a leaf: the levels below it, which
-    refine the terrain by less than the pair's level of detection (a change the data cannot tell from survey
-    error), are not written. The drape and every figure the page shows come from the difference raster, not
-    from the mesh, so they stay exact. Returns the bytes left out."""
+def prune_tileset(ts: dict[str, Any], keep_error_m: float) -> list[str]:
+    """Make every tile of tileset ``ts`` (changed in place) whose measured error is at most ``keep_error_m``
+    a leaf: the levels below it refine the terrain by less than the pairs' level of detection (a change the
+    data cannot tell from survey error). The drape and every figure the page shows come from the difference
+    raster, not from the mesh, so they stay exact. Returns the content URIs left out."""
+    dropped: list[str] = []
     if keep_error_m <= 0:
-        return 0
-    ts_path = root / "tileset.json"
-    ts = json.loads(ts_path.read_text())
-    dropped = 0
+        return dropped
 
     def drop(node: dict[str, Any]) -> None:
-        nonlocal dropped
         uri = (node.get("content") or {}).get("uri")
-        if uri and (root / uri).is_file():
-            dropped += (root / uri).stat().st_size
-            (root / uri).unlink()
+        if uri:
+            dropped.append(uri)
         for c in node.get("children", []):
             drop(c)
 
@@ -151,6 +131,21 @@ def prune_tiles(root: Path, keep_error_m: float) -> int:
             del node["children"]
             continue
         stack.extend(node.get("children", []))
+    return dropped
+
+
+def prune_tiles(root: Path, keep_error_m: float) -> int:
+    """:func:`prune_tileset` on the tileset written in ``root``, its left-out tiles deleted. Returns the
+    bytes left out."""
+    if keep_error_m <= 0:
+        return 0
+    ts_path = root / "tileset.json"
+    ts = json.loads(ts_path.read_text())
+    dropped = 0
+    for uri in prune_tileset(ts, keep_error_m):
+        if (root / uri).is_file():
+            dropped += (root / uri).stat().st_size
+            (root / uri).unlink()
     ts_path.write_text(json.dumps(ts, separators=(",", ":")))
     return dropped
 
@@ -207,83 +202,52 @@ def _atomic_site(
     return rep
 
 
-def _write(tmp: Path, title: str, between: str, epochs: list[str], terrains: list[Any],
-           pair_results: list[tuple[str, str, Any]], bounds: Sequence[float], zrange: Sequence[float],
-           area_km2: float) -> SiteReport:  # fmt: skip
+def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
+    """The site of ``plan`` into ``tmp``: each of ``terrains`` (one per epoch, in order) as 3D Tiles, pruned
+    and shared as the plan says, the pairs' files, the manifest, the page and CesiumJS."""
     from terralod.export.tiles3d import export_3dtiles
 
-    rep = SiteReport(tmp, epochs=len(epochs), pairs=len(pair_results), area_km2=area_km2)
+    rep = SiteReport(tmp, epochs=len(plan.epochs), pairs=len(plan.pairs), area_km2=plan.area_km2)
     (tmp / "epochs").mkdir()
-    lods = [r.uncertainty.level_of_detection_m for _, _, r in pair_results]
-    keep_m = min(lods) if lods else 0.0
+    pruned = 0
     for i, t in enumerate(terrains):
         export_3dtiles(t, tmp / "epochs" / str(i))
-        rep.parts["tiles_pruned"] = rep.parts.get("tiles_pruned", 0) + prune_tiles(
-            tmp / "epochs" / str(i), keep_m
-        )
-    rep.keep_error_m = keep_m
-    rep.parts["tiles_shared"] = share_tiles(tmp / "epochs", len(terrains))
+        pruned += prune_tiles(tmp / "epochs" / str(i), plan.keep_error_m)
+    rep.keep_error_m = plan.keep_error_m
+    shared = share_tiles(tmp / "epochs", len(terrains)) if plan.share_tiles else 0
     (tmp / "pairs").mkdir()
-    written: dict[str, str] = {}  # content digest -> file: a raster several pairs share is written once
-    for k, (a, b, result) in enumerate(pair_results):
-        dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
-        meta, files = pair_payload(result, dates, (a, b), str(k))
-        for role, name in list(meta["files"].items()):
-            digest = hashlib.sha256(files[name]).hexdigest()
-            if digest in written:
-                meta["files"][role] = written[digest]
-            else:
-                written[digest] = name
-                (tmp / name).write_bytes(files[name])
+    for name, data in plan.files.items():
+        (tmp / name).write_bytes(data)
+    for k, meta in enumerate(plan.pair_meta):
         (tmp / "pairs" / f"{k}.json").write_text(json.dumps(meta, separators=(",", ":")))
-    pairs = [(a, b) for a, b, _ in pair_results]
-    (tmp / "site.json").write_text(json.dumps(manifest(title, epochs, pairs, bounds, zrange), indent=1))
+    (tmp / "site.json").write_text(json.dumps(plan.manifest(), indent=1))
     copy_page(tmp)
     copy_cesium(tmp)
     for part in ("epochs", "pairs", "cesium"):
         rep.parts[part] = _folder_bytes(tmp / part)
-    shared = rep.parts.pop("tiles_shared")
-    rep.pruned_bytes = rep.parts.pop("tiles_pruned", 0)
+    rep.pruned_bytes = pruned
     rep.parts["page"] = sum((tmp / f).stat().st_size for f in (*PAGE_FILES, "site.json"))
     size = sum(rep.parts.values())
-    underline = "=" * len(title)
-    (tmp / "README.txt").write_text(README_TXT.format(title=title, underline=underline, between=between,
-                                                      size_mb=size / 1e6))  # fmt: skip
+    underline = "=" * len(plan.title)
+    (tmp / "README.txt").write_text(README_TXT.format(title=plan.title, underline=underline,
+                                                      between=plan.between, size_mb=size / 1e6))  # fmt: skip
     rep.bytes = _folder_bytes(tmp)
     rep.shared_bytes = shared
     return rep
 
 
-def _between(epochs: Sequence[str]) -> str:
-    if len(epochs) < 2:
-        return ""
-    return f" between {epoch_label(epochs[0])} and {epoch_label(epochs[-1])}"
-
-
 def site_from_store(store: str | Path, out: str | Path, *, overwrite: bool = False,
                     coregistration: bool = True) -> SiteReport:  # fmt: skip
     """The site of a store's epochs (``terralod export STORE --format site -o OUT``): every epoch's 3D Tiles,
-    the pairs first → last and each consecutive pair, measured as ``terralod change`` measures them."""
-    from terralod.change.volumes import measure_change
+    the pairs :func:`terralod.site.plan.plan_store_site` plans, measured as ``terralod change`` measures them."""
     from terralod.terrain import open_terrain
 
     store, out = Path(store), Path(out)
     with open_terrain(store) as terrain:
+        plan = plan_store_site(terrain, SiteOptions(coregistration=coregistration))
         names = list(terrain.epochs)
         terrains = [terrain.with_epoch(e) for e in names] if names else [terrain]
-        hf0 = terrain.heightfield(names[0]) if names else terrain.heightfield()
-        bounds = lonlat_bounds(hf0)
-        zr = terrain.elevation_range_m
-        area = float(hf0.valid.sum()) * abs(hf0.transform.a * hf0.transform.e) / 1e6
-        pr = []
-        for a, b in pairs_of(names):
-            dates = (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
-            res = measure_change(terrain.heightfield(a), terrain.heightfield(b), dates=dates,
-                                 coregistration=coregistration)  # fmt: skip
-            pr.append((a, b, res))
-        title = f"{store.stem}: how the ground changed" if len(names) >= 2 else store.stem
-        return _atomic_site(out, overwrite, [store], lambda tmp: _write(
-            tmp, title, _between(names), names or [store.stem], terrains, pr, bounds, zr, area))  # fmt: skip
+        return _atomic_site(out, overwrite, [store], lambda tmp: _write(tmp, plan, terrains))
 
 
 def _on_grid_of(first: Any, hf: Any) -> Any:
@@ -307,10 +271,12 @@ def _epoch_name(name: str, i: int) -> str:
 
 
 def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results: Sequence[tuple[str, str, Any]],
-                     out: str | Path, *, title: str | None = None, workers: int | None = None) -> SiteReport:  # fmt: skip
+                     out: str | Path, *, title: str | None = None, workers: int | None = None,
+                     options: SiteOptions | None = None) -> SiteReport:  # fmt: skip
     """The site of a ``terralod change`` run (``--site``): one store with an epoch per DEM (built in the
-    output's scratch folder, never part of the site; later DEMs on the first one's grid, so the tiles they share are written once) for the
-    3D Tiles; ``results`` are the measured pairs (from, to, ChangeResult)."""
+    output's scratch folder, never part of the site; later DEMs on the first one's grid, so the tiles they
+    share are written once) for the 3D Tiles; ``results`` are the pairs already measured (from, to,
+    ChangeResult), used as given; the plan measures any other pair it carries with ``options``."""
     from terralod.output import Output
     from terralod.pyramid.builder import build_store
     from terralod.pyramid.update import update_store
@@ -328,10 +294,9 @@ def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results:
             update_store(_on_grid_of(first, hf), store, name, workers=workers)
         with open_terrain(store) as terrain:
             terrains = [terrain.with_epoch(e) for e in epochs]
-            lo, hi = terrain.elevation_range_m
-            area = float(first.valid.sum()) * abs(first.transform.a * first.transform.e) / 1e6
-            ttl = title or "How the ground changed"
-            rep = _write(o.folder, ttl, _between(epochs), epochs, terrains, pairs, lonlat_bounds(first), (lo, hi),
-                         area)  # fmt: skip
+            plan = plan_site(list(zip(epochs, heightfields, strict=True)), title=title or "How the ground changed",
+                             elevation_range_m=terrain.elevation_range_m, options=options or SiteOptions(),
+                             measured={(a, b): r for a, b, r in pairs})  # fmt: skip
+            rep = _write(o.folder, plan, terrains)
     rep.path = out
     return rep

@@ -5,7 +5,8 @@ The page has no projection library. It maps a longitude/latitude to the differen
 lattice of the grid CRS's coordinates at regular longitudes and latitudes (bilinear between nodes: over a
 lattice step of a few hundred metres a projection bends by millimetres), and drapes the overlay on the 3D
 Tiles through an affine map from local east/north metres to texture coordinates, fitted here on the grid's
-cells at their own heights (its worst residual is stored and tested).
+cells at their own heights (its worst residual is stored and tested). Every coordinate transform is
+:mod:`terralod.export.geodesy`'s.
 """
 
 from __future__ import annotations
@@ -27,44 +28,28 @@ MAX_OVERLAY_PX = 4096
 LOD_GREY_RGBA = (150, 150, 150, 110)
 
 
-def _transformer(src: str, dst: str) -> Any:
-    from pyproj import CRS, Transformer
-
-    return Transformer.from_crs(CRS.from_user_input(src), CRS.from_user_input(dst), always_xy=True)
-
-
-def lonlat_bounds(hf: Any) -> tuple[float, float, float, float]:
-    """(west, south, east, north) degrees of ``hf``'s extent (its edges sampled densely)."""
-    w, s, e, n = hf.bounds_m
-    t = np.linspace(0.0, 1.0, 65)
-    xs = np.concatenate([w + (e - w) * t, np.full_like(t, e), e - (e - w) * t, np.full_like(t, w)])
-    ys = np.concatenate([np.full_like(t, s), s + (n - s) * t, np.full_like(t, n), n - (n - s) * t])
-    lon, lat = _transformer(hf.crs, "EPSG:4326").transform(xs, ys)
-    return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
-
-
 def lattice(hf: Any, nodes: int = LATTICE_NODES) -> dict[str, Any]:
     """Grid-CRS x, y (metres) at ``nodes``² regular lon/lat points covering ``hf`` (row-major, south first)."""
-    w, s, e, n = lonlat_bounds(hf)
+    from terralod.export.geodesy import Geodesy
+
+    g = Geodesy(hf.crs, geographic=True)
+    w, s, e, n = g.lonlat_bounds(hf.bounds_m)
     pad_lon, pad_lat = 0.02 * (e - w), 0.02 * (n - s)
     w, e, s, n = w - pad_lon, e + pad_lon, s - pad_lat, n + pad_lat
     lon = np.linspace(w, e, nodes)
     lat = np.linspace(s, n, nodes)
     LON, LAT = np.meshgrid(lon, lat)
-    x, y = _transformer("EPSG:4326", hf.crs).transform(LON.ravel(), LAT.ravel())
+    x, y = g.xy(LON.ravel(), LAT.ravel())
     return {"lon0_deg": w, "lat0_deg": s, "dlon_deg": (e - w) / (nodes - 1), "dlat_deg": (n - s) / (nodes - 1),
             "nodes": nodes, "x_m": [round(float(v), 4) for v in x], "y_m": [round(float(v), 4) for v in y]}  # fmt: skip
-
-
-def _ecef(lon: np.ndarray, lat: np.ndarray, h: np.ndarray) -> np.ndarray:
-    x, y, z = _transformer("EPSG:4979", "EPSG:4978").transform(lon, lat, h)
-    return np.stack([x, y, z], axis=-1)
 
 
 def drape_map(hf: Any) -> dict[str, Any]:
     """The affine map from local east/north metres (about the grid's centre, Earth-fixed) to the overlay's
     texture coordinates (u = column / width, v = row / height), least-squares on a 17² sample of cells at
     their own heights; ``residual_cells`` is its worst error in cells."""
+    from terralod.export.geodesy import Geodesy, ecef_lonlat
+
     h, w = hf.shape
     rows = np.linspace(0, h - 1, 17)
     cols = np.linspace(0, w - 1, 17)
@@ -75,10 +60,10 @@ def drape_map(hf: Any) -> dict[str, Any]:
     zmed = float(np.median(z[valid])) if valid.any() else 0.0
     zz = np.where(valid[r_i, c_i], z[r_i, c_i], zmed)
     x, y = hf.world_xy(R + 0.5, C + 0.5)
-    lon, lat = _transformer(hf.crs, "EPSG:4326").transform(np.ravel(x), np.ravel(y))
-    p = _ecef(np.asarray(lon), np.asarray(lat), zz.ravel())
+    lon, lat = Geodesy(hf.crs, geographic=True).lonlat(np.ravel(x), np.ravel(y))
+    p = ecef_lonlat(lon, lat, zz.ravel())
     lon_c, lat_c = float(np.mean(lon)), float(np.mean(lat))
-    centre = _ecef(np.array([lon_c]), np.array([lat_c]), np.array([zmed]))[0]
+    centre = ecef_lonlat(np.array([lon_c]), np.array([lat_c]), np.array([zmed]))[0]
     lo, la = math.radians(lon_c), math.radians(lat_c)
     east = np.array([-math.sin(lo), math.cos(lo), 0.0])
     north = np.array([-math.sin(la) * math.cos(lo), -math.sin(la) * math.sin(lo), math.cos(la)])

@@ -114,26 +114,33 @@
   };
 
   // -- the globe --------------------------------------------------------------------------------------
-  async function main() {
-    if (typeof Cesium === "undefined") throw new Error("CesiumJS did not load (cesium/ missing from this folder)");
+  // The page's state: the manifest, the viewer, one tileset per epoch and what is shown (mode, dates).
+  const page = { view: { mode: "one", current: null, swipeA: null, swipeB: null } };
+
+  async function readManifest() {
     site = await (await fetch("site.json")).json();
     S.site = site;
     S.epochs = site.epochs.map((e) => e.name);
     S.pairs = site.pairs.map((p) => [p.from, p.to]);
     document.title = site.title;
     $("title").textContent = site.title;
-    const labelOf = (name) => (site.epochs.find((e) => e.name === name) || { label: name }).label;
-    const first = S.epochs[0], last = S.epochs[S.epochs.length - 1];
+    page.labelOf = (name) => (site.epochs.find((e) => e.name === name) || { label: name }).label;
+    page.first = S.epochs[0];
+    page.last = S.epochs[S.epochs.length - 1];
+    const { labelOf, first, last } = page;
     $("dates").textContent = S.epochs.length > 1 ? `${S.epochs.length} surveys, ${labelOf(first)} to ${labelOf(last)}` : labelOf(first);
+    Object.assign(page.view, { current: first, swipeA: first, swipeB: last });
+  }
 
+  function makeViewer() {
     const viewer = new Cesium.Viewer("globe", {
       baseLayer: false, baseLayerPicker: false, geocoder: false, timeline: false, animation: false, homeButton: false,
       sceneModePicker: false, navigationHelpButton: false, fullscreenButton: false, infoBox: false,
       selectionIndicator: false, skyBox: false, skyAtmosphere: false,
       contextOptions: { webgl: { preserveDrawingBuffer: true } },
     });
-    S.viewer = viewer;
-    const scene = viewer.scene;
+    S.viewer = page.viewer = viewer;
+    const scene = (page.scene = viewer.scene);
     scene.globe.show = false;  // 3D Tiles carry the terrain; no empty globe around (or through) it
     if (scene.sun) scene.sun.show = false;
     if (scene.moon) scene.moon.show = false;
@@ -142,13 +149,18 @@
 
     const [w, s, e, n] = site.bounds_deg;
     const [zlo, zhi] = site.elevation_range_m;
-    const centre = Cesium.Cartesian3.fromDegrees((w + e) / 2, (s + n) / 2, (zlo + zhi) / 2);
+    page.bounds = { w, s, e, n, zlo, zhi };
+    const centre = (page.centre = Cesium.Cartesian3.fromDegrees((w + e) / 2, (s + n) / 2, (zlo + zhi) / 2));
     const enu = Cesium.Transforms.eastNorthUpToFixedFrame(centre);
     const toLight = Cesium.Matrix4.multiplyByPointAsVector(enu, new Cesium.Cartesian3(-0.5, 0.5, 0.7071), new Cesium.Cartesian3());
     scene.light = new Cesium.DirectionalLight({ direction: Cesium.Cartesian3.normalize(Cesium.Cartesian3.negate(toLight, new Cesium.Cartesian3()), new Cesium.Cartesian3()), intensity: 2.0 });
+  }
 
-    const blank = "data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mNkYPhfDwAChwGA60e6kgAAAABJRU5ErkJggg==";
-    const makeShader = () => new Cesium.CustomShader({
+  // each tileset's shader: shaded by height, the drape of a pair on top when u_drape is set
+  const blank = "data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAYAAAAfFcSJAAAADUlEQVR42mNkYPhfDwAChwGA60e6kgAAAABJRU5ErkJggg==";
+  function makeShader() {
+    const centre = page.centre, { zlo, zhi } = page.bounds;
+    return new Cesium.CustomShader({
       lightingModel: Cesium.LightingModel.PBR,
       uniforms: {
         u_overlay: { type: Cesium.UniformType.SAMPLER_2D, value: new Cesium.TextureUniform({ url: blank }) },
@@ -180,111 +192,121 @@
           }
         }`,
     });
+  }
+
+  async function loadTilesets() {
     const tilesets = [];
     for (const ep of site.epochs) {
       const ts = await Cesium.Cesium3DTileset.fromUrl(ep.tileset, { preloadWhenHidden: true });
       ts.show = false;
       ts.customShader = makeShader();
       ts.tileFailed.addEventListener((err) => S.errors.push(`tile ${err.url}: ${err.message}`));
-      scene.primitives.add(ts);
+      page.scene.primitives.add(ts);
       tilesets.push(ts);
     }
-    S.tilesets = tilesets;
-    const idx = (name) => {
-      const i = S.epochs.indexOf(name);
-      if (i < 0) throw new Error(`no epoch named ${name}`);
-      return i;
+    S.tilesets = page.tilesets = tilesets;
+  }
+
+  const epochIndex = (name) => {
+    const i = S.epochs.indexOf(name);
+    if (i < 0) throw new Error(`no epoch named ${name}`);
+    return i;
+  };
+
+  // the drape: pair (a -> b) on tileset i
+  const drapeOn = new Map();
+  async function drape(i, a, b) {
+    const sh = page.tilesets[i].customShader;
+    if (!$("drape").checked || a === null || pairIndex(a, b) < 0) {
+      sh.setUniform("u_drape", 0.0); drapeOn.delete(i);
+      if (!drapeOn.size) $("legend").hidden = true;
+      return null;
+    }
+    const P = await loadPair(a, b);
+    const D = P.drape;
+    sh.setUniform("u_overlay", new Cesium.TextureUniform({ url: P.files.overlay }));
+    sh.setUniform("u_centre", Cesium.Cartesian3.fromArray(D.centre_ecef));
+    sh.setUniform("u_east", Cesium.Cartesian3.fromArray(D.east));
+    sh.setUniform("u_north", Cesium.Cartesian3.fromArray(D.north));
+    sh.setUniform("u_u", Cesium.Cartesian3.fromArray(D.u));
+    sh.setUniform("u_v", Cesium.Cartesian3.fromArray(D.v));
+    sh.setUniform("u_drape", 1.0);
+    drapeOn.set(i, [a, b]);
+    showLegend(P);
+    return P;
+  }
+  function showLegend(P) {
+    // two slopes, as the report's colour bar: 0 in the middle, each side scaled to its own extreme
+    const L = P.legend, pos = (v) => (v >= 0 ? 50 + (50 * v) / L.max_m : 50 - (50 * v) / L.min_m);
+    const stops = L.stops.map((st) => `${st.css} ${pos(st.value_m).toFixed(1)}%`);
+    const g0 = pos(-L.lod_m).toFixed(1), g1 = pos(L.lod_m).toFixed(1);
+    const grad = [...stops.slice(0, 3), `${L.lod_css} ${g0}%`, `${L.lod_css} ${g1}%`, ...stops.slice(3)];
+    $("legend-bar").style.background = `linear-gradient(to right, ${grad.join(", ")})`;
+    const ticks = [L.min_m, L.min_m / 2, 0, L.max_m / 2, L.max_m];
+    const big = Math.max(L.max_m, -L.min_m) >= 20;
+    $("legend-ticks").innerHTML = ticks.map((v) => `<span style="left:${pos(v)}%">${v === 0 ? "0" : (v > 0 ? "+" : "−") + Math.abs(v).toFixed(big ? 0 : 1)} m</span>`).join("");
+    $("legend-lod").innerHTML = `<i></i> grey: within ±${L.lod_m.toFixed(1)} m, no measurable change`;
+    $("legend-title").textContent = `Change in ground height, ${page.labelOf(P.from)} to ${page.labelOf(P.to)}`;
+    $("legend").hidden = false;
+  }
+
+  // waiting for what is shown to be drawn
+  const drawn = (list) => new Promise((resolve) => {
+    const scene = page.scene, t0 = performance.now();
+    const check = () => {
+      if (list.every((t) => t.tilesLoaded) || performance.now() - t0 > 120000) {
+        scene.requestRender();
+        const once = () => { scene.postRender.removeEventListener(once); resolve(); };
+        scene.postRender.addEventListener(once);
+      } else setTimeout(check, 100);
     };
+    setTimeout(check, 50);
+  });
 
-    // the drape: pair (a -> b) on tileset i
-    const drapeOn = new Map();
-    async function drape(i, a, b) {
-      const sh = tilesets[i].customShader;
-      if (!$("drape").checked || a === null || pairIndex(a, b) < 0) {
-        sh.setUniform("u_drape", 0.0); drapeOn.delete(i);
-        if (!drapeOn.size) $("legend").hidden = true;
-        return null;
-      }
-      const P = await loadPair(a, b);
-      const D = P.drape;
-      sh.setUniform("u_overlay", new Cesium.TextureUniform({ url: P.files.overlay }));
-      sh.setUniform("u_centre", Cesium.Cartesian3.fromArray(D.centre_ecef));
-      sh.setUniform("u_east", Cesium.Cartesian3.fromArray(D.east));
-      sh.setUniform("u_north", Cesium.Cartesian3.fromArray(D.north));
-      sh.setUniform("u_u", Cesium.Cartesian3.fromArray(D.u));
-      sh.setUniform("u_v", Cesium.Cartesian3.fromArray(D.v));
-      sh.setUniform("u_drape", 1.0);
-      drapeOn.set(i, [a, b]);
-      showLegend(P);
-      return P;
-    }
-    function showLegend(P) {
-      // two slopes, as the report's colour bar: 0 in the middle, each side scaled to its own extreme
-      const L = P.legend, pos = (v) => (v >= 0 ? 50 + (50 * v) / L.max_m : 50 - (50 * v) / L.min_m);
-      const stops = L.stops.map((st) => `${st.css} ${pos(st.value_m).toFixed(1)}%`);
-      const g0 = pos(-L.lod_m).toFixed(1), g1 = pos(L.lod_m).toFixed(1);
-      const grad = [...stops.slice(0, 3), `${L.lod_css} ${g0}%`, `${L.lod_css} ${g1}%`, ...stops.slice(3)];
-      $("legend-bar").style.background = `linear-gradient(to right, ${grad.join(", ")})`;
-      const ticks = [L.min_m, L.min_m / 2, 0, L.max_m / 2, L.max_m];
-      const big = Math.max(L.max_m, -L.min_m) >= 20;
-      $("legend-ticks").innerHTML = ticks.map((v) => `<span style="left:${pos(v)}%">${v === 0 ? "0" : (v > 0 ? "+" : "−") + Math.abs(v).toFixed(big ? 0 : 1)} m</span>`).join("");
-      $("legend-lod").innerHTML = `<i></i> grey: within ±${L.lod_m.toFixed(1)} m, no measurable change`;
-      $("legend-title").textContent = `Change in ground height, ${labelOf(P.from)} to ${labelOf(P.to)}`;
-      $("legend").hidden = false;
-    }
-
-    // waiting for what is shown to be drawn
-    const drawn = (list) => new Promise((resolve) => {
-      const t0 = performance.now();
-      const check = () => {
-        if (list.every((t) => t.tilesLoaded) || performance.now() - t0 > 120000) {
-          scene.requestRender();
-          const once = () => { scene.postRender.removeEventListener(once); resolve(); };
-          scene.postRender.addEventListener(once);
-        } else setTimeout(check, 100);
-      };
-      setTimeout(check, 50);
-    });
-
-    // modes
-    let mode = "one", current = first, swipeA = first, swipeB = last;
+  // modes: one date (draped with the change since the first), or a swipe between two
+  async function setEpoch(name) {
+    const { tilesets, view, first, labelOf } = page;
+    const i = epochIndex(name);
+    view.mode = "one"; view.current = name;
+    $("mode-one").classList.add("on"); $("mode-swipe").classList.remove("on");
+    $("swipe").hidden = true; $("swipe-labels").hidden = true;
+    tilesets.forEach((t, k) => { t.show = k === i; t.splitDirection = Cesium.SplitDirection.NONE; });
+    $("epoch").value = String(i);
+    $("epoch-name").textContent = labelOf(name);
+    await drape(i, i > 0 ? first : null, name);
+    if (i === 0) $("legend").hidden = true;
+    await drawn([tilesets[i]]);
+  }
+  async function setSwipe(a, b, position = 0.5) {
+    const { tilesets, view, scene, labelOf } = page;
+    const ia = epochIndex(a), ib = epochIndex(b);
+    view.mode = "swipe"; view.swipeA = a; view.swipeB = b;
+    $("mode-swipe").classList.add("on"); $("mode-one").classList.remove("on");
+    tilesets.forEach((t, k) => { t.show = k === ia || k === ib; t.splitDirection = Cesium.SplitDirection.NONE; });
+    tilesets[ia].splitDirection = Cesium.SplitDirection.LEFT;
+    tilesets[ib].splitDirection = Cesium.SplitDirection.RIGHT;
+    scene.splitPosition = position;
+    $("swipe").hidden = false; $("swipe-labels").hidden = false;
+    placeSwipe(position);
+    $("swipe-left").textContent = labelOf(a); $("swipe-right").textContent = labelOf(b);
+    await drape(ia, null, a);
+    await drape(ib, a, b);
+    await drawn([tilesets[ia], tilesets[ib]]);
+  }
+  function placeSwipe(pos) {
+    const W = page.scene.canvas.clientWidth;
+    $("swipe").style.left = `${pos * 100}%`;
+    const l = $("swipe-left"), r = $("swipe-right");
+    l.style.right = `${W * (1 - pos) + 12}px`; l.style.left = "auto";
+    r.style.left = `${W * pos + 12}px`;
+  }
+  function wireModes() {
+    const { scene, view, first, last } = page;
     const slider = $("epoch");
     slider.max = String(Math.max(0, S.epochs.length - 1));
     if (S.epochs.length < 2) { $("mode-row").hidden = true; $("action-row").hidden = true; $("epoch-row").hidden = true; }
-    S.setEpoch = async (name) => {
-      const i = idx(name);
-      mode = "one"; current = name;
-      $("mode-one").classList.add("on"); $("mode-swipe").classList.remove("on");
-      $("swipe").hidden = true; $("swipe-labels").hidden = true;
-      tilesets.forEach((t, k) => { t.show = k === i; t.splitDirection = Cesium.SplitDirection.NONE; });
-      slider.value = String(i);
-      $("epoch-name").textContent = labelOf(name);
-      await drape(i, i > 0 ? first : null, name);
-      if (i === 0) $("legend").hidden = true;
-      await drawn([tilesets[i]]);
-    };
-    S.setSwipe = async (a, b, position = 0.5) => {
-      const ia = idx(a), ib = idx(b);
-      mode = "swipe"; swipeA = a; swipeB = b;
-      $("mode-swipe").classList.add("on"); $("mode-one").classList.remove("on");
-      tilesets.forEach((t, k) => { t.show = k === ia || k === ib; t.splitDirection = Cesium.SplitDirection.NONE; });
-      tilesets[ia].splitDirection = Cesium.SplitDirection.LEFT;
-      tilesets[ib].splitDirection = Cesium.SplitDirection.RIGHT;
-      scene.splitPosition = position;
-      $("swipe").hidden = false; $("swipe-labels").hidden = false;
-      placeSwipe(position);
-      $("swipe-left").textContent = labelOf(a); $("swipe-right").textContent = labelOf(b);
-      await drape(ia, null, a);
-      await drape(ib, a, b);
-      await drawn([tilesets[ia], tilesets[ib]]);
-    };
-    function placeSwipe(pos) {
-      const W = scene.canvas.clientWidth;
-      $("swipe").style.left = `${pos * 100}%`;
-      const l = $("swipe-left"), r = $("swipe-right");
-      l.style.right = `${W * (1 - pos) + 12}px`; l.style.left = "auto";
-      r.style.left = `${W * pos + 12}px`;
-    }
+    S.setEpoch = setEpoch;
+    S.setSwipe = setSwipe;
     // dragging the swipe handle
     let dragging = false;
     $("swipe-handle").addEventListener("pointerdown", (ev) => { dragging = true; ev.preventDefault(); });
@@ -296,74 +318,89 @@
     });
     slider.addEventListener("input", () => {
       const name = S.epochs[+slider.value];
-      if (mode === "one") S.setEpoch(name); else S.setSwipe(first === name ? S.epochs[0] : first, name, scene.splitPosition);
+      if (view.mode === "one") setEpoch(name); else setSwipe(first === name ? S.epochs[0] : first, name, scene.splitPosition);
     });
-    $("mode-one").addEventListener("click", () => S.setEpoch(current));
-    $("mode-swipe").addEventListener("click", () => S.setSwipe(first, current === first ? last : current, 0.5));
-    $("drape").addEventListener("change", () => (mode === "one" ? S.setEpoch(current) : S.setSwipe(swipeA, swipeB, scene.splitPosition)));
+    $("mode-one").addEventListener("click", () => setEpoch(view.current));
+    $("mode-swipe").addEventListener("click", () => setSwipe(first, view.current === first ? last : view.current, 0.5));
+    $("drape").addEventListener("change", () => (view.mode === "one" ? setEpoch(view.current) : setSwipe(view.swipeA, view.swipeB, scene.splitPosition)));
+  }
 
-    // the pair the answers refer to: first -> shown (one date) or left -> right (swipe)
-    const activePair = () => {
-      if (mode === "swipe") return pairIndex(swipeA, swipeB) >= 0 ? [swipeA, swipeB] : [first, last];
-      return current !== first && pairIndex(first, current) >= 0 ? [first, current] : [first, last];
-    };
+  // the pair the answers refer to: first -> shown (one date) or left -> right (swipe)
+  function activePair() {
+    const { view, first, last } = page;
+    if (view.mode === "swipe") return pairIndex(view.swipeA, view.swipeB) >= 0 ? [view.swipeA, view.swipeB] : [first, last];
+    return view.current !== first && pairIndex(first, view.current) >= 0 ? [first, view.current] : [first, last];
+  }
 
-    // click: how much changed here
+  // "how much changed here?" in a sentence
+  async function describeChange(lon, lat) {
+    const [a, b] = activePair();
+    const r = await S.changeAt(lon, lat, a, b);
+    const when = `between ${page.labelOf(a)} and ${page.labelOf(b)}`;
+    if (r.change_m === null) return "No data here.";
+    const u = r.uncertainty_m.toFixed(1);
+    if (Math.abs(r.change_m) <= r.lod_m) return `Here the ground did not change measurably ${when} (less than ±${r.lod_m.toFixed(1)} m).`;
+    const verb = r.change_m > 0 ? "rose" : "dropped";
+    return `Here the ground ${verb} ${Math.abs(r.change_m).toFixed(1)} ± ${u} m ${when} (from ${r.before_m.toFixed(0)} m to ${r.after_m.toFixed(0)} m above sea level).`;
+  }
+
+  // the volume inside a drawn polygon in a sentence
+  async function describeVolume(ring) {
+    const [a, b] = activePair();
+    const v = await S.volume(ring, a, b);
+    const P = await loadPair(a, b);
+    const pool = P.olympic_pool_m3;
+    const net = v.net_m3 >= 0 ? `a net gain of ${fmtPm(v.net_m3, v.net_uncertainty_m3)}` : `a net loss of ${fmtPm(-v.net_m3, v.net_uncertainty_m3)}`;
+    return `Inside this shape (${(v.area_m2 / 1e6).toFixed(2)} km²), between ${page.labelOf(a)} and ${page.labelOf(b)}: ${net} ` +
+      `(about ${pools(v.net_m3, pool)} Olympic swimming pools); ${fmtVol(v.gain_m3)} added where the ground rose, ` +
+      `${fmtVol(v.loss_m3)} removed where it dropped.`;
+  }
+
+  // clicks on the ground: a sentence on the change there, or a corner of the polygon being drawn
+  const drawing = { on: false, ring: [], entity: null };
+  function wireClicks() {
+    const scene = page.scene;
+    S.describeChange = describeChange;
+    S.describeVolume = describeVolume;
     const handler = new Cesium.ScreenSpaceEventHandler(scene.canvas);
-    const drawing = { on: false, ring: [], entity: null };
     const pick = (pos) => {
       const p = scene.pickPosition(pos);
       if (!Cesium.defined(p)) return null;
       const c = Cesium.Cartographic.fromCartesian(p);
       return [Cesium.Math.toDegrees(c.longitude), Cesium.Math.toDegrees(c.latitude)];
     };
-    S.describeChange = async (lon, lat) => {
-      const [a, b] = activePair();
-      const r = await S.changeAt(lon, lat, a, b);
-      const when = `between ${labelOf(a)} and ${labelOf(b)}`;
-      if (r.change_m === null) return "No data here.";
-      const u = r.uncertainty_m.toFixed(1);
-      if (Math.abs(r.change_m) <= r.lod_m) return `Here the ground did not change measurably ${when} (less than ±${r.lod_m.toFixed(1)} m).`;
-      const verb = r.change_m > 0 ? "rose" : "dropped";
-      return `Here the ground ${verb} ${Math.abs(r.change_m).toFixed(1)} ± ${u} m ${when} (from ${r.before_m.toFixed(0)} m to ${r.after_m.toFixed(0)} m above sea level).`;
-    };
     handler.setInputAction(async (click) => {
       const ll = pick(click.position);
       if (!ll) return;
       if (drawing.on) { drawing.ring.push(ll); updateRing(); return; }
-      $("answer").textContent = await S.describeChange(ll[0], ll[1]);
+      $("answer").textContent = await describeChange(ll[0], ll[1]);
     }, Cesium.ScreenSpaceEventType.LEFT_CLICK);
+  }
 
-    // draw a polygon: its gain, loss and net volume
-    function updateRing() {
-      if (drawing.entity) viewer.entities.remove(drawing.entity);
-      if (drawing.ring.length < 2) return;
-      const flat = drawing.ring.concat([drawing.ring[0]]).flat();
-      drawing.entity = viewer.entities.add({ polyline: { positions: Cesium.Cartesian3.fromDegreesArray(flat), width: 3,
-        material: Cesium.Color.YELLOW, clampToGround: false, depthFailMaterial: Cesium.Color.YELLOW } });
-      // lift the outline onto the terrain so it is seen
-      Promise.all(drawing.ring.map(([lo, la]) => scene.sampleHeightMostDetailed([Cesium.Cartographic.fromDegrees(lo, la)])))
-        .then((hs) => {
-          if (!drawing.entity) return;
-          const pts = drawing.ring.map(([lo, la], k) => Cesium.Cartesian3.fromDegrees(lo, la, ((hs[k][0] && hs[k][0].height) || 0) + 5));
-          drawing.entity.polyline.positions = pts.concat([pts[0]]);
-        }).catch(() => {});
-      $("answer").textContent = `Corners: ${drawing.ring.length}. Click more, then press "Done".`;
-    }
-    S.describeVolume = async (ring) => {
-      const [a, b] = activePair();
-      const v = await S.volume(ring, a, b);
-      const P = await loadPair(a, b);
-      const pool = P.olympic_pool_m3;
-      const net = v.net_m3 >= 0 ? `a net gain of ${fmtPm(v.net_m3, v.net_uncertainty_m3)}` : `a net loss of ${fmtPm(-v.net_m3, v.net_uncertainty_m3)}`;
-      return `Inside this shape (${(v.area_m2 / 1e6).toFixed(2)} km²), between ${labelOf(a)} and ${labelOf(b)}: ${net} ` +
-        `(about ${pools(v.net_m3, pool)} Olympic swimming pools); ${fmtVol(v.gain_m3)} added where the ground rose, ` +
-        `${fmtVol(v.loss_m3)} removed where it dropped.`;
-    };
+  // the polygon being drawn, lifted onto the terrain
+  function updateRing() {
+    const { viewer, scene } = page;
+    if (drawing.entity) viewer.entities.remove(drawing.entity);
+    if (drawing.ring.length < 2) return;
+    const flat = drawing.ring.concat([drawing.ring[0]]).flat();
+    drawing.entity = viewer.entities.add({ polyline: { positions: Cesium.Cartesian3.fromDegreesArray(flat), width: 3,
+      material: Cesium.Color.YELLOW, clampToGround: false, depthFailMaterial: Cesium.Color.YELLOW } });
+    // lift the outline onto the terrain so it is seen
+    Promise.all(drawing.ring.map(([lo, la]) => scene.sampleHeightMostDetailed([Cesium.Cartographic.fromDegrees(lo, la)])))
+      .then((hs) => {
+        if (!drawing.entity) return;
+        const pts = drawing.ring.map(([lo, la], k) => Cesium.Cartesian3.fromDegrees(lo, la, ((hs[k][0] && hs[k][0].height) || 0) + 5));
+        drawing.entity.polyline.positions = pts.concat([pts[0]]);
+      }).catch(() => {});
+    $("answer").textContent = `Corners: ${drawing.ring.length}. Click more, then press "Done".`;
+  }
+
+  // "Measure a volume": the first press starts a polygon, the second measures it
+  function wireMeasure() {
     $("measure").addEventListener("click", async () => {
       if (!drawing.on) {
         drawing.on = true; drawing.ring = [];
-        if (drawing.entity) { viewer.entities.remove(drawing.entity); drawing.entity = null; }
+        if (drawing.entity) { page.viewer.entities.remove(drawing.entity); drawing.entity = null; }
         $("measure").textContent = "Done"; $("measure").classList.add("on");
         $("answer").textContent = "Click the corners of the area on the ground, then press \"Done\".";
         return;
@@ -371,10 +408,12 @@
       drawing.on = false;
       $("measure").textContent = "Measure a volume"; $("measure").classList.remove("on");
       if (drawing.ring.length < 3) { $("answer").textContent = "A shape needs at least three corners."; return; }
-      $("answer").textContent = await S.describeVolume(drawing.ring);
+      $("answer").textContent = await describeVolume(drawing.ring);
     });
+  }
 
-    // the largest change
+  // "the largest change": fly there and say it
+  function wireLargest() {
     $("largest").addEventListener("click", async () => {
       const [a, b] = activePair();
       const P = await loadPair(a, b);
@@ -382,24 +421,28 @@
       const { lon_deg, lat_deg } = P.largest;
       const r = await S.changeAt(lon_deg, lat_deg, a, b);
       const target = Cesium.Cartesian3.fromDegrees(lon_deg, lat_deg, r.after_m || 0);
-      viewer.camera.flyToBoundingSphere(new Cesium.BoundingSphere(target, 600), { offset: new Cesium.HeadingPitchRange(0, Cesium.Math.toRadians(-40), 2500), duration: 2 });
-      $("answer").textContent = await S.describeChange(lon_deg, lat_deg);
+      page.viewer.camera.flyToBoundingSphere(new Cesium.BoundingSphere(target, 600), { offset: new Cesium.HeadingPitchRange(0, Cesium.Math.toRadians(-40), 2500), duration: 2 });
+      $("answer").textContent = await describeChange(lon_deg, lat_deg);
     });
+  }
 
-    // a series: play through the dates, and the volume against time
-    if (S.epochs.length > 2) {
-      $("play").hidden = false;
-      let timer = null;
-      $("play").addEventListener("click", () => {
-        if (timer) { clearInterval(timer); timer = null; $("play").textContent = "▶ Play"; return; }
-        $("play").textContent = "❚❚ Pause";
-        let i = S.epochs.indexOf(current);
-        timer = setInterval(() => { i = (i + 1) % S.epochs.length; S.setEpoch(S.epochs[i]); }, 1500);
-      });
-      drawChart(labelOf).catch((err) => S.errors.push("chart: " + err));
-    }
+  // a series: play through the dates, and the volume against time
+  function wireSeries() {
+    if (S.epochs.length <= 2) return;
+    $("play").hidden = false;
+    let timer = null;
+    $("play").addEventListener("click", () => {
+      if (timer) { clearInterval(timer); timer = null; $("play").textContent = "▶ Play"; return; }
+      $("play").textContent = "❚❚ Pause";
+      let i = S.epochs.indexOf(page.view.current);
+      timer = setInterval(() => { i = (i + 1) % S.epochs.length; setEpoch(S.epochs[i]); }, 1500);
+    });
+    drawChart(page.labelOf).catch((err) => S.errors.push("chart: " + err));
+  }
 
-    // scale bar and north arrow follow the camera
+  // scale bar and north arrow follow the camera
+  function wireScaleAndNorth() {
+    const { viewer, scene } = page;
     scene.postRender.addEventListener(() => {
       $("north-needle").setAttribute("transform", `rotate(${-Cesium.Math.toDegrees(viewer.camera.heading)})`);
       const cv = scene.canvas, y = cv.clientHeight - 30;
@@ -411,23 +454,42 @@
       $("scale-bar").style.width = `${(100 * len) / mPer100}px`;
       $("scale-text").textContent = len >= 1000 ? `${len / 1000} km` : `${len} m`;
     });
+  }
 
-    // first view: the whole terrain, from the south-south-west, looking down 50°
+  // first view: the whole terrain, from the south-south-west, looking down 50°
+  function firstView() {
+    const { viewer, centre } = page, { w, s, e, n, zlo } = page.bounds;
     const diag = Cesium.Cartesian3.distance(Cesium.Cartesian3.fromDegrees(w, s, zlo), Cesium.Cartesian3.fromDegrees(e, n, zlo));
     viewer.camera.lookAt(centre, new Cesium.HeadingPitchRange(0.0, Cesium.Math.toRadians(-50), 1.1 * diag));
     viewer.camera.lookAtTransform(Cesium.Matrix4.IDENTITY);
     viewer.camera.moveLeft(0.18 * diag);  // the terrain to the right of the panel
+  }
 
-    // the plain-language summary of the main pair
-    if (site.pairs.length) {
-      const P = await loadPair(first, last);
-      $("summary").innerHTML = "";
-      for (const line of P.summary) { const li = document.createElement("li"); li.textContent = line; $("summary").appendChild(li); }
-    } else $("summary-box").hidden = true;
+  // the plain-language summary of the main pair
+  async function showSummary() {
+    if (!site.pairs.length) { $("summary-box").hidden = true; return; }
+    const P = await loadPair(page.first, page.last);
+    $("summary").innerHTML = "";
+    for (const line of P.summary) { const li = document.createElement("li"); li.textContent = line; $("summary").appendChild(li); }
+  }
+
+  async function main() {
+    if (typeof Cesium === "undefined") throw new Error("CesiumJS did not load (cesium/ missing from this folder)");
+    await readManifest();
+    makeViewer();
+    await loadTilesets();
+    wireModes();
+    wireClicks();
+    wireMeasure();
+    wireLargest();
+    wireSeries();
+    wireScaleAndNorth();
+    firstView();
+    await showSummary();
     const t0 = performance.now();
-    await S.setEpoch(S.epochs.length > 1 ? last : first);
+    await setEpoch(S.epochs.length > 1 ? page.last : page.first);
     S.firstViewMs = performance.now() - t0;
-    status(`${S.epochs.length} date${S.epochs.length > 1 ? "s" : ""} · drawn with ${scene.context.webgl2 ? "WebGL 2" : "WebGL"}`);
+    status(`${S.epochs.length} date${S.epochs.length > 1 ? "s" : ""} · drawn with ${page.scene.context.webgl2 ? "WebGL 2" : "WebGL"}`);
   }
 
   async function drawChart(labelOf) {

@@ -1,0 +1,170 @@
+"""The plan of a change site: what the page shows, computed once and read by both the site writer
+(:mod:`terralod.site.build`) and ``terralod serve`` (:mod:`terralod.serve.server`), so that a folder and a
+server of the same epochs show the same site.
+
+A :class:`SitePlan` holds:
+
+- the epochs (oldest first) and the pairs a site carries (:func:`terralod.site.data.pairs_of`), each measured
+  once by :func:`terralod.change.volumes.measure_change` as :class:`SiteOptions` say (co-registration on or
+  off, the estimator); a pair the caller already measured (``terralod change``'s own) is used as given;
+- the bounds (degrees), from :meth:`terralod.export.geodesy.Geodesy.lonlat_bounds` of the first epoch's
+  footprint and nowhere else; the heights, the area and the title;
+- the pruning: ``keep_error_m``, the smallest level of detection of the pairs (tiles whose measured error is at
+  most it become leaves; 0 = nothing pruned), and whether tiles several epochs share are kept once;
+- each pair's description (``pairs/K.json``) and its rasters, a raster several pairs share (the same bytes)
+  named once: ``pair_meta[K]["files"]`` names the file to read, ``files`` holds every file once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+from terralod.site.data import epoch_label, pair_payload, pairs_of
+
+__all__ = ["PlannedPair", "SiteOptions", "SitePlan", "plan_site", "plan_store_site"]
+
+
+@dataclass(frozen=True)
+class SiteOptions:
+    """How a site's pairs are measured and its tiles written."""
+
+    #: line AFTER up with BEFORE before differencing (``terralod change --no-coregister`` turns it off)
+    coregistration: bool = True
+    #: the co-registration estimator (:data:`terralod.change.coregister.METHODS`)
+    method: str = "xdem"
+    #: leave out the tile levels finer than the pairs' level of detection
+    prune: bool = True
+    #: keep a tile several epochs share (the same bytes) once
+    share_tiles: bool = True
+
+
+@dataclass(frozen=True)
+class PlannedPair:
+    """One measured pair: epoch names, the dates the page shows (None for a name that is no date) and the
+    :class:`terralod.change.volumes.ChangeResult`."""
+
+    before: str
+    after: str
+    dates: tuple[str | None, str | None]
+    result: Any
+
+
+@dataclass(frozen=True)
+class SitePlan:
+    """Everything a site shows apart from the tiles themselves (module docstring)."""
+
+    title: str
+    epochs: tuple[str, ...]
+    pairs: tuple[PlannedPair, ...]
+    bounds_deg: tuple[float, float, float, float]
+    elevation_range_m: tuple[float, float]
+    area_km2: float
+    keep_error_m: float
+    share_tiles: bool
+    pair_meta: tuple[dict[str, Any], ...]
+    files: Mapping[str, bytes]
+
+    @property
+    def between(self) -> str:
+        """' between 25 Sep 2000 and 5 Jul 2007' (empty for a single epoch)."""
+        if len(self.epochs) < 2:
+            return ""
+        return f" between {epoch_label(self.epochs[0])} and {epoch_label(self.epochs[-1])}"
+
+    def manifest(self) -> dict[str, Any]:
+        """``site.json``: the epochs, their tilesets, the pairs and where each is described."""
+        return {
+            "generator": "terralod",
+            "title": self.title,
+            "bounds_deg": [float(v) for v in self.bounds_deg],
+            "elevation_range_m": [float(v) for v in self.elevation_range_m],
+            "epochs": [
+                {"name": e, "label": epoch_label(e), "tileset": f"epochs/{i}/tileset.json"}
+                for i, e in enumerate(self.epochs)
+            ],  # fmt: skip
+            "pairs": [
+                {"from": p.before, "to": p.after, "url": f"pairs/{k}.json"} for k, p in enumerate(self.pairs)
+            ],
+        }
+
+    def pair_files(self, k: int) -> dict[str, bytes]:
+        """The files pair ``k``'s description names (some may be another pair's)."""
+        return {name: self.files[name] for name in self.pair_meta[k]["files"].values()}
+
+
+def _dates(a: str, b: str) -> tuple[str | None, str | None]:
+    return (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
+
+
+def plan_site(
+    epochs: Sequence[tuple[str, Any]],
+    *,
+    title: str,
+    elevation_range_m: Sequence[float],
+    options: SiteOptions = SiteOptions(),
+    measured: Mapping[tuple[str, str], Any] | None = None,
+    measure: bool = True,
+) -> SitePlan:
+    """The plan of a site of ``epochs`` ((name, heightfield), oldest first). ``measured``: pairs already
+    measured (from, to) → ChangeResult; ``measure=False``: no pairs (the change extra is missing)."""
+    from terralod.change.volumes import measure_change
+    from terralod.export.geodesy import Geodesy
+
+    names = [n for n, _ in epochs]
+    hfs = dict(epochs)
+    first = epochs[0][1]
+    measured = measured or {}
+    pairs = []
+    for a, b in pairs_of(names) if measure else []:
+        dates = _dates(a, b)
+        res = measured.get((a, b))
+        if res is None:
+            res = measure_change(hfs[a], hfs[b], dates=dates, coregistration=options.coregistration,
+                                 method=options.method)  # fmt: skip
+        pairs.append(PlannedPair(a, b, dates, res))
+    lods = [p.result.uncertainty.level_of_detection_m for p in pairs]
+    files: dict[str, bytes] = {}
+    written: dict[str, str] = {}  # content digest -> file name: a raster several pairs share is named once
+    metas = []
+    for k, p in enumerate(pairs):
+        meta, own = pair_payload(p.result, p.dates, (p.before, p.after), str(k))
+        for role, name in list(meta["files"].items()):
+            digest = hashlib.sha256(own[name]).hexdigest()
+            if digest in written:
+                meta["files"][role] = written[digest]
+            else:
+                written[digest] = name
+                files[name] = own[name]
+        metas.append(meta)
+    t = first.transform
+    lo, hi = elevation_range_m
+    return SitePlan(
+        title=title,
+        epochs=tuple(names),
+        pairs=tuple(pairs),
+        bounds_deg=Geodesy(first.crs, geographic=True).lonlat_bounds(first.bounds_m),
+        elevation_range_m=(float(lo), float(hi)),
+        area_km2=float(first.valid.sum()) * abs(t.a * t.e) / 1e6,
+        keep_error_m=min(lods) if lods and options.prune else 0.0,
+        share_tiles=options.share_tiles,
+        pair_meta=tuple(metas),
+        files=MappingProxyType(files),
+    )
+
+
+def plan_store_site(terrain: Any, options: SiteOptions = SiteOptions(), *, measure: bool = True) -> SitePlan:
+    """The plan of a store's site: every epoch (the store's name for a store without epochs), the pairs
+    :func:`~terralod.site.data.pairs_of` names. The title is the store's name, with ": how the ground
+    changed" when there are pairs."""
+    stem = Path(str(terrain.path)).stem if terrain.path else "terrain"
+    names = list(terrain.epochs)
+    epochs = [(n, terrain.heightfield(n)) for n in names] or [(stem, terrain.heightfield())]
+    measure = measure and len(names) >= 2
+    title = f"{stem}: how the ground changed" if measure else stem
+    return plan_site(epochs, title=title, elevation_range_m=terrain.elevation_range_m, options=options,
+                     measure=measure)  # fmt: skip
