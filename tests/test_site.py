@@ -166,6 +166,8 @@ def test_site_folder_is_whole_and_names_no_machine(change_run: Path) -> None:
     assert [e["name"] for e in m["epochs"]] == [A, B] and m["pairs"] == [
         {"from": A, "to": B, "url": "pairs/0.json"}
     ]
+    # St Helens (EPSG:26910, no vertical CRS in the files): nobody said above what, so no "sea level"
+    assert m["heights"] == {"datum": "unknown", "words": "as surveyed (the survey does not say above what)"}
     pair = json.loads((site / "pairs/0.json").read_text())
     assert pair["drape"]["residual_cells"] < 0.5
     lod = pair["error_model"]["lod_m"]
@@ -188,6 +190,21 @@ def test_site_folder_is_whole_and_names_no_machine(change_run: Path) -> None:
               change_run / "summary.json"]:  # fmt: skip
         text = f.read_text(errors="replace")
         assert str(change_run.parent) not in text and home + "/" not in text, f
+
+
+@pytest.mark.parametrize(
+    ("crs", "words"),
+    [
+        ("EPSG:26910+5703", "above sea level"),
+        ("EPSG:26910", "as surveyed"),
+        ("EPSG:4979", "above the WGS 84"),
+    ],
+)
+def test_the_page_says_above_sea_level_only_for_a_geoid(crs: str, words: str) -> None:
+    from terralod.export.vertical import resolve_vertical_datum
+    from terralod.site.plan import height_words
+
+    assert height_words(resolve_vertical_datum(None, crs))["words"].startswith(words)
 
 
 def test_site_refuses_to_write_over_its_input(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

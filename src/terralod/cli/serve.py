@@ -19,18 +19,25 @@ from terralod.cli._errors import require_extra
 @click.option(
     "--port", type=click.IntRange(0, 65535), default=8000, show_default=True, help="TCP port (0: any)."
 )
-def serve(store: str, host: str, port: int) -> None:
+@click.option(
+    "--no-coregister", is_flag=True, help="The page's pairs compared as they are, without lining them up."
+)
+@click.option("--coreg", "coreg_method", type=click.Choice(["xdem", "terralod"]), default="xdem",
+              show_default=True, help="Co-registration estimator of the page's pairs.")  # fmt: skip
+def serve(store: str, host: str, port: int, no_coregister: bool, coreg_method: str) -> None:
     """Serve a .terra store to the browser: viewer at /, tiles under /3dtiles/ and /terrain/ (read-only)."""
     require_extra("serve", "web")
     from terralod.errors import TerralodError
     from terralod.serve import CESIUM_HINT, make_server
+    from terralod.site.plan import SiteOptions
     from terralod.terrain import open_terrain
 
     if host not in ("127.0.0.1", "localhost", "::1"):
         err_console.print(f"terralod: warning: serving on {host}: anyone who can reach it can read the store")
     with open_terrain(store) as terrain:
         try:
-            server, service = make_server(terrain, host, port)
+            options = SiteOptions(coregistration=not no_coregister, method=coreg_method)
+            server, service = make_server(terrain, host, port, site_options=options)
         except OSError as exc:
             if isinstance(exc, TerralodError):  # a store error (StoreError is an OSError): named as such
                 raise

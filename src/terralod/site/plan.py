@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
@@ -68,6 +68,8 @@ class SitePlan:
     share_tiles: bool
     pair_meta: tuple[dict[str, Any], ...]
     files: Mapping[str, bytes]
+    #: what the heights are above, for the page's words: {"datum": key, "words": "above sea level" | ...}
+    heights: Mapping[str, str] = field(default_factory=lambda: {"datum": "unknown", "words": "as surveyed"})
 
     @property
     def between(self) -> str:
@@ -90,11 +92,23 @@ class SitePlan:
             "pairs": [
                 {"from": p.before, "to": p.after, "url": f"pairs/{k}.json"} for k, p in enumerate(self.pairs)
             ],
+            "heights": dict(self.heights),
         }
 
     def pair_files(self, k: int) -> dict[str, bytes]:
         """The files pair ``k``'s description names (some may be another pair's)."""
         return {name: self.files[name] for name in self.pair_meta[k]["files"].values()}
+
+
+def height_words(vertical: Any) -> dict[str, str]:
+    """What the page says heights are above: "above sea level" only for heights above a geoid (what a
+    visitor calls sea level), "above the ellipsoid" for ellipsoidal heights, "as surveyed" when nobody said
+    (:class:`terralod.export.vertical.VerticalDatum`)."""
+    if vertical.above_sea_level:
+        return {"datum": vertical.key, "words": "above sea level"}
+    if vertical.is_ellipsoidal:
+        return {"datum": vertical.key, "words": "above the WGS 84 ellipsoid"}
+    return {"datum": vertical.key, "words": "as surveyed (the survey does not say above what)"}
 
 
 def _dates(a: str, b: str) -> tuple[str | None, str | None]:
@@ -143,11 +157,13 @@ def plan_site(
         metas.append(meta)
     t = first.transform
     lo, hi = elevation_range_m
+    geo = Geodesy(first.crs, geographic=True)
     return SitePlan(
+        heights=MappingProxyType(height_words(geo.vertical)),
         title=title,
         epochs=tuple(names),
         pairs=tuple(pairs),
-        bounds_deg=Geodesy(first.crs, geographic=True).lonlat_bounds(first.bounds_m),
+        bounds_deg=geo.lonlat_bounds(first.bounds_m),
         elevation_range_m=(float(lo), float(hi)),
         area_km2=float(first.valid.sum()) * abs(t.a * t.e) / 1e6,
         keep_error_m=min(lods) if lods and options.prune else 0.0,

@@ -332,6 +332,11 @@
     return view.current !== first && pairIndex(first, view.current) >= 0 ? [first, view.current] : [first, last];
   }
 
+  // what the heights are above: "above sea level" only when the survey's datum is a geoid (site.json)
+  function heightWords() {
+    return (site.heights && site.heights.words) || "as surveyed";
+  }
+
   // "how much changed here?" in a sentence
   async function describeChange(lon, lat) {
     const [a, b] = activePair();
@@ -341,7 +346,7 @@
     const u = r.uncertainty_m.toFixed(1);
     if (Math.abs(r.change_m) <= r.lod_m) return `Here the ground did not change measurably ${when} (less than ±${r.lod_m.toFixed(1)} m).`;
     const verb = r.change_m > 0 ? "rose" : "dropped";
-    return `Here the ground ${verb} ${Math.abs(r.change_m).toFixed(1)} ± ${u} m ${when} (from ${r.before_m.toFixed(0)} m to ${r.after_m.toFixed(0)} m above sea level).`;
+    return `Here the ground ${verb} ${Math.abs(r.change_m).toFixed(1)} ± ${u} m ${when} (from ${r.before_m.toFixed(0)} m to ${r.after_m.toFixed(0)} m ${heightWords()}).`;
   }
 
   // the volume inside a drawn polygon in a sentence
