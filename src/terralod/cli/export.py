@@ -13,20 +13,32 @@ interrupted export of the same input and options: the tiles it wrote are kept, t
 result is byte for byte the uninterrupted export's (a tile is a pure function of its code). ``--update``
 rewrites, in an existing output, only the files whose bytes change (after ``terralod update``): the others
 keep their inode and mtime, so a sync to a web host sends only what changed.
+
+A region in, for quantized-mesh: several DEMs, a quoted glob, a folder (its rasters), a GDAL VRT, SRTM
+``.hgt`` or ``.hgt.zip`` as downloaded — one grid (:func:`terralod.io.region.resolve_region`: the same CRS,
+resolution and grid, or one line naming the two files that differ). Where files overlap the last one listed
+wins (a glob's or folder's files in name order); cells no file covers are nodata (filled, flagged in the
+water mask, never in a declared error). Every file is read once before anything is written (an unreadable
+one is named, exit 2) and the free disk is checked against an estimate; a WGS 84 longitude/latitude region
+is then read a window at a time (memory independent of its size). ``--bbox`` and ``--min-zoom`` /
+``--max-zoom`` export a part: the same tiles as the whole export, fewer of them.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import click
 
-from terralod.cli._console import console, progress
+from terralod.cli._console import PlainProgress, console, err_console
 from terralod.cli._errors import require_extra
-from terralod.cli._options import check_raster_size
+from terralod.cli._options import numbers
 from terralod.output import Lock, Output, refuse_inputs, work_path
 
 
 @click.command()
-@click.argument("store")
+@click.argument("inputs", nargs=-1, required=True, metavar="STORE|DEM...")
 @click.option(
     "--format",
     "fmt",
@@ -70,13 +82,38 @@ from terralod.output import Lock, Output, refuse_inputs, work_path
     help="Rewrite, in an existing output, only the files whose bytes change (after `terralod update`) and "
     "list them; the others are left untouched (3dtiles, quantized-mesh).",
 )
+@click.option(
+    "--bbox",
+    default=None,
+    metavar="W,S,E,N",
+    help="quantized-mesh: export only the tiles that meet this box (degrees); each tile is the whole export's.",
+)
+@click.option("--min-zoom", type=click.IntRange(0, 30), default=0, show_default=True,
+              help="quantized-mesh: first level written.")  # fmt: skip
+@click.option("--max-zoom", type=click.IntRange(0, 30), default=None,
+              help="quantized-mesh: last level written (default: the finest the data holds).")  # fmt: skip
 def export(
-    store: str, fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool, gzip_tiles: bool,
-    normals: bool, resume: bool, update_output: bool,
+    inputs: tuple[str, ...], fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool,
+    gzip_tiles: bool, normals: bool, resume: bool, update_output: bool, bbox: str | None, min_zoom: int,
+    max_zoom: int | None,
 ) -> None:  # fmt: skip
-    """Export a .terra store (or, for quantized-mesh, a DEM file) as 3D Tiles or Cesium quantized-mesh."""
+    """Export a .terra store as 3D Tiles or Cesium quantized-mesh, or DEMs (a region: files, a quoted glob, a
+    folder, a VRT, .hgt/.hgt.zip; where they overlap the last one listed wins) as quantized-mesh."""
     require_extra("export", "web")
-    refuse_inputs(output, [store])  # even with --overwrite: replacing it would delete the input
+    refuse_inputs(output, [i for i in inputs if Path(i).exists()])  # even with --overwrite
+    part = _part(bbox, min_zoom, max_zoom)
+    if len(inputs) > 1 or not _is_one_file(inputs[0]):
+        if fmt != "quantized-mesh":
+            raise click.BadParameter("several inputs, a glob or a folder make a region of DEMs: quantized-mesh "
+                                     "only", param_hint="--format")  # fmt: skip
+        _run_dem(list(inputs), output, epoch, {"overwrite": overwrite, "resume": resume, "update": update_output},
+                 gzip_tiles, normals, part)  # fmt: skip
+        return
+    store = inputs[0]
+    if not part.whole and fmt != "quantized-mesh":
+        raise click.BadParameter(
+            "--bbox, --min-zoom and --max-zoom are for quantized-mesh", param_hint="--format"
+        )
     if fmt == "site" and (resume or update_output):
         raise click.BadParameter(
             "--resume and --update are for 3dtiles and quantized-mesh", param_hint="--format"
@@ -97,7 +134,7 @@ def export(
             raise InputError(
                 "is a DEM; 3D Tiles are written from a store (run `terralod build` first)", store
             )
-        _run_dem(store, output, epoch, opts, gzip_tiles, normals)
+        _run_dem([store], output, epoch, opts, gzip_tiles, normals, part)
         return
     with open_terrain(store) as terrain:
         if epoch is not None:
@@ -105,7 +142,29 @@ def export(
         _output(output, store, opts).check()  # refusals first: one line, before any progress output
         Geodesy(terrain.crs, store)
         check_exportable(terrain, epoch)
-        _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals)
+        _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals, part)
+
+
+def _part(bbox: str | None, min_zoom: int, max_zoom: int | None) -> Any:
+    """The part of a quantized-mesh export the options ask for (:class:`~terralod.export.quantized_mesh.Part`)."""
+    from terralod.export.quantized_mesh import Part
+
+    box = numbers(bbox, 4, "--bbox", "W,S,E,N in degrees (west,south,east,north)")
+    try:
+        return Part(bbox=box, min_zoom=min_zoom, max_zoom=max_zoom)  # type: ignore[arg-type]
+    except ValueError as exc:
+        raise click.BadParameter(
+            str(exc), param_hint="--bbox" if "box" in str(exc) else "--max-zoom"
+        ) from None
+
+
+def _is_one_file(text: str) -> bool:
+    """One store or DEM file (or a missing path, left to open_terrain's message): not a folder, a zip or a
+    glob, which make a region."""
+    p = Path(text)
+    if p.is_dir() or (p.is_file() and p.name.lower().endswith(".zip")):
+        return False
+    return p.exists() or not any(ch in text for ch in "*?[")
 
 
 def _output(output: str, source: str, opts: dict[str, bool]) -> Output:
@@ -132,35 +191,48 @@ def _run_site(store: str, output: str, overwrite: bool) -> None:
 
 def _is_dem(path: str, is_sqlite) -> bool:  # noqa: ANN001
     """A file that is not a .terra store (a missing path is left to open_terrain's message)."""
-    from pathlib import Path
-
     p = Path(path)
     return p.is_file() and not is_sqlite(p)
 
 
 def _run_dem(
-    dem: str, output: str, epoch: str | None, opts: dict[str, bool], gzip_tiles: bool, normals: bool = False
-) -> None:
+    dems: list[str], output: str, epoch: str | None, opts: dict[str, bool], gzip_tiles: bool,
+    normals: bool = False, part: Any = None,
+) -> None:  # fmt: skip
+    """A DEM or a region of DEMs exported as quantized-mesh: every file read once first (an unreadable one
+    named in one line), then the tiles, a window of the region at a time for WGS 84 lon/lat data."""
     from terralod.errors import InputError
-    from terralod.export.source import source_from_dem
+    from terralod.export.source import source_from_region
+    from terralod.fill import check_dimensions
+    from terralod.io.region import resolve_region
 
     if epoch is not None:
-        raise InputError("is a DEM; --epoch selects an epoch of a store", dem)
-    check_raster_size(dem)  # the one size limit, from the header, before any sample is read
-    _output(output, dem, opts).check()
-    source = source_from_dem(dem)
-    _run(source, "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals)
+        raise InputError("is a DEM; --epoch selects an epoch of a store", dems[0])
+    region = resolve_region(dems)  # headers only: one grid, or one line naming the two files that differ
+    if not _lonlat(region.crs):  # read whole, in memory: the one size limit, from the headers
+        check_dimensions(region.height, region.width, region.name)
+    Output(output, inputs=region.files, overwrite=opts["overwrite"], resume=opts["resume"],
+           update=opts["update"]).check()  # fmt: skip
+    source = source_from_region(region)
+    _run(source, "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals, part)
+
+
+def _lonlat(crs: Any) -> bool:
+    try:
+        return bool(crs.is_geographic) and crs.to_epsg() == 4326
+    except Exception:  # noqa: BLE001
+        return False
 
 
 def _run(
     terrain, fmt: str, output: str, metric: str, epoch: str | None, opts: dict[str, bool],
-    gzip_tiles: bool = False, normals: bool = False,
+    gzip_tiles: bool = False, normals: bool = False, part: Any = None,
 ) -> None:  # fmt: skip
     from terralod.export import export_3dtiles, export_quantized_mesh
 
     adopted = Lock.read(work_path(output)) if opts["resume"] else None
 
-    with progress("exporting") as prog:
+    with _progress("exporting") as prog:
         task = prog.add_task(fmt, total=None)
 
         def cb(done: int, total: int) -> None:
@@ -170,12 +242,14 @@ def _run(
             rep = export_3dtiles(terrain, output, metric=metric, epoch=epoch, progress=cb, **opts)
         else:
             rep = export_quantized_mesh(terrain, output, epoch=epoch, gzip_tiles=gzip_tiles, normals=normals,
-                                        progress=cb, **opts)  # fmt: skip
+                                        part=part, progress=cb, **opts)  # fmt: skip
     if rep.extra.get("resumed") and adopted is not None:
         console.print(f"resumed the export interrupted in {work_path(output).name} ({adopted.describe()})",
                       highlight=False)  # fmt: skip
+    worst = rep.extra.get("worst_error_m")
+    worst_text = f"; worst declared error {worst:.2f} m" if worst is not None else ""
     console.print(f"{fmt}: {rep.tiles} tiles, {rep.triangles:,} triangles, {rep.bytes / 1e6:.2f} MB in "
-                  f"{rep.seconds:.1f} s → {output}")  # fmt: skip
+                  f"{rep.seconds:.1f} s{worst_text} → {output}", highlight=False)  # fmt: skip
     if opts["update"]:
         changed, removed = rep.extra["rewritten"], rep.extra["removed"]
         console.print(f"updated: {len(changed)} file(s) rewritten, {len(removed)} removed, the others untouched",
@@ -184,3 +258,42 @@ def _run(
             console.print(f"  rewritten {rel}", highlight=False)
         for rel in removed:
             console.print(f"  removed {rel}", highlight=False)
+
+
+class _PlainProgress(PlainProgress):
+    """Plain progress lines with the time left (from the rate so far)."""
+
+    def _line(self, task: int) -> None:
+        import time
+
+        t = self._tasks[task]
+        t["printed"] = (t["completed"], t["total"])
+        el = time.monotonic() - t["t0"]
+        msg = f"{self.label} {t['name']}: {t['completed']:.0f}"
+        if t["total"]:
+            msg += f"/{t['total']:.0f} ({100.0 * t['completed'] / t['total']:.0f} %)"
+        msg += f", {el:.0f} s"
+        if t["total"] and 0 < t["completed"] < t["total"]:
+            msg += f", about {el * (t['total'] - t['completed']) / t['completed']:.0f} s left"
+        click.echo(msg, err=True, file=self.stream)
+
+
+def _progress(label: str) -> Any:
+    """A bar with tiles done / total, elapsed and time left on a terminal; plain lines otherwise."""
+    import sys
+
+    if not sys.stderr.isatty():
+        return _PlainProgress(label)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    return Progress(
+        TextColumn(f"[bold]{label}[/bold] {{task.description}}"), BarColumn(), MofNCompleteColumn(),
+        TimeElapsedColumn(), TimeRemainingColumn(), console=err_console, transient=False,
+    )  # fmt: skip

@@ -37,21 +37,24 @@ MAX_SAMPLES = 256
 
 
 class Lattice:
-    """The lon/lat lattice of a geographic :class:`~terralod.export.source.SourceGrid` (north-up)."""
+    """The lon/lat lattice of a geographic :class:`~terralod.export.source.SourceGrid` (north-up).
+
+    Samples are read through the source's ``window`` / ``gather`` / ``take`` (rows from the north), never
+    as one array: a :class:`~terralod.export.source.RegionGrid` answers them from a bounded cache of
+    blocks, so a tile touches only the window it covers (plus one sample, and ``stride`` more for its
+    normals); at a coarse zoom, only every ``stride``-th row and column of it.
+    """
 
     def __init__(self, ref: Any) -> None:
         t = ref.t
         self.ref = ref
         self.a_deg, self.e_deg = float(t.a), float(t.e)  # e < 0 (north-up)
         self.c_deg, self.f_deg = float(t.c), float(t.f)
-        self.z = ref.z_m
-        self.valid = ref.valid
-        self.h, self.w = self.z.shape
+        self.h, self.w = ref.shape
         # the same expressions as the source's sample positions (a sample on a tile edge is in both tiles)
         self.lon_c = self.c_deg + (np.arange(self.w) + 0.5) * self.a_deg
         self.lat_r = self.f_deg + (np.arange(self.h) + 0.5) * self.e_deg
-        self.water = ~self.valid | (self.z == 0.0)  # nodata and sea at exactly 0 m
-        self.any_water = bool(self.water.any())
+        self.any_water = bool(ref.any_water)  # some sample is nodata or sea at exactly 0 m
         w, s, e, n = ref.bbox
         self.footprint = (w, s, e, n)
 
@@ -95,7 +98,7 @@ class Lattice:
         r1 = int(math.ceil(fr_s / stride - 1e-9)) * stride
         rows = np.clip(np.arange(r0, r1 + 1, stride), 0, self.h - 1)
         cols = np.clip(np.arange(c0, c1 + 1, stride), 0, self.w - 1)
-        g = self.z[rows[:, None], cols[None, :]]
+        g = self.ref.gather(rows, cols)[0]
         box = ((fc_w - c0) / stride, (fc_e - c0) / stride, (fr_n - r0) / stride, (fr_s - r0) / stride)
         return r0, c0, g, box
 
@@ -108,9 +111,9 @@ class Lattice:
         c0 = np.minimum(np.floor(fc).astype(np.int64), max(self.w - 2, 0))
         r1, c1 = np.minimum(r0 + 1, self.h - 1), np.minimum(c0 + 1, self.w - 1)
         tr, tc = fr - r0, fc - c0
-        z = self.z
-        top = z[r0, c0] * (1 - tc) + z[r0, c1] * tc
-        bot = z[r1, c0] * (1 - tc) + z[r1, c1] * tc
+        take = self.ref.take
+        top = take(r0, c0)[0] * (1 - tc) + take(r0, c1)[0] * tc
+        bot = take(r1, c0)[0] * (1 - tc) + take(r1, c1)[0] * tc
         return top * (1 - tr) + bot * tr
 
     def normals_enu(self, fr: np.ndarray, fc: np.ndarray, lat: np.ndarray, stride: int) -> np.ndarray:
@@ -132,7 +135,8 @@ class Lattice:
         r0, r1, c0, c1 = self.window(rect)
         if r1 <= r0 or c1 <= c0:
             return 0
-        win = self.water[max(r0 - 1, 0) : r1 + 1, max(c0 - 1, 0) : c1 + 1]
+        wz, wok = self.ref.window(max(r0 - 1, 0), min(r1 + 1, self.h), max(c0 - 1, 0), min(c1 + 1, self.w))
+        win = ~wok | (wz == 0.0)  # nodata and sea at exactly 0 m
         if not win.any():
             return 0
         w, s, e, n = rect
@@ -146,7 +150,8 @@ class Lattice:
         rr = np.rint((py - self.f_deg) / self.e_deg - 0.5).astype(np.int64)
         okc = (px >= fw) & (px <= fe)
         okr = (py >= fs) & (py <= fn)
-        m = self.water[np.clip(rr, 0, self.h - 1)[:, None], np.clip(cc, 0, self.w - 1)[None, :]]
+        gz, gok = self.ref.gather(np.clip(rr, 0, self.h - 1), np.clip(cc, 0, self.w - 1))
+        m = ~gok | (gz == 0.0)
         m = m & okr[:, None] & okc[None, :]
         if not m.any():
             return 0
@@ -165,9 +170,10 @@ def lattice_error(lat: Lattice, tile: dict[str, Any], rect: tuple[float, float, 
     w, s, e, n = rect
     pu = np.clip((lat.lon_c[c0:c1] - w) / (e - w), 0.0, 1.0) * 32767.0
     pv = np.clip((lat.lat_r[r0:r1] - s) / (n - s), 0.0, 1.0) * 32767.0
+    z, ok = lat.ref.window(r0, r1, c0, c1)
     err, sumsq, count, missed = lattice_vertical_error(
         tile["u"].astype(np.float64), tile["v"].astype(np.float64), np.asarray(tile["height"], np.float64),
-        np.ascontiguousarray(tile["triangles"], np.int64), pu, pv, lat.z[r0:r1, c0:c1], lat.valid[r0:r1, c0:c1],
+        np.ascontiguousarray(tile["triangles"], np.int64), pu, pv, z, ok,
     )  # fmt: skip
     if missed:
         raise RuntimeError(f"{missed} samples fall outside every triangle of the tile (a hole in its mesh)")

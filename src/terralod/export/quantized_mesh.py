@@ -63,6 +63,7 @@ from terralod.kernels.error import points_vertical_error
 from terralod.kernels.qmesh import merge_uv
 
 __all__ = [
+    "Part",
     "QmTile",
     "QuantizedMesh",
     "decode_tile",
@@ -147,6 +148,53 @@ class QmTile:
         return self._gz
 
 
+@dataclass(frozen=True)
+class Part:
+    """A part of an export: levels ``min_zoom``..``max_zoom`` (None: the terrain's finest) and the tiles
+    that meet ``bbox`` (west, south, east, north, degrees; None: all). A part's tiles are the whole
+    export's, byte for byte: the part chooses which tiles are written, never what is in them."""
+
+    bbox: tuple[float, float, float, float] | None = None
+    min_zoom: int = 0
+    max_zoom: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.bbox is not None:
+            w, s, e, n = self.bbox
+            if not (-180.0 <= w < e <= 180.0 and -90.0 <= s < n <= 90.0):
+                raise ValueError(
+                    f"Expected a box west < east within ±180, south < north within ±90, got {self.bbox}"
+                )
+        if self.min_zoom < 0 or (self.max_zoom is not None and self.max_zoom < self.min_zoom):
+            raise ValueError(f"Expected 0 <= min zoom <= max zoom, got {self.min_zoom}, {self.max_zoom}")
+
+    @property
+    def whole(self) -> bool:
+        return self.bbox is None and self.min_zoom == 0 and self.max_zoom is None
+
+    def top(self, qm: QuantizedMesh) -> int:
+        return qm.max_zoom if self.max_zoom is None else min(self.max_zoom, qm.max_zoom)
+
+    def level_range(self, qm: QuantizedMesh, z: int) -> tuple[int, int, int, int] | None:
+        """(x0, y0, x1, y1) inclusive of the part's tiles of level z; None when it has none there."""
+        if z < self.min_zoom or z > self.top(qm):
+            return None
+        x0, y0, x1, y1 = qm.level_range(z)
+        if self.bbox is not None:
+            d = 180.0 / (1 << z)
+            w, s, e, n = self.bbox
+            x0, x1 = max(x0, int((w + 180.0) // d)), min(x1, int((e + 180.0) // d))
+            y0, y1 = max(y0, int((s + 90.0) // d)), min(y1, int((n + 90.0) // d))
+        return (x0, y0, x1, y1) if x0 <= x1 and y0 <= y1 else None
+
+    def key(self) -> dict[str, Any]:
+        return {
+            "bbox": list(self.bbox) if self.bbox else None,
+            "min_zoom": self.min_zoom,
+            "max_zoom": self.max_zoom,
+        }
+
+
 class QuantizedMesh:
     """The quantized-mesh view of one terrain: :meth:`layer` (layer.json dict) and :meth:`tile`.
 
@@ -166,7 +214,7 @@ class QuantizedMesh:
         if isinstance(terrain, SampleSource):
             self.terrain = None
             self.ref = terrain
-            self.name = Path(terrain.name).stem
+            self.name = getattr(terrain, "title", None) or Path(terrain.name).stem
         else:
             self.terrain = terrain
             where = str(terrain.path) if terrain.path is not None else None
@@ -210,17 +258,32 @@ class QuantizedMesh:
         x0, y0, x1, y1 = self.level_range(z)
         return x0 <= x <= x1 and y0 <= y <= y1
 
-    def tile_codes(self) -> list[tuple[int, int, int]]:
+    def tile_codes(self, part: Part | None = None) -> list[tuple[int, int, int]]:
+        """Every tile of the export, level by level (rows, then columns); with ``part`` only its levels and
+        the tiles that meet its box (each the same tile as in the whole export)."""
         out = []
         for z in range(self.max_zoom + 1):
-            x0, y0, x1, y1 = self.level_range(z)
+            r = self.level_range(z) if part is None else part.level_range(self, z)
+            if r is None:
+                continue
+            x0, y0, x1, y1 = r
             out += [(z, x, y) for y in range(y0, y1 + 1) for x in range(x0, x1 + 1)]
         return out
 
-    def layer(self) -> dict[str, Any]:
+    def layer(self, part: Part | None = None) -> dict[str, Any]:
         """layer.json: ``available`` per level, no per-tile metadata extension (CesiumJS parses that
         extension by default and then expects tile availability inside it); the measured errors are in
-        ``terralod.error_m`` (per level) and ``errors.json`` (per tile) beside it."""
+        ``terralod.error_m`` (per level) and ``errors.json`` (per tile) beside it. With a ``part``: its
+        levels and tiles only, its box as the bounds."""
+        top, bounds = self.max_zoom, list(self.bbox)
+        available = [self.level_range(z) for z in range(self.max_zoom + 1)]
+        if part is not None and not part.whole:
+            top = part.top(self)
+            available = [part.level_range(self, z) for z in range(top + 1)]
+            if part.bbox is not None:
+                w, s, e, n = self.bbox
+                pw, ps, pe, pn = part.bbox
+                bounds = [max(w, pw), max(s, ps), min(e, pe), min(n, pn)]
         return {
             "tilejson": "2.1.0",
             "name": self.name,
@@ -231,18 +294,18 @@ class QuantizedMesh:
             "scheme": "tms",
             "projection": "EPSG:4326",
             "tiles": ["{z}/{x}/{y}.terrain?v={version}"],
-            "bounds": list(self.bbox),
+            "bounds": bounds,
             "minzoom": 0,
-            "maxzoom": self.max_zoom,
+            "maxzoom": top,
             "extensions": (["octvertexnormals"] if self.normals else []) + ["watermask"],
-            "available": [[dict(zip(("startX", "startY", "endX", "endY"), self.level_range(z), strict=True))]
-                          for z in range(self.max_zoom + 1)],
+            "available": [[dict(zip(("startX", "startY", "endX", "endY"), r, strict=True))] if r else []
+                          for r in available],
             "terralod": {"heights": "as read (no geoid change)",
                          "error": "max vertical distance (m) between each tile as decoded (after quantisation) "
                                   "and every valid source sample inside it, in the source's own samples",
                          "outside": "the data's edge values extended outward (no cliff); watermask 255 marks "
                                     "nodata and sea at 0 m",
-                         "target_error_m": [round(self.target_error_m(z), 4) for z in range(self.max_zoom + 1)]},
+                         "target_error_m": [round(self.target_error_m(z), 4) for z in range(top + 1)]},
         }  # fmt: skip
 
     def rms_ratio(self, z: int, x: int, y: int) -> float | None:
@@ -400,6 +463,59 @@ class QuantizedMesh:
         return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
+#: Bytes an uncompressed lattice tile takes per source sample it meshes (header, vertices, indices, edge
+#: lists; SRTM3 tiles measure 12-16 B), and per tile a water mask may add; a 257² tile's bytes at most.
+BYTES_PER_SAMPLE = 16.0
+WATERMASK_BYTES = 65536
+GRID_TILE_BYTES = 96_000
+
+
+def estimate_bytes(qm: QuantizedMesh, codes: list[tuple[int, int, int]], *, gzip_tiles: bool = False) -> int:
+    """Bytes the tiles ``codes`` will take on disk (an estimate, for a free-space check before a long run):
+    per lattice tile BYTES_PER_SAMPLE for each lattice sample of its grid (plus a water mask where the
+    source has water), GRID_TILE_BYTES per 257² tile; gzip'd tiles about half."""
+    total = 0.0
+    if qm.lattice is None:
+        total = GRID_TILE_BYTES * len(codes)
+    else:
+        lat_ = qm.lattice
+        w0, s0, e0, n0 = qm.bbox
+        for z, x, y in codes:
+            w, s, e, n = tile_rectangle(z, x, y)
+            stride = lat_.stride(z, qm.max_zoom)
+            cols = max(min(e, e0) - max(w, w0), 0.0) / abs(lat_.a_deg) / stride + 2
+            rows = max(min(n, n0) - max(s, s0), 0.0) / abs(lat_.e_deg) / stride + 2
+            total += 1024 + BYTES_PER_SAMPLE * cols * rows + (WATERMASK_BYTES if lat_.any_water else 0)
+    return int(total * (0.5 if gzip_tiles else 1.0))
+
+
+def check_free_space(out: str | Path, need: int) -> None:
+    """Refuse (InputError, one line) when the disk of ``out`` has less free space than ``need`` bytes."""
+    import shutil
+
+    from terralod.errors import InputError
+
+    p = Path(out).resolve()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    free = shutil.disk_usage(p).free
+    if free < need:
+        raise InputError(f"needs about {need / 1e9:.2f} GB for its tiles and the disk has {free / 1e9:.2f} GB "
+                         "free; free some space, or export a part (--bbox, --max-zoom)", str(out))  # fmt: skip
+
+
+def _inputs_and_key(terrain: Any, fmt: str, **options: Any) -> tuple[list[Path], dict[str, Any]]:
+    """The files an export reads (every file of a region) and its resume key (each file's identity)."""
+    files = getattr(terrain, "files", None)
+    if not files:
+        return export_inputs(terrain), export_key(terrain, fmt, **options)
+    ident = []
+    for f in files:
+        st = Path(f).stat()
+        ident.append([str(Path(f).resolve()), st.st_size, st.st_mtime_ns])
+    return [Path(f) for f in files], {"format": fmt, "epoch": None, "input": ident, **options}
+
+
 def export_quantized_mesh(
     terrain: Any,
     out: str | Path,
@@ -410,29 +526,41 @@ def export_quantized_mesh(
     normals: bool = False,
     resume: bool = False,
     update: bool = False,
+    part: Part | None = None,
+    check_space: bool = True,
     progress: Callable[[int, int], None] | None = None,
 ) -> ExportReport:
     """Write ``out/layer.json``, ``out/errors.json`` (measured error per tile) and ``out/Z/X/Y.terrain``.
 
-    ``terrain`` is a store or a DEM's samples (:func:`terralod.export.source.source_from_dem`). Tiles are
-    uncompressed (any static host serves them as they are); ``gzip_tiles`` writes them gzip'd, for a host
-    that sends ``Content-Encoding: gzip`` with them (CesiumJS cannot read gzip'd tiles without it).
+    ``terrain`` is a store or a DEM's or region's samples (:func:`terralod.export.source.source_from_dem`,
+    :func:`terralod.export.source.source_from_region`). Tiles are uncompressed (any static host serves them
+    as they are); ``gzip_tiles`` writes them gzip'd, for a host that sends ``Content-Encoding: gzip`` with
+    them (CesiumJS cannot read gzip'd tiles without it). ``part`` (:class:`Part`) writes only some levels
+    and the tiles meeting a box, each byte for byte the whole export's (``layer.json`` lists only them).
     ``resume``: the tiles an interrupted export of the same terrain and options finished are not encoded
-    again; ``update``: only the files whose bytes change are rewritten (``extra["rewritten"]``). The output
-    is written through :class:`terralod.output.Output`.
+    again; ``update``: only the files whose bytes change are rewritten (``extra["rewritten"]``). With
+    ``check_space`` the free disk is checked against :func:`estimate_bytes` before the first tile. The
+    output is written through :class:`terralod.output.Output`.
     """
     from terralod.export.source import SampleSource
     from terralod.output import Output
 
     t0 = time.perf_counter()
+    part = part or Part()
     if not isinstance(terrain, SampleSource):
         check_exportable(terrain, epoch)
         if epoch is not None and epoch != getattr(terrain, "epoch", None):
             terrain = terrain.with_epoch(epoch)
-    output = Output(out, inputs=export_inputs(terrain), overwrite=overwrite, resume=resume, update=update,
-                    key=export_key(terrain, "quantized-mesh", gzip=bool(gzip_tiles), normals=bool(normals)))  # fmt: skip
+    options: dict[str, Any] = {"gzip": bool(gzip_tiles), "normals": bool(normals)}
+    if not part.whole:
+        options["part"] = part.key()
+    inputs, key = _inputs_and_key(terrain, "quantized-mesh", **options)
+    output = Output(out, inputs=inputs, overwrite=overwrite, resume=resume, update=update, key=key)
     output.check()  # refusals first, before the tiler's set-up
     qm = QuantizedMesh(terrain, normals=normals)
+    codes = qm.tile_codes(part)
+    if check_space:
+        check_free_space(out, estimate_bytes(qm, codes, gzip_tiles=gzip_tiles))
     rep = ExportReport(Path(out))
     per_level: dict[int, float] = {}
     per_tile: dict[str, float] = {}
@@ -440,7 +568,6 @@ def export_quantized_mesh(
     water = {"none": 0, "all": 0, "some": 0}
     level_sq: dict[int, list] = {}
     with output as o:
-        codes = qm.tile_codes()
         for i, (z, x, y) in enumerate(codes):
             rel = f"{z}/{x}/{y}.terrain"
             r = o.record(rel)  # finished by the interrupted export this one resumes
@@ -464,12 +591,13 @@ def export_quantized_mesh(
             per_tile[f"{z}/{x}/{y}"] = r["error_m"]
             if progress is not None:
                 progress(i + 1, len(codes))
-        layer = qm.layer()
-        layer["terralod"]["error_m"] = [_ceil4(per_level.get(z, 0.0)) for z in range(qm.max_zoom + 1)]
+        layer = qm.layer(part)
+        top = layer["maxzoom"]
+        layer["terralod"]["error_m"] = [_ceil4(per_level.get(z, 0.0)) for z in range(top + 1)]
         if qm.lattice is not None:  # RMS over every valid source sample of the level (edge samples twice)
             layer["terralod"]["rms_m"] = [
                 round(math.sqrt(level_sq[z][0] / level_sq[z][1]), 4) if level_sq.get(z, [0, 0])[1] else 0.0
-                for z in range(qm.max_zoom + 1)
+                for z in range(top + 1)
             ]
         layer["terralod"]["gzip"] = bool(gzip_tiles)
         js = json.dumps(layer, indent=1)
@@ -486,6 +614,7 @@ def export_quantized_mesh(
         "tile_bytes_gzip": gz_bytes if gzip_tiles else None,
         "water_masks": water,
         "error_m_per_level": layer["terralod"]["error_m"],
+        "worst_error_m": max(per_tile.values(), default=0.0),
         "resumed": o.adopted is not None,
         **changes,
     }

@@ -30,7 +30,15 @@ import numpy as np
 from terralod.errors import InputError
 from terralod.fill import fill_nodata
 
-__all__ = ["SampleSource", "SourceGrid", "TinSource", "source_for", "source_from_dem"]
+__all__ = [
+    "RegionGrid",
+    "SampleSource",
+    "SourceGrid",
+    "TinSource",
+    "source_for",
+    "source_from_dem",
+    "source_from_region",
+]
 
 
 def _is_lonlat_wgs84(crs: Any) -> bool:
@@ -141,6 +149,7 @@ class SourceGrid(SampleSource):
         self.t = transform
         self.crs = CRS.from_user_input(crs)
         self.name = name
+        self._any_water: bool | None = None
         self.identity = _is_lonlat_wgs84(self.crs)
         if not self.identity:
             self._to_crs = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True)
@@ -210,17 +219,123 @@ class SourceGrid(SampleSource):
         r0 = np.minimum(np.floor(r).astype(np.int64), max(h - 2, 0))
         c1, r1 = np.minimum(c0 + 1, w - 1), np.minimum(r0 + 1, h - 1)
         fc, fr = c - c0, r - r0
-        z = self.z_m
-        return (z[r0, c0] * (1 - fc) * (1 - fr) + z[r0, c1] * fc * (1 - fr) + z[r1, c0] * (1 - fc) * fr
-                + z[r1, c1] * fc * fr)  # fmt: skip
+        z00, z01 = self.take(r0, c0)[0], self.take(r0, c1)[0]
+        z10, z11 = self.take(r1, c0)[0], self.take(r1, c1)[0]
+        return z00 * (1 - fc) * (1 - fr) + z01 * fc * (1 - fr) + z10 * (1 - fc) * fr + z11 * fc * fr
 
     def water_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         """True where the nearest sample is nodata or sea (exactly 0 m); False outside the footprint."""
         w, s, e, n = self.bbox
         inside = (lon >= w) & (lon <= e) & (lat >= s) & (lat <= n)
         c, r = self._colrow(lon, lat)
-        ri, ci = np.rint(r).astype(np.int64), np.rint(c).astype(np.int64)
-        return inside & (~self.valid[ri, ci] | (self.z_m[ri, ci] == 0.0))
+        z, ok = self.take(np.rint(r).astype(np.int64), np.rint(c).astype(np.int64))
+        return inside & (~ok | (z == 0.0))
+
+    # -- the samples by index (row 0 north), the interface the lattice tiler reads through ---------------
+    @property
+    def any_water(self) -> bool:
+        """True when some sample is nodata or sea at exactly 0 m."""
+        if self._any_water is None:
+            self._any_water = bool((~self.valid).any() or (self.z_m[self.valid] == 0.0).any())
+        return self._any_water
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Filled heights and validity of rows [r0, r1), columns [c0, c1) (inside the grid)."""
+        return self.z_m[r0:r1, c0:c1], self.valid[r0:r1, c0:c1]
+
+    def gather(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filled heights and validity at every (rows[i], cols[j]) (an outer product; indices inside)."""
+        return self.z_m[rows[:, None], cols[None, :]], self.valid[rows[:, None], cols[None, :]]
+
+    def take(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filled heights and validity at the points (rows[k], cols[k]) (indices inside)."""
+        return self.z_m[rows, cols], self.valid[rows, cols]
+
+
+class RegionGrid(SourceGrid):
+    """A WGS 84 longitude/latitude region (:class:`terralod.io.region.Region`: one DEM or a mosaic of
+    many) read window by window: the samples of :class:`SourceGrid`, bit for bit, without ever holding
+    them whole. Heights come from :class:`terralod.io.region.RegionReader` (fixed blocks, nodata filled
+    by :func:`terralod.fill.fill_nodata` block by block, equal to the whole grid's fill wherever a hole's
+    reach allows; a bounded LRU of blocks), the footprint from one scan of every file
+    (:func:`terralod.io.region.scan_region`, which names an unreadable file before anything is written).
+
+    Memory: the reader's block cache (``cache_blocks`` blocks of 512² samples, 1.25 MiB each for integer
+    DEMs) and the window of the tile in hand; independent of the region's size.
+    """
+
+    def __init__(self, region: Any, *, scan: Any = None, cache_blocks: int | None = None) -> None:
+        from pyproj import CRS
+
+        from terralod.io.region import CACHE_BLOCKS, RegionReader, scan_region
+
+        SampleSource.__init__(self)
+        if not _is_lonlat_wgs84(region.crs):
+            raise InputError("is not in WGS 84 longitude/latitude (EPSG:4326)", region.name)
+        self.region = region
+        self.reader = RegionReader(
+            region, cache_blocks=CACHE_BLOCKS if cache_blocks is None else cache_blocks
+        )
+        got = scan_region(region) if scan is None else scan
+        self.scan = got
+        self.t = region.transform
+        self.crs = CRS.from_user_input(region.crs.to_wkt())
+        self.identity = True
+        self.name = region.footprints[0].shown if len(region.footprints) == 1 else region.name
+        self.title = (
+            Path(self.name).stem
+            if len(region.footprints) == 1
+            else f"region of {len(region.footprints)} files"
+        )
+        self.files = region.files
+        self.shape = region.shape
+        self._any_water = bool(got.any_water)
+        lons = (self.t.c + (got.c0 + 0.5) * self.t.a, self.t.c + (got.c1 + 0.5) * self.t.a)
+        lats = (self.t.f + (got.r0 + 0.5) * self.t.e, self.t.f + (got.r1 + 0.5) * self.t.e)
+        self.bbox = (float(min(lons)), float(min(lats)), float(max(lons)), float(max(lats)))
+        cos_lat = math.cos(math.radians(0.5 * (self.bbox[1] + self.bbox[3])))
+        self.spacing_deg = float(min(abs(self.t.a) * cos_lat, abs(self.t.e)))
+
+    @property
+    def samples(self) -> int:
+        """Samples of the region's grid (nodata and gaps included)."""
+        return int(self.shape[0]) * int(self.shape[1])
+
+    @property
+    def any_water(self) -> bool:
+        return bool(self._any_water)
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.reader.window(r0, r1, c0, c1)
+
+    def gather(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.reader.gather(rows, cols)
+
+    def take(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self.reader.take(rows, cols)
+
+    def _points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise NotImplementedError("a region gives its samples a tile at a time (points_in)")
+
+    def points_in(self, z: int, x: int, y: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The valid samples inside geographic tile z/x/y, edges included (read from its window)."""
+        from terralod.export.geodesy import tile_rectangle
+
+        wd, sd, ed, nd = tile_rectangle(z, x, y)
+        h, w = self.shape
+        lon_c = self.t.c + (np.arange(w) + 0.5) * self.t.a
+        lat_r = self.t.f + (np.arange(h) + 0.5) * self.t.e
+        c0, c1 = int(np.searchsorted(lon_c, wd, "left")), int(np.searchsorted(lon_c, ed, "right"))
+        r0, r1 = int(np.searchsorted(-lat_r, -nd, "left")), int(np.searchsorted(-lat_r, -sd, "right"))
+        if r1 <= r0 or c1 <= c0:
+            e = np.zeros(0)
+            return e, e, e
+        zz, ok = self.window(r0, r1, c0, c1)
+        rr, cc = np.nonzero(ok)
+        return lon_c[c0 + cc], lat_r[r0 + rr], zz[rr, cc]
+
+    def close(self) -> None:
+        self.reader.close()
 
 
 class TinSource(SampleSource):
@@ -337,11 +452,16 @@ def _from_heightfield(hf: Any) -> SourceGrid:
 
 
 def source_from_dem(path: str | Path) -> SourceGrid:
-    """A DEM file's samples in its own CRS (geographic and Web Mercator GeoTIFFs on their own lattice;
-    anything else as :func:`terralod.io.reader.read_heightfield` reads it). Raises InputError."""
+    """A DEM file's samples in its own CRS (geographic and Web Mercator GeoTIFFs on their own lattice,
+    EPSG:4326 ones read window by window (:class:`RegionGrid`); anything else as
+    :func:`terralod.io.reader.read_heightfield` reads it). Raises InputError."""
     from terralod.io.reader import read_heightfield
 
     p = Path(path)
+    if p.is_file():
+        windowed = _region_grid(p)
+        if windowed is not None:
+            return windowed
     native = _native_grid(p) if p.is_file() else None
     if native is not None:
         return native
@@ -351,6 +471,53 @@ def source_from_dem(path: str | Path) -> SourceGrid:
             "has no CRS (a local metric frame); the web exports need a georeferenced DEM", str(p)
         )
     return _from_heightfield(hf)
+
+
+def _region_grid(path: Path) -> RegionGrid | None:
+    """A north-up EPSG:4326 raster as a :class:`RegionGrid`; None for anything else (or a file GDAL
+    cannot open: the in-memory readers name the problem)."""
+    from terralod.io.region import resolve_region
+
+    try:
+        region = resolve_region([path])
+    except InputError:
+        return None
+    if not _is_lonlat_wgs84(region.crs):
+        return None
+    return RegionGrid(region)
+
+
+def source_from_region(inputs: Any, crs: Any = None) -> SourceGrid:
+    """The samples of a region (a :class:`terralod.io.region.Region`, or what
+    :func:`terralod.io.region.resolve_region` resolves: files, globs, folders, VRTs,
+    ``.hgt``, ``.hgt.zip``; ``crs`` assigns one to every file). WGS 84 longitude/latitude regions are read
+    window by window (:class:`RegionGrid`); other CRSs through the VRT, in memory, as
+    :func:`source_from_dem` reads one file. Every file is read once first (a file GDAL cannot decode is
+    named in one line, InputError). Where files overlap the last one listed wins."""
+    import tempfile
+
+    from terralod.io.reader import read_heightfield
+    from terralod.io.region import Region, resolve_region
+
+    region = inputs if isinstance(inputs, Region) else resolve_region(inputs, crs)
+    if _is_lonlat_wgs84(region.crs):
+        return RegionGrid(region)
+    if len(region.footprints) == 1 and region.vrt is None:
+        return source_from_dem(region.footprints[0].path)
+    from terralod.io.region import scan_region
+
+    scan_region(region)  # an unreadable file named before anything is read into memory
+    with tempfile.TemporaryDirectory(prefix="terralod-region-") as d:
+        vrt = region.write_vrt(Path(d) / "region.vrt")
+        grid = _native_grid(vrt)
+        if grid is None:
+            hf = read_heightfield(vrt)
+            if not hf.crs:
+                raise InputError("has no CRS; the web exports need a georeferenced DEM", region.name)
+            grid = _from_heightfield(hf)
+    grid.name = region.name
+    grid.files = region.files  # type: ignore[attr-defined]
+    return grid
 
 
 def source_for(terrain: Any, geo: Any) -> SampleSource:
