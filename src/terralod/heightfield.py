@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from affine import Affine
@@ -42,6 +43,10 @@ class Heightfield:
     source_nodata_fraction, margin_fraction : float
         After a reprojection: nodata of the source itself, and cells outside the source's footprint;
         ``nodata_fraction`` counts both.
+    original_grid : terralod.io.raster.OriginalGrid or None
+        After a reprojection: the source's own samples (its grid, mask, transform and CRS), which the
+        builder measures every tile's error against (:mod:`terralod.pyramid.original`); None when this
+        grid holds the source's samples themselves.
     """
 
     elevation_m: np.ndarray
@@ -56,6 +61,8 @@ class Heightfield:
     source_nodata_fraction: float | None = None
     #: fraction of this grid's cells outside the source's footprint (the margin a reprojection leaves)
     margin_fraction: float = 0.0
+    #: the source's own samples when this grid resampled them (:class:`terralod.io.raster.OriginalGrid`)
+    original_grid: Any = None
 
     def __post_init__(self) -> None:
         z = np.ascontiguousarray(self.elevation_m, dtype=np.float32)

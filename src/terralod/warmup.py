@@ -105,6 +105,7 @@ def _library_kernels(hf) -> None:
     from terralod.kernels import noise
     from terralod.kernels.cull import min_distance_to_triangles
     from terralod.pyramid.cohesion import make_mesher
+    from terralod.pyramid.original import original_error
     from terralod.store import encode_triangles
     from terralod.tiles import TilePyramid
 
@@ -116,6 +117,8 @@ def _library_kernels(hf) -> None:
         encode_triangles(np.array([[0, 1, 70000]], dt))
     tri = np.array([[0, 1, 2]], np.int64)
     min_distance_to_triangles(np.eye(3) * 10.0, tri, 0.0, 0.0, 0.0)
+    # a reprojected DEM's builds: a tile against the original samples (the demo's sample is projected)
+    original_error(np.eye(3) * 10.0, tri, np.array([1.0]), np.array([1.0]), np.array([0.5]))
     _ = FractalDetail(hf).hurst_map
     noise.axis_variogram(np.asarray(hf.elevation_m, np.float64), 2)
     noise.gauss_grid(1, 3, 0, 0, 2, 2)

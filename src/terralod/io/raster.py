@@ -91,6 +91,48 @@ class FrameHints:
     tile: tuple[int, int, int] | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class OriginalGrid:
+    """A source's own samples, kept beside the grid they were resampled to (``Heightfield.original_grid``):
+    what every stored error of a store built from a reprojected DEM is measured against
+    (:mod:`terralod.pyramid.original`), never the resampled grid alone.
+
+    Attributes
+    ----------
+    values : (H, W) float64 elevations, metres, as read (scale and offset applied; nodata cells arbitrary).
+    valid : (H, W) bool, False at the source's nodata.
+    transform : north-up pixel-corner affine transform, in ``crs`` units (row 0 north).
+    crs : WKT of the source's CRS (geographic, or a Mercator projection).
+    source : the file the samples were read from.
+    """
+
+    values: np.ndarray
+    valid: np.ndarray
+    transform: Affine
+    crs: str
+    source: str
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(rows, cols) of the source grid."""
+        h, w = self.values.shape
+        return int(h), int(w)
+
+    @property
+    def n_valid(self) -> int:
+        """Valid samples of the source."""
+        return int(np.count_nonzero(self.valid))
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(values, valid) of rows ``r0 <= r < r1``, columns ``c0 <= c < c1`` (clipped to the grid): the
+        one read verb (a windowed reader of the file, e.g. :class:`terralod.io.region.RegionReader`, has
+        the same)."""
+        h, w = self.values.shape
+        r0, r1 = max(0, r0), min(h, r1)
+        c0, c1 = max(0, c0), min(w, c1)
+        return self.values[r0:r1, c0:c1], self.valid[r0:r1, c0:c1]
+
+
 # -- GDAL rasters --------------------------------------------------------------------------------------
 def read_raster(
     path: str | Path,
@@ -380,9 +422,10 @@ def georeferenced_heightfield(
     h, w = values.shape
     notes = (*notes, *flips, *check_area_of_use(crs, (t.c, t.f + h * t.e, t.c + w * t.a, t.f), source))
     if crs.is_geographic or _is_mercator(crs):
+        original = OriginalGrid(values, valid, t, crs.to_wkt(), source)
         values, valid, t, crs, note, src_nodata, margin = reproject_to_utm(values, valid, t, crs, source)
         hf = _metric(values, valid, t, crs, source, (*notes, note))
-        return replace(hf, source_nodata_fraction=src_nodata, margin_fraction=margin)
+        return replace(hf, source_nodata_fraction=src_nodata, margin_fraction=margin, original_grid=original)
     crs, t, unit_notes = _metric_units(crs, t, source)
     notes = (*notes, *unit_notes, *_scale_note(t, crs, values.shape))
     return _metric(values, valid, t, crs, source, notes)
@@ -621,8 +664,7 @@ def crs_text(crs: Any) -> str:
 
 
 def _with_notes(hf: Heightfield, *notes: str) -> Heightfield:
-    return Heightfield(hf.elevation_m, hf.valid, hf.transform, crs=hf.crs, source=hf.source,
-                       fill_method=hf.fill_method, notes=(*hf.notes, *notes))  # fmt: skip
+    return replace(hf, notes=(*hf.notes, *notes))  # a reprojection's fractions and original grid kept
 
 
 def _fmt_pair(p: tuple[float, float]) -> str:

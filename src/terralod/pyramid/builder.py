@@ -32,6 +32,7 @@ from terralod.kernels import jit
 from terralod.kernels.codec import quantise_tile
 from terralod.pyramid import adaptive, chunked, cohesion
 from terralod.pyramid.footprint import drop_nodata
+from terralod.pyramid.original import error_reference, error_reference_line, original_error, tile_samples
 from terralod.store import (
     FORMAT_VERSION,
     EncodedTile,
@@ -199,6 +200,10 @@ def _store_meta(
             str(k): {"xy_frac_bits": q.xy_frac_bits, "z_step_m": q.z_step_m} for k, q in quant.items()
         },
         "builder_version": FORMAT_VERSION,
+        # a resampled source: every error includes its own samples (terralod.pyramid.original)
+        **(
+            {} if hf.original_grid is None else {"errors_measured_against": error_reference(hf.original_grid)}
+        ),
     }
 
 
@@ -287,14 +292,21 @@ def measure_tile(
         local, tris, hf.elevation_m[r0 : r1 + 1, c0 : c1 + 1], hf.valid[r0 : r1 + 1, c0 : c1 + 1], dx, dy,
         check=False,
     )  # fmt: skip
+    err, verr = float(rep.hausdorff_m), float(rep.max_vertical_m)
+    rms, n_samples = float(rep.rms_vertical_m), int(rep.n_samples)
+    if hf.original_grid is not None:  # a resampled source: its own samples too (terralod.pyramid.original)
+        px, py, pz = tile_samples(hf.original_grid, str(hf.crs), hf.origin_m, (dx, dy), (r0, c0), (r1, c1))
+        orig = original_error(local, tris, px, py, pz)
+        err, verr = max(err, orig.max_vertical_m), max(verr, orig.max_vertical_m)
+        rms, n_samples = orig.rms_m, orig.n_samples  # RMS and count over the source's own samples
     return EncodedTile(
         code=code,
-        error_m=float(rep.hausdorff_m),
-        vertical_error_m=float(rep.max_vertical_m),
-        measured_error_m=float(rep.hausdorff_m),
-        measured_vertical_error_m=float(rep.max_vertical_m),
-        rms_error_m=float(rep.rms_vertical_m),
-        n_samples=int(rep.n_samples),
+        error_m=err,
+        vertical_error_m=verr,
+        measured_error_m=err,
+        measured_vertical_error_m=verr,
+        rms_error_m=rms,
+        n_samples=n_samples,
         z_min_m=float(local[:, 2].min()),
         z_max_m=float(local[:, 2].max()),
         n_vertices=int(qv.shape[0]),
@@ -590,4 +602,6 @@ def store_summary(store: TileStore) -> dict[str, Any]:
         "per_level": dict(sorted(per.items())),
         # the adaptive error ladder the store states (target max vertical error per level, metres)
         "target_error_m": (store.meta.get("build_options") or {}).get("target_error_m"),
+        # one line: the samples the errors are measured against (the original ones of a resampled source)
+        "errors_against": error_reference_line(store.meta),
     }
