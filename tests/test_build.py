@@ -56,7 +56,10 @@ def check_store_invariants(path: Path, hf: Heightfield) -> None:
             assert rep.hausdorff_m <= t.error_m + TOL
             assert rep.max_vertical_m <= t.vertical_error_m + TOL
             assert t.error_m <= t.vertical_error_m + TOL
-            assert abs(rep.hausdorff_m - t.measured_error_m) <= 1e-6 + 1e-9 * t.measured_error_m
+            if hf.original_grid is None:  # measured on the grid alone
+                assert abs(rep.hausdorff_m - t.measured_error_m) <= 1e-6 + 1e-9 * t.measured_error_m
+            else:  # a reprojected source: the original samples too (tests/test_honest_errors.py)
+                assert rep.hausdorff_m <= t.measured_error_m + TOL
             # parent error >= child error (monotone)
             p = parent(c)
             if p is not None:
