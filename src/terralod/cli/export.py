@@ -233,10 +233,12 @@ def _run(
     adopted = Lock.read(work_path(output)) if opts["resume"] else None
 
     with _progress("exporting") as prog:
-        task = prog.add_task(fmt, total=None)
+        tasks: list[Any] = []  # added at the first tile: a refusal before it prints no progress
 
         def cb(done: int, total: int) -> None:
-            prog.update(task, completed=done, total=total)
+            if not tasks:
+                tasks.append(prog.add_task(fmt, total=total))
+            prog.update(tasks[0], completed=done, total=total)
 
         if fmt == "3dtiles":
             rep = export_3dtiles(terrain, output, metric=metric, epoch=epoch, progress=cb, **opts)

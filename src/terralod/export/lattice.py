@@ -34,6 +34,16 @@ __all__ = ["Lattice", "lattice_error"]
 
 #: Most lattice samples per tile side at the finest zoom (the water mask is 256², Cesium's heightmaps 65²).
 MAX_SAMPLES = 256
+#: Most samples of a tile's window read at once (a coarse tile's window can be the whole region: it is read
+#: in strips of rows this big, about 20 MB, so memory does not grow with the region).
+STRIP_SAMPLES = 1 << 22
+
+
+def _strips(r0: int, r1: int, c0: int, c1: int) -> list[tuple[int, int]]:
+    """Row ranges [ra, rb) covering [r0, r1), each at most STRIP_SAMPLES samples of width c1 - c0 (at least
+    two rows); one range when the window is small."""
+    step = max(STRIP_SAMPLES // max(c1 - c0, 1), 2)
+    return [(ra, min(ra + step, r1)) for ra in range(r0, r1, step)]
 
 
 class Lattice:
@@ -135,14 +145,19 @@ class Lattice:
         r0, r1, c0, c1 = self.window(rect)
         if r1 <= r0 or c1 <= c0:
             return 0
-        wz, wok = self.ref.window(max(r0 - 1, 0), min(r1 + 1, self.h), max(c0 - 1, 0), min(c1 + 1, self.w))
-        win = ~wok | (wz == 0.0)  # nodata and sea at exactly 0 m
-        if not win.any():
+        ra, rb, ca, cb = max(r0 - 1, 0), min(r1 + 1, self.h), max(c0 - 1, 0), min(c1 + 1, self.w)
+        some, every = False, True  # of the window's samples: any / all nodata or sea at exactly 0 m
+        for sa, sb in _strips(ra, rb, ca, cb):
+            wz, wok = self.ref.window(sa, sb, ca, cb)
+            win = ~wok | (wz == 0.0)
+            some = some or bool(win.any())
+            every = every and bool(win.all())
+        if not some:
             return 0
         w, s, e, n = rect
         fw, fs, fe, fn = self.footprint
         inside = w >= fw and e <= fe and s >= fs and n <= fn
-        if inside and win.all():
+        if inside and every:
             return 255
         px = w + (np.arange(256) + 0.5) * (e - w) / 256
         py = n - (np.arange(256) + 0.5) * (n - s) / 256
@@ -163,18 +178,24 @@ class Lattice:
 def lattice_error(lat: Lattice, tile: dict[str, Any], rect: tuple[float, float, float, float]
                   ) -> tuple[float, float, int]:  # fmt: skip
     """(max, sum of squares, count) of the vertical distance between a decoded tile (:func:`decode_tile`)
-    and every valid lattice sample inside ``rect``. Raises RuntimeError when a sample lies in no triangle."""
+    and every valid lattice sample inside ``rect``. Raises RuntimeError when a sample lies in no triangle.
+
+    A window over STRIP_SAMPLES (a coarse tile of a large region) is measured strip by strip of rows: the
+    same max and count; the sum of squares added in another order (it feeds only the level's RMS in
+    ``layer.json``; the goal zoom's parents, whose RMS sets their children's target, are never that big)."""
     r0, r1, c0, c1 = lat.window(rect)
     if r1 <= r0 or c1 <= c0:
         return 0.0, 0.0, 0
     w, s, e, n = rect
     pu = np.clip((lat.lon_c[c0:c1] - w) / (e - w), 0.0, 1.0) * 32767.0
     pv = np.clip((lat.lat_r[r0:r1] - s) / (n - s), 0.0, 1.0) * 32767.0
-    z, ok = lat.ref.window(r0, r1, c0, c1)
-    err, sumsq, count, missed = lattice_vertical_error(
-        tile["u"].astype(np.float64), tile["v"].astype(np.float64), np.asarray(tile["height"], np.float64),
-        np.ascontiguousarray(tile["triangles"], np.int64), pu, pv, z, ok,
-    )  # fmt: skip
+    tu, tv = tile["u"].astype(np.float64), tile["v"].astype(np.float64)
+    th, tris = np.asarray(tile["height"], np.float64), np.ascontiguousarray(tile["triangles"], np.int64)
+    err, sumsq, count, missed = 0.0, 0.0, 0, 0
+    for ra, rb in _strips(r0, r1, c0, c1):
+        z, ok = lat.ref.window(ra, rb, c0, c1)
+        e_, s_, n_, m_ = lattice_vertical_error(tu, tv, th, tris, pu, pv[ra - r0 : rb - r0], z, ok)
+        err, sumsq, count, missed = max(err, e_), sumsq + s_, count + n_, missed + m_
     if missed:
         raise RuntimeError(f"{missed} samples fall outside every triangle of the tile (a hole in its mesh)")
     return float(err), float(sumsq), int(count)

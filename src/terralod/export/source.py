@@ -276,6 +276,7 @@ class RegionGrid(SourceGrid):
         self.reader = RegionReader(
             region, cache_blocks=CACHE_BLOCKS if cache_blocks is None else cache_blocks
         )
+        self.reader.open()  # held open from here: the files as they were when the export began
         got = scan_region(region) if scan is None else scan
         self.scan = got
         self.t = region.transform
@@ -295,6 +296,17 @@ class RegionGrid(SourceGrid):
         self.bbox = (float(min(lons)), float(min(lats)), float(max(lons)), float(max(lats)))
         cos_lat = math.cos(math.radians(0.5 * (self.bbox[1] + self.bbox[3])))
         self.spacing_deg = float(min(abs(self.t.a) * cos_lat, abs(self.t.e)))
+
+    @property
+    def z_m(self) -> np.ndarray:  # type: ignore[override]
+        """The whole grid's filled heights, read now (memory of the whole region: for small DEMs and
+        checks; the tiler reads windows)."""
+        return self.window(0, self.shape[0], 0, self.shape[1])[0]
+
+    @property
+    def valid(self) -> np.ndarray:  # type: ignore[override]
+        """The whole grid's validity, read now (see :attr:`z_m`)."""
+        return self.window(0, self.shape[0], 0, self.shape[1])[1]
 
     @property
     def samples(self) -> int:

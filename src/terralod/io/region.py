@@ -434,6 +434,10 @@ class RegionReader:
             ds = self._local.ds = rasterio.open(self.region.target)
         return ds
 
+    def open(self) -> None:
+        """Open the dataset for this thread now (reads then go on even if a file is unlinked)."""
+        self._dataset()
+
     def close(self) -> None:
         ds = getattr(self._local, "ds", None)
         if ds is not None:

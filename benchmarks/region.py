@@ -1,0 +1,142 @@
+"""A region in: ``terralod export FOLDER --format quantized-mesh`` on mosaics of 16 and 64 SRTM3 tiles.
+
+    python benchmarks/region.py [--tiles 16,64] [--source srtm3_N41E001]
+
+Each mosaic is the real SRTM3 tile mirror-tiled (``_common.mirror_tile``: reflections sharing their edge
+rows, C0-continuous) to (1200 n + 1)² samples and cut back into n x n separate 1° GeoTIFFs in EPSG:4326
+(1201² int16 each, deflate, nodata -32768, adjacent bounds sharing their edge row and column as SRTM tiles
+do), north-west corner at N(41 + n)E001. The export reads the folder as one region, a window of it at a
+time (:class:`terralod.export.source.RegionGrid`), so its peak memory should not grow with the region.
+
+Rows: samples of the region, tiles written, wall and CPU (user + sys) of the ``terralod`` process, its
+peak RSS (GNU time's maximum resident set size of the child; psutil's sum over the process tree when GNU
+time is absent), tiles per second, µs of wall per sample, bytes written. Writes
+benchmarks/results/region.json and region.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import SHARED, md_table, mirror_tile, write_results  # noqa: E402
+
+
+def write_mosaic(src: Path, n: int, folder: Path) -> list[Path]:
+    """n x n 1° GeoTIFFs of ``src`` mirror-tiled, sharing edge rows/columns; their paths."""
+    import rasterio
+    from affine import Affine
+
+    with rasterio.open(src) as ds:
+        a = ds.read(1)
+        t, nodata = ds.transform, ds.nodata
+    side = a.shape[0] - 1  # 1200 samples a degree
+    big = mirror_tile(a, n)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in range(n):  # rows from the north
+        for j in range(n):
+            lat, lon = 41 + n - 1 - i, 1 + j
+            tile = np.ascontiguousarray(big[i * side : i * side + side + 1, j * side : j * side + side + 1])
+            tt = Affine(t.a, 0.0, lon - 0.5 * t.a, 0.0, t.e, lat + 1 - 0.5 * t.e)
+            p = folder / f"N{lat:02d}E{lon:03d}.tif"
+            with rasterio.open(p, "w", driver="GTiff", width=side + 1, height=side + 1, count=1, dtype=a.dtype,
+                               crs="EPSG:4326", transform=tt, nodata=nodata, tiled=True, blockxsize=256,
+                               blockysize=256, compress="deflate", predictor=2) as ds:  # fmt: skip
+                ds.write(tile, 1)
+            out.append(p)
+    return out
+
+
+def run_export(folder: Path, out: Path) -> dict[str, float]:
+    """``terralod export FOLDER --format quantized-mesh -o OUT`` in a fresh process: wall, CPU, peak RSS."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "terralod",
+        "export",
+        str(folder),
+        "--format",
+        "quantized-mesh",
+        "-o",
+        str(out),
+    ]
+    gnu_time = shutil.which("time") or ("/usr/bin/time" if Path("/usr/bin/time").exists() else None)
+    t0 = time.perf_counter()
+    if gnu_time:
+        p = subprocess.run([gnu_time, "-v", *cmd], capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if p.returncode != 0:
+            raise RuntimeError(p.stderr[-2000:])
+
+        def field(name: str) -> float:
+            m = re.search(rf"{re.escape(name)}: ([0-9.]+)", p.stderr)
+            return float(m.group(1)) if m else float("nan")
+
+        rss_mib = field("Maximum resident set size (kbytes)") / 1024
+        cpu = field("User time (seconds)") + field("System time (seconds)")
+        return {"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": rss_mib, "stdout": p.stdout.strip()}
+    import psutil
+
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    root, peak = psutil.Process(proc.pid), 0
+    while proc.poll() is None:
+        try:
+            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
+            peak = max(peak, rss)
+        except psutil.Error:
+            pass
+        time.sleep(0.05)
+    wall = time.perf_counter() - t0
+    usage = os.times()
+    return {"wall_s": wall, "cpu_s": usage.children_user + usage.children_system, "peak_rss_mib": peak / 2**20,
+            "stdout": (proc.stdout.read() if proc.stdout else "").strip()}  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tiles", default="16,64", help="mosaic sizes in SRTM tiles (squares: 4, 16, 64, ...)")
+    ap.add_argument("--source", default="srtm3_N41E001", help="the real SRTM3 tile mirrored")
+    args = ap.parse_args()
+    src = SHARED / "dem" / f"{args.source}.tif"
+    rows, results = [], []
+    for count in [int(v) for v in args.tiles.split(",")]:
+        n = int(round(count**0.5))
+        assert n * n == count, f"Expected a square number of tiles, got {count}"
+        with tempfile.TemporaryDirectory(prefix="terralod-region-") as d:
+            files = write_mosaic(src, n, Path(d) / "dem")
+            samples = (1200 * n + 1) ** 2
+            out = Path(d) / "out"
+            r = run_export(Path(d) / "dem", out)
+            tiles = sum(1 for _ in out.rglob("*.terrain"))
+            nbytes = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+        res = {"srtm_tiles": count, "files": len(files), "samples": samples, "tiles": tiles, "bytes": nbytes,
+               "tiles_per_s": tiles / r["wall_s"], "us_per_sample": r["wall_s"] / samples * 1e6,
+               **{k: v for k, v in r.items() if k != "stdout"}, "summary": r["stdout"]}  # fmt: skip
+        results.append(res)
+        rows.append([f"{count} SRTM3 tiles ({1200 * n + 1}²)", samples, tiles, round(r["wall_s"], 1),
+                     round(r["cpu_s"], 1), round(r["peak_rss_mib"], 1), round(res["tiles_per_s"], 2),
+                     round(res["us_per_sample"], 3), f"{nbytes / 1e6:.1f} MB"])  # fmt: skip
+        print(rows[-1], flush=True)
+    table = md_table(["region", "samples", "tiles", "wall s", "CPU s", "peak RSS MiB", "tiles/s", "µs/sample",
+                      "bytes"], rows)  # fmt: skip
+    note = (
+        "\n`terralod export FOLDER --format quantized-mesh` (a fresh process, start-up included) on SRTM3 "
+        f"{args.source} mirror-tiled into separate 1° GeoTIFFs (EPSG:4326); peak RSS of the process. "
+        "Reproduce: `python benchmarks/region.py`.\n"
+    )
+    write_results("region", {"source": args.source, "runs": results}, table + note)
+
+
+if __name__ == "__main__":
+    main()
