@@ -27,7 +27,10 @@ regular grids, Sung, Lee & Shin (2021) §2 surveys TINs as the alternative it do
   a third of the bytes a triangle, and the runtime never draws a finest tile whose parent is exact, so a
   flat plain still draws its 2-triangle parents. ``finest_error_m`` sets the ladder from that end instead.
   The stored errors are measured on the stored (quantised) geometry by the builder, as for every method, so
-  a tile may measure a few millimetres above its target (the vertical quantisation step);
+  a tile may measure a few millimetres above its target (the vertical quantisation step). Lossless means
+  against the grid meshed: for a reprojected (geographic, Mercator) source the builder also measures every
+  tile against the source's own samples (:mod:`terralod.pyramid.original`), so the finest level states what
+  the resampling moved them by (up to 107 m on SRTM3 N42E001), never 0;
 - shared borders: the four sides of a tile are fixed before its interior, each by a 1-D simplification of
   the side's own line of source samples to the level's target (split at the worst sample until every
   segment is within it), so the two tiles sharing a side compute the same vertices from the same samples,
