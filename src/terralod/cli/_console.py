@@ -185,6 +185,8 @@ def print_store_summary(summary: dict[str, Any]) -> None:
         f"{summary['levels']} levels, {summary['tiles']}/{summary['tiles_planned']} tiles, tile size "
         f"{summary['tile_size']}, {summary['size_bytes'] / 1024 / 1024:.2f} MiB on disk"
     )
+    if summary.get("errors_against"):  # a reprojected source: against which samples the errors hold
+        console.print(summary["errors_against"])
 
 
 def _g(v: float) -> str:

@@ -26,7 +26,7 @@ from terralod.cli._options import check_output, check_raster_size, load, read_op
 @click.option(
     "--method", default="adaptive", show_default=True,
     help="Tile mesher: adaptive (a greedy-insertion TIN per tile on a halving error ladder, the finest "
-    "level the lossless grid; adaptive_ladder: the ladder down to the finest level too), cohesion (Sung, Lee & "
+    "level lossless against the grid it meshes; adaptive_ladder: the ladder down to the finest level too), cohesion (Sung, Lee & "
     "Shin's vertex cohesion map, 2021: one shared grid per level whose vertices are pulled towards the "
     "relief, so every tile shares one index buffer) or chunked (Ulrich's Chunked LOD, 2002: plainly "
     "decimated grids, the classic baseline); tin builds a detail-increment TIN from LiDAR (Ai et al., "
