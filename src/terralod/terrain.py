@@ -315,6 +315,7 @@ class TinTerrain(_TerrainBase):
         self._meta = dict(meta or {})
         self.path = Path(path) if path is not None else None
         self._tree: list[LodNode] | None = None
+        self._block_slots: list[np.ndarray] | None = None
 
     @property
     def meta(self) -> dict[str, Any]:
@@ -359,6 +360,8 @@ class TinTerrain(_TerrainBase):
     def lod_tree(self) -> list[LodNode]:
         if self._tree is not None:
             return self._tree
+        from terralod.kernels.meshtopo import used_bounds
+
         out: list[LodNode] = []
         saved = self.model.block_scales
         try:
@@ -367,11 +370,7 @@ class TinTerrain(_TerrainBase):
                 parent = None
                 for i, s in enumerate(self.ladder(b)):
                     v, t = self.lod_mesh((i, b, s))
-                    if t.size:
-                        used = v[np.unique(t)]
-                        lo, hi = used.min(axis=0), used.max(axis=0)
-                    else:
-                        lo = hi = np.zeros(3)
+                    lo, hi = used_bounds(v, np.ascontiguousarray(t, np.int64))  # zeros without triangles
                     e = float(err[s])
                     out.append(LodNode((i, b, s), parent, e, e, (float(lo[0]), float(lo[1]), float(lo[2]),
                                                              float(hi[0]), float(hi[1]), float(hi[2]))))  # fmt: skip
@@ -384,17 +383,24 @@ class TinTerrain(_TerrainBase):
     def lod_mesh(self, code: NodeCode) -> tuple[np.ndarray, np.ndarray]:
         """(vertices (N, 3) float64 world metres, triangles (K, 3) int32) of sub-block ``code[1]`` at scale
         ``code[2]`` (only that sub-block's triangles; vertices are the model's shared point array)."""
-        from terralod.runtime.tin import slot_blocks
-
         _, b, s = code
         scales = self.model.block_scales
         scales[b] = s
         self.model.set_block_scales(scales)
-        if not hasattr(self, "_slot_block"):
-            self._slot_block = slot_blocks(self.model)
-        alive = self.model._alive
-        tris = self.model._tris[alive & (self._slot_block == b)]
+        slots = self._slots()[b]
+        tris = self.model._tris[slots[self.model._alive[slots]]]
         return self.model.vertices_m, tris
+
+    def _slots(self) -> list[np.ndarray]:
+        """The triangle slots of each sub-block, ascending (:func:`terralod.runtime.tin.slot_blocks`)."""
+        if self._block_slots is None:
+            from terralod.runtime.tin import slot_blocks
+
+            sb = slot_blocks(self.model)
+            order = np.argsort(sb, kind="stable")
+            ptr = np.searchsorted(sb[order], np.arange(self.model.n_blocks + 1))
+            self._block_slots = [order[ptr[b] : ptr[b + 1]] for b in range(self.model.n_blocks)]
+        return self._block_slots
 
 
 def as_terrain(obj: Any) -> Any:

@@ -122,6 +122,23 @@ def _library_kernels(hf) -> None:
     _ = FractalDetail(hf).hurst_map
     noise.axis_variogram(np.asarray(hf.elevation_m, np.float64), 2)
     noise.gauss_grid(1, 3, 0, 0, 2, 2)
+    # the 3D Tiles export's mesh topology (a terrain without a CRS exports nothing); a TIN's points are
+    # read-only
+    from terralod.kernels.meshtopo import (
+        add_rows,
+        compact_triangles,
+        lone_edge_mask,
+        merge_pairs,
+        used_bounds,
+    )
+
+    pts = np.eye(3) * 10.0
+    lone_edge_mask(tri, 3)
+    add_rows(np.zeros((3, 3)), merge_pairs(np.ascontiguousarray(pts[:, :2]).view(np.int64)), pts)
+    compact_triangles(tri, 3)
+    used_bounds(pts, tri)
+    pts.setflags(write=False)
+    used_bounds(pts, tri)
 
 
 def warm_up(report: Callable[[str], None] | None = None) -> dict[str, float]:

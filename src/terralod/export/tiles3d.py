@@ -3,7 +3,12 @@
 Where a tile's bytes are decided: all here. The mesh is the store's own node (no re-meshing), the
 normals, skirts and ECEF positions are made in :meth:`Tiles3D.glb` and written by ``_write_glb``. A glb is
 a function of the store and the node's code alone (each level's normals are computed from the whole
-level at once), whatever was encoded before it.
+level at once, the same whichever of its nodes is asked for first), whatever was encoded before it.
+
+Cost: linear in the triangles exported. The topology (lone edges, used vertices, positions merged) is
+made by the kernels of :mod:`terralod.kernels.meshtopo` (counting sorts and hashing, not row sorts), a point
+array shared by every node (a TIN's) is converted to geographic and ECEF coordinates once, and the export
+walks the tree level by level, keeping one level's meshes at a time.
 
 The tileset is the terrain's static LOD tree (:meth:`terralod.terrain.Terrain.lod_tree`) as stored:
 REPLACE refinement. ``geometricError`` as the specification defines it: a tile's is the error of drawing it
@@ -81,14 +86,36 @@ class ExportReport:
 
 
 def boundary_edges(triangles: np.ndarray) -> np.ndarray:
-    """(E, 2) directed edges used by exactly one triangle, in the triangles' (counter-clockwise) order."""
-    t = np.asarray(triangles, np.int64)
+    """(E, 2) directed edges used by exactly one triangle, in the triangles' (counter-clockwise) order:
+    every ``(t0, t1)`` edge of such, then every ``(t1, t2)``, then every ``(t2, t0)``."""
+    from terralod.kernels.meshtopo import lone_edge_mask
+
+    t = np.ascontiguousarray(triangles, np.int64)
     if t.size == 0:
         return np.zeros((0, 2), np.int64)
     e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    key = np.sort(e, axis=1)
-    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return e[cnt[inv.reshape(-1)] == 1]
+    return e[lone_edge_mask(t, int(t.max()) + 1)]
+
+
+def _position_groups(v: np.ndarray) -> np.ndarray:
+    """(N,) int64: one group for the vertices at the same (x, y) rounded to 0.1 mm (the merge of
+    :func:`terralod.runtime.normals.reference_normals` at 4 decimals)."""
+    from terralod.kernels.meshtopo import merge_pairs
+
+    xy = np.ascontiguousarray(np.round(np.asarray(v)[:, :2], 4) + 0.0)  # -0.0 → 0.0: equal values, equal bits
+    return merge_pairs(xy.view(np.int64).reshape(-1, 2))
+
+
+@dataclass
+class _Level:
+    """The nodes of one level (one rung of a TIN) with the normals of their merged mesh.
+
+    ``nodes[code] = (points, used, local)``: the node's vertex array as the terrain gave it, the rows of
+    it the node's triangles use (ascending) and those triangles renumbered into them; ``normals[code]``
+    (len(used), 3) float32."""
+
+    nodes: dict[Any, tuple[np.ndarray, np.ndarray, np.ndarray]]
+    normals: dict[Any, np.ndarray]
 
 
 class Tiles3D:
@@ -119,8 +146,14 @@ class Tiles3D:
             self.children.setdefault(n.parent, []).append(n.code)
         self._tile_errors: dict[Any, float] = {}
         self._spread: dict[Any, float] = {}
-        self._normals: dict[int, dict[Any, np.ndarray]] = {}
-        self._meshes: dict[int, dict[Any, tuple[np.ndarray, np.ndarray]]] = {}
+        self._levels: dict[int, _Level] = {}
+        self._content: dict[Any, bool] = {}
+        self._triangles: dict[Any, int] = {}  # triangles of each node made, before the nodata drop
+        # a point array shared by several nodes (a TIN's), converted once: lon, lat, ellipsoidal height,
+        # ECEF, and the east, north, up vectors (each a pointwise function of one vertex)
+        self._shared: np.ndarray | None = None
+        self._shared_frame: tuple[np.ndarray, ...] | None = None
+        self._shared_groups: np.ndarray | None = None
         self._hf = source_heightfield(terrain) if drop_nodata else None
         if self._hf is not None and bool(self._hf.valid.all()):
             self._hf = None
@@ -214,55 +247,107 @@ class Tiles3D:
         }  # fmt: skip
 
     # -- content -----------------------------------------------------------------------------------------
+    def _level(self, group: int) -> _Level:
+        """The nodes of level ``group`` and their normals: the nodes merged by position (rounded to 0.1 mm)
+        and their area-weighted face normals summed (:func:`terralod.runtime.normals.reference_normals`'s
+        arithmetic, in the same order: each node's sums over its triangles, added node by node)."""
+        lv = self._levels.get(group)
+        if lv is not None:
+            return lv
+        from terralod.kernels.meshtopo import add_rows, compact_triangles
+        from terralod.kernels.stitch import normal_sums, normalize_all
+
+        nodes: dict[Any, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        seen: dict[int, int] = {}
+        for c in (n.code for n in self.tree if n.code[0] == group):
+            v, t = self.terrain.lod_mesh(c)
+            v = np.asarray(v, np.float64)
+            used, local = compact_triangles(np.ascontiguousarray(t, np.int64), len(v))
+            nodes[c] = (v, used, local)
+            self._triangles[c] = len(local)
+            seen[id(v)] = seen.get(id(v), 0) + 1
+        for v, _, _ in nodes.values():
+            if seen[id(v)] > 1 and v is not self._shared:  # one point array for several nodes (a TIN's)
+                self._shared, self._shared_frame, self._shared_groups = v, None, None
+        if nodes and all(v is self._shared for v, _, _ in nodes.values()):
+            # the groups of the shared array's positions, made once: a level's are their restriction
+            if self._shared_groups is None:
+                self._shared_groups = _position_groups(self._shared)
+            groups = [self._shared_groups[used] for _, used, _ in nodes.values()]
+            n_groups = int(self._shared_groups.max()) + 1 if self._shared_groups.size else 0
+        else:
+            xy = np.concatenate([v[used] for v, used, _ in nodes.values()]) if nodes else np.zeros((0, 3))
+            merged = _position_groups(xy)
+            n_groups = int(merged.max()) + 1 if merged.size else 0
+            bounds = np.cumsum([0] + [used.size for _, used, _ in nodes.values()])
+            groups = [merged[bounds[i] : bounds[i + 1]] for i in range(len(nodes))]
+        acc = np.zeros((n_groups, 3))
+        for (v, used, local), g in zip(nodes.values(), groups, strict=True):
+            add_rows(acc, g, normal_sums(v[used], local))
+        unit = normalize_all(acc)
+        lv = _Level(nodes, {c: unit[g] for c, g in zip(nodes, groups, strict=True)})
+        self._levels[group] = lv
+        return lv
+
+    def release(self, group: int) -> None:
+        """Forget level ``group``'s meshes (an export is done with them); asked again, they are made again,
+        the same."""
+        self._levels.pop(group, None)
+
     def normals(self, code: Any) -> np.ndarray:
         """(N, 3) float32 normals of a node's vertices (CRS frame: x east, y north, z up)."""
-        group = code[0]
-        if group not in self._normals:
-            from terralod.runtime.normals import reference_normals
-
-            meshes = {}
-            for c in (n.code for n in self.tree if n.code[0] == group):
-                v, t = self.terrain.lod_mesh(c)
-                used = np.unique(t)
-                if used.size < len(v):  # a shared point array (TIN): keep only what the node uses
-                    remap = np.full(len(v), -1, np.int64)
-                    remap[used] = np.arange(used.size)
-                    v, t = v[used], remap[t]
-                meshes[c] = (np.array(v, np.float64), np.asarray(t, np.int64))
-            self._normals[group] = reference_normals(meshes, decimals=4)
-            self._meshes[group] = meshes
-        return self._normals[group][code]
+        return self._level(code[0]).normals[code]
 
     def mesh(self, code: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(vertices (N, 3) CRS metres, triangles (K, 3) int64, normals (N, 3) float32) of a node with the
         nodata triangles dropped (no skirts yet)."""
-        nrm = self.normals(code)
-        v, t = self._meshes[code[0]][code]
+        lv = self._level(code[0])
+        pts, used, t = lv.nodes[code]
+        v = pts[used]
         if self._hf is not None and t.size:
             cen = v[t].mean(axis=1)
             t = t[valid_at(self._hf, cen[:, 0], cen[:, 1])]
-        return v, t, nrm
+        return v, t, lv.normals[code]
 
     def has_content(self, code: Any) -> bool:
         """False for a node whose every triangle is nodata (it gets no content in the tileset); a stored
         tile wholly over nodata has no triangle at all (terralod.pyramid.footprint)."""
-        return bool(self.mesh(code)[1].size)
+        if code not in self._content:
+            self._content[code] = bool(self.mesh(code)[1].size)
+        return self._content[code]
+
+    def _geodesy(self, code: Any, v: np.ndarray) -> tuple[Any, ...]:
+        """(lon, lat, ellipsoidal height, ECEF, east, north, up) of a node's vertices ``v``. For a point
+        array shared by several nodes, made once for the whole array: ECEF and the frames are then the
+        node's rows of it, lon, lat and height the whole array's, with the rows (else None) last."""
+        pts, used, _ = self._level(code[0]).nodes[code]
+        from terralod.export.geodesy import enu_frame
+
+        if pts is self._shared:
+            if self._shared_frame is None:
+                lon, lat = self.geo.lonlat(pts[:, 0], pts[:, 1])
+                h = self.geo.ellipsoidal(lon, lat, pts[:, 2])
+                self._shared_frame = (lon, lat, h, self.geo.ecef_lonlat(lon, lat, h), *enu_frame(lon, lat))
+            lon, lat, h, *rest = self._shared_frame
+            return (lon, lat, h, *(a[used] for a in rest), used)
+        lon, lat = self.geo.lonlat(v[:, 0], v[:, 1])
+        h = self.geo.ellipsoidal(lon, lat, v[:, 2])
+        return (lon, lat, h, self.geo.ecef_lonlat(lon, lat, h), *enu_frame(lon, lat), None)
 
     def glb(self, code: Any) -> bytes:
         """The binary glTF of node ``code``."""
         v, t, nrm = self.mesh(code)
         n = self.nodes[code]
-        lon, lat = self.geo.lonlat(v[:, 0], v[:, 1])
-        h = self.geo.ellipsoidal(lon, lat, v[:, 2])
-        ecef = self.geo.ecef_lonlat(lon, lat, h)
-        nrm_ecef = _enu_to_ecef(nrm, lon, lat)
+        lon, lat, h, ecef, east, north, up, rows = self._geodesy(code, v)
+        nrm_ecef = _enu_combine(nrm, east, north, up)
         be = boundary_edges(t)
         if be.size:
             depth = self.skirt_m(code)
             ends = np.unique(be)
             low = np.full(len(v), -1, np.int64)
             low[ends] = len(v) + np.arange(ends.size)
-            ecef = np.concatenate([ecef, self.geo.ecef_lonlat(lon[ends], lat[ends], h[ends] - depth)])
+            at = ends if rows is None else rows[ends]
+            ecef = np.concatenate([ecef, self.geo.ecef_lonlat(lon[at], lat[at], h[at] - depth)])
             nrm_ecef = np.concatenate([nrm_ecef, nrm_ecef[ends]])
             a, b = be[:, 0], be[:, 1]
             walls = np.concatenate([np.stack([a, low[b], b], 1), np.stack([a, low[a], low[b]], 1)])
@@ -278,7 +363,11 @@ def _enu_to_ecef(n: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
     fraction of a degree, is ignored)."""
     from terralod.export.geodesy import enu_frame
 
-    e, nn, u = enu_frame(lon, lat)
+    return _enu_combine(n, *enu_frame(lon, lat))
+
+
+def _enu_combine(n: np.ndarray, e: np.ndarray, nn: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Normals ``n`` (east, north, up components) in the frames (e, nn, u) → unit ECEF vectors."""
     n = np.asarray(n, np.float64)
     out = e * n[:, :1] + nn * n[:, 1:2] + u * n[:, 2:3]
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-30)
@@ -366,8 +455,12 @@ def export_3dtiles(
     view = Tiles3D(terrain, metric=metric, vertical_datum=vertical_datum)
     rep = ExportReport(Path(out))
     with output as o:
-        codes = [n.code for n in view.tree]
+        # level by level (a TIN's tree is sub-block by sub-block): each level's meshes are made once and
+        # dropped when its tiles are written, so memory holds one level, whatever the pyramid's size
+        codes = sorted((n.code for n in view.tree), key=lambda c: c[0])
         for i, code in enumerate(codes):
+            if i and codes[i - 1][0] != code[0]:
+                view.release(codes[i - 1][0])
             if not view.has_content(code):
                 continue
             r = o.record(node_uri(code))  # finished by the interrupted export this one resumes
@@ -379,11 +472,13 @@ def export_3dtiles(
             rep.bytes += r["bytes"]
             if progress is not None:
                 progress(i + 1, len(codes))
+        if codes:
+            view.release(codes[-1][0])
         ts = json.dumps(view.tileset(), separators=(",", ":"))
         o.write("tileset.json", ts.encode())
         rep.bytes += len(ts)
         changes = {"rewritten": list(o.rewritten), "removed": o.prune()} if update else {}
-    rep.triangles = int(sum(len(t) for g in view._meshes.values() for _, t in g.values()))
+    rep.triangles = int(sum(view._triangles.values()))
     rep.seconds = time.perf_counter() - t0
     rep.extra = {"format": "3dtiles", "metric": metric, "max_error_m": max(view.error_m(c) for c in view.nodes),
                  "levels": len({c[0] for c in view.nodes}), "geometric_error_root": math.nan,
