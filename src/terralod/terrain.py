@@ -349,11 +349,13 @@ class TinTerrain(_TerrainBase):
 
     def ladder(self, block: int) -> list[int]:
         """Scales of sub-block ``block`` whose measured errors halve: base, then each first scale at or
-        below half the previous rung's error, ending at full resolution."""
+        below half the previous rung's error, ending at full resolution. After the first rung of error 0
+        only full resolution follows: a scale of error 0 halves nothing (every later scale is exact too,
+        and a client never refines a tile whose error is 0)."""
         err = self.model.error_m(block)
         rungs = [0]
         for s in range(1, err.size):
-            if s == err.size - 1 or err[s] <= 0.5 * err[rungs[-1]]:
+            if s == err.size - 1 or (err[rungs[-1]] > 0.0 and err[s] <= 0.5 * err[rungs[-1]]):
                 rungs.append(s)
         return rungs
 

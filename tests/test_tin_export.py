@@ -1,0 +1,178 @@
+"""The web exports of a detail-increment TIN, checked from the outside.
+
+Each 3D Tiles glb is decoded (pygltflib), its positions taken back through the tileset's transforms and
+pyproj to the store's CRS, and every DEM sample the TIN was built from (read again with rasterio, not
+taken from the model) that falls on a tile's surface is compared with it: the vertical distance stays
+within the tile's declared ``vertical_error_m`` (and its ``geometricError``). Then the export is a pure
+function of the store: the same bytes tile by tile in any order, and the export level by level.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pygltflib")
+pytest.importorskip("pyproj")
+
+#: Float32 positions relative to a tile centre a few km away round to ~1 mm; ECEF → lon/lat/h adds nothing
+#: near that. What a surface may be off beyond its declared error, metres.
+TOLERANCE_M = 0.01
+
+
+@pytest.fixture(scope="module")
+def crop(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 65² crop of the Big Tujunga DEM (UTM 11N, 30 m, steep mountains, no nodata inside)."""
+    import rasterio
+    from rasterio.windows import Window
+
+    d = tmp_path_factory.mktemp("tin_export")
+    with rasterio.open(shared_data / "dem" / "big_tujunga_srtm30m_utm11.tif") as ds:
+        win = Window(500, 300, 65, 65)
+        a = ds.read(1, window=win)
+        prof = dict(ds.profile, width=65, height=65, transform=ds.window_transform(win), tiled=False)
+    prof.pop("blockxsize", None)
+    prof.pop("blockysize", None)
+    assert not (a == prof["nodata"]).any()
+    with rasterio.open(d / "crop.tif", "w", **prof) as out:
+        out.write(a, 1)
+    return d / "crop.tif"
+
+
+@pytest.fixture(scope="module")
+def tin(crop: Path) -> Path:
+    from terralod.io.reader import read_heightfield
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.terra import save_model_to_store
+
+    out = crop.parent / "crop.terra"
+    save_model_to_store(DetailIncrementModel.from_heightfield(read_heightfield(crop), sub_blocks=4), out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported(tin: Path) -> Path:
+    from terralod.export import export_3dtiles
+    from terralod.terrain import open_terrain
+
+    out = tin.parent / "3d"
+    with open_terrain(tin) as t:
+        export_3dtiles(t, out)
+    return out
+
+
+def _samples(crop: Path) -> tuple[np.ndarray, str]:
+    """(N, 3) x, y, z of every sample of the DEM (pixel centres, its CRS), and the CRS."""
+    import rasterio
+
+    with rasterio.open(crop) as ds:
+        z = ds.read(1).astype(np.float64)
+        t = ds.transform
+        r, c = np.mgrid[0 : ds.height, 0 : ds.width]
+        x = t.c + (c + 0.5) * t.a + (r + 0.5) * t.b
+        y = t.f + (c + 0.5) * t.d + (r + 0.5) * t.e
+        return np.column_stack([x.ravel(), y.ravel(), z.ravel()]), ds.crs.to_wkt()
+
+
+def _decode_glb(data: bytes) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(positions (N, 3) float64 glTF y-up, triangles (K, 3) int64, extras) of a one-mesh glb."""
+    import pygltflib as g
+
+    gl = g.GLTF2.load_from_bytes(data)
+    blob = gl.binary_blob()
+    prim = gl.meshes[0].primitives[0]
+    acc = gl.accessors[prim.indices]
+    bv = gl.bufferViews[acc.bufferView]
+    dt = {g.UNSIGNED_BYTE: np.uint8, g.UNSIGNED_SHORT: np.uint16, g.UNSIGNED_INT: np.uint32}[
+        acc.componentType
+    ]
+    tri = np.frombuffer(blob, dt, acc.count, bv.byteOffset).astype(np.int64).reshape(-1, 3)
+    acc = gl.accessors[prim.attributes.POSITION]
+    bv = gl.bufferViews[acc.bufferView]
+    pos = np.frombuffer(blob, np.float32, acc.count * 3, bv.byteOffset).astype(np.float64).reshape(-1, 3)
+    return pos, tri, gl.extras
+
+
+def _tiles(node: dict, above: np.ndarray) -> list[tuple[dict, np.ndarray]]:
+    """Every tile of a tileset with its composed translation (ECEF)."""
+    here = above + (np.array(node["transform"][12:15]) if "transform" in node else 0.0)
+    out = [(node, here)]
+    for k in node.get("children", []):
+        out += _tiles(k, here)
+    return out
+
+
+def _surface(xyz: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """The triangles of a glb that are terrain, not skirt: a skirt vertex hangs right below another."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(xyz[:, :2]).query_pairs(0.05, output_type="ndarray")
+    lower = np.where(xyz[pairs[:, 0], 2] < xyz[pairs[:, 1], 2], pairs[:, 0], pairs[:, 1])
+    skirt = np.zeros(len(xyz), bool)
+    skirt[lower] = True
+    return tri[~skirt[tri].any(axis=1)]
+
+
+def test_3dtiles_declared_errors_bound_the_dem(crop: Path, exported: Path) -> None:
+    """Every DEM sample on a tile's surface is within the tile's declared vertical error of it."""
+    import matplotlib.tri as mtri
+    from pyproj import CRS, Transformer
+
+    pts, wkt = _samples(crop)
+    back = Transformer.from_crs(CRS.from_epsg(4978), CRS.from_wkt(wkt), always_xy=True)
+    ts = json.loads((exported / "tileset.json").read_text())
+    covered: dict[int, np.ndarray] = {}
+    checked = 0
+    for node, centre in _tiles(ts["root"], np.zeros(3)):
+        if "content" not in node:
+            continue
+        pos, tri, extras = _decode_glb((exported / node["content"]["uri"]).read_bytes())
+        ecef = np.column_stack([pos[:, 0], -pos[:, 2], pos[:, 1]]) + centre  # glTF y-up → ECEF
+        x, y, h = back.transform(ecef[:, 0], ecef[:, 1], ecef[:, 2])
+        xyz = np.column_stack([x, y, h])
+        surf = _surface(xyz, tri)
+        assert surf.size and len(surf) < len(tri)  # a surface, and skirts around it
+        interp = mtri.LinearTriInterpolator(mtri.Triangulation(x, y, surf), h)
+        at = np.asarray(interp(pts[:, 0], pts[:, 1]).filled(np.nan))
+        on = np.isfinite(at)
+        assert on.any()
+        gap = np.abs(at[on] - pts[on, 2])
+        declared = float(extras["vertical_error_m"])
+        assert declared <= node["geometricError"] + 1e-9
+        assert gap.max() <= declared + TOLERANCE_M, (extras["code"], float(gap.max()), declared)
+        rung = int(extras["code"][0])
+        covered[rung] = covered.get(rung, np.zeros(len(pts), bool)) | on
+        checked += int(on.sum())
+    # the bases of the sub-blocks cover the DEM (the check is not vacuous)
+    assert covered[0].mean() > 0.95
+    assert checked > 3 * len(pts)  # and so do the finer rungs
+
+
+def test_3dtiles_full_resolution_is_exact(exported: Path) -> None:
+    """The finest node of each sub-block holds the input TIN: its measured error is 0."""
+    ts = json.loads((exported / "tileset.json").read_text())
+    leaves = [n for n, _ in _tiles(ts["root"], np.zeros(3)) if "content" in n and not n.get("children")]
+    assert leaves
+    for n in leaves:
+        _, _, extras = _decode_glb((exported / n["content"]["uri"]).read_bytes())
+        assert extras["vertical_error_m"] == 0.0
+
+
+def test_3dtiles_tin_tiles_in_any_order(tin: Path, exported: Path) -> None:
+    """A TIN's glb is a function of the store and its code: reverse order, every other tile, a fresh
+    view per tile (the model moved elsewhere in between) give the export's bytes."""
+    from terralod.export.tiles3d import Tiles3D, node_uri
+    from terralod.terrain import open_terrain
+
+    with open_terrain(tin) as t:
+        codes = [n.code for n in t.lod_tree()]
+        view = Tiles3D(t)
+        got = {c: view.glb(c) for c in reversed(codes)}
+        fresh = {c: Tiles3D(t).glb(c) for c in codes[1::3]}
+    for c in codes:
+        assert got[c] == (exported / node_uri(c)).read_bytes()
+    for c, data in fresh.items():
+        assert data == got[c]
