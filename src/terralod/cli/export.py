@@ -33,7 +33,7 @@ import click
 
 from terralod.cli._console import PlainProgress, console, err_console
 from terralod.cli._errors import require_extra
-from terralod.cli._options import numbers
+from terralod.cli._options import check_raster_size, numbers
 from terralod.output import Lock, Output, refuse_inputs, work_path
 
 
@@ -202,12 +202,23 @@ def _run_dem(
     """A DEM or a region of DEMs exported as quantized-mesh: every file read once first (an unreadable one
     named in one line), then the tiles, a window of the region at a time for WGS 84 lon/lat data."""
     from terralod.errors import InputError
-    from terralod.export.source import source_from_region
+    from terralod.export.source import source_from_dem, source_from_region
     from terralod.fill import check_dimensions
     from terralod.io.region import resolve_region
 
     if epoch is not None:
         raise InputError("is a DEM; --epoch selects an epoch of a store", dems[0])
+    if len(dems) == 1 and _is_one_file(dems[0]):
+        try:
+            one = resolve_region(dems)
+        except InputError:  # a heightmap with a sidecar frame, a .npy: the in-memory readers say what it is
+            one = None
+        if one is None or not _lonlat(one.crs):  # one file read whole, as before regions existed
+            check_raster_size(dems[0])  # the one size limit, from the header, before any sample is read
+            _output(output, dems[0], opts).check()
+            _run(source_from_dem(dems[0]), "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals,
+                 part)  # fmt: skip
+            return
     region = resolve_region(dems)  # headers only: one grid, or one line naming the two files that differ
     if not _lonlat(region.crs):  # read whole, in memory: the one size limit, from the headers
         check_dimensions(region.height, region.width, region.name)
