@@ -1,5 +1,7 @@
 """``terralod build`` out of core: a mosaic, ``--dask local|tcp://HOST:PORT``, or a raster too large to
-hold, built by :func:`terralod.pyramid.distributed.build_store_windowed` with a progress bar."""
+hold, built by :func:`terralod.pyramid.distributed.build_store_windowed` with a progress bar. A geographic
+or Mercator input is a :class:`terralod.io.windowed.WarpedSource` (warped block by block, every error also
+measured against its own samples)."""
 
 from __future__ import annotations
 
@@ -25,6 +27,14 @@ def is_large_raster(path: str) -> bool:
             return ds.width * ds.height > OUT_OF_CORE_SAMPLES
     except Exception:
         return False  # the in-memory reader reports what is wrong with it
+
+
+def is_region(path: str) -> bool:
+    """True for an input that stands for several files: a folder, or a glob pattern no file is named."""
+    from terralod.io.region import _is_glob
+
+    p = Path(path)
+    return p.is_dir() or (not p.exists() and _is_glob(path))
 
 
 def run_windowed_build(

@@ -70,7 +70,9 @@ def build(
     workers, resume, overwrite, fractal_levels, epoch, dask_address, dask_workers, **read: Any,
 ) -> None:  # fmt: skip
     """Build the level-of-detail tile store of a DEM (or of a mosaic of DEM tiles on one grid), or the
-    detail-increment TIN of a LAS/LAZ cloud. Mosaics, --dask and rasters over 2^28 samples build out of core."""
+    detail-increment TIN of a LAS/LAZ cloud. Mosaics (files, a folder, a quoted glob), --dask and rasters
+    over 2^28 samples build out of core; geographic and Web Mercator ones are warped to the UTM zone of
+    their centre (a Transverse Mercator on their central meridian when wider than one zone takes)."""
     input_path = input_paths[0]
     from terralod.pyramid.builder import METHODS, default_tile_size, store_summary
     from terralod.store import TileStore, open_store
@@ -132,11 +134,13 @@ def build(
 
 
 def windowed_build(input_paths: tuple[str, ...], dask_address: str | None, epoch: str | None) -> bool:
-    """True when the build reads windows (:mod:`terralod.pyramid.distributed`): a mosaic, --dask, or one
-    GDAL raster of over 2^28 samples; --epoch keeps the samples in the store and builds in memory."""
-    from terralod.cli._windowed import is_large_raster
+    """True when the build reads windows (:mod:`terralod.pyramid.distributed`): a mosaic (several files, a
+    folder or a quoted glob), --dask, or one GDAL raster of over 2^28 samples; --epoch keeps the samples in
+    the store and builds in memory. Geographic and Mercator mosaics are warped block by block to a metric
+    grid (:class:`terralod.io.windowed.WarpedSource`)."""
+    from terralod.cli._windowed import is_large_raster, is_region
 
-    if len(input_paths) > 1 or dask_address:
+    if len(input_paths) > 1 or dask_address or is_region(input_paths[0]):
         if epoch is not None:
             raise click.BadParameter(
                 "--epoch builds in memory; not with a mosaic or --dask", param_hint="--epoch"

@@ -6,13 +6,15 @@ A window source has the frame of a :class:`~terralod.heightfield.Heightfield` (`
     read(r0, c0, r1, c1) -> (elevation_m (r1 - r0, c1 - c0) float32, valid (same) bool)
 
 rows ``r0 <= r < r1``, columns ``c0 <= c < c1`` of the north-up sample grid (row 0 north), nodata cells
-filled (``valid`` False there). Two kinds:
+filled (``valid`` False there). Three kinds:
 
 - :class:`ArraySource`: an in-memory Heightfield, sliced (its global fill is kept);
 - :class:`RasterSource`: one raster GDAL opens (GeoTIFF, COG, VRT) or a mosaic of many (written as a
   VRT, hand-made XML, in memory), read by rasterio windowed reads — a COG's internal tiles are the only
   part of the file touched. Picklable (the dataset is re-opened per process and per thread), so Dask
-  workers read their own windows.
+  workers read their own windows;
+- :class:`WarpedSource`: a geographic or Mercator region on a metric grid, warped block by block
+  (picklable likewise).
 
 Values are the in-memory reader's, bit for bit: ``float64(stored) * scale + offset``, then float32
 (:func:`terralod.io.raster.read_raster` and :func:`terralod.fill.prepare_elevation`), so a build from a
@@ -27,10 +29,14 @@ Deviations from the in-memory reader, and why:
    on its block alone, whichever window reads it, so neighbouring tiles agree on shared vertices (no
    cracks). Filled values differ from the global fill near block edges; valid samples never change, and
    errors are never measured on filled cells.
-2. Georeferencing. Only rasters already in a metric frame stream: a projected CRS in metres (or in feet,
-   re-expressed in metres as the in-memory reader does), or no CRS with ``spacing_m``. A geographic or
-   Mercator raster is refused in one line (the in-memory reader reprojects the whole array once;
-   ``gdalwarp -t_srs EPSG:<UTM zone>`` does it out of core).
+2. Georeferencing. :class:`RasterSource` reads rasters already in a metric frame: a projected CRS in
+   metres (or in feet, re-expressed in metres as the in-memory reader does), or no CRS with
+   ``spacing_m``. A geographic or Mercator raster or region (every global DEM product: SRTM, Copernicus
+   GLO-30, ALOS come as EPSG:4326 1° tiles) is a :class:`WarpedSource`: the region (one grid of many
+   files, :func:`terralod.io.region.resolve_region`) warped block by block to the in-memory reader's
+   metric grid (the UTM zone of its centre), or to a Transverse Mercator on its central meridian when
+   it spans more longitude than one UTM zone takes. Its ``original_grid`` is the region's own samples,
+   against which every tile is also measured.
 3. Mosaics must share one CRS, one pixel size and one grid (integer pixel offsets); anything else is
    refused in one line, never resampled silently. Cells no file covers are nodata.
 """
@@ -54,9 +60,18 @@ from terralod.errors import InputError, InputNotFoundError
 from terralod.fill import MIN_SIDE, fill_nodata
 from terralod.heightfield import Heightfield
 from terralod.io.georef import to_crs
-from terralod.io.raster import vertical_unit_m
+from terralod.io.raster import crs_text, vertical_unit_m
+from terralod.io.region import FILL_HALO_EXACT_MAX, _exact
 
-__all__ = ["ArraySource", "RasterSource", "WindowSource", "open_source"]
+__all__ = [
+    "ArraySource",
+    "RasterSource",
+    "RegionSamples",
+    "WarpedSource",
+    "WindowSource",
+    "open_source",
+    "warp_frame",
+]
 
 #: Side of the fixed nodata-fill blocks, samples, and the halo each is filled with (see deviation 1).
 FILL_BLOCK = 512
@@ -66,6 +81,16 @@ FILL_HALO = 64
 GDAL_CACHE_BYTES = 128 << 20
 #: Filled blocks kept per source and process (each (FILL_BLOCK)^2 float32 + bool, 1.25 MiB).
 FILL_CACHE_BLOCKS = 64
+#: A geographic or Mercator region is warped in fixed blocks of WARP_ROWS rows by the grid's whole width
+#: (cut into equal bands of at most WARP_MAX_COLS columns): GDAL's approximate transformer interpolates
+#: the source position along each destination row of a chunk, so a block as wide as the grid samples where
+#: a whole-grid warp does (the in-memory reader's). WARP_MARGIN_PX source pixels are read around a block's
+#: transformed footprint (bilinear reads one); WARP_CACHE_SAMPLES warped samples (9 bytes each: float64 +
+#: mask) are kept per source and process.
+WARP_ROWS = 512
+WARP_MAX_COLS = 8192
+WARP_MARGIN_PX = 4
+WARP_CACHE_SAMPLES = 1 << 24
 #: Sources whose open datasets and fill caches a process keeps for the copies that unpickle into it.
 SHARED_SOURCES = 4
 
@@ -99,10 +124,22 @@ class WindowSource:
     source: str
     notes: tuple[str, ...]
     fill_method: str = ""
+    #: How a streamed build says the nodata was filled ("" for a source that fills as the in-memory reader).
+    fill_note: str = ""
+    #: A reprojected source's own nodata fraction, and the fraction of the grid outside its footprint.
+    source_nodata_fraction: float | None = None
+    margin_fraction: float = 0.0
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.height, self.width
+
+    @property
+    def original_grid(self) -> Any:
+        """The samples the user gave, when the grid is a resampling of them (anything with ``crs``,
+        ``transform``, ``shape``, ``source``, ``n_valid`` and ``window(r0, r1, c0, c1)``); None when the
+        grid is the source's own samples."""
+        return None
 
     @property
     def spacing_m(self) -> tuple[float, float]:
@@ -117,7 +154,7 @@ class WindowSource:
         """The window as a Heightfield whose transform places it in the full terrain's frame."""
         z, ok = self.read(r0, c0, r1, c1)
         t = self.transform @ Affine.translation(c0, r0)
-        return Heightfield(z, ok, t, crs=self.crs, source=self.source)
+        return Heightfield(z, ok, t, crs=self.crs, source=self.source, original_grid=self.original_grid)
 
     def _check_window(self, r0: int, c0: int, r1: int, c1: int) -> None:
         if not (0 <= r0 < r1 <= self.height and 0 <= c0 < c1 <= self.width):
@@ -134,13 +171,83 @@ class ArraySource(WindowSource):
         self.width, self.height = hf.width, hf.height
         self.transform, self.crs, self.source = hf.transform, hf.crs, hf.source
         self.notes, self.fill_method = tuple(hf.notes), hf.fill_method
+        self.source_nodata_fraction = hf.source_nodata_fraction
+        self.margin_fraction = hf.margin_fraction
+
+    @property
+    def original_grid(self) -> Any:
+        return self.hf.original_grid
 
     def read(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
         self._check_window(r0, c0, r1, c1)
         return self.hf.elevation_m[r0:r1, c0:c1], self.hf.valid[r0:r1, c0:c1]
 
 
-class RasterSource(WindowSource):
+class _BlockFilled(WindowSource):
+    """A window source whose nodata is filled per fixed block of ``FILL_BLOCK`` samples (deviation 1):
+    subclasses give ``read_raw(r0, c0, r1, c1)`` (unfilled values, valid mask) and hold ``_cache`` (filled
+    blocks, an LRU) and ``_lock``. With ``exact_fill`` the halo grows (64, 128, 256 samples) until the
+    block's fill provably equals the whole grid's (:func:`terralod.io.region._exact`, the region reader's
+    test), so a block away from large holes is filled as the in-memory reader fills it."""
+
+    exact_fill = False
+    _cache: OrderedDict
+    _lock: threading.Lock
+
+    def read_raw(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+    def read(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        values, ok = self.read_raw(r0, c0, r1, c1)
+        z = values.astype(np.float32, copy=False)
+        if ok.all():
+            return z, ok
+        b = FILL_BLOCK
+        for br in range(r0 // b, (r1 - 1) // b + 1):
+            for bc in range(c0 // b, (c1 - 1) // b + 1):
+                ra, ca = max(br * b, r0), max(bc * b, c0)
+                rb, cb = min((br + 1) * b, r1), min((bc + 1) * b, c1)
+                if ok[ra - r0 : rb - r0, ca - c0 : cb - c0].all():
+                    continue
+                fz = self._filled_block(br, bc)
+                z[ra - r0 : rb - r0, ca - c0 : cb - c0] = fz[
+                    ra - br * b : rb - br * b, ca - bc * b : cb - bc * b
+                ]
+        return z, ok
+
+    def _filled_block(self, br: int, bc: int) -> np.ndarray:
+        """Fill block (br, bc) on itself plus a halo that holds a valid sample (deviation 1), cached."""
+        key = (br, bc)
+        with self._lock:
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key][0]
+        b = FILL_BLOCK
+        r0, c0 = br * b, bc * b
+        r1, c1 = min(r0 + b, self.height), min(c0 + b, self.width)
+        halo = FILL_HALO
+        while True:
+            ra, ca = max(r0 - halo, 0), max(c0 - halo, 0)
+            rb, cb = min(r1 + halo, self.height), min(c1 + halo, self.width)
+            values, ok = self.read_raw(ra, ca, rb, cb)
+            whole = ra == 0 and ca == 0 and rb == self.height and cb == self.width
+            if ok.any() and (not self.exact_fill or whole or halo >= FILL_HALO_EXACT_MAX
+                             or _exact(ok, (ra, rb, ca, cb), (r0, r1, c0, c1), self.shape)):  # fmt: skip
+                break
+            if whole:
+                break
+            halo *= 2
+        if not ok.any():
+            raise InputError("band has no valid samples (all nodata)", self.source)
+        filled = fill_nodata(values, ok).astype(np.float32)[r0 - ra : r1 - ra, c0 - ca : c1 - ca]
+        with self._lock:
+            self._cache[key] = (filled, ok)
+            while len(self._cache) > FILL_CACHE_BLOCKS:
+                self._cache.popitem(last=False)
+        return filled
+
+
+class RasterSource(_BlockFilled):
     """One band of a raster (or a mosaic of rasters) read window by window with rasterio.
 
     Parameters
@@ -198,6 +305,7 @@ class RasterSource(WindowSource):
         self.nodata_hint = None
         if ds.nodatavals[self.band - 1] is None and nodata is not None and not math.isnan(nodata):
             self.nodata_hint = float(nodata)
+        self.fill_note = f"filled per {FILL_BLOCK}-sample block (halo {FILL_HALO}) with the nearest valid sample, then relaxed"
         self.file_height, self.file_width = ds.height, ds.width
         self.width, self.height = ds.width, ds.height
         self.transform, self.crs, self.notes, self.flip_rows, self.flip_cols = _metric_frame(
@@ -290,55 +398,410 @@ class RasterSource(WindowSource):
         ok &= np.isfinite(values)
         return values, np.ascontiguousarray(ok)
 
-    def read(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
-        values, ok = self.read_raw(r0, c0, r1, c1)
-        z = values.astype(np.float32, copy=False)
-        if ok.all():
-            return z, ok
-        b = FILL_BLOCK
+
+class RegionSamples:
+    """A region's own samples, read window by window: the original grid a reprojected source's tiles are
+    measured against (:mod:`terralod.pyramid.original`; the windowed twin of
+    :class:`terralod.io.raster.OriginalGrid`).
+
+    Attributes
+    ----------
+    crs : WKT of the region's CRS (geographic or Mercator); transform : its north-up pixel-corner transform;
+    shape : (rows, cols); source : the region's name; n_valid : its valid samples (counted by one scan).
+    """
+
+    def __init__(self, region: Any, n_valid: int) -> None:
+        from terralod.io.region import RegionReader
+
+        self.region = region
+        self.crs: str = region.crs.to_wkt()
+        self.transform: Affine = region.transform
+        self.source: str = region.name
+        self.n_valid = int(n_valid)
+        self.reader = RegionReader(region, cache_blocks=0)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.region.height), int(self.region.width)
+
+    def window(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(values, valid) of rows ``r0 <= r < r1``, columns ``c0 <= c < c1`` (clipped to the grid); values
+        as the single-file reader reads them (scale and offset applied), arbitrary where invalid."""
+        h, w = self.shape
+        r0, r1, c0, c1 = max(0, r0), min(h, r1), max(0, c0), min(w, c1)
+        if r1 <= r0 or c1 <= c0:
+            return np.zeros((max(r1 - r0, 0), max(c1 - c0, 0))), np.zeros(
+                (max(r1 - r0, 0), max(c1 - c0, 0)), bool
+            )
+        return self.reader.read_raw(r0, r1, c0, c1)
+
+
+class _WarpState:
+    """What a process keeps of a warped source (shared by the copies Dask unpickles into it): the region's
+    samples (one object, so the position cache of :mod:`terralod.pyramid.original` stays warm), the
+    warped blocks and the filled blocks (LRUs), one lock."""
+
+    def __init__(self, region: Any, n_valid: int) -> None:
+        self.original = RegionSamples(region, n_valid)
+        self.warped: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.filled: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.lock = threading.Lock()
+
+
+_warp_states: OrderedDict[tuple, _WarpState] = OrderedDict()
+
+
+def _warp_state(key: tuple, region: Any, n_valid: int) -> _WarpState:
+    """This process's :class:`_WarpState` of the warped source ``key``, the most recent few kept."""
+    with _shared_lock:
+        state = _warp_states.get(key)
+        if state is None:
+            state = _warp_states[key] = _WarpState(region, n_valid)
+            while len(_warp_states) > SHARED_SOURCES:
+                _warp_states.popitem(last=False)
+        _warp_states.move_to_end(key)
+        return state
+
+
+class WarpedSource(_BlockFilled):
+    """A geographic (or Mercator) region presented on a metric grid, warped block by block.
+
+    The region is what :func:`terralod.io.region.resolve_region` makes of the inputs (files, globs,
+    folders, VRTs, ``.hgt``/``.hgt.zip``: one grid, the last file wins, gaps nodata). The metric grid is
+    the in-memory reader's (:func:`terralod.io.raster.reproject_to_utm`): the UTM zone (UPS beyond 84 N /
+    80 S) of the region's centre, square pixels of the ground spacing at the centre (the smaller of dx,
+    dy, millimetre-rounded), snapped to multiples of it over the transformed bounds. A region wider than
+    ``MAX_UTM_SPAN_DEG`` degrees of longitude, which that reader refuses, gets a Transverse Mercator on
+    the WGS 84 ellipsoid centred on its central meridian (scale 1 there, false origin 0, 0) instead.
+
+    The grid is warped in fixed blocks of ``WARP_ROWS`` rows by its whole width (equal bands of at most
+    ``WARP_MAX_COLS`` columns), each from the source window its footprint needs plus ``WARP_MARGIN_PX``
+    pixels (``rasterio.warp.reproject``): elevations bilinear over the valid samples (NaN nodata), the valid
+    mask nearest, cells outside the region invalid — the in-memory reader's calls, with GDAL's kernel
+    scale fixed to the whole grid's ratio. A block is a pure function of its index, whichever window reads
+    it. Then nodata is filled per ``FILL_BLOCK`` block with the exact halo of :class:`_BlockFilled`.
+
+    Against the in-memory reader (one SRTM3 tile, N42E001, 1230 x 1644 samples in UTM 31N): the same
+    frame and valid mask, the same filled cells, and 2 of its 1.94 M valid samples one float32 step apart
+    (0.00024 m: GDAL's source coordinates relative to a block's window, not the whole file's). A grid
+    wider than ``WARP_MAX_COLS``, or one GDAL's in-memory warp cuts into several chunks (over its 64 MB
+    working memory), resamples where the approximate transformer puts each chunk's rows (within 0.125
+    source pixels of the exact position) and may differ further. Memory: ``WARP_CACHE_SAMPLES`` warped
+    samples and ``FILL_CACHE_BLOCKS`` filled blocks, whatever the region's size.
+
+    ``original_grid`` (:class:`RegionSamples`) is the region's own samples, against which every stored
+    error is also measured (:mod:`terralod.pyramid.original`).
+    """
+
+    exact_fill = True
+
+    def __init__(
+        self,
+        inputs: str | Path | Sequence[str | Path],
+        *,
+        vertical_scale: float | None = None,
+        vertical_offset: float | None = None,
+        crs: Any = None,
+    ) -> None:
+        import dataclasses
+
+        from terralod.io.georef import assign_crs, check_area_of_use
+        from terralod.io.region import resolve_region, scan_region
+
+        region = resolve_region(inputs, crs=crs)
+        src = region.name
+        notes: list[str] = []
+        if crs is not None:
+            _, note = assign_crs(crs, _file_crs(region.footprints[0].path), src)
+            notes.append(note)
+        scale = float(vertical_scale) if vertical_scale is not None else region.scale
+        offset = float(vertical_offset) if vertical_offset is not None else region.offset
+        vunit = vertical_unit_m(region.crs)
+        if vunit is not None and vertical_scale is None and scale == 1.0:
+            scale = vunit[1]
+            notes.append(f"heights in {vunit[0]} (the CRS's vertical axis): x {vunit[1]:.10g} to metres")
+        if not (math.isfinite(scale) and math.isfinite(offset)) or scale == 0.0:
+            raise InputError(f"vertical scale and offset must be finite and the scale non-zero, got "
+                             f"{scale:g}, {offset:g}", src)  # fmt: skip
+        if (scale, offset) != (region.scale, region.offset):
+            region = dataclasses.replace(region, scale=scale, offset=offset)
+        if scale != 1.0 or offset != 0.0:
+            notes.append(f"elevation_m = stored value * {scale:g} + {offset:g}")
+        scan_region(region)  # every file decoded once, a bad one named, before anything is written
+        n_valid = _count_valid(region)  # on the grid: cells files share (SRTM's edges) count once
+        h, w = region.shape
+        if h < MIN_SIDE or w < MIN_SIDE:
+            raise InputError(f"raster is {w}x{h} samples; at least {MIN_SIDE}x{MIN_SIDE} needed", src)
+        notes += check_area_of_use(region.crs, region.bounds, src)
+        dst_crs, t, width, height, note, margin = warp_frame(region.crs, region.transform, (h, w), src)
+        self.region, self.n_valid = region, n_valid
+        self.source = src
+        self.paths = [f.shown for f in region.footprints]
+        self._files = tuple(_identity(f.shown) for f in region.footprints)
+        self.src_crs = region.crs
+        self.dst_crs = dst_crs
+        self.crs = crs_text(dst_crs)
+        self.transform, self.width, self.height = t, width, height
+        self.notes = (*notes, note)
+        self.source_nodata_fraction = 1.0 - n_valid / float(h * w)
+        self.margin_fraction = margin
+        self.fill_note = (
+            f"filled per {FILL_BLOCK}-sample block on a halo grown ({FILL_HALO} to {FILL_HALO_EXACT_MAX} "
+            "samples) until it equals the whole grid's fill, with the nearest valid sample, then relaxed"
+        )
+        self._attach()
+
+    # -- process state: shared by every copy of this source in a process ------------------------------------
+    def _key(self) -> tuple:
+        return (tuple(self.paths), self._files, self.region.scale, self.region.offset, self.transform,
+                self.width, self.height, self.crs)  # fmt: skip
+
+    def _attach(self) -> None:
+        self._state = _warp_state(self._key(), self.region, self.n_valid)
+        self._cache, self._lock = self._state.filled, self._state.lock
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        for key in ("_state", "_cache", "_lock"):
+            state.pop(key)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._attach()
+
+    @property
+    def original_grid(self) -> RegionSamples:
+        """The region's own samples (this process's one object for this source)."""
+        return self._state.original
+
+    def close(self) -> None:
+        self._state.original.reader.close()
+
+    # -- reading -------------------------------------------------------------------------------------------
+    def read_raw(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        """Warped elevations (float64 metres, NaN where invalid) and the valid mask of the window,
+        assembled from the warped blocks."""
+        self._check_window(r0, c0, r1, c1)
+        b = WARP_ROWS
+        edges = self._bands
+        z = np.empty((r1 - r0, c1 - c0), np.float64)
+        ok = np.empty((r1 - r0, c1 - c0), bool)
         for br in range(r0 // b, (r1 - 1) // b + 1):
-            for bc in range(c0 // b, (c1 - 1) // b + 1):
-                ra, ca = max(br * b, r0), max(bc * b, c0)
-                rb, cb = min((br + 1) * b, r1), min((bc + 1) * b, c1)
-                if ok[ra - r0 : rb - r0, ca - c0 : cb - c0].all():
+            for bc in range(len(edges) - 1):
+                ba, bb = edges[bc], edges[bc + 1]
+                if bb <= c0 or ba >= c1:
                     continue
-                fz = self._filled_block(br, bc)
-                z[ra - r0 : rb - r0, ca - c0 : cb - c0] = fz[
-                    ra - br * b : rb - br * b, ca - bc * b : cb - bc * b
-                ]
+                bz, bok = self._warped_block(br, bc)
+                ra, rb = max(br * b, r0), min((br + 1) * b, r1)
+                ca, cb = max(ba, c0), min(bb, c1)
+                z[ra - r0 : rb - r0, ca - c0 : cb - c0] = bz[ra - br * b : rb - br * b, ca - ba : cb - ba]
+                ok[ra - r0 : rb - r0, ca - c0 : cb - c0] = bok[ra - br * b : rb - br * b, ca - ba : cb - ba]
         return z, ok
 
-    def _filled_block(self, br: int, bc: int) -> np.ndarray:
-        """Fill block (br, bc) on itself plus a halo that holds a valid sample (deviation 1), cached."""
+    @property
+    def _bands(self) -> list[int]:
+        """Column edges of the warped blocks: the width cut into equal bands of at most WARP_MAX_COLS."""
+        n = -(-self.width // WARP_MAX_COLS)
+        return [round(k * self.width / n) for k in range(n + 1)]
+
+    def _warped_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
+        st = self._state
         key = (br, bc)
-        with self._lock:
-            if key in self._cache:
-                self._cache.move_to_end(key)
-                return self._cache[key][0]
-        b = FILL_BLOCK
-        r0, c0 = br * b, bc * b
-        r1, c1 = min(r0 + b, self.height), min(c0 + b, self.width)
-        halo = FILL_HALO
-        while True:
-            ra, ca = max(r0 - halo, 0), max(c0 - halo, 0)
-            rb, cb = min(r1 + halo, self.height), min(c1 + halo, self.width)
-            values, ok = self.read_raw(ra, ca, rb, cb)
-            whole = ra == 0 and ca == 0 and rb == self.height and cb == self.width
-            if ok.any() or whole:
-                break
-            halo *= 2
-        if not ok.any():
-            raise InputError("band has no valid samples (all nodata)", self.source)
-        filled = fill_nodata(values, ok).astype(np.float32)[r0 - ra : r1 - ra, c0 - ca : c1 - ca]
-        with self._lock:
-            self._cache[key] = (filled, ok)
-            while len(self._cache) > FILL_CACHE_BLOCKS:
-                self._cache.popitem(last=False)
-        return filled
+        with st.lock:
+            hit = st.warped.get(key)
+            if hit is not None:
+                st.warped.move_to_end(key)
+                return hit
+        got = self._warp_block(br, bc)
+        with st.lock:
+            st.warped[key] = got
+            kept = sum(v[0].size for v in st.warped.values())
+            while kept > WARP_CACHE_SAMPLES and len(st.warped) > 1:
+                kept -= st.warped.popitem(last=False)[1][0].size
+        return got
+
+    def _warp_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
+        """Block (br, bc) warped from its source window (see the class docstring)."""
+        from rasterio.warp import Resampling, reproject, transform_bounds
+
+        edges = self._bands
+        r0, c0 = br * WARP_ROWS, edges[bc]
+        r1, c1 = min(r0 + WARP_ROWS, self.height), edges[bc + 1]
+        bt = self.transform @ Affine.translation(c0, r0)
+        out = np.full((r1 - r0, c1 - c0), np.nan, np.float64)
+        mask = np.zeros((r1 - r0, c1 - c0), np.uint8)
+        west, north = bt @ (0, 0)
+        east, south = bt @ (c1 - c0, r1 - r0)
+        st = self.region.transform
+        h, w = self.region.shape
+        try:
+            sw, ss, se, sn = transform_bounds(
+                self.dst_crs, self.src_crs, west, south, east, north, densify_pts=21
+            )
+        except Exception:  # noqa: BLE001 - a block PROJ cannot place in the source's CRS: the whole source
+            sw, ss, se, sn = self.region.bounds
+        if self.src_crs.is_geographic and se < sw:  # across the antimeridian: the whole width
+            sw, se = st.c, st.c + w * st.a
+        m = WARP_MARGIN_PX
+        ca = max(int(math.floor((sw - st.c) / st.a)) - m, 0)
+        cb = min(int(math.ceil((se - st.c) / st.a)) + m, w)
+        ra = max(int(math.floor((sn - st.f) / st.e)) - m, 0)
+        rb = min(int(math.ceil((ss - st.f) / st.e)) + m, h)
+        if cb <= ca or rb <= ra:
+            return out, mask.astype(bool)
+        values, valid = self._state.original.reader.read_raw(ra, rb, ca, cb)
+        src = np.where(valid, values.astype(np.float64), np.nan)
+        # GDAL sizes its resampling kernel by the destination/source pixel ratio of each chunk it warps;
+        # the whole grid's ratio is given, so every block resamples as one whole-grid warp does
+        kw = {"src_transform": st @ Affine.translation(ca, ra), "src_crs": self.src_crs, "dst_transform": bt,
+              "dst_crs": self.dst_crs, "XSCALE": repr(self.width / w), "YSCALE": repr(self.height / h)}  # fmt: skip
+        reproject(src, out, resampling=Resampling.bilinear, src_nodata=np.nan, dst_nodata=np.nan, **kw)
+        reproject(np.ascontiguousarray(valid, dtype=np.uint8), mask, resampling=Resampling.nearest,
+                  src_nodata=None, dst_nodata=0, **kw)  # fmt: skip
+        return out, (mask > 0) & np.isfinite(out)
 
 
-def open_source(paths: str | Path | Sequence[str | Path], **options: Any) -> RasterSource:
-    """A :class:`RasterSource` of one raster or a mosaic (see :class:`RasterSource` for ``options``)."""
+def warp_frame(
+    crs: Any, t: Affine, shape: tuple[int, int], source: str
+) -> tuple[Any, Affine, int, int, str, float]:
+    """The metric grid a geographic or Mercator grid is warped to (:class:`WarpedSource`'s rule, the
+    in-memory reader's for a region one UTM zone takes): (CRS, north-up transform, width, height, note,
+    fraction of the grid outside the source's footprint). Refuses, in one line, bounds off the globe and a
+    grid that would grow over ``MAX_REPROJECT_GROWTH`` times."""
+    from rasterio.crs import CRS
+    from rasterio.warp import transform as warp_points
+    from rasterio.warp import transform_bounds
+
+    from terralod.io.raster import (
+        MAX_REPROJECT_GROWTH,
+        MAX_UTM_SPAN_DEG,
+        _crs_name,
+        error_line,
+        ground_spacing_m,
+        utm_crs,
+    )
+
+    h, w = shape
+    west, south, east, north = t.c, t.f + h * t.e, t.c + w * t.a, t.f
+    if crs.is_geographic and (
+        max(abs(south), abs(north)) > 90.0 + abs(t.e) or max(abs(west), abs(east)) > 540.0
+    ):
+        raise InputError(f"bounds {west:.6g}, {south:.6g}, {east:.6g}, {north:.6g} lie outside the globe for the "
+                         f"geographic CRS {_crs_name(crs)}; the CRS is probably wrong", source)  # fmt: skip
+    try:
+        lon_w, _, lon_e, _ = transform_bounds(crs, "EPSG:4326", west, south, east, north, densify_pts=21)
+        (clon,), (clat,) = warp_points(crs, "EPSG:4326", [t.c + t.a * w / 2], [t.f + t.e * h / 2])
+        dx_m, dy_m = ground_spacing_m(t, crs, (h, w))
+    except Exception as exc:  # noqa: BLE001 - PROJ's failures, said in one line
+        raise InputError(f"cannot locate the raster on the globe ({error_line(exc)})", source) from None
+    span = lon_e - lon_w if lon_e >= lon_w else lon_e - lon_w + 360.0
+    dst_crs, label = utm_crs(clon, clat)
+    wide = ""
+    if label.startswith("UTM") and span > MAX_UTM_SPAN_DEG:
+        lon0 = (clon + 180.0) % 360.0 - 180.0
+        dst_crs = CRS.from_proj4(f"+proj=tmerc +lat_0=0 +lon_0={lon0:.6f} +k=1 +x_0=0 +y_0=0 +datum=WGS84 "
+                                 "+units=m +no_defs")  # fmt: skip
+        label = f"Transverse Mercator on {lon0:.6f} E"
+        wide = (
+            f"; {span:.1f} degrees of longitude are too wide for one UTM zone (at most {MAX_UTM_SPAN_DEG:g})"
+        )
+    res = round(min(dx_m, dy_m), 3)
+    if not (res > 0 and math.isfinite(res)):
+        raise InputError(f"ground spacing at the centre is {res} m; check the georeferencing", source)
+    bx0, by0, bx1, by1 = transform_bounds(crs, dst_crs, west, south, east, north, densify_pts=51)
+    bx0, by1 = math.floor(bx0 / res) * res, math.ceil(by1 / res) * res
+    width = max(2, math.ceil((bx1 - bx0) / res - 1e-9))
+    height = max(2, math.ceil((by1 - by0) / res - 1e-9))
+    growth = (width * height) / float(w * h)
+    if growth > MAX_REPROJECT_GROWTH:
+        raise InputError(
+            f"reprojecting to {label} at the {res:g} m ground spacing of its centre would turn {w}x{h} samples "
+            f"into {width}x{height} ({growth:,.0f}x, beyond {MAX_REPROJECT_GROWTH:g}x): its pixels are "
+            f"{dx_m:.1f} x {dy_m:.1f} m on the ground (near a pole?); reproject it first with a suitable "
+            "CRS and resolution (gdalwarp -t_srs ... -tr ...)",
+            source,
+        )
+    dst_t = Affine(res, 0.0, bx0, 0.0, -res, by1)
+    # the footprint's area in the target CRS (its edges densified), for the margin fraction
+    f = np.linspace(0.0, 1.0, 257)[:-1]
+    ex = np.concatenate(
+        [west + f * (east - west), np.full(f.size, east), east - f * (east - west), np.full(f.size, west)]
+    )
+    ey = np.concatenate(
+        [
+            np.full(f.size, north),
+            north - f * (north - south),
+            np.full(f.size, south),
+            south + f * (north - south),
+        ]
+    )
+    try:
+        px, py = (np.asarray(v, np.float64) for v in warp_points(crs, dst_crs, ex, ey))
+        area = 0.5 * abs(float(np.dot(px, np.roll(py, -1)) - np.dot(py, np.roll(px, -1))))
+        margin = min(max(1.0 - area / (width * height * res * res), 0.0), 1.0)
+    except Exception:  # noqa: BLE001 - a statistic only
+        margin = 0.0
+    note = (
+        f"reprojected from {_crs_name(crs)} to {_crs_name(dst_crs)} ({label}) at {res:g} m, bilinear "
+        f"(ground spacing at the centre {dx_m:.1f} x {dy_m:.1f} m), block by block out of core{wide}"
+    )
+    return dst_crs, dst_t, width, height, note, margin
+
+
+def _count_valid(region: Any) -> int:
+    """Valid samples of the region's grid, read in strips of rows (each cell once, whichever files
+    cover it)."""
+    from terralod.io.region import SCAN_STRIP_SAMPLES, RegionReader
+
+    reader = RegionReader(region, cache_blocks=0)
+    h, w = region.shape
+    step = max(1, SCAN_STRIP_SAMPLES // w)
+    try:
+        return sum(
+            int(np.count_nonzero(reader.read_raw(a, min(a + step, h), 0, w)[1])) for a in range(0, h, step)
+        )
+    finally:
+        reader.close()
+
+
+def _file_crs(name: str) -> Any:
+    """A file's own CRS (None when it has none or cannot be opened: the reader reports that)."""
+    import rasterio
+
+    try:
+        with rasterio.open(name) as ds:
+            return ds.crs
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def _identity(path: str) -> tuple[int, int, int, int]:
+    st = os.stat(path)
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+def needs_warp(inputs: str | Path | Sequence[str | Path], crs: Any = None) -> bool:
+    """True when the inputs (files, globs, folders, as :func:`terralod.io.region.resolve_region` takes
+    them) are in a geographic or Mercator CRS (``crs``: ``--crs``, assigned or overriding): they build
+    through :class:`WarpedSource`. False when the first file cannot be placed (its reader says why)."""
+    from terralod.io.raster import _is_mercator
+    from terralod.io.region import expand_inputs
+
+    try:
+        name = expand_inputs([inputs] if isinstance(inputs, str | Path) else list(inputs))[0][0]
+        own = to_crs(crs, name) if crs is not None else _file_crs(name)
+    except Exception:  # noqa: BLE001 - the reader reports it
+        return False
+    return own is not None and (bool(own.is_geographic) or _is_mercator(own))
+
+
+def open_source(paths: str | Path | Sequence[str | Path], **options: Any) -> RasterSource | WarpedSource:
+    """The window source of one raster or a mosaic: a :class:`WarpedSource` for a geographic or Mercator
+    one, else a :class:`RasterSource` (see :class:`RasterSource` for ``options``)."""
+    if needs_warp(paths, options.get("crs")):
+        return WarpedSource(paths, vertical_scale=options.get("vertical_scale"),
+                            vertical_offset=options.get("vertical_offset"), crs=options.get("crs"))  # fmt: skip
     return RasterSource(paths, **options)
 
 
@@ -374,8 +837,9 @@ def _metric_frame(
         return Affine(float(dx), 0.0, 0.0, 0.0, -float(dy), 0.0), None, tuple(notes), False, False
     if crs.is_geographic or _is_mercator(crs):
         raise InputError(
-            f"is in {'a geographic' if crs.is_geographic else 'a Mercator'} CRS; out-of-core builds read "
-            "metric grids only: reproject it first (gdalwarp -t_srs EPSG:<UTM zone>), or build it in memory",
+            f"is in {'a geographic' if crs.is_geographic else 'a Mercator'} CRS; RasterSource reads metric grids "
+            "only: open it with open_source (a WarpedSource, warped block by block), or reproject it first "
+            "(gdalwarp -t_srs EPSG:<UTM zone>)",
             src,
         )
     flip_rows, flip_cols = t.e > 0, t.a < 0

@@ -309,10 +309,16 @@ class _FrameMeta:
         self.nodata_fraction = plan.n_invalid / plan.n_samples
         self.fill_method = src.fill_method
         if plan.n_invalid and not isinstance(src, ArraySource):
-            self.fill_method = (
-                f"{plan.n_invalid} nodata cells ({100.0 * plan.n_invalid / plan.n_samples:.2f} %) filled per "
-                f"{FILL_BLOCK}-sample block (halo {FILL_HALO}) with the nearest valid sample, then relaxed"
+            how = src.fill_note or (
+                f"filled per {FILL_BLOCK}-sample block (halo {FILL_HALO}) with the nearest valid sample, then relaxed"
             )
+            self.fill_method = (
+                f"{plan.n_invalid} nodata cells ({100.0 * plan.n_invalid / plan.n_samples:.2f} %) {how}"
+            )
+        # a resampled source: the samples every error is also measured against, and its own statistics
+        self.original_grid = src.original_grid
+        self.source_nodata_fraction = src.source_nodata_fraction
+        self.margin_fraction = src.margin_fraction
         self._digest = plan.digest
         # a mesher's ``build_meta(z, valid, pyramid)`` gets no arrays here (the DEM is never held whole),
         # or, for a mesher with ``ladder_window`` (adaptive), the decimated read that window asks for
@@ -497,6 +503,11 @@ def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_windo
     zq = (z0 + qv[:, 2].astype(np.int64)) * quant.z_step_m
     rep = _measure_streamed(src, u, v, zq, tris, r0, c0, r1, c1, s, dx, dy)
     max_v, sumsq, n, hd = rep
+    grid = src.original_grid
+    if grid is not None:  # a resampled source: its own samples too (terralod.pyramid.original)
+        local = np.stack([u * dx, v * dy, zq], axis=1)
+        o_max, sumsq, n = _original_streamed(src, grid, local, tris, r0, c0, r1, c1)
+        hd, max_v = max(hd, o_max), max(max_v, o_max)
     err = max([hd] + [e for e, _ in child_errors])
     verr = max([max_v] + [x for _, x in child_errors])
     return EncodedTile(
@@ -505,6 +516,43 @@ def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_windo
         n_samples=int(n), z_min_m=float(zq.min()), z_max_m=float(zq.max()), n_vertices=int(qv.shape[0]),
         n_triangles=int(tris.shape[0]), z0_index=z0, vertices=encode_vertices(qv), triangles=encode_triangles(tris),
     )  # fmt: skip
+
+
+def _original_streamed(src, grid, local, tris, r0, c0, r1, c1) -> tuple[float, float, int]:
+    """(max vertical gap, sum of squares, samples) of a tile mesh (``local``: metres east and south of the
+    tile's north-west sample) against the original samples of its footprint, rows [r0, r1] x cols [c0, c1]
+    of the grid, taken in strips of grid rows (``MEASURE_STRIP_SAMPLES`` original samples or so each: memory
+    independent of the tile's size); a sample on a strip's south edge is left to the next strip."""
+    from terralod.pyramid.original import original_error, tile_samples
+
+    dx, dy = src.spacing_m
+    t = src.transform
+    origin = (float(t.c + 0.5 * dx), float(t.f - 0.5 * dy))
+    gt = grid.transform
+    per_row = max(
+        1.0, (c1 - c0 + 1) * dx / abs(gt.a * _metres_per_unit(grid))
+    )  # original samples a row, about
+    step = max(1, int(MEASURE_STRIP_SAMPLES / per_row * abs(gt.e * _metres_per_unit(grid)) / dy))
+    worst = sumsq = 0.0
+    n = 0
+    for a in range(r0, r1, step):
+        b = min(a + step, r1)
+        x, y, z = tile_samples(grid, str(src.crs), origin, (dx, dy), (a, c0), (b, c1))
+        if b < r1:
+            keep = y < (b - a) * dy
+            x, y, z = x[keep], y[keep], z[keep]
+        rep = original_error(local, tris, x, y + (a - r0) * dy, z)
+        worst = max(worst, rep.max_vertical_m)
+        sumsq += rep.sumsq_m2
+        n += rep.n_samples
+    return worst, sumsq, n
+
+
+def _metres_per_unit(grid) -> float:
+    """Rough ground metres of one unit of ``grid``'s CRS (a degree, or a metre), for strip sizes only."""
+    from rasterio.crs import CRS
+
+    return 111_000.0 if CRS.from_user_input(grid.crs).is_geographic else 1.0
 
 
 def _measure_streamed(src, u, v, zq, tris, r0, c0, r1, c1, margin, dx, dy):
