@@ -199,7 +199,12 @@ class _BlockFilled(WindowSource):
 
     def read(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
         values, ok = self.read_raw(r0, c0, r1, c1)
-        z = values.astype(np.float32, copy=False)
+        return self._filled(values.astype(np.float32, copy=False), ok, r0, c0, r1, c1)
+
+    def _filled(
+        self, z: np.ndarray, ok: np.ndarray, r0: int, c0: int, r1: int, c1: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The window's float32 heights ``z`` with its invalid cells set from the filled blocks."""
         if ok.all():
             return z, ok
         b = FILL_BLOCK
@@ -579,13 +584,20 @@ class WarpedSource(_BlockFilled):
         self._state.original.reader.close()
 
     # -- reading -------------------------------------------------------------------------------------------
+    def read(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        z, ok = self._assembled(r0, c0, r1, c1, np.float32)  # float32 at once: no float64 copy of the window
+        return self._filled(z, ok, r0, c0, r1, c1)
+
     def read_raw(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
         """Warped elevations (float64 metres, NaN where invalid) and the valid mask of the window,
         assembled from the warped blocks."""
+        return self._assembled(r0, c0, r1, c1, np.float64)
+
+    def _assembled(self, r0: int, c0: int, r1: int, c1: int, dtype: Any) -> tuple[np.ndarray, np.ndarray]:
         self._check_window(r0, c0, r1, c1)
         b = WARP_ROWS
         edges = self._bands
-        z = np.empty((r1 - r0, c1 - c0), np.float64)
+        z = np.empty((r1 - r0, c1 - c0), dtype)
         ok = np.empty((r1 - r0, c1 - c0), bool)
         for br in range(r0 // b, (r1 - 1) // b + 1):
             for bc in range(len(edges) - 1):

@@ -235,7 +235,7 @@ def scan_source(
             z, ok = src.read(row0, 0, r1 + 1, w)
             z = np.ascontiguousarray(z, dtype=np.float32)
             own = z.shape[0] if r1 == h - 1 else strip  # rows this strip owns (the last row is the next's)
-            hz.update(z[:own].tobytes())
+            hz.update(np.ascontiguousarray(z[:own]))  # the bytes, without a copy
             flat = np.concatenate([carry, ok[:own].ravel()])
             cut = flat.size - flat.size % 8
             bits.write(np.packbits(flat[:cut]).tobytes())
