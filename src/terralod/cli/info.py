@@ -109,12 +109,14 @@ def info(path: str, as_json: bool, **read: Any) -> None:
         if as_json:
             click.echo(json.dumps(d, indent=2, default=str))
         elif d.get("method") == TIN_METHOD:
-            console.print(f"source {d.get('source')}, method tin (Ai et al., 2019), CRS {d['crs_name']}")
+            console.print(f"source {d.get('source')}, method tin (Ai et al., 2019)")
+            console.print(f"CRS {d['crs_name']}")
             if "bounds_m" in d:
                 print_extent(d)
             print_tin_summary(d)
         else:
-            console.print(f"source {d['source']}, method {d['method']}, CRS {d['crs_name']}")
+            console.print(f"source {d['source']}, method {d['method']}")
+            console.print(f"CRS {d['crs_name']}")
             print_extent(d)
             print_nodata(d)
             print_store_summary(d)
