@@ -1,6 +1,7 @@
-"""A region in: ``terralod export FOLDER --format quantized-mesh`` on mosaics of 16 and 64 SRTM3 tiles.
+"""A region in: ``terralod export FOLDER --format quantized-mesh`` and ``terralod build FOLDER -o
+region.terra`` on mosaics of 16 and 64 SRTM3 tiles.
 
-    python benchmarks/region.py [--tiles 16,64] [--source srtm3_N41E001]
+    python benchmarks/region.py [--tiles 16,64] [--source srtm3_N41E001] [--stages export,build]
 
 Each mosaic is the real SRTM3 tile mirror-tiled (``_common.mirror_tile``: reflections sharing their edge
 rows, C0-continuous) to (1200 n + 1)² samples and cut back into n x n separate 1° GeoTIFFs in EPSG:4326
@@ -12,6 +13,11 @@ Rows: samples of the region, tiles written, wall and CPU (user + sys) of the ``t
 peak RSS (GNU time's maximum resident set size of the child; psutil's sum over the process tree when GNU
 time is absent), tiles per second, µs of wall per sample, bytes written. Writes
 benchmarks/results/region.json and region.md.
+
+The ``build`` stage: ``terralod build FOLDER -o region.terra`` (out of core: the region warped block by
+block to the UTM zone of its centre, every tile also measured against the original samples), wall, CPU
+and the peak RSS summed over the process tree (psutil, sampled every 50 ms), tiles in the store, µs of
+wall per original sample. Writes benchmarks/results/region_build.json and region_build.md.
 """
 
 from __future__ import annotations
@@ -103,12 +109,88 @@ def run_export(folder: Path, out: Path) -> dict[str, float]:
             "stdout": (proc.stdout.read() if proc.stdout else "").strip()}  # fmt: skip
 
 
+def run_tree(cmd: list[str]) -> dict[str, float | str]:
+    """``cmd`` in a fresh process: wall, CPU of the process tree (user + sys of the children waited for),
+    peak RSS summed over the process tree (psutil, sampled every 50 ms)."""
+    import psutil
+
+    t0 = time.perf_counter()
+    before = os.times()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    root, peak = psutil.Process(proc.pid), 0
+    while proc.poll() is None:
+        try:
+            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
+            peak = max(peak, rss)
+        except psutil.Error:
+            pass
+        time.sleep(0.05)
+    out, err = proc.communicate()
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(err[-2000:])
+    after = os.times()
+    cpu = (after.children_user - before.children_user) + (after.children_system - before.children_system)
+    return {"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak / 2**20, "stdout": out.strip()}
+
+
+def run_build(folder: Path, out: Path) -> dict[str, float | str]:
+    """``terralod build FOLDER -o OUT`` (out of core) in a fresh process."""
+    return run_tree([sys.executable, "-m", "terralod", "build", str(folder), "-o", str(out)])
+
+
+def build_stage(src: Path, counts: list[int]) -> None:
+    """The build rows (see the module docstring)."""
+    import sqlite3
+
+    rows, results = [], []
+    for count in counts:
+        n = int(round(count**0.5))
+        with tempfile.TemporaryDirectory(prefix="terralod-region-build-") as d:
+            write_mosaic(src, n, Path(d) / "dem")
+            samples = (1200 * n + 1) ** 2
+            out = Path(d) / "region.terra"
+            r = run_build(Path(d) / "dem", out)
+            con = sqlite3.connect(out)
+            tiles = con.execute("SELECT COUNT(*) FROM tiles").fetchone()[0]
+            w, h = (
+                int(con.execute("SELECT value FROM meta WHERE key = ?", (k,)).fetchone()[0])
+                for k in ("width", "height")
+            )
+            con.close()
+            nbytes = out.stat().st_size
+        wall = float(r["wall_s"])
+        res = {"srtm_tiles": count, "samples": samples, "grid": [w, h], "tiles": tiles, "bytes": nbytes,
+               "us_per_sample": wall / samples * 1e6, **{k: v for k, v in r.items() if k != "stdout"},
+               "summary": r["stdout"]}  # fmt: skip
+        results.append(res)
+        rows.append([f"{count} SRTM3 tiles ({1200 * n + 1}²)", samples, f"{w} x {h}", tiles, round(wall, 1),
+                     round(float(r["cpu_s"]), 1), round(float(r["peak_rss_mib"]), 1),
+                     round(res["us_per_sample"], 3), f"{nbytes / 1e6:.1f} MB"])  # fmt: skip
+        print(rows[-1], flush=True)
+    table = md_table(["region", "original samples", "UTM grid", "tiles", "wall s", "CPU s", "peak RSS MiB",
+                      "µs/sample", "store"], rows)  # fmt: skip
+    note = (
+        "\n`terralod build FOLDER -o region.terra` (a fresh process, start-up included; out of core: warped "
+        "block by block to UTM, every tile also measured against the original samples) on SRTM3 "
+        f"{src.stem} mirror-tiled into separate 1° GeoTIFFs (EPSG:4326); peak RSS summed over the process "
+        "tree. Reproduce: `python benchmarks/region.py --stages build`.\n"
+    )
+    write_results("region_build", {"source": src.stem, "runs": results}, table + note)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tiles", default="16,64", help="mosaic sizes in SRTM tiles (squares: 4, 16, 64, ...)")
     ap.add_argument("--source", default="srtm3_N41E001", help="the real SRTM3 tile mirrored")
+    ap.add_argument("--stages", default="export,build", help="export, build or both")
     args = ap.parse_args()
     src = SHARED / "dem" / f"{args.source}.tif"
+    stages = args.stages.split(",")
+    if "build" in stages:
+        build_stage(src, [int(v) for v in args.tiles.split(",")])
+    if "export" not in stages:
+        return
     rows, results = [], []
     for count in [int(v) for v in args.tiles.split(",")]:
         n = int(round(count**0.5))

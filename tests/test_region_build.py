@@ -190,3 +190,24 @@ def test_cli_builds_a_folder_of_geographic_tiles(region, tmp_path: Path) -> None
     assert "original samples" in res.output
     with TileStore.open(out) as s:
         assert s.meta["errors_measured_against"]["samples"] == "original"
+
+
+def test_large_tiles_measure_original_samples_in_strips(
+    region, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Tiles over MEASURE_STRIP_SAMPLES take their original samples in strips of rows: the same geometry
+    and sample counts as one window of the whole footprint, errors up to rounding (each strip's samples
+    are placed from its own north edge)."""
+    import terralod.pyramid.distributed as dist
+
+    merged, tiles = region
+    whole = tmp_path / "whole.terra"
+    build_store_windowed(open_source(tiles), whole, **BUILD)
+    monkeypatch.setattr(dist, "MEASURE_STRIP_SAMPLES", 40)
+    strips = tmp_path / "strips.terra"
+    build_store_windowed(open_source(tiles), strips, **BUILD)
+    a, b = _rows(whole), _rows(strips)
+    # code, sample count, heights, geometry exactly; the five error columns to rounding
+    assert [r[:3] + r[8:-1] for r in a] == [r[:3] + r[8:-1] for r in b]
+    np.testing.assert_allclose([r[3:8] for r in a], [r[3:8] for r in b], rtol=0, atol=1e-6)
+    check_against_original(merged, strips)

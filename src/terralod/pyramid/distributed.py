@@ -73,6 +73,7 @@ column, where that row falls between two decimated rows, sits on the decimated l
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import itertools
 import logging
@@ -100,6 +101,8 @@ from terralod.store import (
     EncodedTile,
     LevelQuantisation,
     TileStore,
+    decode_triangles,
+    decode_vertices,
     encode_triangles,
     encode_vertices,
     install_store,
@@ -441,7 +444,49 @@ def build_unit(
     cb = min(max(c for _, c in rs) + span + pad, w - 1)
     hf = src.window_heightfield(ra, ca, rb + 1, cb + 1)
     wp = WindowPyramid(w, h, tile_size, ra, ca)
-    return [builder.build_tile(hf, wp, c, quant, mesh_fn, child_errors[c]) for c in codes]
+    grid = hf.original_grid
+    if grid is None or (span + 1) ** 2 <= MEASURE_STRIP_SAMPLES:
+        return [builder.build_tile(hf, wp, c, quant, mesh_fn, child_errors[c]) for c in codes]
+    # a large tile of a resampled source: its original samples measured in strips (memory independent of
+    # the tile's size), not in one window of its whole footprint
+    hf = dataclasses.replace(hf, original_grid=None)
+    out = []
+    for c in codes:
+        enc = builder.measure_tile(hf, wp, c, quant, mesh_fn)
+        out.append(
+            builder.with_child_errors(_with_original(src, grid, pyramid, c, quant, enc), child_errors[c])
+        )
+    return out
+
+
+def _with_original(
+    src: WindowSource,
+    grid: Any,
+    pyramid: TilePyramid,
+    code: TileCode,
+    quant: LevelQuantisation,
+    enc: EncodedTile,
+) -> EncodedTile:
+    """``enc`` (measured on the grid only) with its errors also measured against the original samples of
+    its footprint, streamed (:func:`_original_streamed`): the numbers of
+    :func:`~terralod.pyramid.builder.measure_tile` (max of both, RMS and count over the original samples)."""
+    if enc.n_vertices == 0:
+        return enc
+    q = decode_vertices(enc.vertices, enc.n_vertices).astype(np.float64)
+    tris = decode_triangles(enc.triangles, enc.n_triangles).astype(np.int64)
+    dx, dy = src.spacing_m
+    inv = math.ldexp(1.0, -quant.xy_frac_bits)
+    local = np.stack(
+        [q[:, 0] * inv * dx, q[:, 1] * inv * dy, (enc.z0_index + q[:, 2]) * quant.z_step_m], axis=1
+    )
+    r0, c0 = pyramid.origin_rc(code)
+    span = pyramid.span(code[0])
+    r1, c1 = min(r0 + span, src.height - 1), min(c0 + span, src.width - 1)
+    worst, sumsq, n = _original_streamed(src, grid, local, tris, r0, c0, r1, c1)
+    err, verr = max(enc.measured_error_m, worst), max(enc.measured_vertical_error_m, worst)
+    return dataclasses.replace(enc, error_m=err, vertical_error_m=verr, measured_error_m=err,
+                               measured_vertical_error_m=verr, rms_error_m=math.sqrt(sumsq / n) if n else 0.0,
+                               n_samples=n)  # fmt: skip
 
 
 def _decimated_window(src: WindowSource, r0: int, c0: int, r1: int, c1: int, f: int, strip_samples: int):
