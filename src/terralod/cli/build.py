@@ -85,12 +85,14 @@ def build(
         check_raster_size(path)
     if dask_address:
         require_extra("build --dask", "dask")
-    if method == "tin" or Path(input_path).suffix.lower() in (".las", ".laz"):
-        if len(input_paths) > 1:
-            raise click.BadParameter("detail-increment TIN builds take one input", param_hint="INPUT")
+    survey = _las_survey(input_paths)
+    if method == "tin" or survey:
+        if len(input_paths) > 1 and not survey:
+            raise click.BadParameter("a TIN from a DEM takes one DEM (a survey: several LAS/LAZ files)",
+                                     param_hint="INPUT")  # fmt: skip
         if workers is not None and workers < 1:
             raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
-        build_tin(input_path, output, sub_blocks, base_fraction, overwrite, read, workers=workers,
+        build_tin(survey or input_path, output, sub_blocks, base_fraction, overwrite, read, workers=workers,
                   dask_address=dask_address, dask_workers=dask_workers)  # fmt: skip
         return
     if tile_size is None:
@@ -149,7 +151,23 @@ def windowed_build(input_paths: tuple[str, ...], dask_address: str | None, epoch
     return epoch is None and is_large_raster(input_paths[0])
 
 
-def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: float, overwrite: bool,
+def _las_survey(input_paths: tuple[str, ...]) -> list[Path]:
+    """The LAS/LAZ files of the inputs when they are a point-cloud survey (files, folders or quoted globs of
+    LAS/LAZ tiles), else an empty list."""
+    from terralod.tin.pointcloud import LAS_SUFFIXES, las_inputs
+
+    def is_las(text: str) -> bool:
+        p = Path(text)
+        if p.is_dir():
+            return any(q.suffix.lower() in LAS_SUFFIXES for q in p.iterdir())
+        return p.suffix.lower() in LAS_SUFFIXES
+
+    if not all(is_las(t) for t in input_paths):
+        return []
+    return las_inputs(input_paths)
+
+
+def build_tin(input_path: str | list[Path], output: str, sub_blocks: str, base_fraction: float, overwrite: bool,
               read: dict[str, Any], *, workers: int | None = None, dask_address: str | None = None,
               dask_workers: int | None = None) -> None:  # fmt: skip
     """``build --method tin``: LAS/LAZ points (or a DEM's samples) → detail-increment TIN store; sub-blocks
@@ -180,7 +198,7 @@ def build_tin(input_path: str, output: str, sub_blocks: str, base_fraction: floa
     t0 = time.perf_counter()
     stages: dict[str, float] = {}
     try:
-        if Path(input_path).suffix.lower() in (".las", ".laz"):
+        if isinstance(input_path, list):
             model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction,
                                                   workers=workers, executor=executor, timings=stages,
                                                   crs=read.get("crs"))  # fmt: skip

@@ -293,7 +293,7 @@ class DetailIncrementModel:
     @classmethod
     def from_las(
         cls,
-        path: str | os.PathLike[str],
+        path: str | os.PathLike[str] | Sequence[str | os.PathLike[str]],
         *,
         sub_blocks: int | str = 4,
         base_fraction: float = 0.2,
@@ -305,15 +305,18 @@ class DetailIncrementModel:
         executor: Any = None,
         crs: Any = None,
     ) -> DetailIncrementModel:
-        """:meth:`from_points` of a LAS/LAZ file's points (ground only when classified, metres).
+        """:meth:`from_points` of a LAS/LAZ survey's points (ground only when classified, metres): one file
+        or several tiles of one survey (``path`` a sequence), read as one cloud in a canonical order, so
+        tiles cut from one cloud build the same TIN as the merged file.
 
-        See :func:`terralod.tin.pointcloud.read_las` for ``ground_only``, ``units`` and ``crs``, :meth:`from_points`
-        for ``workers``, ``timings`` (plus "read") and ``executor``.
+        See :func:`terralod.tin.pointcloud.read_las_survey` for ``ground_only``, ``units`` and ``crs``,
+        :meth:`from_points` for ``workers``, ``timings`` (plus "read") and ``executor``.
         """
-        from terralod.tin.pointcloud import read_las
+        from terralod.tin.pointcloud import read_las_survey
 
         clock = _Clock(timings)
-        pc = read_las(path, ground_only=ground_only, units=units, crs=crs)
+        paths = [path] if isinstance(path, str | os.PathLike) else list(path)
+        pc = read_las_survey(paths, ground_only=ground_only, units=units, crs=crs)
         clock("read")
         return cls.from_points(
             pc.xyz_m,

@@ -27,6 +27,7 @@ import math
 import os
 import re
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,7 +36,8 @@ import numpy as np
 
 from terralod.errors import InputError, InputNotFoundError
 
-__all__ = ["PointCloud", "check_points", "read_las", "thin_duplicates", "unit_factor_from_wkt"]
+__all__ = ["PointCloud", "check_points", "las_inputs", "read_las", "read_las_survey", "thin_duplicates",
+           "unit_factor_from_wkt"]  # fmt: skip
 
 log = logging.getLogger(__name__)
 
@@ -694,3 +696,95 @@ def _las_frame(
         )
         notes.append(f"z scaled by {fv:.10g} to metres ({why})")
     return crs_text(metric), fh, fv, tuple(notes), text
+
+
+#: Suffixes of the point-cloud files a folder or glob of a survey contributes.
+LAS_SUFFIXES = (".las", ".laz")
+
+
+def las_inputs(inputs: Sequence[str | os.PathLike[str]]) -> list[Path]:
+    """The LAS/LAZ files of a survey given as files, quoted globs or folders, in name order within each
+    folder or glob (a folder: its ``*.las``/``*.laz``; COPC files are LAZ and read as such)."""
+    import glob
+
+    out: list[Path] = []
+    for item in inputs:
+        text = str(item)
+        p = Path(text)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.suffix.lower() in LAS_SUFFIXES and q.is_file())
+            if not found:
+                raise InputError("holds no .las or .laz file", text)
+            out += found
+        elif any(ch in text for ch in "*?[") and not p.exists():
+            found = sorted(Path(q) for q in glob.glob(text) if Path(q).suffix.lower() in LAS_SUFFIXES)
+            if not found:
+                raise InputNotFoundError("matches no .las or .laz file", text)
+            out += found
+        else:
+            out.append(p)
+    seen: set[Path] = set()
+    unique = []
+    for q in out:  # a file named twice (a folder and one of its files) counts once
+        r = q.resolve()
+        if r not in seen:
+            seen.add(r)
+            unique.append(q)
+    return unique
+
+
+def read_las_survey(
+    paths: Sequence[str | os.PathLike[str]],
+    *,
+    ground_only: bool | None = None,
+    units: str | float | None = None,
+    crs: Any = None,
+) -> PointCloud:
+    """The points of a survey delivered as several LAS/LAZ tiles, as one cloud in metres.
+
+    Each file is read by :func:`read_las` (the same classes, units and CRS checks as one file); every file
+    must place its points in the same CRS (the metre frame a build uses): a file that disagrees is named in
+    one line. When any file is classified, only ground points (class 2) are kept from every file (a tile
+    without ground points contributes none, and the notes say which). Points are returned in one canonical
+    order (by x, then y, then z), so the cloud — and the TIN built from it — does not depend on how the
+    survey was cut into files or listed.
+    """
+    from terralod.io.georef import to_crs
+
+    files = [Path(p) for p in paths]
+    if not files:
+        raise InputError("no point-cloud files given")
+    clouds = [read_las(f, ground_only=ground_only, units=units, crs=crs) for f in files]
+    first = clouds[0]
+    for f, pc in zip(files[1:], clouds[1:], strict=True):
+        same = (pc.crs is None) == (first.crs is None) and (
+            pc.crs is None or to_crs(pc.crs, str(f)) == to_crs(first.crs, str(files[0]))
+        )
+        if not same:
+            raise InputError(
+                f"its CRS ({_crs_label(pc.crs)}) differs from {files[0].name}'s ({_crs_label(first.crs)}); a "
+                "survey's tiles must share one CRS (give --crs to override every file's)",
+                str(f),
+            )
+    classified = any(pc.classified for pc in clouds)
+    notes = list(first.notes)
+    parts = []
+    for f, pc in zip(files, clouds, strict=True):
+        if classified and not pc.classified and ground_only is not False:
+            notes.append(f"{f.name}: no ground (class 2) points while other tiles have some: none taken")
+            continue
+        parts.append(pc.xyz_m)
+    xyz = np.concatenate(parts) if parts else np.zeros((0, 3))
+    order = np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0]))
+    notes.append(f"{len(files)} LAS/LAZ files read as one survey ({xyz.shape[0]:,} points)")
+    source = str(files[0]) if len(files) == 1 else f"{len(files)} LAS/LAZ files ({files[0].name}, ...)"
+    return PointCloud(np.ascontiguousarray(xyz[order]), first.crs, source,
+                      sum(pc.n_read for pc in clouds), classified, tuple(notes))  # fmt: skip
+
+
+def _crs_label(crs: str | None) -> str:
+    if crs is None:
+        return "none"
+    from terralod.io.georef import describe_crs
+
+    return describe_crs(crs)
