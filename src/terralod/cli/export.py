@@ -22,6 +22,14 @@ water mask, never in a declared error). Every file is read once before anything 
 one is named, exit 2) and the free disk is checked against an estimate; a WGS 84 longitude/latitude region
 is then read a window at a time (memory independent of its size). ``--bbox`` and ``--min-zoom`` /
 ``--max-zoom`` export a part: the same tiles as the whole export, fewer of them.
+
+3D Tiles geometry (``--glb-geometry``): ``quantized`` (default) writes KHR_mesh_quantization glbs
+(UNSIGNED_SHORT positions on a power-of-two grid folded into the node's scale and translation, BYTE
+normals), ``meshopt`` also compresses them with EXT_meshopt_compression (needs node and the npm
+``meshoptimizer`` package, as ``npm ci`` installs it), ``float`` writes float32 as before. The shift the
+quantisation may add (√3/2 of a grid step) is counted in every tile's declared error. ``--max-error-m E``
+stops the tree at a finest declared error: the tiles whose parent already declares at most E are left out
+(3D Tiles only).
 """
 
 from __future__ import annotations
@@ -92,16 +100,35 @@ from terralod.output import Lock, Output, refuse_inputs, work_path
               help="quantized-mesh: first level written.")  # fmt: skip
 @click.option("--max-zoom", type=click.IntRange(0, 30), default=None,
               help="quantized-mesh: last level written (default: the finest the data holds).")  # fmt: skip
+@click.option(
+    "--glb-geometry",
+    type=click.Choice(["float", "quantized", "meshopt"]),
+    default=None,
+    help="3dtiles: glb positions and normals as quantized (the default: KHR_mesh_quantization, int16 "
+    "positions, int8 normals; the quantisation counted in each tile's error), meshopt (also "
+    "EXT_meshopt_compression, through node and the npm meshoptimizer package) or float (float32).",
+)
+@click.option(
+    "--max-error-m",
+    type=click.FloatRange(min=0.0),
+    default=None,
+    metavar="E",
+    help="3dtiles: stop at a finest declared error of E metres: leave out the tiles whose parent already "
+    "declares at most E (default: down to the finest level the store holds).",
+)
 def export(
     inputs: tuple[str, ...], fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool,
     gzip_tiles: bool, normals: bool, resume: bool, update_output: bool, bbox: str | None, min_zoom: int,
-    max_zoom: int | None,
+    max_zoom: int | None, glb_geometry: str | None, max_error_m: float | None,
 ) -> None:  # fmt: skip
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh, or DEMs (a region: files, a quoted glob, a
     folder, a VRT, .hgt/.hgt.zip; where they overlap the last one listed wins) as quantized-mesh."""
     require_extra("export", "web")
     refuse_inputs(output, [i for i in inputs if Path(i).exists()])  # even with --overwrite
     part = _part(bbox, min_zoom, max_zoom)
+    if fmt != "3dtiles" and (glb_geometry is not None or max_error_m is not None):
+        raise click.BadParameter("--glb-geometry and --max-error-m are for 3dtiles", param_hint="--format")
+    tiles = {"geometry": glb_geometry or "quantized", "max_error_m": max_error_m}
     if len(inputs) > 1 or not _is_one_file(inputs[0]):
         if fmt != "quantized-mesh":
             raise click.BadParameter("several inputs, a glob or a folder make a region of DEMs: quantized-mesh "
@@ -142,7 +169,7 @@ def export(
         _output(output, store, opts).check()  # refusals first: one line, before any progress output
         Geodesy(terrain.crs, store)
         check_exportable(terrain, epoch)
-        _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals, part)
+        _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals, part, tiles)
 
 
 def _part(bbox: str | None, min_zoom: int, max_zoom: int | None) -> Any:
@@ -237,7 +264,7 @@ def _lonlat(crs: Any) -> bool:
 
 def _run(
     terrain, fmt: str, output: str, metric: str, epoch: str | None, opts: dict[str, bool],
-    gzip_tiles: bool = False, normals: bool = False, part: Any = None,
+    gzip_tiles: bool = False, normals: bool = False, part: Any = None, tiles: dict[str, Any] | None = None,
 ) -> None:  # fmt: skip
     from terralod.export import export_3dtiles, export_quantized_mesh
 
@@ -252,7 +279,9 @@ def _run(
             prog.update(tasks[0], completed=done, total=total)
 
         if fmt == "3dtiles":
-            rep = export_3dtiles(terrain, output, metric=metric, epoch=epoch, progress=cb, **opts)
+            rep = export_3dtiles(
+                terrain, output, metric=metric, epoch=epoch, progress=cb, **(tiles or {}), **opts
+            )
         else:
             rep = export_quantized_mesh(terrain, output, epoch=epoch, gzip_tiles=gzip_tiles, normals=normals,
                                         part=part, progress=cb, **opts)  # fmt: skip

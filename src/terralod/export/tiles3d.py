@@ -23,8 +23,31 @@ sampled through pyproj, the skirt depth below ``z_min``).
 Each glb (written with pygltflib) holds one triangle mesh: positions relative to the tile centre (the
 centre's ECEF is the tile's ``transform`` composed with its ancestors', as 3D Tiles composes them), converted exactly from the store's CRS with pyproj; heights are
 the DEM's as read, used as ellipsoidal heights (no geoid change). glTF is y-up: positions are stored as
-(x, z, -y) of ECEF so that the 3D Tiles y-up → z-up rotation gives ECEF back. Indices are UNSIGNED_BYTE,
-UNSIGNED_SHORT or UNSIGNED_INT, the smallest that holds the vertex count.
+(x, z, -y) of ECEF so that the 3D Tiles y-up → z-up rotation gives ECEF back. Vertices are renumbered in
+the order the triangles first use them (the index stream then climbs slowly: fewer bytes after gzip or
+meshopt). Indices are UNSIGNED_BYTE, UNSIGNED_SHORT or UNSIGNED_INT, the smallest that holds the vertex
+count without its largest value, which glTF reserves for primitive restart (UNSIGNED_SHORT at least under
+meshopt, whose triangle codec takes 2- or 4-byte indices).
+
+Geometry (``geometry=``), as gltfpack writes it:
+
+- ``"float"``: float32 positions and normals (24 B a vertex before indices);
+- ``"quantized"`` (default, ``KHR_mesh_quantization``): positions as unnormalized UNSIGNED_SHORT on a grid
+  of step ``q`` (a power of two, so exact in float32), the dequantisation ``p = q · (u + o)`` folded into
+  the glTF node's uniform ``scale`` and ``translation`` (uniform, so normals transform unchanged); normals
+  as normalized BYTE. Each vertex element is padded to 4 bytes (glTF's vertex alignment): 8 B + 4 B.
+  ``q`` is a function of the node's box alone (:meth:`Tiles3D.quant_step_m`: the box's ECEF extent,
+  sampled, padded 2 %, over 65535 steps), so the tileset needs no mesh. Rounding to the nearest step moves
+  a vertex by at most ``q/2`` along each axis, ``√3·q/2`` in all (:meth:`Tiles3D.quant_error_m`), and a
+  triangle's points, convex combinations of its vertices, by no more: that bound is added to the tile's
+  declared error and to the skirts, and each glb's actual worst shift is recorded in the export report;
+- ``"meshopt"``: the quantized layout with every buffer view compressed by ``EXT_meshopt_compression``
+  (vertex codec version 0, triangle codec; the spec's fallback buffer, no uncompressed copy), encoded by
+  the npm ``meshoptimizer`` package's own encoder through node (:class:`MeshoptEncoder`).
+
+``max_error_m``: the tree stops at a finest declared error. A node is left out when its parent's declared
+error (in the whole tree) is already at most ``max_error_m``; the kept nodes are a subtree, and its leaves
+declare their own errors (each ≤ ``max_error_m`` unless the whole tree's finest level is coarser).
 
 Normals: the nodes of one level (one rung of a TIN) are merged by position and their area-weighted face
 normals summed (:func:`terralod.runtime.normals.reference_normals`, the normals of the uniform-LoD mesh,
@@ -62,6 +85,15 @@ __all__ = ["ExportReport", "Tiles3D", "export_3dtiles", "node_uri"]
 
 #: Skirts never shorter than this (metres): closes float rounding where both errors are zero.
 MIN_SKIRT_M = 0.01
+#: The glb geometry encodings (see the module's docstring).
+GEOMETRIES = ("float", "quantized", "meshopt")
+#: Steps of the position grid across a tile (UNSIGNED_SHORT).
+QUANT_STEPS = 65535
+#: The sampled ECEF extent of a node's box is padded by this fraction, and by PAD_M metres, before it is
+#: divided into QUANT_STEPS (the box's faces bulge between samples by far less: a 100 km box, 9 samples a
+#: side, by under 4 m of its 100 km).
+QUANT_PAD = 0.02
+QUANT_PAD_M = 1.0
 
 
 def node_uri(code: tuple[int, int, int]) -> str:
@@ -131,11 +163,22 @@ class Tiles3D:
         metric: str = "hausdorff",
         drop_nodata: bool = True,
         vertical_datum: str | None = None,
+        geometry: str = "quantized",
+        max_error_m: float | None = None,
+        encoder: MeshoptEncoder | None = None,
     ) -> None:
         if metric not in ("hausdorff", "vertical"):
             raise ValueError(f"Expected metric hausdorff or vertical, got {metric!r}")
+        if geometry not in GEOMETRIES:
+            raise ValueError(f"Expected geometry one of {', '.join(GEOMETRIES)}, got {geometry!r}")
+        if max_error_m is not None and not max_error_m >= 0:
+            raise ValueError(f"Expected max_error_m >= 0, got {max_error_m!r}")
         self.terrain = terrain
         self.metric = metric
+        self.geometry = geometry
+        self.max_error_m = max_error_m
+        self._encoder = encoder  # made on the first meshopt glb when not given
+        self._quant: dict[Any, tuple[float, float]] = {}
         where = str(terrain.path) if terrain.path is not None else None
         self.geo = Geodesy(terrain.crs, where, vertical_datum=vertical_datum)
         self.geo.geoid  # noqa: B018 - fail now, not mid-export, when PROJ lacks the datum's geoid grid
@@ -146,6 +189,8 @@ class Tiles3D:
             self.children.setdefault(n.parent, []).append(n.code)
         self._tile_errors: dict[Any, float] = {}
         self._spread: dict[Any, float] = {}
+        if max_error_m is not None:
+            self._prune(float(max_error_m))
         self._levels: dict[int, _Level] = {}
         self._content: dict[Any, bool] = {}
         self._triangles: dict[Any, int] = {}  # triangles of each node made, before the nodata drop
@@ -157,6 +202,17 @@ class Tiles3D:
         self._hf = source_heightfield(terrain) if drop_nodata else None
         if self._hf is not None and bool(self._hf.valid.all()):
             self._hf = None
+
+    def _prune(self, max_error_m: float) -> None:
+        """Keep the roots and the nodes whose parent declares more than ``max_error_m`` in the whole tree
+        (declared errors fall down the tree, so the kept nodes are a subtree)."""
+        keep = [n for n in self.tree if n.parent is None or self.tile_error_m(n.parent) > max_error_m]
+        self.tree = keep
+        self.nodes = {n.code: n for n in keep}
+        self.children = {}
+        for n in keep:
+            self.children.setdefault(n.parent, []).append(n.code)
+        self._tile_errors = {}  # the leaves now declare their own errors
 
     # -- errors ------------------------------------------------------------------------------------------
     def error_m(self, code: Any) -> float:
@@ -174,11 +230,44 @@ class Tiles3D:
 
     def tile_error_m(self, code: Any) -> float:
         """A tile's ``geometricError``: the error of drawing it instead of its children, i.e. its measured
-        error, never below a child's (the specification's monotone errors down the tree)."""
+        error plus what its glb's position encoding adds (:meth:`quant_error_m`), never below a child's (the
+        specification's monotone errors down the tree)."""
         if code not in self._tile_errors:
             kids = self.children.get(code, [])
-            self._tile_errors[code] = max([self.error_m(code), *(self.tile_error_m(k) for k in kids)])
+            own = self.error_m(code) + self.quant_error_m(code)
+            self._tile_errors[code] = max([own, *(self.tile_error_m(k) for k in kids)])
         return self._tile_errors[code]
+
+    def _extent(self, code: Any) -> tuple[float, float]:
+        """(span, reach), metres: the largest axis extent of the node's box in ECEF (its top and its skirts'
+        bottom, a 9 × 9 grid each, heights made ellipsoidal), padded by QUANT_PAD and QUANT_PAD_M, and the
+        largest distance of an axis coordinate from the tile centre, padded alike."""
+        if code not in self._quant:
+            n = self.nodes[code]
+            w, s, z0, e, nn, z1 = n.box_m
+            gx, gy = np.meshgrid(np.linspace(w, e, 9), np.linspace(s, nn, 9))
+            lon, lat = self.geo.lonlat(gx.ravel(), gy.ravel())
+            low = float(z0) - self._skirt_raw_m(code)
+            pts = [self.geo.ecef_lonlat(lon, lat, self.geo.ellipsoidal(lon, lat, np.full(lon.size, z)))
+                   for z in (low, float(z1))]  # fmt: skip
+            rel = np.concatenate(pts) - self._centre(n)
+            span = float((rel.max(axis=0) - rel.min(axis=0)).max()) * (1.0 + QUANT_PAD) + QUANT_PAD_M
+            reach = float(np.abs(rel).max()) * (1.0 + QUANT_PAD) + QUANT_PAD_M
+            self._quant[code] = (span, reach)
+        return self._quant[code]
+
+    def quant_step_m(self, code: Any) -> float:
+        """The position grid step of a quantized glb, metres: the smallest power of two that divides the
+        node's padded ECEF extent (:meth:`_extent`) into at most QUANT_STEPS steps."""
+        return float(2.0 ** math.ceil(math.log2(self._extent(code)[0] / QUANT_STEPS)))
+
+    def quant_error_m(self, code: Any) -> float:
+        """The most a vertex of the node's glb is moved by its encoding, metres: √3·q/2 on the quantized
+        grid (half a step on each axis); with float32, half a unit in the last place of the largest
+        coordinate relative to the tile centre on each axis, √3 · reach · 2⁻²⁴."""
+        if self.geometry == "float":
+            return math.sqrt(3.0) * self._extent(code)[1] * 2.0**-24
+        return math.sqrt(3.0) * 0.5 * self.quant_step_m(code)
 
     def nothing_error_m(self) -> float:
         """The tileset's ``geometricError``: the error of drawing nothing at all, i.e. the terrain's whole
@@ -189,11 +278,20 @@ class Tiles3D:
         extent = math.sqrt((e - w) ** 2 + (n - s) ** 2 + relief**2)
         return float(max(extent, *(self.tile_error_m(c) for c in self.children.get(None, [])), 1.0))
 
-    def skirt_m(self, code: Any) -> float:
+    def _skirt_raw_m(self, code: Any) -> float:
+        """The skirt's depth before the encoding's shifts: both measured vertical errors and geoid spreads."""
         n = self.nodes[code]
         up = self.nodes[n.parent].vertical_error_m if n.parent is not None else n.vertical_error_m
         spread = self._geoid_m(code) + (self._geoid_m(n.parent) if n.parent is not None else 0.0)
-        return max(float(n.vertical_error_m) + float(up) + spread, MIN_SKIRT_M)
+        return float(n.vertical_error_m) + float(up) + spread
+
+    def skirt_m(self, code: Any) -> float:
+        """How far a tile's skirts hang below its border, metres: the tile's and its parent's measured
+        vertical errors, geoid spreads and encoding shifts (:meth:`quant_error_m`), so that the gap to any
+        neighbour of the same or the parent's level is covered."""
+        n = self.nodes[code]
+        shift = self.quant_error_m(code) + (self.quant_error_m(n.parent) if n.parent is not None else 0.0)
+        return max(self._skirt_raw_m(code) + shift, MIN_SKIRT_M)
 
     # -- tileset -----------------------------------------------------------------------------------------
     def _tile_json(self, code: Any, above: np.ndarray) -> dict[str, Any]:
@@ -201,8 +299,14 @@ class Tiles3D:
         applies (3D Tiles transforms compose down the tree)."""
         n = self.nodes[code]
         c = self._centre(n)
+        w, s, z0, e, nn, z1 = n.box_m
+        pad = self.quant_error_m(code)  # the encoded vertices may stand this far outside the box
         tile: dict[str, Any] = {
-            "boundingVolume": {"region": self.geo.region(n.box_m, self.skirt_m(code))},
+            "boundingVolume": {
+                "region": self.geo.region(
+                    (w - pad, s - pad, z0, e + pad, nn + pad, z1 + pad), self.skirt_m(code) + pad
+                )
+            },
             "geometricError": self.tile_error_m(code),
             "transform": self._transform(c - above),
         }
@@ -336,6 +440,10 @@ class Tiles3D:
 
     def glb(self, code: Any) -> bytes:
         """The binary glTF of node ``code``."""
+        return self.encode(code)[0]
+
+    def encode(self, code: Any) -> tuple[bytes, float]:
+        """(the binary glTF of node ``code``, the largest distance its encoding moved a vertex, metres)."""
         v, t, nrm = self.mesh(code)
         n = self.nodes[code]
         lon, lat, h, ecef, east, north, up, rows = self._geodesy(code, v)
@@ -352,10 +460,114 @@ class Tiles3D:
             a, b = be[:, 0], be[:, 1]
             walls = np.concatenate([np.stack([a, low[b], b], 1), np.stack([a, low[a], low[b]], 1)])
             t = np.concatenate([t, walls])
-        centre = self._centre(n)
-        rel = ecef - centre
-        return _write_glb(rel, nrm_ecef, t, {"error_m": n.error_m, "vertical_error_m": n.vertical_error_m,
-                                              "code": list(code)})  # fmt: skip
+        rel = ecef - self._centre(n)
+        extras = {"error_m": n.error_m, "vertical_error_m": n.vertical_error_m,
+                  "encoding_error_m": self.quant_error_m(code), "code": list(code)}  # fmt: skip
+        step = None if self.geometry == "float" else self.quant_step_m(code)
+        if self.geometry == "meshopt" and self._encoder is None:
+            self._encoder = MeshoptEncoder()
+        enc = self._encoder if self.geometry == "meshopt" else None
+        return _write_glb(rel, nrm_ecef, t, extras, step=step, encoder=enc)
+
+    def close(self) -> None:
+        """Stop the meshopt encoder's process, if one was started (a later meshopt glb starts another)."""
+        if self._encoder is not None:
+            self._encoder.close()
+            self._encoder = None
+
+
+class MeshoptEncoder:
+    """meshoptimizer's own encoder (the npm ``meshoptimizer`` package) in one node process.
+
+    ``encode(data, count, size, mode)`` is ``MeshoptEncoder.encodeGltfBuffer`` of the JavaScript module,
+    with ``mode`` ATTRIBUTES (vertex codec version 0, what ``EXT_meshopt_compression`` reads) or TRIANGLES.
+    The package is found in ``node_modules`` of the current folder or of a folder above it, or of the
+    repository this module sits in; ``TERRALOD_NODE_MODULES`` names another. A context manager.
+    """
+
+    _SCRIPT = r"""
+import { pathToFileURL } from "url";
+const { MeshoptEncoder: E } = await import(pathToFileURL(process.env.TERRALOD_MESHOPT).href);
+await E.ready;
+const modes = ["ATTRIBUTES", "TRIANGLES"];
+let chunks = [], have = 0;
+process.stdin.on("data", (chunk) => {
+  chunks.push(chunk); have += chunk.length;
+  for (;;) {
+    let buf = chunks.length === 1 ? chunks[0] : Buffer.concat(chunks);
+    chunks = [buf];
+    if (have < 16) return;
+    const n = buf.readUInt32LE(12);
+    if (have < 16 + n) return;
+    const src = new Uint8Array(buf.subarray(16, 16 + n));
+    const out = E.encodeGltfBuffer(src, buf.readUInt32LE(4), buf.readUInt32LE(8), modes[buf.readUInt32LE(0)]);
+    const hdr = Buffer.alloc(4);
+    hdr.writeUInt32LE(out.length, 0);
+    process.stdout.write(Buffer.concat([hdr, Buffer.from(out.buffer, out.byteOffset, out.length)]));
+    chunks = [buf.subarray(16 + n)]; have -= 16 + n;
+  }
+});
+"""
+
+    def __init__(self, node_modules: str | Path | None = None) -> None:
+        import os
+        import shutil
+        import subprocess
+
+        from terralod.errors import InputError
+
+        node = shutil.which("node")
+        where = _find_node_modules(node_modules)
+        if node is None or where is None:
+            raise InputError("needs node and the npm package meshoptimizer (`npm ci` in the repository, or "
+                             "TERRALOD_NODE_MODULES naming a node_modules that holds it)",
+                             "--glb-geometry meshopt")  # fmt: skip
+        env = dict(os.environ, TERRALOD_MESHOPT=str(where / "meshoptimizer" / "meshopt_encoder.js"))
+        self._proc = subprocess.Popen([node, "--input-type=module", "-e", self._SCRIPT], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, env=env)  # fmt: skip
+
+    def encode(self, data: bytes, count: int, size: int, mode: str) -> bytes:
+        """``data`` (``count`` elements of ``size`` bytes) compressed as ``EXT_meshopt_compression`` stores it."""
+        import struct
+
+        p = self._proc
+        assert p.stdin is not None and p.stdout is not None
+        p.stdin.write(
+            struct.pack("<4I", ("ATTRIBUTES", "TRIANGLES").index(mode), count, size, len(data)) + data
+        )
+        p.stdin.flush()
+        head = p.stdout.read(4)
+        if len(head) < 4:
+            raise RuntimeError(f"the meshoptimizer encoder (node) stopped with code {p.wait()}")
+        return p.stdout.read(struct.unpack("<I", head)[0])
+
+    def close(self) -> None:
+        p = self._proc
+        if p.poll() is None:
+            assert p.stdin is not None
+            p.stdin.close()
+            p.wait(timeout=30)
+
+    def __enter__(self) -> MeshoptEncoder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _find_node_modules(given: str | Path | None) -> Path | None:
+    """The node_modules folder holding meshoptimizer: ``given``, TERRALOD_NODE_MODULES, or the first found
+    from the current folder up, then from this module's folder up (an editable install's repository)."""
+    import os
+
+    if given is not None or os.environ.get("TERRALOD_NODE_MODULES"):
+        p = Path(given if given is not None else os.environ["TERRALOD_NODE_MODULES"])
+        return p if (p / "meshoptimizer" / "meshopt_encoder.js").is_file() else None
+    for start in (Path.cwd(), Path(__file__).resolve().parent):
+        for d in (start, *start.parents):
+            if (d / "node_modules" / "meshoptimizer" / "meshopt_encoder.js").is_file():
+                return d / "node_modules"
+    return None
 
 
 def _enu_to_ecef(n: np.ndarray, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
@@ -378,48 +590,130 @@ def _yup(a: np.ndarray) -> np.ndarray:
     return np.stack([a[:, 0], a[:, 2], -a[:, 1]], axis=1)
 
 
-def _write_glb(pos: np.ndarray, nrm: np.ndarray, tris: np.ndarray, extras: dict[str, Any]) -> bytes:
+def _first_use(tris: np.ndarray, nv: int) -> tuple[np.ndarray, np.ndarray]:
+    """(order, triangles renumbered): the vertices the triangles use, in the order they first use them (a
+    vertex no triangle uses, under a dropped nodata triangle, is left out), and the triangles in the new
+    numbers."""
+    flat = np.ascontiguousarray(tris, np.int64).ravel()
+    _, first = np.unique(flat, return_index=True)
+    order = flat[np.sort(first)]
+    new = np.full(nv, -1, np.int64)
+    new[order] = np.arange(order.size)
+    return order, new[flat].reshape(-1, 3)
+
+
+def _write_glb(
+    pos: np.ndarray, nrm: np.ndarray, tris: np.ndarray, extras: dict[str, Any], *, step: float | None = None,
+    encoder: MeshoptEncoder | None = None,
+) -> tuple[bytes, float]:  # fmt: skip
+    """(glb bytes, the largest distance a vertex moved in the encoding, metres) of one triangle mesh:
+    positions ``pos`` (N, 3) ECEF metres relative to the tile centre, unit normals ``nrm`` (N, 3) ECEF.
+    ``step`` None: float32; else the KHR_mesh_quantization grid step (metres); ``encoder`` also compresses
+    every buffer view with EXT_meshopt_compression."""
     import pygltflib as g
 
-    p = np.ascontiguousarray(_yup(pos), dtype=np.float32)
-    nm = np.ascontiguousarray(_yup(nrm), dtype=np.float32)
-    nv = len(p)
-    if nv <= 256:
+    order, tris = _first_use(tris, len(pos))
+    p64, nm = _yup(pos)[order], _yup(nrm)[order]
+    nv = len(p64)
+    node = g.Node(mesh=0)
+    used: list[str] = []
+    if step is None:
+        p = np.ascontiguousarray(p64, np.float32)
+        moved = p.astype(np.float64) - p64
+        pa = g.Accessor(componentType=g.FLOAT, count=nv, type=g.VEC3,
+                        min=[float(a) for a in p.min(axis=0)], max=[float(a) for a in p.max(axis=0)])  # fmt: skip
+        na = g.Accessor(componentType=g.FLOAT, count=nv, type=g.VEC3)
+        pb, nb, ps, ns = p.tobytes(), np.ascontiguousarray(nm, np.float32).tobytes(), None, None
+    else:
+        k = np.round(p64 / step)
+        off = k.min(axis=0)
+        u = k - off
+        if u.max() > 65535:
+            raise RuntimeError(
+                f"Expected positions within {QUANT_STEPS} steps of {step} m, got {u.max():.0f}"
+            )
+        moved = k * step - p64
+        q4 = np.zeros((nv, 4), np.uint16)
+        q4[:, :3] = u
+        n4 = np.zeros((nv, 4), np.int8)
+        n4[:, :3] = np.clip(np.round(nm * 127.0), -127, 127)
+        node.scale = [float(step)] * 3
+        node.translation = [float(o * step) for o in off]
+        pa = g.Accessor(componentType=g.UNSIGNED_SHORT, count=nv, type=g.VEC3,
+                        min=[int(a) for a in u.min(axis=0)], max=[int(a) for a in u.max(axis=0)])  # fmt: skip
+        na = g.Accessor(componentType=g.BYTE, normalized=True, count=nv, type=g.VEC3)
+        pb, nb, ps, ns = q4.tobytes(), n4.tobytes(), 8, 4
+        used.append("KHR_mesh_quantization")
+    if nv <= 255 and encoder is None:  # the largest value of each type is primitive restart (glTF §3.7.2.1)
         idx, ctype = tris.astype(np.uint8), g.UNSIGNED_BYTE
-    elif nv <= 65536:
+    elif nv <= 65535:
         idx, ctype = tris.astype(np.uint16), g.UNSIGNED_SHORT
     else:
         idx, ctype = tris.astype(np.uint32), g.UNSIGNED_INT
-    ib = idx.ravel().tobytes()
-    ib += b"\x00" * (-len(ib) % 4)
-    pb, nb = p.tobytes(), nm.tobytes()
-    blob = ib + pb + nb
+    ia = g.Accessor(componentType=ctype, count=int(idx.size), type=g.SCALAR,
+                    min=[int(idx.min())] if idx.size else [0], max=[int(idx.max())] if idx.size else [0])  # fmt: skip
+    views = [(idx.ravel().tobytes(), None, g.ELEMENT_ARRAY_BUFFER, "TRIANGLES", idx.itemsize),
+             (pb, ps, g.ARRAY_BUFFER, "ATTRIBUTES", ps or 12), (nb, ns, g.ARRAY_BUFFER, "ATTRIBUTES", ns or 12)]  # fmt: skip
+    blob = b""
+    buffer_views: list[Any] = []
+    buffers = []
+    if encoder is None:
+        for data, stride, target, _, _ in views:
+            blob += b"\x00" * (-len(blob) % 4)
+            buffer_views.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data),
+                                             byteStride=stride, target=target))  # fmt: skip
+            blob += data
+        buffers.append(g.Buffer(byteLength=len(blob)))
+    else:
+        used.append("EXT_meshopt_compression")
+        fallback = 0
+        for data, stride, target, mode, size in views:
+            blob += b"\x00" * (-len(blob) % 4)
+            fallback += -fallback % 4
+            count = len(data) // size
+            packed = encoder.encode(data, count, size, mode)
+            ext = {"buffer": 0, "byteOffset": len(blob), "byteLength": len(packed), "byteStride": size,
+                   "count": count, "mode": mode}  # fmt: skip
+            buffer_views.append(g.BufferView(buffer=1, byteOffset=fallback, byteLength=len(data), byteStride=stride,
+                                             target=target, extensions={"EXT_meshopt_compression": ext}))  # fmt: skip
+            blob += packed
+            fallback += len(data)
+        blob += b"\x00" * (-len(blob) % 4)
+        buffers += [g.Buffer(byteLength=len(blob)),
+                    g.Buffer(byteLength=fallback, extensions={"EXT_meshopt_compression": {"fallback": True}})]  # fmt: skip
+    for i, a in enumerate((ia, pa, na)):
+        a.bufferView = i
     gl = g.GLTF2(
         asset=g.Asset(version="2.0", generator="terralod"),
         scene=0,
         scenes=[g.Scene(nodes=[0])],
-        nodes=[g.Node(mesh=0)],
+        nodes=[node],
         meshes=[g.Mesh(primitives=[g.Primitive(attributes=g.Attributes(POSITION=1, NORMAL=2), indices=0,
                                                material=0, mode=g.TRIANGLES)])],
         materials=[g.Material(pbrMetallicRoughness=g.PbrMetallicRoughness(
             baseColorFactor=[0.75, 0.72, 0.62, 1.0], metallicFactor=0.0, roughnessFactor=1.0), doubleSided=False)],
-        accessors=[
-            g.Accessor(bufferView=0, componentType=ctype, count=int(idx.size), type=g.SCALAR,
-                       min=[int(idx.min())] if idx.size else [0], max=[int(idx.max())] if idx.size else [0]),
-            g.Accessor(bufferView=1, componentType=g.FLOAT, count=nv, type=g.VEC3,
-                       min=[float(a) for a in p.min(axis=0)], max=[float(a) for a in p.max(axis=0)]),
-            g.Accessor(bufferView=2, componentType=g.FLOAT, count=nv, type=g.VEC3),
-        ],
-        bufferViews=[
-            g.BufferView(buffer=0, byteOffset=0, byteLength=int(idx.nbytes), target=g.ELEMENT_ARRAY_BUFFER),
-            g.BufferView(buffer=0, byteOffset=len(ib), byteLength=len(pb), target=g.ARRAY_BUFFER),
-            g.BufferView(buffer=0, byteOffset=len(ib) + len(pb), byteLength=len(nb), target=g.ARRAY_BUFFER),
-        ],
-        buffers=[g.Buffer(byteLength=len(blob))],
+        accessors=[ia, pa, na],
+        bufferViews=buffer_views,
+        buffers=buffers,
+        extensionsUsed=used,
+        extensionsRequired=list(used),
         extras=extras,
     )  # fmt: skip
-    gl.set_binary_blob(blob)
-    return b"".join(gl.save_to_bytes())
+    worst = float(np.sqrt((moved**2).sum(axis=1)).max()) if nv else 0.0
+    return _glb_container(gl.gltf_to_json(separators=(",", ":"), indent=None).encode(), blob), worst
+
+
+def _glb_container(js: bytes, blob: bytes) -> bytes:
+    """A GLB (glTF 2.0 §4.4): the 12-byte header, the JSON chunk padded with spaces and the BIN chunk padded
+    with zeros to 4 bytes. Written here, not by pygltflib, which merges every buffer into one (the meshopt
+    fallback buffer, which has no bytes, must stay a buffer of its own)."""
+    import struct
+
+    js += b" " * (-len(js) % 4)
+    blob += b"\x00" * (-len(blob) % 4)
+    total = 12 + 8 + len(js) + 8 + len(blob)
+    return b"".join([b"glTF", struct.pack("<II", 2, total), struct.pack("<I", len(js)), b"JSON", js,
+                     struct.pack("<I", len(blob)), b"BIN\x00", blob])  # fmt: skip
 
 
 def export_3dtiles(
@@ -433,8 +727,15 @@ def export_3dtiles(
     update: bool = False,
     progress: Callable[[int, int], None] | None = None,
     vertical_datum: str | None = None,
+    geometry: str = "quantized",
+    max_error_m: float | None = None,
 ) -> ExportReport:
     """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree.
+
+    ``geometry``: ``"quantized"`` (KHR_mesh_quantization), ``"meshopt"`` (also EXT_meshopt_compression,
+    needs node and the npm meshoptimizer package) or ``"float"``; ``max_error_m``: leave out the nodes whose
+    parent already declares at most this (see :class:`Tiles3D`). ``extra["encoding_error_m"]`` is the
+    largest distance the encoding moved any vertex (each tile declares its bound, at least that).
 
     ``vertical_datum``: what the stored heights are above, when the store's CRS does not say (see
     :mod:`terralod.export.vertical`); heights are then written above the WGS 84 ellipsoid.
@@ -450,10 +751,13 @@ def export_3dtiles(
     if epoch is not None and epoch != getattr(terrain, "epoch", None):
         terrain = terrain.with_epoch(epoch)
     output = Output(out, inputs=export_inputs(terrain), overwrite=overwrite, resume=resume, update=update,
-                    key=export_key(terrain, "3dtiles", metric=metric, vertical_datum=vertical_datum))  # fmt: skip
+                    key=export_key(terrain, "3dtiles", metric=metric, vertical_datum=vertical_datum,
+                                   geometry=geometry, max_error_m=max_error_m))  # fmt: skip
     output.check()  # refusals first, before the view's set-up
-    view = Tiles3D(terrain, metric=metric, vertical_datum=vertical_datum)
+    view = Tiles3D(terrain, metric=metric, vertical_datum=vertical_datum, geometry=geometry,
+                   max_error_m=max_error_m)  # fmt: skip
     rep = ExportReport(Path(out))
+    moved = 0.0
     with output as o:
         # level by level (a TIN's tree is sub-block by sub-block): each level's meshes are made once and
         # dropped when its tiles are written, so memory holds one level, whatever the pyramid's size
@@ -465,15 +769,17 @@ def export_3dtiles(
                 continue
             r = o.record(node_uri(code))  # finished by the interrupted export this one resumes
             if r is None:
-                data = view.glb(code)
-                r = {"bytes": len(data)}
+                data, shift = view.encode(code)
+                r = {"bytes": len(data), "moved_m": shift}
                 o.write(node_uri(code), data, r)
             rep.tiles += 1
             rep.bytes += r["bytes"]
+            moved = max(moved, float(r.get("moved_m", 0.0)))
             if progress is not None:
                 progress(i + 1, len(codes))
         if codes:
             view.release(codes[-1][0])
+        view.close()
         ts = json.dumps(view.tileset(), separators=(",", ":"))
         o.write("tileset.json", ts.encode())
         rep.bytes += len(ts)
@@ -482,7 +788,8 @@ def export_3dtiles(
     rep.seconds = time.perf_counter() - t0
     rep.extra = {"format": "3dtiles", "metric": metric, "max_error_m": max(view.error_m(c) for c in view.nodes),
                  "levels": len({c[0] for c in view.nodes}), "geometric_error_root": math.nan,
-                 "heights": view.geo.vertical_record()}  # fmt: skip
+                 "heights": view.geo.vertical_record(), "geometry": geometry, "max_error_m_option": max_error_m,
+                 "encoding_error_m": moved}  # fmt: skip
     rep.extra["geometric_error_root"] = json.loads(ts)["geometricError"]
     rep.extra.update(resumed=o.adopted is not None, **changes)
     return rep
