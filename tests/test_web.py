@@ -26,7 +26,8 @@ from hypothesis import strategies as st
 
 from terralod.cli import main
 from terralod.export.quantized_mesh import decode_tile, encode_tile, oct_decode, oct_encode, tile_rectangle
-from terralod.export.tiles3d import Tiles3D, export_3dtiles
+from terralod.export.tiles3d import Tiles3D, export_3dtiles, node_uri
+from test_tiles_bytes import decode_glb
 
 REPO = Path(__file__).resolve().parents[1]
 NODE_MODULES = REPO / "node_modules"
@@ -113,26 +114,15 @@ def test_oct_encoding_of_axes() -> None:
 
 # -- 3D Tiles export ----------------------------------------------------------------------------------
 def _decode_glb(data: bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    import pygltflib as g
-
-    gl = g.GLTF2.load_from_bytes(data)
-    blob = gl.binary_blob()
-    out = []
-    for acc_i, dt in ((0, None), (1, np.float32), (2, np.float32)):
-        acc = gl.accessors[acc_i]
-        bv = gl.bufferViews[acc.bufferView]
-        if dt is None:
-            dt = {g.UNSIGNED_BYTE: np.uint8, g.UNSIGNED_SHORT: np.uint16, g.UNSIGNED_INT: np.uint32}[
-                acc.componentType
-            ]
-        a = np.frombuffer(blob, dt, acc.count * (1 if acc.type == g.SCALAR else 3), bv.byteOffset)
-        out.append(a.reshape(-1, 1 if acc.type == g.SCALAR else 3))
-    return out[1], out[2], out[0].reshape(-1, 3)
+    """(positions, normals, triangles) of a glb, dequantised from its JSON alone (tests/test_tiles_bytes.py)."""
+    pos, nrm, tri, _ = decode_glb(data)
+    return pos, nrm, tri
 
 
 def test_3dtiles_export_round_trip(sample_store: Path, tmp_path: Path) -> None:
-    """tileset.json carries the stored errors, REPLACE and composed transforms; each glb's positions
-    (through the transforms and pyproj) are the stored vertices; skirts hang by the measured errors."""
+    """tileset.json carries the stored errors plus the quantisation's bound, REPLACE and composed transforms;
+    each glb's positions (dequantised, through the transforms and pyproj) are the stored vertices within that
+    bound; skirts hang by the measured errors and the bounds."""
     from pyproj import Transformer
 
     from terralod.terrain import open_terrain
@@ -144,7 +134,9 @@ def test_3dtiles_export_round_trip(sample_store: Path, tmp_path: Path) -> None:
         ts = json.loads((out / "tileset.json").read_text())
         assert ts["asset"]["version"] == "1.1" and ts["root"]["refine"] == "REPLACE"
         root = ts["root"]
-        assert ts["geometricError"] > root["geometricError"] == tree[(0, 0, 0)].error_m
+        view = Tiles3D(t)
+        assert ts["geometricError"] > root["geometricError"]
+        assert root["geometricError"] == tree[(0, 0, 0)].error_m + view.quant_error_m((0, 0, 0))
         to_crs = Transformer.from_crs("EPSG:4978", "EPSG:4979", always_xy=True)
         back = Transformer.from_crs("EPSG:4326", t.crs, always_xy=True)
         checked = 0
@@ -156,7 +148,9 @@ def test_3dtiles_export_round_trip(sample_store: Path, tmp_path: Path) -> None:
             for k in tile.get("children", []):
                 walk(k, c)
             code = tuple(int(a) for a in tile["content"]["uri"][6:-4].replace("/", "_").split("_"))
-            assert tile["geometricError"] == tree[code].error_m
+            bound = view.quant_error_m(code)
+            assert tile["geometricError"] == pytest.approx(tree[code].error_m + bound, abs=1e-12)
+            assert 0.0 < bound < 0.05 * max(tile["geometricError"], 1.0)  # a small part of the error
             kids = tile.get("children", [])
             assert all(k["geometricError"] <= tile["geometricError"] for k in kids)
             if checked >= 6:
@@ -165,30 +159,33 @@ def test_3dtiles_export_round_trip(sample_store: Path, tmp_path: Path) -> None:
             ecef = np.column_stack([pos[:, 0], -pos[:, 2], pos[:, 1]]).astype(np.float64) + c
             lon, lat, hgt = to_crs.transform(ecef[:, 0], ecef[:, 1], ecef[:, 2])
             x, y = back.transform(lon, lat)
-            v, _ = t.lod_mesh(code)
+            v, vt = t.lod_mesh(code)
+            v = v[np.unique(vt)]
             n = len(v)
-            assert np.allclose(np.column_stack([x, y])[:n], v[:, :2], atol=0.05)
-            assert np.allclose(hgt[:n], v[:, 2], atol=0.05)
-            skirt = v[:, 2][np.argmin(np.abs(x[n:, None] - v[None, :, 0]) + np.abs(y[n:, None] - v[None, :, 1]),
-                                       axis=1)] - hgt[n:]  # fmt: skip
-            view_depth = Tiles3D.skirt_m(view, code)
-            assert np.allclose(skirt, view_depth, atol=0.05)
+            # each stored vertex is a decoded one (within the bound), the others are skirts below them
+            d = np.abs(x[:, None] - v[None, :, 0]) + np.abs(y[:, None] - v[None, :, 1])
+            near = np.argmin(d, axis=1)
+            top = np.abs(hgt - v[near, 2]) <= bound
             assert (
-                view_depth
-                <= tree[code].vertical_error_m + tree[tree[code].parent or code].vertical_error_m + 0.02
+                top.sum() == n and set(near[top]) == set(range(n)) and d[top].min(axis=1).max() <= 2 * bound
             )
-            assert np.allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-3)
-            assert tri.max() < len(pos) and (tri.dtype == np.uint8) == (len(pos) <= 256)
+            skirt = v[near[~top], 2] - hgt[~top]
+            view_depth = Tiles3D.skirt_m(view, code)
+            assert np.allclose(skirt, view_depth, atol=2 * bound)
+            parent = tree[code].parent or code
+            assert view_depth <= (tree[code].vertical_error_m + tree[parent].vertical_error_m + bound
+                                  + view.quant_error_m(parent) + 0.02)  # fmt: skip
+            assert np.allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=0.02)  # int8 normals
+            assert tri.max() < len(pos)
             checked += 1
 
-        view = Tiles3D(t)
         walk(root, np.zeros(3))
         assert checked >= 6 and rep.tiles == len(tree)
-    if shutil.which("node") and (NODE_MODULES / "gltf-validator").is_dir():  # Khronos: 0 errors on every glb
+    if shutil.which("node") and (NODE_MODULES / "gltf-validator").is_dir():  # Khronos: 0 errors, 0 warnings
         val = subprocess.run(["node", str(REPO / "tests" / "web" / "validate_glb.mjs"), str(out)], capture_output=True,
                              text=True, timeout=60, cwd=REPO)  # fmt: skip
         res = json.loads(val.stdout.strip().splitlines()[-1])
-        assert res["files"] == rep.tiles and res["errors"] == 0, res
+        assert res["files"] == rep.tiles and res["errors"] == 0 and res["warnings"] == 0, res
 
 
 def test_3dtiles_normals_match_across_borders(sample_store: Path) -> None:
@@ -230,9 +227,10 @@ def test_tin_store_exports(shared_data: Path, tmp_path: Path) -> None:
         ts = view.tileset()
         assert len(ts["root"]["children"]) == 4 and "content" not in ts["root"]
         chain = ts["root"]["children"][0]
-        errs = []
+        errs = []  # the declared errors less the encoding's bound: the measured ones, halving rung by rung
+        code_of = {node_uri(c): c for c in view.nodes}
         while True:
-            errs.append(chain["geometricError"])
+            errs.append(chain["geometricError"] - view.quant_error_m(code_of[chain["content"]["uri"]]))
             if not chain.get("children"):
                 break
             chain = chain["children"][0]
