@@ -231,12 +231,23 @@ shift_st = st.one_of(
     factor=st.sampled_from([1.0, 1.5]), seed=st.integers(0, 10_000), method=st.sampled_from(["terralod", "xdem"]),
 )  # fmt: skip
 def test_planted_pair_recovered(terrain, shift_px, bias_m, noise_m, factor, seed, method) -> None:
-    # Known gap (stop note, issue 43): on the gentle 1 m prairie with a 1.5x coarser AFTER, a multi-cell shift
-    # and >= 1 m of noise the shift comes back 0.16-0.32 cell off (seeds 0-3 of the (2.51, -3.79) plant; its
-    # reported standard error is 0.038 cell, so this is a bias of the coarse-grid fit, not noise). The bias
-    # and the volumes still hold (checked below); the shift is held to 0.5 cell there until that is fixed.
-    gap = terrain == "prairie_lidar_1m" and factor > 1.0
-    check_pair(terrain, shift_px, bias_m, noise_m, factor, seed, method, max_err_cells=0.5 if gap else 0.1)
+    # the gentle 1 m prairie against a 1.5x coarser AFTER under >= 1 m of noise: the fit's noise limit is near
+    # 0.1 cell there (test_prairie_coarser_after_seeds_0_to_9 holds its median and maximum over ten seeds)
+    coarse_prairie = terrain == "prairie_lidar_1m" and factor > 1.0
+    check_pair(
+        terrain, shift_px, bias_m, noise_m, factor, seed, method, max_err_cells=0.2 if coarse_prairie else 0.1
+    )
+
+
+def test_prairie_coarser_after_seeds_0_to_9() -> None:
+    """The case that stayed 0.16-0.32 cell off: the (2.51, -3.79)-cell plant on the 1 m prairie LiDAR, a 1.5x
+    coarser AFTER, 1.2 m of noise, seeds 0-9. The stable ground is chosen on the noisy difference, which
+    pulls each round's fit towards the previous one; fitted to the fixed point, the shift's median error over
+    the ten seeds is at most 0.1 cell and its largest at most 0.2 (measured: 0.057 and 0.110; xdem's fit, which
+    the same least squares polishes, gives the same to 0.001 cell)."""
+    errs = [check_pair("prairie_lidar_1m", (2.51, -3.79), 1.0, 1.2, 1.5, seed, "terralod", max_err_cells=0.2)
+            ["shift_err_cells"] for seed in range(10)]  # fmt: skip
+    assert float(np.median(errs)) <= 0.1 and max(errs) <= 0.2, errs
 
 
 @pytest.mark.parametrize("method", ["terralod", "xdem"])

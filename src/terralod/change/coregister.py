@@ -421,6 +421,14 @@ def _fit_once(
     return _fit_terralod(pair, cells, seed)
 
 
+#: Most fit rounds (stable ground re-found on each round's difference) before the shift is taken as is.
+MAX_FIT_ROUNDS = 6
+#: A round that moves the shift by less than this (cells) has reached the fixed point.
+ROUND_SETTLED_CELLS = 0.002
+#: A round is refused when it makes the NMAD on the sloping stable ground worse by more than this factor.
+ROUND_NMAD_SLACK = 1.01
+
+
 def _fit_shift_rounds(
     pair: AlignedPair,
     ground: StableGroundFinder,
@@ -430,14 +438,23 @@ def _fit_shift_rounds(
     seed: int,
     res: Coregistration,
 ) -> tuple[tuple[float, float, float] | None, StableGround, str]:
-    """Up to three rounds: fit on the sloping stable ground, re-find the stable ground on the improved
-    difference (a misregistered survey makes sloping ground look changed), fit again; a later round's fit is
-    kept only if it lowers the NMAD on the sloping ground. Returns (the shift or None, the stable ground, why
-    no shift could be fitted)."""
+    """Rounds to a fixed point: fit on the sloping stable ground, re-find the stable ground on the improved
+    difference (a misregistered survey makes sloping ground look changed), fit again, until the stable ground
+    or the shift (within :data:`ROUND_SETTLED_CELLS`) settles, at most :data:`MAX_FIT_ROUNDS` rounds.
+
+    The stable ground is chosen by thresholding the noisy difference, so a round's cells are those where the
+    noise happened to cancel what the previous shift left: each fit is pulled towards the previous one
+    (attenuation), and only at the fixed point is the pull gone. On the 1 m prairie LiDAR against a 1.5x
+    coarser AFTER under 1.2 m of noise, stopping after the first round whose NMAD did not drop left the
+    shift up to 0.27 cell off (seeds 0-9); to the fixed point it is within 0.11. A later round is refused
+    only when it makes the NMAD on the sloping ground worse by more than :data:`ROUND_NMAD_SLACK` (a
+    diverging fit; noise moves that NMAD by a fraction of a percent either way). Returns (the shift or None,
+    the stable ground, why no shift could be fitted)."""
     cand: tuple[float, float, float] | None = None
     dod = dod0
     why = ""
-    for _round in range(3):
+    px = float(min(pair.before.spacing_m))
+    for _round in range(MAX_FIT_ROUNDS):
         cells = sg.fit
         if sg.fit_cells < MIN_FIT_CELLS:
             if _round == 0 and sg.candidates is not None and sg.candidates.sum() >= MIN_FIT_CELLS:
@@ -457,9 +474,12 @@ def _fit_shift_rounds(
             why = f"the horizontal fit failed ({msg})"
             break
         d1 = dem_of_difference(pair, s1)
-        if cand is not None and not nmad(d1[sg.fit]) < nmad(dod[sg.fit]):
+        if cand is not None and not nmad(d1[sg.fit]) <= ROUND_NMAD_SLACK * nmad(dod[sg.fit]):
             break
+        moved_cells = None if cand is None else math.hypot(s1[0] - cand[0], s1[1] - cand[1]) / px
         cand, dod = s1, d1 - float(np.nanmedian(d1[sg.mask]))
+        if moved_cells is not None and moved_cells < ROUND_SETTLED_CELLS:
+            break
         sg2 = ground(dod)
         if sg2.cells < MIN_STABLE_CELLS or np.array_equal(sg2.mask, sg.mask):
             break
