@@ -135,20 +135,22 @@ def static_server(site: dict):
 
 
 def _source_points(dem: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """lon, lat, height of every valid sample of a geographic DEM crop (EPSG:4326), read with rasterio
-    itself: the check does not take the samples from the exporter it checks."""
+    """lon, lat (WGS 84 degrees) and height of every valid sample of a DEM crop, read with rasterio itself
+    and placed by pyproj: the check does not take the samples from the exporter it checks."""
     import rasterio
+    from pyproj import Transformer
 
     with rasterio.open(dem) as ds:
-        assert ds.crs.to_epsg() == 4326, ds.crs
         band = ds.read(1, masked=True)
-        t = ds.transform
+        t, crs = ds.transform, ds.crs
     z = np.ma.getdata(band).astype(np.float64)
     ok = ~np.ma.getmaskarray(band) & np.isfinite(z)
     r, c = np.nonzero(ok)
-    lon = t.c + (c + 0.5) * t.a  # sample centres: pixel-is-area, north-up
-    lat = t.f + (r + 0.5) * t.e
-    return lon, lat, z[ok]
+    x = t.c + (c + 0.5) * t.a  # sample centres: pixel-is-area, north-up
+    y = t.f + (r + 0.5) * t.e
+    if crs.to_epsg() != 4326:
+        x, y = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    return np.asarray(x), np.asarray(y), z[ok]
 
 
 # -- quantized-mesh: loaders.gl decodes every tile -------------------------------------------------

@@ -63,6 +63,8 @@ class Geodesy:
         self.vertical = resolve_vertical_datum(vertical_datum, crs, where)
         self._where = where
         self._geoid: list[Any] = []
+        #: why heights above a known datum could not be made ellipsoidal (PROJ lacks its grid), or None
+        self.vertical_problem: str | None = None
         if self.crs.is_compound:
             self.crs = self.crs.sub_crs_list[0]  # the horizontal part places x, y; the vertical is above
         elif len(self.crs.axis_info) == 3:
@@ -95,7 +97,14 @@ class Geodesy:
         GeoidConverter`), None when none is needed or the datum is unknown; made on first use (PROJ's
         operation lookup), an InputError when PROJ lacks the datum's grid."""
         if not self._geoid:
-            self._geoid.append(self.vertical.converter(self._where))
+            try:
+                self._geoid.append(self.vertical.converter(self._where))
+            except InputError as exc:  # the datum is known but PROJ lacks its grid: said, never guessed
+                import logging
+
+                self.vertical_problem = exc.message
+                logging.getLogger("terralod.export").warning("%s: heights written as read", exc)
+                self._geoid.append(None)
         return self._geoid[0]
 
     def ellipsoidal(self, lon: Any, lat: Any, h: Any) -> np.ndarray:
@@ -121,6 +130,9 @@ class Geodesy:
         """What an output says of its heights: the datum, and the operation that made them ellipsoidal."""
         if self.geoid is not None:
             return self.geoid.to_json()
+        if self.vertical_problem:
+            return {**self.vertical.to_json(), "converted_to": f"none: {self.vertical_problem}; heights written "
+                    "as read, used as ellipsoidal"}  # fmt: skip
         if self.vertical.is_ellipsoidal:
             return {**self.vertical.to_json(), "converted_to": "none needed (ellipsoidal heights)"}
         return {

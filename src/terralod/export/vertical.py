@@ -64,6 +64,8 @@ class VerticalDatum:
     key: str
     name: str
     said_by: str
+    #: the vertical CRS itself (WKT) when a file named one: PROJ's operation is looked up from it
+    crs_wkt: str | None = None
 
     @property
     def known(self) -> bool:
@@ -134,8 +136,8 @@ def vertical_datum_from_crs(crs: str | None) -> VerticalDatum | None:
                 epsg = sub.to_epsg()
                 for key, (name, code) in _NAMED.items():
                     if code is not None and epsg is not None and code == f"EPSG:{epsg}":
-                        return VerticalDatum(key, name, "file")
-                return VerticalDatum(f"EPSG:{epsg}" if epsg else sub.name, sub.name, "file")
+                        return VerticalDatum(key, name, "file", sub.to_wkt())
+                return VerticalDatum(f"EPSG:{epsg}" if epsg else sub.name, sub.name, "file", sub.to_wkt())
     if len(c.axis_info) == 3 and any("ellipsoidal height" in a.name.lower() for a in c.axis_info):
         ell = c.ellipsoid.name if c.ellipsoid is not None else ""
         named = ell and ell.lower() != "unknown"
@@ -186,10 +188,15 @@ class GeoidConverter:
             self.operation = f"vertical grid shift through {Path(grid).name}"
             self.accuracy_m: float | None = None
         else:
-            vertical = _NAMED[datum.key][1] if datum.key in _NAMED else datum.key
+            from pyproj import CRS
+            from pyproj.crs import CompoundCRS
+
+            code = _NAMED[datum.key][1] if datum.key in _NAMED else datum.key
+            vertical = CRS.from_wkt(datum.crs_wkt) if datum.crs_wkt else CRS.from_user_input(code)
+            source = CompoundCRS(f"WGS 84 + {vertical.name}", [CRS.from_epsg(4326), vertical])
             with warnings.catch_warnings():  # "best transformation is not available": said below, in one line
                 warnings.simplefilter("ignore", UserWarning)
-                group = TransformerGroup(f"EPSG:4326+{vertical.split(':')[1]}", "EPSG:4979", always_xy=True)
+                group = TransformerGroup(source, "EPSG:4979", always_xy=True)
             usable = [t for t in group.transformers if "ballpark" not in t.description.lower()]
             if not usable:
                 missing = sorted({g.short_name for op in group.unavailable_operations for g in op.grids
@@ -205,7 +212,8 @@ class GeoidConverter:
             self.operation = usable[0].description
             acc = usable[0].accuracy
             self.accuracy_m = None if acc is None or acc < 0 else float(acc)
-        probe = self.undulation_m(np.array([10.0]), np.array([45.0]))  # Liguria-ish: N about +48 m
+        global_model = datum.key in ("egm96", "egm2008")  # a regional grid has no value off its region
+        probe = self.undulation_m(np.array([10.0]), np.array([45.0])) if global_model else np.zeros(1)
         if not np.isfinite(probe).all():
             raise InputError(
                 f"the {datum.name} conversion gives no value (is the grid file complete?)", where
