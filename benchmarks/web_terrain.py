@@ -103,6 +103,8 @@ def peer_export(dem: str, out: str) -> None:
 
 
 # -- measurement ---------------------------------------------------------------------------------------
+# The benchmark's own error kernel, kept apart from terralod.kernels.error on purpose: the figures it writes
+# check terralod's declared errors (and ctb's tiles) with code the exporter does not share.
 @njit(cache=True)
 def _errors_kernel(tu, tv, th, tris, pu, pv, pz):  # pragma: no cover - numba
     """(max, sum of squares, covered) of |surface - z| at scattered points, each point counted once."""

@@ -910,20 +910,18 @@ def _tile_error(verts, tris, z, valid, dx, dy, bucket_size, vall, dirty):
     return max_v, sumsq, n, math.sqrt(hd2), wv // w, wv % w, wh // w, wh % w
 
 
-# -- web-export tiles (u/v units, vertical distance only) ------------------------------------------------
+# -- scattered points in square buckets ------------------------------------------------------------------
 @jit
-def points_vertical_error(tu, tv, th, tris, pu, pv, pz):  # pragma: no cover - numba
-    """Max |surface - z| over points (pu, pv, pz) of the triangles (tu, tv, th) in u/v units, and how many
-    points no triangle covered (the points are bucketed on a square grid; each triangle visits the
-    buckets of its bounding box; a point on a shared edge is tested by both triangles)."""
-    n = pu.size
-    nb = max(1, min(256, int(math.sqrt(n / 4.0)) + 1))
-    scale = nb / 32768.0
+def bucket_points(px, py, x0, y0, inv_x, inv_y, nb):  # pragma: no cover - numba
+    """Points (px, py) counted into nb x nb square buckets from (x0, y0), ``inv_*`` buckets per unit:
+    (start (nb * nb + 1,), order (n,)): bucket k holds points order[start[k]:start[k + 1]], in input order.
+    Points off the grid go to its edge buckets."""
+    n = px.size
     cell = np.empty(n, np.int64)
     start = np.zeros(nb * nb + 1, np.int64)
     for i in range(n):
-        cx = min(max(int(pu[i] * scale), 0), nb - 1)
-        cy = min(max(int(pv[i] * scale), 0), nb - 1)
+        cx = min(max(int((px[i] - x0) * inv_x), 0), nb - 1)
+        cy = min(max(int((py[i] - y0) * inv_y), 0), nb - 1)
         cell[i] = cy * nb + cx
         start[cell[i] + 1] += 1
     for k in range(nb * nb):
@@ -933,6 +931,19 @@ def points_vertical_error(tu, tv, th, tris, pu, pv, pz):  # pragma: no cover - n
     for i in range(n):
         order[fill[cell[i]]] = i
         fill[cell[i]] += 1
+    return start, order
+
+
+# -- web-export tiles (u/v units, vertical distance only) ------------------------------------------------
+@jit
+def points_vertical_error(tu, tv, th, tris, pu, pv, pz):  # pragma: no cover - numba
+    """Max |surface - z| over points (pu, pv, pz) of the triangles (tu, tv, th) in u/v units, and how many
+    points no triangle covered (the points are bucketed on a square grid; each triangle visits the
+    buckets of its bounding box; a point on a shared edge is tested by both triangles)."""
+    n = pu.size
+    nb = max(1, min(256, int(math.sqrt(n / 4.0)) + 1))
+    scale = nb / 32768.0
+    start, order = bucket_points(pu, pv, 0.0, 0.0, scale, scale, nb)
     covered = np.zeros(n, np.bool_)
     err = 0.0
     for t in range(tris.shape[0]):

@@ -26,7 +26,7 @@ import math
 import numpy as np
 
 from terralod.kernels import jit
-from terralod.kernels.error import triangle_gap
+from terralod.kernels.error import bucket_points, triangle_gap
 
 #: Barycentric slack of the coverage test: points on an edge (up to rounding) count as inside.
 _EDGE_TOL = 1e-9
@@ -55,21 +55,7 @@ def scattered_vertical_error(verts, tris, px, py, pz):  # pragma: no cover - num
     nb = max(1, min(_MAX_BUCKETS, int(math.sqrt(n / _POINTS_PER_BUCKET)) + 1))
     ix = nb / (xmax - xmin) if xmax > xmin else 0.0
     iy = nb / (ymax - ymin) if ymax > ymin else 0.0
-    # counting sort of the points into nb x nb buckets
-    cell = np.empty(n, np.int64)
-    start = np.zeros(nb * nb + 1, np.int64)
-    for i in range(n):
-        cx = min(int((px[i] - xmin) * ix), nb - 1)
-        cy = min(int((py[i] - ymin) * iy), nb - 1)
-        cell[i] = cy * nb + cx
-        start[cell[i] + 1] += 1
-    for k in range(nb * nb):
-        start[k + 1] += start[k]
-    fill = start[:-1].copy()
-    order = np.empty(n, np.int64)
-    for i in range(n):
-        order[fill[cell[i]]] = i
-        fill[cell[i]] += 1
+    start, order = bucket_points(px, py, xmin, ymin, ix, iy, nb)  # counting sort into nb x nb buckets
     for t in range(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         ua, va, ub, vb, uc, vc = verts[a, 0], verts[a, 1], verts[b, 0], verts[b, 1], verts[c, 0], verts[c, 1]
