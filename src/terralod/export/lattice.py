@@ -108,7 +108,12 @@ class Lattice:
         r1 = int(math.ceil(fr_s / stride - 1e-9)) * stride
         rows = np.clip(np.arange(r0, r1 + 1, stride), 0, self.h - 1)
         cols = np.clip(np.arange(c0, c1 + 1, stride), 0, self.w - 1)
-        g = self.ref.gather(rows, cols)[0]
+        if stride == 1:  # one window of the samples, its edge rows and columns repeated outside the DEM
+            ra, ca = int(rows[0]), int(cols[0])
+            win = self.ref.window(ra, int(rows[-1]) + 1, ca, int(cols[-1]) + 1)[0]
+            g = win[(rows - ra)[:, None], (cols - ca)[None, :]]
+        else:
+            g = self.ref.gather(rows, cols)[0]
         box = ((fc_w - c0) / stride, (fc_e - c0) / stride, (fr_n - r0) / stride, (fr_s - r0) / stride)
         return r0, c0, g, box
 
@@ -146,12 +151,7 @@ class Lattice:
         if r1 <= r0 or c1 <= c0:
             return 0
         ra, rb, ca, cb = max(r0 - 1, 0), min(r1 + 1, self.h), max(c0 - 1, 0), min(c1 + 1, self.w)
-        some, every = False, True  # of the window's samples: any / all nodata or sea at exactly 0 m
-        for sa, sb in _strips(ra, rb, ca, cb):
-            wz, wok = self.ref.window(sa, sb, ca, cb)
-            win = ~wok | (wz == 0.0)
-            some = some or bool(win.any())
-            every = every and bool(win.all())
+        some, every = self.ref.water_any_all(ra, rb, ca, cb)  # any / all nodata or sea at exactly 0 m
         if not some:
             return 0
         w, s, e, n = rect
@@ -165,8 +165,7 @@ class Lattice:
         rr = np.rint((py - self.f_deg) / self.e_deg - 0.5).astype(np.int64)
         okc = (px >= fw) & (px <= fe)
         okr = (py >= fs) & (py <= fn)
-        gz, gok = self.ref.gather(np.clip(rr, 0, self.h - 1), np.clip(cc, 0, self.w - 1))
-        m = ~gok | (gz == 0.0)
+        m = self.ref.water_gather(np.clip(rr, 0, self.h - 1), np.clip(cc, 0, self.w - 1))
         m = m & okr[:, None] & okc[None, :]
         if not m.any():
             return 0

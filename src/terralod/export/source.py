@@ -251,6 +251,25 @@ class SourceGrid(SampleSource):
         """Filled heights and validity at the points (rows[k], cols[k]) (indices inside)."""
         return self.z_m[rows, cols], self.valid[rows, cols]
 
+    def water_any_all(self, r0: int, r1: int, c0: int, c1: int) -> tuple[bool, bool]:
+        """(some, every): whether any / every sample of rows [r0, r1), cols [c0, c1) (inside the grid, not
+        empty) is nodata or sea at exactly 0 m."""
+        from terralod.export.lattice import STRIP_SAMPLES
+
+        some, every = False, True
+        step = max(STRIP_SAMPLES // max(c1 - c0, 1), 2)
+        for ra in range(r0, r1, step):
+            wz, wok = self.window(ra, min(ra + step, r1), c0, c1)
+            wet = ~wok | (wz == 0.0)
+            some, every = some or bool(wet.any()), every and bool(wet.all())
+        return some, every
+
+    def water_gather(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """True at every (rows[i], cols[j]) (an outer product; indices inside) whose sample is nodata or
+        sea at exactly 0 m."""
+        z, ok = self.gather(rows, cols)
+        return ~ok | (z == 0.0)
+
 
 class RegionGrid(SourceGrid):
     """A WGS 84 longitude/latitude region (:class:`terralod.io.region.Region`: one DEM or a mosaic of
@@ -325,6 +344,12 @@ class RegionGrid(SourceGrid):
 
     def take(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.reader.take(rows, cols)
+
+    def water_any_all(self, r0: int, r1: int, c0: int, c1: int) -> tuple[bool, bool]:
+        return self.reader.water_any_all(r0, r1, c0, c1)
+
+    def water_gather(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        return self.reader.water_gather(rows, cols)
 
     def _points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise NotImplementedError("a region gives its samples a tile at a time (points_in)")

@@ -69,6 +69,16 @@ FILL_HALO = 64
 FILL_HALO_EXACT_MAX = 256
 #: Blocks a reader keeps (each FILL_BLOCK² samples: 1.25 MiB as float32 + mask, 2.25 MiB as float64).
 CACHE_BLOCKS = 48
+#: Bytes a reader keeps of what a block's nodata fill gave (its filled cells, or the whole filled block
+#: where most of it is fill): a block evicted from the LRU is read again from the files, never filled again.
+FILL_CACHE_BYTES = 64 << 20
+#: Thinned copies of every block made (every s-th row and column, s = THIN_MIN, 2 THIN_MIN, ... FILL_BLOCK;
+#: 1/48 of the block for s >= 8) are kept within THIN_CACHE_BYTES: a coarse zoom's grid reads them instead
+#: of every block of its window at full resolution (a region of 1e9 samples holds 100 MB of them).
+THIN_MIN = 8
+THIN_CACHE_BYTES = 32 << 20
+#: Bytes a reader keeps of packed water bits (nodata or 0 m) of blocks that hold some water and some land.
+WATER_CACHE_BYTES = 16 << 20
 #: Samples per strip of the scan (a few MB at a time).
 SCAN_STRIP_SAMPLES = 1 << 22
 #: File names a folder contributes (lower case).
@@ -408,9 +418,54 @@ def _has_gap(region: Region) -> bool:
 
 
 # -- reading blocks ------------------------------------------------------------------------------------
+class _BytesLRU:
+    """A least-recently-used map bounded by the bytes of its values (tuples of arrays); thread-safe."""
+
+    def __init__(self, budget: int) -> None:
+        self.budget = int(budget)
+        self.used = 0
+        self._d: OrderedDict[Any, tuple[Any, int]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: Any) -> Any:
+        with self._lock:
+            got = self._d.get(key)
+            if got is None:
+                return None
+            self._d.move_to_end(key)
+            return got[0]
+
+    def put(self, key: Any, value: Any, nbytes: int) -> None:
+        if nbytes > self.budget:
+            return
+        with self._lock:
+            old = self._d.pop(key, None)
+            if old is not None:
+                self.used -= old[1]
+            self._d[key] = (value, nbytes)
+            self.used += nbytes
+            while self.used > self.budget:
+                _, (_, n) = self._d.popitem(last=False)
+                self.used -= n
+
+
 class RegionReader:
     """The region's samples, nodata filled, block by block (see the module docstring), through a bounded
-    LRU of ``cache_blocks`` blocks; thread-safe (one open dataset per thread)."""
+    LRU of ``cache_blocks`` blocks; thread-safe (one open dataset per thread).
+
+    What each block costs is paid once, whatever the order of the windows asked for:
+
+    - its fill: the filled cells (or the whole filled block, where fill is most of it) are kept within
+      FILL_CACHE_BYTES, so a block evicted from the LRU is read again (a few ms) but never filled again;
+    - its water (nodata or exactly 0 m, on the unfilled values): whether it holds none, some or only
+      water, for every block made (two flags), and the packed bits of the blocks with some of each within
+      WATER_CACHE_BYTES: :meth:`water_any_all` and :meth:`water_gather` answer from them;
+    - a coarse grid (every s-th row and column, s >= THIN_MIN a power of two): :meth:`gather` reads the
+      thinned copies made with each block (kept within THIN_CACHE_BYTES) and the region's last row and
+      column (kept: the grids clamp to them), not every block at full resolution.
+
+    Memory: ``cache_blocks`` blocks plus those three budgets, whatever the region's size.
+    """
 
     def __init__(self, region: Region, *, cache_blocks: int = CACHE_BLOCKS) -> None:
         self.region = region
@@ -420,7 +475,14 @@ class RegionReader:
         self._local = threading.local()
         self._cache: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._lock = threading.Lock()
+        self._fills = _BytesLRU(FILL_CACHE_BYTES)
+        self._thin = _BytesLRU(THIN_CACHE_BYTES)
+        self._water_bits = _BytesLRU(WATER_CACHE_BYTES)
+        #: (some, every) water of each block made: (False, False) land only, (True, True) water only
+        self._water: dict[tuple[int, int], tuple[bool, bool]] = {}
+        self._edges: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.blocks_read = 0  #: blocks read from the files (cache misses), for benchmarks
+        self.blocks_filled = 0  #: blocks whose nodata fill was computed, for benchmarks
 
     def _dataset(self) -> Any:
         import rasterio
@@ -483,13 +545,44 @@ class RegionReader:
                 self._cache.popitem(last=False)
         return got
 
-    def _make_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
+    def _bounds(self, br: int, bc: int) -> tuple[int, int, int, int]:
         b = FILL_BLOCK
         r0, c0 = br * b, bc * b
-        r1, c1 = min(r0 + b, self.height), min(c0 + b, self.width)
+        return r0, min(r0 + b, self.height), c0, min(c0 + b, self.width)
+
+    def _make_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
+        got = self._read_filled(br, bc)
+        if self._thin.get((br, bc)) is None:
+            self._note_thinned(br, bc, *got)
+        return got
+
+    def _read_filled(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
+        r0, r1, c0, c1 = self._bounds(br, bc)
         values, ok = self.read_raw(r0, r1, c0, c1)
+        if (br, bc) not in self._water:
+            self._note_water(br, bc, values, ok)
         if ok.all():
             return values, ok
+        kept = self._fills.get((br, bc))
+        if kept is not None:  # the fill made before: its cells, or the whole filled block
+            idx, fv = kept
+            if idx is None:
+                return fv, ok
+            values.reshape(-1)[idx] = fv
+            return values, ok
+        filled = self._fill(r0, r1, c0, c1)
+        holes = np.flatnonzero(~ok.reshape(-1))
+        if 2 * holes.size <= ok.size:
+            fv = filled.reshape(-1)[holes]
+            self._fills.put((br, bc), (holes.astype(np.int32), fv), holes.size * 4 + fv.nbytes)
+        else:
+            self._fills.put((br, bc), (None, filled), filled.nbytes)
+        return filled, ok
+
+    def _fill(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """The filled heights of the block [r0, r1) x [c0, c1) (see the module docstring: the halo grown
+        until the block's fill is the whole grid's)."""
+        self.blocks_filled += 1
         halo = FILL_HALO
         while True:
             ra, ca = max(r0 - halo, 0), max(c0 - halo, 0)
@@ -503,7 +596,38 @@ class RegionReader:
                 raise InputError("has no valid samples", self.region.name)
             halo *= 2
         filled: np.ndarray = fill_nodata(wv, wok).astype(self.dtype)
-        return np.ascontiguousarray(filled[r0 - ra : r1 - ra, c0 - ca : c1 - ca]), ok
+        return np.ascontiguousarray(filled[r0 - ra : r1 - ra, c0 - ca : c1 - ca])
+
+    def _note_water(self, br: int, bc: int, values: np.ndarray, ok: np.ndarray) -> None:
+        """Record the block's water flags (and its packed bits where it holds some water and some land)."""
+        wet = ~ok
+        wet |= values == 0.0
+        some, every = bool(wet.any()), bool(wet.all())
+        if some and not every:
+            bits = np.packbits(wet, axis=None)
+            self._water_bits.put((br, bc), bits, bits.nbytes)
+        self._water[(br, bc)] = (some, every)
+
+    def _block_water(self, br: int, bc: int) -> tuple[bool, bool, np.ndarray | None]:
+        """(some, every, bits): the block's water flags and, where it holds both, its water as a bool
+        array (None otherwise)."""
+        flags = self._water.get((br, bc))
+        if flags is None:
+            z, ok = self.block(br, bc)
+            flags = self._water[(br, bc)]
+        some, every = flags
+        if not some or every:
+            return some, every, None
+        bits = self._water_bits.get((br, bc))
+        r0, r1, c0, c1 = self._bounds(br, bc)
+        if bits is None:
+            z, ok = self.block(br, bc)  # valid samples keep their values: the water of the unfilled ones
+            wet = ~ok | (z == 0.0)
+            bits = np.packbits(wet, axis=None)
+            self._water_bits.put((br, bc), bits, bits.nbytes)
+            return some, every, wet
+        n = (r1 - r0) * (c1 - c0)
+        return some, every, np.unpackbits(bits, count=n).view(bool).reshape(r1 - r0, c1 - c0)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -528,21 +652,117 @@ class RegionReader:
                 ]
         return z, ok
 
-    def gather(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Filled heights and validity at every (rows[i], cols[j]) (an outer product; indices inside)."""
+    def water_any_all(self, r0: int, r1: int, c0: int, c1: int) -> tuple[bool, bool]:
+        """(some, every): whether any / every sample of rows [r0, r1), cols [c0, c1) (inside the grid, not
+        empty) is nodata or exactly 0 m; from the blocks' flags where a block is all land or all water."""
+        b = FILL_BLOCK
+        some, every = False, True
+        for br in range(r0 // b, (r1 - 1) // b + 1):
+            for bc in range(c0 // b, (c1 - 1) // b + 1):
+                s_, e_, wet = self._block_water(br, bc)
+                if wet is not None:
+                    ra, rb = max(br * b, r0) - br * b, min((br + 1) * b, r1) - br * b
+                    ca, cb = max(bc * b, c0) - bc * b, min((bc + 1) * b, c1) - bc * b
+                    part = wet[ra:rb, ca:cb]
+                    s_, e_ = bool(part.any()), bool(part.all())
+                some, every = some or s_, every and e_
+        return some, every
+
+    def water_gather(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Water (nodata or exactly 0 m) at every (rows[i], cols[j]) (an outer product; indices inside)."""
         b = FILL_BLOCK
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
-        z: np.ndarray = np.empty((rows.size, cols.size), self.dtype)
-        ok = np.empty((rows.size, cols.size), bool)
+        out = np.zeros((rows.size, cols.size), bool)
         rb_, cb_ = rows // b, cols // b
         for br in np.unique(rb_):
             i = np.flatnonzero(rb_ == br)
             for bc in np.unique(cb_):
                 j = np.flatnonzero(cb_ == bc)
-                bz, bok = self.block(int(br), int(bc))
-                ii, jj = rows[i, None] - br * b, cols[None, j] - bc * b
-                z[i[:, None], j[None, :]] = bz[ii, jj]
-                ok[i[:, None], j[None, :]] = bok[ii, jj]
+                some, every, wet = self._block_water(int(br), int(bc))
+                if not some:
+                    continue
+                if every:
+                    out[i[:, None], j[None, :]] = True
+                elif wet is not None:
+                    out[i[:, None], j[None, :]] = wet[rows[i, None] - br * b, cols[None, j] - bc * b]
+        return out
+
+    def _edge(self, which: str) -> tuple[np.ndarray, np.ndarray]:
+        """The region's last row ("row") or last column ("col"): filled heights and validity (kept)."""
+        got = self._edges.get(which)
+        if got is None:
+            h, w = self.shape
+            got = self.window(h - 1, h, 0, w) if which == "row" else self.window(0, h, w - 1, w)
+            got = (got[0].reshape(-1).copy(), got[1].reshape(-1).copy())
+            self._edges[which] = got
+        return got
+
+    def _note_thinned(self, br: int, bc: int, z: np.ndarray, ok: np.ndarray) -> None:
+        """Keep every s-th row and column of a block just made, for s = THIN_MIN ... FILL_BLOCK (one buffer
+        of heights and one of validity per block: few, long-lived allocations)."""
+        parts = [(z[::s, ::s], ok[::s, ::s]) for s in _thin_strides()]
+        zs = np.concatenate([a.reshape(-1) for a, _ in parts])
+        oks = np.concatenate([b.reshape(-1) for _, b in parts])
+        views, at = {}, 0
+        for s, (a, _) in zip(_thin_strides(), parts, strict=True):
+            views[s] = (zs[at : at + a.size].reshape(a.shape), oks[at : at + a.size].reshape(a.shape))
+            at += a.size
+        self._thin.put((br, bc), views, zs.nbytes + oks.nbytes)
+
+    def _thinned(self, br: int, bc: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+        """Every s-th row and column of block (br, bc) from its first (s a power of two)."""
+        if s >= THIN_MIN:
+            views = self._thin.get((br, bc))
+            if views is None:
+                self.block(br, bc)  # makes and keeps them (unless the block was in the LRU: then now)
+                views = self._thin.get((br, bc))
+                if views is None:
+                    self._note_thinned(br, bc, *self.block(br, bc))
+                    views = self._thin.get((br, bc))
+            if views is not None:
+                got: tuple[np.ndarray, np.ndarray] = views[s]
+                return got
+        z, ok = self.block(br, bc)
+        return z[::s, ::s], ok[::s, ::s]
+
+    def gather(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Filled heights and validity at every (rows[i], cols[j]) (an outer product; indices inside).
+
+        Indices that are all multiples of a power of two s >= 2 (but for the region's last row and column)
+        are read from thinned blocks (s up to FILL_BLOCK) and the kept last row and column."""
+        b = FILL_BLOCK
+        rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
+        h, w = self.shape
+        s = _stride_of(rows, h - 1, cols, w - 1)
+        z: np.ndarray = np.empty((rows.size, cols.size), self.dtype)
+        ok = np.empty((rows.size, cols.size), bool)
+        if s > 1:
+            lr, lc = rows == h - 1, cols == w - 1
+            if lr.any():
+                ez, eok = self._edge("row")
+                z[lr, :], ok[lr, :] = ez[cols], eok[cols]
+            if lc.any():
+                ez, eok = self._edge("col")
+                z[:, lc], ok[:, lc] = ez[rows][:, None], eok[rows][:, None]
+            ri, ci = np.flatnonzero(~lr), np.flatnonzero(~lc)
+            rows_in, cols_in = rows[ri], cols[ci]
+        else:
+            ri, ci = np.arange(rows.size), np.arange(cols.size)
+            rows_in, cols_in = rows, cols
+        rb_, cb_ = rows_in // b, cols_in // b
+        for br in np.unique(rb_):
+            i = np.flatnonzero(rb_ == br)
+            for bc in np.unique(cb_):
+                j = np.flatnonzero(cb_ == bc)
+                ii, jj = rows_in[i, None] - br * b, cols_in[None, j] - bc * b
+                if s > 1:
+                    bz, bok = self._thinned(int(br), int(bc), s)
+                    ii, jj = ii // s, jj // s
+                else:
+                    bz, bok = self.block(int(br), int(bc))
+                dst = (ri[i][:, None], ci[j][None, :])
+                z[dst] = bz[ii, jj]
+                ok[dst] = bok[ii, jj]
         return z, ok
 
     def take(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -565,6 +785,28 @@ class RegionReader:
             z[sel] = bz[rf[sel] - br * b, cf[sel] - bc * b]
             ok[sel] = bok[rf[sel] - br * b, cf[sel] - bc * b]
         return z.reshape(shape), ok.reshape(shape)
+
+
+def _thin_strides() -> list[int]:
+    """The strides whose thinned copies a reader keeps: THIN_MIN, 2 THIN_MIN, ... FILL_BLOCK."""
+    out, s = [], THIN_MIN
+    while s <= FILL_BLOCK:
+        out.append(s)
+        s *= 2
+    return out
+
+
+def _stride_of(rows: np.ndarray, last_row: int, cols: np.ndarray, last_col: int) -> int:
+    """The largest power of two s <= FILL_BLOCK that divides every row and column index but the grid's last
+    row and column (1 when there is none, or when an index is odd)."""
+    r = rows[rows != last_row]
+    c = cols[cols != last_col]
+    both = np.concatenate([r, c])
+    if both.size == 0:
+        return 1
+    low = both & -both  # each index's lowest set bit (0 for index 0: a multiple of any s)
+    low = low[low > 0]
+    return int(min(low.min(), FILL_BLOCK)) if low.size else FILL_BLOCK
 
 
 def _exact(ok: np.ndarray, win: tuple[int, int, int, int], core: tuple[int, int, int, int],
