@@ -77,20 +77,25 @@ __all__ = [
 FILL_BLOCK = 512
 FILL_HALO = 64
 #: GDAL's block cache of a process reading windows, bytes (GDAL's default, 5 % of the RAM, would hold
-#: decompressed blocks up to GiBs on a large machine); left alone when GDAL_CACHEMAX is set.
-GDAL_CACHE_BYTES = 128 << 20
-#: Filled blocks kept per source and process (each (FILL_BLOCK)^2 float32 + bool, 1.25 MiB).
-FILL_CACHE_BLOCKS = 64
+#: decompressed blocks up to GiBs on a large machine); left alone when GDAL_CACHEMAX is set. A work unit's
+#: window (about 1024² samples of the store's grid) needs a few MiB of decompressed source blocks.
+GDAL_CACHE_BYTES = 64 << 20
+#: Filled blocks kept per source and process (each a (FILL_BLOCK)^2 float32 copy, 1 MiB, not a view of the
+#: haloed array it was cut from): the 3 x 3 blocks of a work unit's window for each of two units in flight,
+#: and their neighbours. A block is a pure function of its index, so the count changes time, not values.
+FILL_CACHE_BLOCKS = 24
 #: A geographic or Mercator region is warped in fixed blocks of WARP_ROWS rows by the grid's whole width
 #: (cut into equal bands of at most WARP_MAX_COLS columns): GDAL's approximate transformer interpolates
 #: the source position along each destination row of a chunk, so a block as wide as the grid samples where
 #: a whole-grid warp does (the in-memory reader's). WARP_MARGIN_PX source pixels are read around a block's
 #: transformed footprint (bilinear reads one); WARP_CACHE_SAMPLES warped samples (9 bytes each: float64 +
-#: mask) are kept per source and process.
+#: mask, 75 MB) are kept per source and process: the three block rows a row of work units reads (a unit's
+#: window is about 1024 rows) on a grid 5,400 samples wide, fewer on wider grids (a block is a pure function
+#: of its index, so the count changes time, not values).
 WARP_ROWS = 512
 WARP_MAX_COLS = 8192
 WARP_MARGIN_PX = 4
-WARP_CACHE_SAMPLES = 1 << 24
+WARP_CACHE_SAMPLES = 1 << 23
 #: Sources whose open datasets and fill caches a process keeps for the copies that unpickle into it.
 SHARED_SOURCES = 4
 
@@ -191,7 +196,7 @@ class _BlockFilled(WindowSource):
     test), so a block away from large holes is filled as the in-memory reader fills it."""
 
     exact_fill = False
-    _cache: OrderedDict
+    _cache: OrderedDict[tuple[int, int], np.ndarray]
     _lock: threading.Lock
 
     def read_raw(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
@@ -226,7 +231,7 @@ class _BlockFilled(WindowSource):
         with self._lock:
             if key in self._cache:
                 self._cache.move_to_end(key)
-                return self._cache[key][0]
+                return self._cache[key]
         b = FILL_BLOCK
         r0, c0 = br * b, bc * b
         r1, c1 = min(r0 + b, self.height), min(c0 + b, self.width)
@@ -244,9 +249,11 @@ class _BlockFilled(WindowSource):
             halo *= 2
         if not ok.any():
             raise InputError("band has no valid samples (all nodata)", self.source)
-        filled = fill_nodata(values, ok).astype(np.float32)[r0 - ra : r1 - ra, c0 - ca : c1 - ca]
+        # a copy: a view would keep the haloed array (up to (FILL_BLOCK + 2 FILL_HALO_EXACT_MAX)^2) alive
+        filled = np.array(fill_nodata(values, ok)[r0 - ra : r1 - ra, c0 - ca : c1 - ca], np.float32)
+        del values, ok
         with self._lock:
-            self._cache[key] = (filled, ok)
+            self._cache[key] = filled
             while len(self._cache) > FILL_CACHE_BLOCKS:
                 self._cache.popitem(last=False)
         return filled
@@ -290,7 +297,7 @@ class RasterSource(_BlockFilled):
         # the files as they are now: a file replaced or rewritten later is another source
         self._files = tuple((st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns) for st in map(os.stat, plist))
         self._local = threading.local()
-        self._cache: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._cache: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
         ds = self._dataset()
         src = self.paths[0] if self._vrt is None else self.source
@@ -449,7 +456,7 @@ class _WarpState:
     def __init__(self, region: Any, n_valid: int) -> None:
         self.original = RegionSamples(region, n_valid)
         self.warped: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
-        self.filled: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self.filled: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self.lock = threading.Lock()
 
 

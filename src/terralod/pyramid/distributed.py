@@ -31,8 +31,12 @@ Heightfield behind the same interface) without ever holding the whole DEM:
    mask), plus 9 for cohesion's float64 copy and mask (its coarse levels refine on the full-resolution
    source): about 3.7 GB for a 16385² root (an estimate from the array sizes, not measured). The default
    budget (4097² samples read whole) bounds a work unit at about 14 bytes x 16.8 M = 235 MB plus the
-   mesher's per-quad arrays; a process also holds GDAL's block cache (capped at 128 MiB by the window
-   source) and one plan strip (at most ``SCAN_STRIP_SAMPLES``).
+   mesher's per-quad arrays, and a thread runner runs one such large unit at a time
+   (``_LARGE_UNITS_IN_FLIGHT``; the fine units go on beside it); a process also holds GDAL's block cache
+   (capped at 64 MiB by the window source), the window source's caches (a fixed size whatever the
+   region's, :mod:`terralod.io.windowed`, :mod:`terralod.pyramid.original`) and one plan strip (at most
+   ``SCAN_STRIP_SAMPLES``). The heap a unit frees is handed back to the kernel
+   (:func:`release_free_heap`), so what stays resident is the units in flight and those caches.
 4. **One writer**: results stream back (threads or Dask futures, as they complete) to the caller's
    process, which commits them in transactions of at most ``_BATCH_TILES`` tiles or
    ``_COMMIT_SECONDS`` (the builder's policy). No barrier between levels: the units of the coarsest
@@ -119,6 +123,7 @@ __all__ = [
     "build_store_windowed",
     "build_unit",
     "dask_client",
+    "release_free_heap",
     "scan_source",
     "tune_worker_malloc",
 ]
@@ -409,6 +414,38 @@ def tune_worker_malloc() -> bool:
     return _malloc_tuned
 
 
+_libc_trim: Any = None
+_last_trim = 0.0
+#: Seconds between two trims of the heap after small units (:func:`release_free_heap`).
+TRIM_INTERVAL_S = 2.0
+
+
+def release_free_heap(force: bool = True) -> bool:
+    """Hand the heap pages glibc holds free back to the kernel (``malloc_trim(0)``): always with
+    ``force``, else at most once every ``TRIM_INTERVAL_S``. False where nothing was trimmed (off glibc).
+
+    A unit's arrays below glibc's adaptive mmap threshold (up to 32 MiB: :func:`tune_worker_malloc`)
+    come from per-thread arenas, whose freed pages glibc keeps for reuse: on the 4-tile SRTM3 region
+    the process sat at about 800 MiB between units against 480 MiB trimmed, and a coarse tile's window
+    freed in one thread's arena stayed resident while the other thread meshed the next. Trimming after
+    each large unit, and every few seconds after the others, bounds the resident heap by the units in
+    flight (trimmed pages fault in again when reused)."""
+    global _libc_trim, _last_trim
+    if _libc_trim is None:
+        try:
+            import ctypes
+
+            _libc_trim = ctypes.CDLL("libc.so.6").malloc_trim
+        except (OSError, AttributeError):  # not glibc (macOS, musl, Windows)
+            _libc_trim = False
+    now = time.monotonic()
+    if _libc_trim is False or (not force and now - _last_trim < TRIM_INTERVAL_S):
+        return False
+    _last_trim = now
+    _libc_trim(0)
+    return True
+
+
 def build_unit(
     src: WindowSource,
     tile_size: int,
@@ -421,8 +458,28 @@ def build_unit(
 ) -> list[EncodedTile]:
     """Build the tiles ``codes`` (one level, one block) from their window of ``src``: the work unit of
     threads and Dask workers alike (module-level, picklable arguments). A mesher whose options come from
-    the whole terrain (adaptive's ladder) meshes with the store's stated ``build_options``."""
+    the whole terrain (adaptive's ladder) meshes with the store's stated ``build_options``. The heap the
+    unit freed goes back to the kernel as it returns (:func:`release_free_heap`: after a large unit, and
+    every few seconds)."""
     tune_worker_malloc()
+    try:
+        return _build_unit(src, tile_size, method, codes, quant, child_errors, max_window_samples,
+                           build_options)  # fmt: skip
+    finally:
+        release_free_heap(force=_large_unit((src, tile_size, method, codes)))
+
+
+def _build_unit(
+    src: WindowSource,
+    tile_size: int,
+    method: str,
+    codes: list[TileCode],
+    quant: LevelQuantisation,
+    child_errors: dict[TileCode, list[tuple[float, float]]],
+    max_window_samples: int | None,
+    build_options: dict[str, Any] | None,
+) -> list[EncodedTile]:
+    """:func:`build_unit`'s work."""
     pyramid = TilePyramid(src.width, src.height, tile_size)
     mesh_fn = builder.METHODS[method]
     fixed = getattr(mesh_fn, "with_build_options", None)
@@ -655,6 +712,20 @@ def dask_client(
         ) from None
 
 
+#: Large units (:func:`_large_unit`) a thread runner runs at once: each holds a whole coarse tile's window
+#: (up to ``max_window_samples``, 4097² by default: about 235 MB as read plus the mesher's per-quad
+#: arrays), so two at once doubled the build's peak memory while the fine units, a few MB each, waited.
+_LARGE_UNITS_IN_FLIGHT = 1
+
+
+def _large_unit(job: tuple[Any, ...]) -> bool:
+    """Whether a unit's job (:func:`build_unit`'s arguments) meshes a tile whose window is over
+    ``MEASURE_STRIP_SAMPLES`` samples (one tile of span 2048 or more: the coarse levels)."""
+    src, tile_size, _, codes = job[:4]
+    span = TilePyramid(src.width, src.height, tile_size).span(codes[0][0])
+    return bool((min(span, src.height - 1) + 1) * (min(span, src.width - 1) + 1) > MEASURE_STRIP_SAMPLES)
+
+
 class _ThreadRunner:
     """Units on a thread pool of this process (the numba kernels release the GIL)."""
 
@@ -669,22 +740,39 @@ class _ThreadRunner:
         return self.threads
 
     def stream(self, jobs: Iterable[tuple], ahead: int) -> Iterator[list[EncodedTile]]:
-        """Results of ``build_unit(*job)`` as they complete, at most ``ahead`` units in flight."""
+        """Results of ``build_unit(*job)`` as they complete, at most ``ahead`` units in flight, of which at
+        most ``_LARGE_UNITS_IN_FLIGHT`` large ones (:func:`_large_unit`): a large unit met while that many
+        run waits, in order, and the units after it go ahead, so no thread idles for it. Each unit's tiles
+        are a pure function of its job, so the order changes when tiles arrive, not their bytes."""
         it = iter(jobs)
         pending: set = set()
+        large: set[Any] = set()
+        deferred: list[tuple[Any, ...]] = []
+
+        def submit(job: tuple[Any, ...]) -> None:
+            fut = self.pool.submit(build_unit, *job)
+            pending.add(fut)
+            if _large_unit(job):
+                large.add(fut)
 
         def top_up() -> None:
+            while deferred and len(large) < _LARGE_UNITS_IN_FLIGHT and len(pending) < ahead:
+                submit(deferred.pop(0))
             while len(pending) < ahead:
                 job = next(it, None)
                 if job is None:
                     return
-                pending.add(self.pool.submit(build_unit, *job))
+                if _large_unit(job) and len(large) >= _LARGE_UNITS_IN_FLIGHT:
+                    deferred.append(job)
+                    continue
+                submit(job)
 
         top_up()
         try:
             while pending:
                 done, rest = wait(pending, return_when=FIRST_COMPLETED)
                 pending.intersection_update(rest)
+                large.intersection_update(rest)
                 top_up()
                 for fut in done:
                     yield fut.result()

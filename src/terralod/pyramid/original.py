@@ -161,11 +161,16 @@ def tile_samples(
 
 
 #: Side of the blocks of source samples whose store-CRS positions are transformed together and cached
-#: (16 bytes a sample: 1 MiB a block), and the blocks kept per source (LRU): a tile's window reads the
-#: positions of its blocks instead of transforming them again at every level (PROJ through GDAL costs
-#: about 0.7 us a point; SRTM3 N42E001's 1.44 M samples lie in 7 levels of tiles).
+#: (16 bytes a sample: 1 MiB a block), and the blocks kept per source (LRU, 96 MiB): the tiles of a work
+#: unit and of its neighbours read the positions of their blocks instead of transforming them again
+#: (PROJ through GDAL costs about 0.7 us a point). A unit's window (about 1024² store samples) covers some
+#: 5 x 5 blocks of a 3" source. The levels sweep the region in the same order, so a region of up to 96
+#: blocks (4 SRTM3 tiles: 88) is transformed once for all of them, and a larger one again at each level
+#: whatever the count (16 tiles: 352 blocks, and an LRU swept by more blocks than it keeps misses each
+#: one, as 256 kept did). A block is the same
+#: numbers whenever it is transformed: the count changes time, not values.
 POSITION_BLOCK = 256
-POSITION_BLOCKS_KEPT = 256
+POSITION_BLOCKS_KEPT = 96
 
 
 class _Positions:
