@@ -139,6 +139,12 @@ def _library_kernels(hf) -> None:
     used_bounds(pts, tri)
     pts.setflags(write=False)
     used_bounds(pts, tri)
+    # a TIN store's quantized-mesh export: the bucket grid that locates points in its triangles
+    from terralod.kernels.tinlocate import bucket_triangles, locate_points
+
+    xs, ys = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    start, items = bucket_triangles(xs, ys, tri, 1, 1, 0.0, 0.0, 1.0, 1.0)
+    locate_points(xs, ys, tri, start, items, 1, 1, 0.0, 0.0, 1.0, 1.0, np.array([0.2]), np.array([0.2]))
 
 
 def warm_up(report: Callable[[str], None] | None = None) -> dict[str, float]:

@@ -23,6 +23,7 @@ __all__ = [
     "export_inputs",
     "export_key",
     "source_heightfield",
+    "streamed_digest",
     "valid_at",
 ]
 
@@ -67,6 +68,41 @@ def source_heightfield(terrain: Any) -> Any:
     except Exception:  # noqa: BLE001 - a source that no longer reads is simply not used
         return None
     return hf if hf.digest() == digest else None
+
+
+#: Samples per strip of :func:`streamed_digest` (a few tens of MB at a time).
+DIGEST_STRIP_SAMPLES = 1 << 22
+
+
+def streamed_digest(src: Any) -> str:
+    """:meth:`terralod.heightfield.Heightfield.digest` of a window source (:mod:`terralod.io.windowed`: the
+    grid a build made of its input), read in strips of full rows: the sha256 of the float32 elevations in
+    row order, then of the packed validity, then of the transform and CRS, the bytes the whole grid's
+    digest hashes. Memory: one strip."""
+    import hashlib
+    import tempfile
+
+    h, w = src.height, src.width
+    step = max(8, (DIGEST_STRIP_SAMPLES // max(w, 1)) // 8 * 8)  # rows: whole bytes of packed bits
+    hz = hashlib.sha256()
+    carry = np.zeros(0, bool)
+    with tempfile.TemporaryFile() as bits:
+        for r0 in range(0, h, step):
+            r1 = min(r0 + step, h)
+            z, ok = src.read(r0, 0, r1, w)
+            hz.update(np.ascontiguousarray(z, dtype=np.float32))
+            flat = np.concatenate([carry, np.asarray(ok, bool).ravel()])
+            cut = flat.size - flat.size % 8
+            bits.write(np.packbits(flat[:cut]).tobytes())
+            carry = flat[cut:]
+        if carry.size:
+            bits.write(np.packbits(carry).tobytes())
+        bits.seek(0)
+        while chunk := bits.read(1 << 24):
+            hz.update(chunk)
+    hz.update(repr(tuple(src.transform)[:6]).encode())
+    hz.update((src.crs or "").encode())
+    return hz.hexdigest()
 
 
 def apply_affine(t: Any, x: Any, y: Any) -> tuple[np.ndarray, np.ndarray]:

@@ -375,11 +375,46 @@ class RegionGrid(SourceGrid):
         self.reader.close()
 
 
+class _TriangleLocator:
+    """Which triangle of (x, y, tris) holds each query point (-1: none), by a bucket grid of about two
+    triangles a cell (:func:`terralod.kernels.tinlocate.bucket_triangles`): built in O(T), queried in
+    O(1) a point for a triangulation of even density."""
+
+    def __init__(self, x: np.ndarray, y: np.ndarray, tris: np.ndarray) -> None:
+        from terralod.kernels.tinlocate import bucket_triangles
+
+        self.x, self.y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
+        self.tris = np.ascontiguousarray(tris, np.int64)
+        x0, x1 = float(self.x.min()), float(self.x.max())
+        y0, y1 = float(self.y.min()), float(self.y.max())
+        cells = max(len(self.tris) // 2, 1)
+        wx, wy = max(x1 - x0, 1e-9), max(y1 - y0, 1e-9)
+        nx = max(1, min(int(round(math.sqrt(cells * wx / wy))), 1 << 14))
+        ny = max(1, min(int(round(cells / nx)), 1 << 14))
+        self.grid = (nx, ny, x0, y0, nx / wx, ny / wy)
+        self.start, self.items = bucket_triangles(self.x, self.y, self.tris, *self.grid)
+
+    def locate(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
+        from terralod.kernels.tinlocate import locate_points
+
+        return np.asarray(locate_points(self.x, self.y, self.tris, self.start, self.items, *self.grid,
+                                        np.ascontiguousarray(px, np.float64),
+                                        np.ascontiguousarray(py, np.float64)))  # fmt: skip
+
+
 class TinSource(SampleSource):
-    """A TIN store's finest surface: its vertices are the samples, its triangles the surface."""
+    """A TIN store's finest surface: its vertices are the samples, its triangles the surface.
+
+    The leaves' vertices are merged where their positions agree to 0.1 mm (:func:`merge_pairs` on the
+    rounded coordinates, ordered as ``np.unique(..., axis=0)`` orders them); a point is located by a bucket
+    grid (:mod:`terralod.kernels.tinlocate`) and its height is matplotlib's: the plane coefficients of
+    ``Triangulation.calculate_plane_coefficients`` evaluated as ``LinearTriInterpolator`` does (a x + b y
+    + c), so a point in the same triangle gets the same bits. Outside the hull: the nearest vertex."""
 
     def __init__(self, terrain: Any, geo: Any) -> None:
         import matplotlib.tri as mtri
+
+        from terralod.kernels.meshtopo import merge_pairs
 
         super().__init__()
         tree = terrain.lod_tree()
@@ -396,11 +431,19 @@ class TinSource(SampleSource):
             ts.append(remap[t] + base)
             base += used.size
         allv = np.concatenate(vs)
-        _, first, inv = np.unique(np.round(allv[:, :2], 4), axis=0, return_index=True, return_inverse=True)
-        xyz = allv[first]
-        tri = inv.reshape(-1)[np.concatenate(ts)]
+        key = np.round(allv[:, :2], 4) + 0.0  # -0.0 made 0.0: equal positions, equal bits
+        group = merge_pairs(np.ascontiguousarray(key).view(np.int64))
+        ng = int(group.max()) + 1 if group.size else 0
+        first = np.empty(ng, np.int64)
+        first[group[::-1]] = np.arange(group.size - 1, -1, -1)  # each group's first row
+        order = np.lexsort((key[first, 1], key[first, 0]))  # np.unique's order: x, then y
+        rank = np.empty(ng, np.int64)
+        rank[order] = np.arange(ng)
+        xyz = allv[first[order]]
+        tri = np.ascontiguousarray(rank[group][np.concatenate(ts)].reshape(-1, 3), np.int64)
         self.geo = geo
-        self._interp = mtri.LinearTriInterpolator(mtri.Triangulation(xyz[:, 0], xyz[:, 1], tri), xyz[:, 2])
+        self._planes = mtri.Triangulation(xyz[:, 0], xyz[:, 1], tri).calculate_plane_coefficients(xyz[:, 2])
+        self._locator = _TriangleLocator(xyz[:, 0], xyz[:, 1], tri)
         from scipy.spatial import cKDTree
 
         self._kd = cKDTree(xyz[:, :2])
@@ -420,12 +463,17 @@ class TinSource(SampleSource):
     def height_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         w, s, e, n = self.bbox
         x, y = self.geo.xy(np.clip(lon, w, e), np.clip(lat, s, n))
-        z = np.asarray(self._interp(x, y).filled(np.nan), np.float64)
+        x, y = np.ravel(np.asarray(x, np.float64)), np.ravel(np.asarray(y, np.float64))
+        t = self._locator.locate(x, y)
+        inside = t >= 0
+        z = np.full(x.shape, np.nan)
+        ti, xi, yi = t[inside], x[inside], y[inside]
+        z[inside] = self._planes[ti, 0] * xi + self._planes[ti, 1] * yi + self._planes[ti, 2]
         bad = ~np.isfinite(z)
         if bad.any():  # outside the TIN's hull: the nearest vertex (its edge extended outward)
             _, j = self._kd.query(np.column_stack([x[bad], y[bad]]))
             z[bad] = self.xyz[j, 2]
-        return z
+        return z.reshape(np.shape(lon))
 
     def water_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         return np.zeros(np.shape(lon), bool)
@@ -557,11 +605,44 @@ def source_from_region(inputs: Any, crs: Any = None) -> SourceGrid:
     return grid
 
 
+def _windowed_source(terrain: Any) -> RegionGrid | None:
+    """The WGS 84 longitude/latitude samples a store was built from (one file or a region: a folder, glob,
+    VRT), read window by window (:class:`RegionGrid`), when they are still there and give the store's
+    digest; None otherwise (a projected source, a store of epochs, a moved or changed source).
+
+    The digest is the one the build recorded, of the grid it resampled to UTM: checked by building that
+    grid again strip by strip (:func:`terralod.io.windowed.open_source`,
+    :func:`terralod.export.common.streamed_digest`), never whole, so memory stays one strip and one
+    block cache however large the region is."""
+    from terralod.export.common import streamed_digest
+    from terralod.io.region import resolve_region
+    from terralod.io.windowed import open_source
+
+    meta = getattr(terrain, "meta", {}) or {}
+    src, digest = meta.get("source"), meta.get("source_digest")
+    if getattr(terrain, "epochs", None) or not src or not digest or not Path(str(src)).exists():
+        return None
+    try:
+        region = resolve_region([str(src)])
+        if not _is_lonlat_wgs84(region.crs):
+            return None
+        warped = open_source(str(src))
+        if streamed_digest(warped) != digest:
+            return None
+        return RegionGrid(region)
+    except Exception:  # noqa: BLE001 - a source that no longer reads as it did is simply not used
+        return None
+
+
 def source_for(terrain: Any, geo: Any) -> SampleSource:
     """The samples behind a store: its source DEM on its own lattice when it can be read again and is the
-    one the store was built from; the store's grid when only that is known; a TIN store's vertices."""
+    one the store was built from (a WGS 84 longitude/latitude one window by window, :func:`_windowed_source`);
+    the store's grid when only that is known; a TIN store's vertices."""
     from terralod.export.common import source_heightfield
 
+    windowed = _windowed_source(terrain)
+    if windowed is not None:
+        return windowed
     hf = source_heightfield(terrain)
     if hf is not None:
         meta = getattr(terrain, "meta", {}) or {}
