@@ -146,3 +146,73 @@ def test_3dtiles_heights_are_ellipsoidal_with_a_known_datum(tmp_path: Path) -> N
         assert miss.max() <= gl["extras"]["encoding_error_m"] + 1e-3, miss.max()
         assert view.error_m(code) >= ref.error_m(code)  # N's spread over the tile is added, never less
         assert view.error_m(code) - ref.error_m(code) < 1.0  # a 2 km tile: N moves by centimetres
+
+
+def _geographic_dem(tmp_path: Path) -> Path:
+    """A small EPSG:4326 DEM on the Ligurian coast (about 48 m of EGM96 undulation)."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    r, c = np.mgrid[0:121, 0:121]
+    z = (400.0 + 150.0 * np.sin(r / 11.0) * np.cos(c / 9.0)).astype("float32")
+    tif = tmp_path / "lig_ll.tif"
+    with rasterio.open(tif, "w", driver="GTiff", width=121, height=121, count=1, dtype="float32",
+                       crs="EPSG:4326", transform=from_origin(8.9, 44.4, 0.001, 0.001)) as ds:  # fmt: skip
+        ds.write(z, 1)
+    return tif
+
+
+@pytest.mark.parametrize("kind", ["store", "dem"])
+def test_quantized_mesh_heights_are_ellipsoidal_and_errors_hold(tmp_path: Path, kind: str) -> None:
+    """Decoded tile heights = the DEM's heights + N (independently: matplotlib's linear interpolation of the
+    decoded tile at every DEM sample, against the sample's height + NGA-checked EGM96 N), within each tile's
+    declared error; layer.json names the operation."""
+    import json
+
+    import matplotlib.tri as mtri
+    import rasterio
+    from pyproj import Transformer
+
+    from terralod.export.quantized_mesh import decode_tile, export_quantized_mesh, tile_rectangle
+    from terralod.export.source import source_from_dem
+    from terralod.terrain import open_terrain
+
+    conv = _egm96()
+    if kind == "store":
+        store = _liguria_store(tmp_path, None)
+        src_tif, terrain = tmp_path / "lig.tif", open_terrain(store)
+    else:
+        src_tif = _geographic_dem(tmp_path)
+        terrain = source_from_dem(src_tif)
+    out = tmp_path / f"qm-{kind}"
+    export_quantized_mesh(terrain, out, vertical_datum="egm96")
+    layer = json.loads((out / "layer.json").read_text())
+    assert layer["terralod"]["heights"]["datum"] == "egm96"
+    assert "EGM96" in layer["terralod"]["heights"]["operation"]
+    declared = json.loads((out / "errors.json").read_text())["tiles"]
+    with rasterio.open(src_tif) as ds:
+        z = ds.read(1).astype(np.float64)
+        t, crs = ds.transform, ds.crs
+    rr, cc = np.mgrid[0 : z.shape[0], 0 : z.shape[1]]
+    x, y = t.c + (cc.ravel() + 0.5) * t.a, t.f + (rr.ravel() + 0.5) * t.e
+    lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(x, y)
+    lon, lat = np.asarray(lon), np.asarray(lat)
+    h_ell = z.ravel() + conv.undulation_m(lon, lat)
+    zmax = max(int(k.split("/")[0]) for k in declared)
+    checked = 0
+    for key, err in declared.items():
+        zz, xx, yy = (int(v) for v in key.split("/"))
+        if zz != zmax:
+            continue
+        rect = tile_rectangle(zz, xx, yy)
+        d = decode_tile((out / str(zz) / str(xx) / f"{yy}.terrain").read_bytes(), rect)
+        inside = (lon >= rect[0]) & (lon <= rect[2]) & (lat >= rect[1]) & (lat <= rect[3])
+        if not inside.any():
+            continue
+        tri = mtri.Triangulation(d["lon"], d["lat"], np.asarray(d["triangles"]))
+        surf = np.ma.filled(mtri.LinearTriInterpolator(tri, d["height"])(lon[inside], lat[inside]), np.nan)
+        ok = np.isfinite(surf)
+        assert np.nanmedian(surf[ok] - z.ravel()[inside][ok]) > 40.0  # the undulation is in the tile
+        assert np.max(np.abs(surf[ok] - h_ell[inside][ok])) <= err + 0.05, (key, err)
+        checked += 1
+    assert checked >= 1

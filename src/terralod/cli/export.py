@@ -116,10 +116,16 @@ from terralod.output import Lock, Output, refuse_inputs, work_path
     help="3dtiles: stop at a finest declared error of E metres: leave out the tiles whose parent already "
     "declares at most E (default: down to the finest level the store holds).",
 )
+@click.option(
+    "--vertical-datum", default=None,
+    help="What the heights are above when the store's or DEM's CRS does not say: egm96 (SRTM, Copernicus), "
+    "egm2008, navd88, ellipsoid or a vertical CRS (EPSG:5773); the tiles then carry heights above the WGS 84 "
+    "ellipsoid (the operation PROJ used is recorded in tileset.json / layer.json).",
+)  # fmt: skip
 def export(
     inputs: tuple[str, ...], fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool,
     gzip_tiles: bool, normals: bool, resume: bool, update_output: bool, bbox: str | None, min_zoom: int,
-    max_zoom: int | None, glb_geometry: str | None, max_error_m: float | None,
+    max_zoom: int | None, glb_geometry: str | None, max_error_m: float | None, vertical_datum: str | None,
 ) -> None:  # fmt: skip
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh, or DEMs (a region: files, a quoted glob, a
     folder, a VRT, .hgt/.hgt.zip; where they overlap the last one listed wins) as quantized-mesh."""
@@ -145,7 +151,12 @@ def export(
         raise click.BadParameter(
             "--resume and --update are for 3dtiles and quantized-mesh", param_hint="--format"
         )
-    opts = {"overwrite": overwrite, "resume": resume, "update": update_output}
+    opts = {
+        "overwrite": overwrite,
+        "resume": resume,
+        "update": update_output,
+        "vertical_datum": vertical_datum,
+    }
     from terralod.export.common import check_exportable
     from terralod.export.geodesy import Geodesy
     from terralod.terrain import _is_sqlite, open_terrain

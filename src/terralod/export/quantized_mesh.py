@@ -91,6 +91,14 @@ FINEST_ERROR_M = 3.0
 RMS_GOAL_M = 8.0
 
 
+def _undulation_spread_m(geoid: Any, rect: tuple[float, float, float, float], n: int = 9) -> float:
+    """max − min of the geoid undulation over a tile rectangle (degrees), on an n × n lattice."""
+    w, s, e, nn = rect
+    lon, lat = np.meshgrid(np.linspace(w, e, n), np.linspace(s, nn, n))
+    und = geoid.undulation_m(lon.ravel(), lat.ravel())
+    return float(np.nanmax(und) - np.nanmin(und)) if np.isfinite(und).any() else 0.0
+
+
 def level_max_error_m(z: int) -> float:
     """CesiumJS's level maximum geometric error of the geographic scheme (a 65² heightmap's, 0.25 quality)."""
     return WGS84_A_M * 2.0 * math.pi * 0.25 / (65 * 2) / (1 << z)
@@ -205,8 +213,9 @@ class QuantizedMesh:
     """
 
     def __init__(
-        self, terrain: Any, *, target_fraction: float = TARGET_FRACTION, normals: bool = False
-    ) -> None:
+        self, terrain: Any, *, target_fraction: float = TARGET_FRACTION, normals: bool = False,
+        vertical_datum: str | None = None,
+    ) -> None:  # fmt: skip
         from terralod.export.lattice import Lattice
         from terralod.export.source import SampleSource, source_for
 
@@ -215,11 +224,17 @@ class QuantizedMesh:
             self.terrain = None
             self.ref = terrain
             self.name = getattr(terrain, "title", None) or Path(terrain.name).stem
+            geo = Geodesy(getattr(terrain, "crs", None) or "EPSG:4326", None, geographic=True,
+                          vertical_datum=vertical_datum)  # fmt: skip
         else:
             self.terrain = terrain
             where = str(terrain.path) if terrain.path is not None else None
-            self.ref = source_for(terrain, Geodesy(terrain.crs, where))
+            geo = Geodesy(terrain.crs, where, vertical_datum=vertical_datum)
+            self.ref = source_for(terrain, geo)
             self.name = Path(str(terrain.path)).stem if terrain.path is not None else "terrain"
+        #: stored heights → heights above the WGS 84 ellipsoid (None: as read), and what the outputs say
+        self.geoid = geo.geoid
+        self.heights = geo.vertical_record()
         self.target_fraction = target_fraction
         self.normals = bool(normals)
         self.bbox = self.ref.bbox
@@ -300,7 +315,7 @@ class QuantizedMesh:
             "extensions": (["octvertexnormals"] if self.normals else []) + ["watermask"],
             "available": [[dict(zip(("startX", "startY", "endX", "endY"), r, strict=True))] if r else []
                           for r in available],
-            "terralod": {"heights": "as read (no geoid change)",
+            "terralod": {"heights": self.heights,
                          "error": "max vertical distance (m) between each tile as decoded (after quantisation) "
                                   "and every valid source sample inside it, in the source's own samples",
                          "outside": "the data's edge values extended outward (no cliff); watermask 255 marks "
@@ -394,8 +409,13 @@ class QuantizedMesh:
             wm, kind = 255, "all"
         else:
             wm, kind = (wmask * 255).astype(np.uint8), "some"
-        raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
         plon, plat, pz = self.ref.points_in(z, x, y)
+        if (
+            self.geoid is not None
+        ):  # vertices and samples alike made ellipsoidal: the error is measured on them
+            hv = hv + self.geoid.undulation_m(lon, lat)
+            pz = pz + self.geoid.undulation_m(plon, plat)
+        raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
         err = _ceil4(true_error_m(decode_tile(raw, rect), rect, plon, plat, pz))
         nodata = float(water[1:-1, 1:-1].mean()) if kind != "none" else 0.0
         if regular is None and target_m is None:
@@ -442,8 +462,18 @@ class QuantizedMesh:
             normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         wm = lat_.water_mask(rect)
         kind = "some" if isinstance(wm, np.ndarray) else ("all" if wm == 255 else "none")
+        spread = 0.0
+        if self.geoid is not None:
+            # each vertex moves by its own undulation N; the decoded tile less N at its vertices is measured
+            # against the lattice, and N's spread over the tile bounds what N does between vertices
+            hv = hv + self.geoid.undulation_m(lon, lat)
         raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
-        err, sumsq, count = lattice_error(lat_, decode_tile(raw, rect), rect)
+        dec = decode_tile(raw, rect)
+        if self.geoid is not None:
+            dec = {**dec, "height": dec["height"] - self.geoid.undulation_m(dec["lon"], dec["lat"])}
+            spread = _undulation_spread_m(self.geoid, rect)
+        err, sumsq, count = lattice_error(lat_, dec, rect)
+        err += spread
         nodata = float(np.mean(wm) / 255.0) if kind != "none" else 0.0
         return QmTile(raw, _ceil4(err), len(tris), len(lon), nodata, kind, sumsq, count)
 
@@ -535,8 +565,13 @@ def export_quantized_mesh(
     part: Part | None = None,
     check_space: bool = True,
     progress: Callable[[int, int], None] | None = None,
+    vertical_datum: str | None = None,
 ) -> ExportReport:
     """Write ``out/layer.json``, ``out/errors.json`` (measured error per tile) and ``out/Z/X/Y.terrain``.
+
+    ``vertical_datum``: what the heights are above when the source's CRS does not say (see
+    :mod:`terralod.export.vertical`); with a known datum the tiles carry heights above the WGS 84
+    ellipsoid, as CesiumJS expects.
 
     ``terrain`` is a store or a DEM's or region's samples (:func:`terralod.export.source.source_from_dem`,
     :func:`terralod.export.source.source_from_region`). Tiles are uncompressed (any static host serves them
@@ -558,12 +593,14 @@ def export_quantized_mesh(
         if epoch is not None and epoch != getattr(terrain, "epoch", None):
             terrain = terrain.with_epoch(epoch)
     options: dict[str, Any] = {"gzip": bool(gzip_tiles), "normals": bool(normals)}
+    if vertical_datum is not None:
+        options["vertical_datum"] = vertical_datum
     if not part.whole:
         options["part"] = part.key()
     inputs, key = _inputs_and_key(terrain, "quantized-mesh", **options)
     output = Output(out, inputs=inputs, overwrite=overwrite, resume=resume, update=update, key=key)
     output.check()  # refusals first, before the tiler's set-up
-    qm = QuantizedMesh(terrain, normals=normals)
+    qm = QuantizedMesh(terrain, normals=normals, vertical_datum=vertical_datum)
     codes = qm.tile_codes(part)
     if check_space:
         check_free_space(out, estimate_bytes(qm, codes, gzip_tiles=gzip_tiles))
