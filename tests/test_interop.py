@@ -105,6 +105,15 @@ def site(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     with open_terrain(store) as t:
         out["reports"]["qm_utm"] = export_quantized_mesh(t, root / "qm_utm")
         out["reports"]["t3_utm"] = export_3dtiles(t, root / "t3_utm")
+    try:  # heights above EGM96 made ellipsoidal (needs PROJ's EGM96 grid: Debian's proj-data)
+        out["reports"]["qm_geo_egm96"] = export_quantized_mesh(source_from_dem(geo), root / "qm_geo_egm96",
+                                                               vertical_datum="egm96")  # fmt: skip
+    except Exception as exc:  # noqa: BLE001 - the test that needs it skips with the reason
+        out["egm96_missing"] = str(exc)
+    geo_store = root / "tarragona.terra"  # a geographic DEM's store: errors against its own samples
+    build_store(read_heightfield(geo), geo_store, workers=2)
+    with open_terrain(geo_store) as t:
+        out["reports"]["t3_geo"] = export_3dtiles(t, root / "t3_geo")
     hf = read_heightfield(dem / "srtm1_crop256_coastal_flat_nodata.tif")
     crop = Heightfield(hf.elevation_m[:96, :96].copy(), hf.valid[:96, :96].copy(), hf.transform, hf.crs)
     tin = root / "tin.terra"
@@ -473,3 +482,49 @@ def test_horizon_occlusion_point_never_hides_a_tile_seen_from_above(site: dict, 
         assert np.sqrt(((p - c) ** 2).sum(axis=1)).max() <= d["sphere"][3] + 1e-3
         n += 1
     assert n > 10
+
+
+@pytest.mark.skipif(_browser_missing() is not None, reason=str(_browser_missing()))
+def test_stock_cesium_heights_above_the_ellipsoid(site: dict, static_server: str, tmp_path: Path) -> None:
+    """The geographic crop exported with ``vertical_datum="egm96"``: stock CesiumJS samples the DEM's height
+    + the EGM96 undulation (PROJ's grid, checked on NGA's values in test_vertical.py) at the DEM's own
+    samples, within the finest level's declared error + 0.5 m; the undulation there is not zero."""
+    if "egm96_missing" in site:
+        pytest.skip(f"PROJ has no EGM96 grid here: {site['egm96_missing']}")
+    from terralod.export.vertical import resolve_vertical_datum
+
+    lon, lat, z = _source_points(site["geo_dem"])
+    plon, plat, pz = _sample_points(lon, lat, z)
+    n = resolve_vertical_datum("egm96").converter().undulation_m(plon, plat)
+    assert np.all(np.abs(n) > 10.0)  # Catalonia: about +49 m
+    layer = json.loads((site["root"] / "qm_geo_egm96" / "layer.json").read_text())
+    assert layer["terralod"]["heights"]["datum"] == "egm96"
+    cfg = {"kind": "terrain", "views": _views(tuple(layer["bounds"]), (plon[-1], plat[-1])),
+           "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
+    r = _stock(static_server, f"terrain=qm_geo_egm96/&hmin={z.min()}&hmax={z.max() + 100}", cfg, tmp_path)
+    assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
+    err = np.abs(np.array(r["heights"], np.float64) - (pz + n))
+    assert err.max() <= layer["terralod"]["error_m"][layer["maxzoom"]] + 0.5, err
+
+
+@pytest.mark.skipif(_browser_missing() is not None, reason=str(_browser_missing()))
+def test_stock_cesium_3dtiles_of_a_geographic_store(site: dict, static_server: str, tmp_path: Path) -> None:
+    """A store built from a lon/lat DEM (meshed on a metric grid): stock CesiumJS samples its 3D Tiles at the
+    DEM's own sample positions within the finest tiles' declared error (which counts what resampling moved)."""
+    from terralod.terrain import open_terrain
+
+    lon, lat, z = _source_points(site["geo_dem"])
+    plon, plat, pz = _sample_points(lon, lat, z)
+    ts = json.loads((site["root"] / "t3_geo" / "tileset.json").read_text())
+    reg = np.degrees(ts["root"]["boundingVolume"]["region"][:4])
+    with open_terrain(site["root"] / "tarragona.terra") as t:
+        tree = t.lod_tree()
+        leaf_err = max(n.vertical_error_m for n in tree if not any(m.parent == n.code for m in tree))
+    cfg = {"kind": "tileset", "views": _views(tuple(reg), (plon[-1], plat[-1])),
+           "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
+    r = _stock(static_server, "tileset=t3_geo/tileset.json", cfg, tmp_path)
+    assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
+    h = np.array([np.nan if v is None else v for v in r["heights"]], np.float64)
+    ok = np.isfinite(h)
+    assert ok.sum() >= len(h) - 2, r["heights"]  # a sample on the crop's very edge may fall off the mesh
+    assert np.abs(h[ok] - pz[ok]).max() <= leaf_err + 0.05, (np.abs(h[ok] - pz[ok]).max(), leaf_err)
