@@ -530,20 +530,24 @@ def ground_spacing_m(t: Affine, crs: Any, shape: tuple[int, int]) -> tuple[float
     return dist(1), dist(2)
 
 
-def reproject_to_utm(
-    values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, source: str
-) -> tuple[np.ndarray, np.ndarray, Affine, Any, str]:
-    """Reproject a north-up geographic or Mercator grid once to the UTM zone of its centre.
+def metric_grid(
+    crs: Any, t: Affine, shape: tuple[int, int], source: str, *, wide_ok: bool
+) -> tuple[Any, str, Affine, int, int, float, float, float, str]:
+    """The metric grid a north-up geographic or Mercator grid is resampled to, one rule for the in-memory
+    reader and the out-of-core warp: the UTM zone of its centre (UPS near the poles), square pixels of the
+    ground spacing at the centre (min of dx, dy, millimetre-rounded), the grid snapped to multiples of it.
+    A region wider than ``MAX_UTM_SPAN_DEG`` of longitude is refused unless ``wide_ok``, which takes a
+    Transverse Mercator on its central meridian instead.
 
-    Square pixels of the ground spacing at the centre (min of dx, dy, millimetre-rounded), grid snapped to
-    multiples of it; elevations bilinear, the valid mask nearest-neighbour; cells outside the source
-    footprint are invalid. Returns (values, valid, transform, crs, note, the source's own nodata
-    fraction, the fraction of output cells outside the source's footprint).
+    Returns (CRS, label, north-up transform, width, height, resolution m, ground dx m, dy m, note on a wide
+    region). Refuses, in one line, bounds off the globe and a grid that would grow over
+    ``MAX_REPROJECT_GROWTH`` times.
     """
-    from rasterio.warp import Resampling, reproject, transform_bounds
+    from rasterio.crs import CRS
     from rasterio.warp import transform as warp_points
+    from rasterio.warp import transform_bounds
 
-    h, w = values.shape
+    h, w = shape
     west, south, east, north = t.c, t.f + h * t.e, t.c + w * t.a, t.f
     if crs.is_geographic and (
         max(abs(south), abs(north)) > 90.0 + abs(t.e) or max(abs(west), abs(east)) > 540.0
@@ -557,15 +561,24 @@ def reproject_to_utm(
         lon_w, _, lon_e, _ = transform_bounds(crs, "EPSG:4326", west, south, east, north, densify_pts=21)
         (clon,), (clat,) = warp_points(crs, "EPSG:4326", [t.c + t.a * w / 2], [t.f + t.e * h / 2])
         dx_m, dy_m = ground_spacing_m(t, crs, (h, w))
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 - PROJ's failures, said in one line
         raise InputError(f"cannot locate the raster on the globe ({error_line(exc)})", source) from None
     span = lon_e - lon_w if lon_e >= lon_w else lon_e - lon_w + 360.0  # across the antimeridian too
     dst_crs, label = utm_crs(clon, clat)
+    wide = ""
     if label.startswith("UTM") and span > MAX_UTM_SPAN_DEG:
-        raise InputError(
-            f"spans {span:.1f} degrees of longitude, too wide for one UTM zone (at most "
-            f"{MAX_UTM_SPAN_DEG:g}); reproject it to a suitable metric CRS first (gdalwarp -t_srs ...)",
-            source,
+        if not wide_ok:
+            raise InputError(
+                f"spans {span:.1f} degrees of longitude, too wide for one UTM zone (at most "
+                f"{MAX_UTM_SPAN_DEG:g}); reproject it to a suitable metric CRS first (gdalwarp -t_srs ...)",
+                source,
+            )
+        lon0 = (clon + 180.0) % 360.0 - 180.0
+        dst_crs = CRS.from_proj4(f"+proj=tmerc +lat_0=0 +lon_0={lon0:.6f} +k=1 +x_0=0 +y_0=0 +datum=WGS84 "
+                                 "+units=m +no_defs")  # fmt: skip
+        label = f"Transverse Mercator on {lon0:.6f} E"
+        wide = (
+            f"; {span:.1f} degrees of longitude are too wide for one UTM zone (at most {MAX_UTM_SPAN_DEG:g})"
         )
     res = round(min(dx_m, dy_m), 3)
     if not (res > 0 and math.isfinite(res)):
@@ -583,8 +596,26 @@ def reproject_to_utm(
             "CRS and resolution (gdalwarp -t_srs ... -tr ...)",
             source,
         )
+    return dst_crs, label, Affine(res, 0.0, bx0, 0.0, -res, by1), width, height, res, dx_m, dy_m, wide
+
+
+def reproject_to_utm(
+    values: np.ndarray, valid: np.ndarray, t: Affine, crs: Any, source: str
+) -> tuple[np.ndarray, np.ndarray, Affine, Any, str]:
+    """Reproject a north-up geographic or Mercator grid once to the UTM zone of its centre.
+
+    Square pixels of the ground spacing at the centre (min of dx, dy, millimetre-rounded), grid snapped to
+    multiples of it; elevations bilinear, the valid mask nearest-neighbour; cells outside the source
+    footprint are invalid. Returns (values, valid, transform, crs, note, the source's own nodata
+    fraction, the fraction of output cells outside the source's footprint).
+    """
+    from rasterio.warp import Resampling, reproject
+
+    h, w = values.shape
+    dst_crs, label, dst_t, width, height, res, dx_m, dy_m, _ = metric_grid(
+        crs, t, (h, w), source, wide_ok=False
+    )
     check_dimensions(height, width, source)
-    dst_t = Affine(res, 0.0, bx0, 0.0, -res, by1)
     out = np.full((height, width), np.nan, np.float64)
     kw = {"src_transform": t, "src_crs": crs, "dst_transform": dst_t, "dst_crs": dst_crs}
     reproject(np.where(valid, values, np.nan), out, resampling=Resampling.bilinear,

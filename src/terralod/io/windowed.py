@@ -688,60 +688,15 @@ def warp_frame(
     in-memory reader's for a region one UTM zone takes): (CRS, north-up transform, width, height, note,
     fraction of the grid outside the source's footprint). Refuses, in one line, bounds off the globe and a
     grid that would grow over ``MAX_REPROJECT_GROWTH`` times."""
-    from rasterio.crs import CRS
     from rasterio.warp import transform as warp_points
-    from rasterio.warp import transform_bounds
 
-    from terralod.io.raster import (
-        MAX_REPROJECT_GROWTH,
-        MAX_UTM_SPAN_DEG,
-        _crs_name,
-        error_line,
-        ground_spacing_m,
-        utm_crs,
-    )
+    from terralod.io.raster import _crs_name, metric_grid
 
     h, w = shape
     west, south, east, north = t.c, t.f + h * t.e, t.c + w * t.a, t.f
-    if crs.is_geographic and (
-        max(abs(south), abs(north)) > 90.0 + abs(t.e) or max(abs(west), abs(east)) > 540.0
-    ):
-        raise InputError(f"bounds {west:.6g}, {south:.6g}, {east:.6g}, {north:.6g} lie outside the globe for the "
-                         f"geographic CRS {_crs_name(crs)}; the CRS is probably wrong", source)  # fmt: skip
-    try:
-        lon_w, _, lon_e, _ = transform_bounds(crs, "EPSG:4326", west, south, east, north, densify_pts=21)
-        (clon,), (clat,) = warp_points(crs, "EPSG:4326", [t.c + t.a * w / 2], [t.f + t.e * h / 2])
-        dx_m, dy_m = ground_spacing_m(t, crs, (h, w))
-    except Exception as exc:  # noqa: BLE001 - PROJ's failures, said in one line
-        raise InputError(f"cannot locate the raster on the globe ({error_line(exc)})", source) from None
-    span = lon_e - lon_w if lon_e >= lon_w else lon_e - lon_w + 360.0
-    dst_crs, label = utm_crs(clon, clat)
-    wide = ""
-    if label.startswith("UTM") and span > MAX_UTM_SPAN_DEG:
-        lon0 = (clon + 180.0) % 360.0 - 180.0
-        dst_crs = CRS.from_proj4(f"+proj=tmerc +lat_0=0 +lon_0={lon0:.6f} +k=1 +x_0=0 +y_0=0 +datum=WGS84 "
-                                 "+units=m +no_defs")  # fmt: skip
-        label = f"Transverse Mercator on {lon0:.6f} E"
-        wide = (
-            f"; {span:.1f} degrees of longitude are too wide for one UTM zone (at most {MAX_UTM_SPAN_DEG:g})"
-        )
-    res = round(min(dx_m, dy_m), 3)
-    if not (res > 0 and math.isfinite(res)):
-        raise InputError(f"ground spacing at the centre is {res} m; check the georeferencing", source)
-    bx0, by0, bx1, by1 = transform_bounds(crs, dst_crs, west, south, east, north, densify_pts=51)
-    bx0, by1 = math.floor(bx0 / res) * res, math.ceil(by1 / res) * res
-    width = max(2, math.ceil((bx1 - bx0) / res - 1e-9))
-    height = max(2, math.ceil((by1 - by0) / res - 1e-9))
-    growth = (width * height) / float(w * h)
-    if growth > MAX_REPROJECT_GROWTH:
-        raise InputError(
-            f"reprojecting to {label} at the {res:g} m ground spacing of its centre would turn {w}x{h} samples "
-            f"into {width}x{height} ({growth:,.0f}x, beyond {MAX_REPROJECT_GROWTH:g}x): its pixels are "
-            f"{dx_m:.1f} x {dy_m:.1f} m on the ground (near a pole?); reproject it first with a suitable "
-            "CRS and resolution (gdalwarp -t_srs ... -tr ...)",
-            source,
-        )
-    dst_t = Affine(res, 0.0, bx0, 0.0, -res, by1)
+    dst_crs, label, dst_t, width, height, res, dx_m, dy_m, wide = metric_grid(
+        crs, t, shape, source, wide_ok=True
+    )
     # the footprint's area in the target CRS (its edges densified), for the margin fraction
     f = np.linspace(0.0, 1.0, 257)[:-1]
     ex = np.concatenate(
