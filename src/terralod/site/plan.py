@@ -68,8 +68,9 @@ class SitePlan:
     share_tiles: bool
     pair_meta: tuple[dict[str, Any], ...]
     files: Mapping[str, bytes]
-    #: what the heights are above, for the page's words: {"datum": key, "words": "above sea level" | ...}
-    heights: Mapping[str, str] = field(default_factory=lambda: {"datum": "unknown", "words": "as surveyed"})
+    #: what the heights are above, for the page's words: {"datum": key, "words": "above sea level" | ...,
+    #: "conversion": what the 3D Tiles did with them (Geodesy.vertical_record: PROJ's operation, accuracy)}
+    heights: Mapping[str, Any] = field(default_factory=lambda: {"datum": "unknown", "words": "as surveyed"})
 
     @property
     def between(self) -> str:
@@ -159,7 +160,7 @@ def plan_site(
     lo, hi = elevation_range_m
     geo = Geodesy(first.crs, geographic=True)
     return SitePlan(
-        heights=MappingProxyType(height_words(geo.vertical)),
+        heights=MappingProxyType({**height_words(geo.vertical), "conversion": geo.vertical_record()}),
         title=title,
         epochs=tuple(names),
         pairs=tuple(pairs),
