@@ -211,3 +211,31 @@ def test_large_tiles_measure_original_samples_in_strips(
     assert [r[:3] + r[8:-1] for r in a] == [r[:3] + r[8:-1] for r in b]
     np.testing.assert_allclose([r[3:8] for r in a], [r[3:8] for r in b], rtol=0, atol=1e-6)
     check_against_original(merged, strips)
+
+
+def test_a_region_stores_export_reads_its_tiles_again(region, tmp_path: Path) -> None:
+    """A store built from a folder of geographic tiles records its files; its quantized-mesh export reads
+    them again window by window (no merge of the store's meshes) and gives the direct export's tiles."""
+    from click.testing import CliRunner
+
+    from terralod.cli import cli
+    from terralod.export.source import RegionGrid, source_for
+    from terralod.terrain import open_terrain
+
+    _, tiles = region
+    store = tmp_path / "r.terra"
+    res = CliRunner().invoke(cli, ["build", str(tiles[0].parent), "-o", str(store), "--tile-size", "17"])
+    assert res.exit_code == 0, res.output
+    with TileStore.open(store) as s:
+        assert sorted(s.meta["source_files"]) == sorted(str(t.resolve()) for t in tiles)
+    with open_terrain(store) as t:
+        assert isinstance(source_for(t, None), RegionGrid)
+    for args, out in (([str(store)], tmp_path / "from_store"), ([str(tiles[0].parent)], tmp_path / "direct")):
+        res = CliRunner().invoke(cli, ["export", *args, "--format", "quantized-mesh", "-o", str(out)])
+        assert res.exit_code == 0, res.output
+    a = {
+        p.relative_to(tmp_path / "from_store"): p.read_bytes()
+        for p in (tmp_path / "from_store").rglob("*.terrain")
+    }
+    b = {p.relative_to(tmp_path / "direct"): p.read_bytes() for p in (tmp_path / "direct").rglob("*.terrain")}
+    assert a and a == b

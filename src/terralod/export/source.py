@@ -620,13 +620,19 @@ def _windowed_source(terrain: Any) -> RegionGrid | None:
 
     meta = getattr(terrain, "meta", {}) or {}
     src, digest = meta.get("source"), meta.get("source_digest")
-    if getattr(terrain, "epochs", None) or not src or not digest or not Path(str(src)).exists():
+    files = [str(f) for f in meta.get("source_files") or ([src] if src else [])]  # a mosaic: its files
+    if (
+        getattr(terrain, "epochs", None)
+        or not files
+        or not digest
+        or not all(Path(f).exists() for f in files)
+    ):
         return None
     try:
-        region = resolve_region([str(src)])
+        region = resolve_region(files)
         if not _is_lonlat_wgs84(region.crs):
             return None
-        warped = open_source(str(src))
+        warped = open_source(files if len(files) > 1 else files[0])
         if streamed_digest(warped) != digest:
             return None
         return RegionGrid(region)

@@ -174,7 +174,10 @@ def plan_quantisation(
 def _store_meta(
     hf: Heightfield, pyramid: TilePyramid, method: str, quant: dict[int, LevelQuantisation]
 ) -> dict[str, Any]:
+    paths = list(getattr(hf, "paths", None) or [])
+    files = {"source_files": [str(Path(p).resolve()) if Path(p).exists() else str(p) for p in paths]}
     return {
+        **(files if len(paths) > 1 else {}),  # a mosaic: its files, so an export can read them again
         "source": hf.source,
         "source_digest": hf.digest(),
         "crs": hf.crs,

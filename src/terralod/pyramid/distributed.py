@@ -312,6 +312,9 @@ class _FrameMeta:
         from terralod.io.windowed import FILL_BLOCK, FILL_HALO
 
         self.source, self.crs, self.transform = src.source, src.crs, src.transform
+        self.paths = [
+            str(p) for p in (getattr(src, "paths", None) or [])
+        ]  # a mosaic's files, for its exports
         self.spacing_m, self.width, self.height = src.spacing_m, src.width, src.height
         self.notes = tuple(src.notes)
         self.nodata_fraction = plan.n_invalid / plan.n_samples
