@@ -25,7 +25,7 @@ each tile is then *measured*: max vertical distance between the tile surface and
 the tile (metadata extension ``terralod.error_m``, and ``error_m`` per level in ``layer.json``). The store's
 own cohesion mesher needs the store's quantised lattice, which does not exist in the geographic tiling;
 greedy insertion is the closest method that meshes an arbitrary sample grid to an error target (deviation
-from the issue's "store's own method", and why).
+from the store's own method, and why).
 
 A geographic DEM (``terralod export dem.tif``, or a store whose source DEM is one) is meshed on its own
 lattice instead (:mod:`terralod.export.lattice`): every sample at the two finest zooms, every 2nd, 4th...
