@@ -255,3 +255,24 @@ def test_an_hgt_zip_reads_as_its_geotiff(shared_data: Path, tmp_path: Path) -> N
     assert _tiles(_export(tmp_path, "a", hgt, extra=extra)) == _tiles(
         _export(tmp_path, "b", tif, extra=extra)
     )
+
+
+def test_info_describes_a_region_from_its_headers(crop: tuple[np.ndarray, object], tmp_path: Path) -> None:
+    """``terralod info FOLDER`` / a quoted glob: the files, the one grid they make (the shared edge rows
+    counted once) and its lon/lat extent, as the export reads them."""
+    import json
+
+    from click.testing import CliRunner
+
+    from terralod.cli import cli
+
+    tiles = _quads(crop, tmp_path / "q")
+    a, t = crop
+    for arg in (str(tiles[0].parent), str(tiles[0].parent / "*.tif")):
+        res = CliRunner().invoke(cli, ["info", arg, "--json"])
+        assert res.exit_code == 0, res.output
+        d = json.loads(res.output)
+        assert len(d["files"]) == 4 and d["size"] == [a.shape[1], a.shape[0]]
+        w, s, e, n = d["bounds_lonlat"]
+        assert w == pytest.approx(t.c) and n == pytest.approx(t.f)
+        assert e == pytest.approx(t.c + a.shape[1] * t.a) and s == pytest.approx(t.f + a.shape[0] * t.e)

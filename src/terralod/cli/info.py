@@ -104,6 +104,9 @@ def info(path: str, as_json: bool, **read: Any) -> None:
     from terralod.store import TIN_METHOD
 
     p = Path(path)
+    if p.is_dir() or (not p.exists() and any(ch in path for ch in "*?[")):
+        _region_info(path, as_json, read.get("crs"))
+        return
     if p.exists() and is_store(p):
         d = store_info(p)
         if as_json:
@@ -165,3 +168,40 @@ def info(path: str, as_json: bool, **read: Any) -> None:
     print_nodata(d)
     for n in d["notes"] + ([d["fill_method"]] if d["fill_method"] else []):
         console.print(f"  note         {n}")
+
+
+def _region_info(path: str, as_json: bool, crs: Any) -> None:
+    """A region of DEM tiles (a folder or a quoted glob), from the files' headers only: how many files, the
+    one grid they share, its extent in lon/lat (:func:`terralod.io.region.resolve_region`'s rules)."""
+    from rasterio.warp import transform_bounds
+
+    from terralod.io.region import resolve_region
+
+    region = resolve_region([path], crs=crs)
+    w, s, e, n = region.transform.c, region.transform.f + region.height * region.transform.e, (
+        region.transform.c + region.width * region.transform.a), region.transform.f  # fmt: skip
+    lw, ls, le, ln = transform_bounds(region.crs, "EPSG:4326", w, s, e, n, densify_pts=21)
+    d = {
+        "region": path,
+        "files": [str(f) for f in region.files],
+        "crs_name": crs_name(region.crs.to_wkt()),
+        "size": [region.width, region.height],
+        "samples": region.width * region.height,
+        "resolution": [region.transform.a, -region.transform.e],
+        "bounds_lonlat": [lw, ls, le, ln],
+        "rules": "one grid; where files overlap the last listed wins; cells no file covers are nodata",
+        "notes": list(region.notes),
+    }
+    if as_json:
+        click.echo(json.dumps(d, indent=2, default=str))
+        return
+    console.print(f"region {path}: {len(d['files'])} files on one grid of {region.width:,} x {region.height:,} "
+                  f"samples ({d['samples'] / 1e6:,.1f} M)", highlight=False)  # fmt: skip
+    console.print(f"  CRS          {d['crs_name']}", highlight=False)
+    console.print(
+        f"  resolution   {region.transform.a:.9g} x {-region.transform.e:.9g} (CRS units)", highlight=False
+    )
+    console.print(f"  lon/lat      W {lw:.5f}  S {ls:.5f}  E {le:.5f}  N {ln:.5f} deg", highlight=False)
+    console.print(f"  rules        {d['rules']}", highlight=False)
+    for note in region.notes:
+        console.print(f"  note         {note}", highlight=False)
