@@ -92,39 +92,38 @@ def run_export(folder: Path, out: Path) -> dict[str, float]:
         rss_mib = field("Maximum resident set size (kbytes)") / 1024
         cpu = field("User time (seconds)") + field("System time (seconds)")
         return {"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": rss_mib, "stdout": p.stdout.strip()}
-    import psutil
 
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    root, peak = psutil.Process(proc.pid), 0
-    while proc.poll() is None:
-        try:
-            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
-            peak = max(peak, rss)
-        except psutil.Error:
-            pass
-        time.sleep(0.05)
+    peak = _tree_peak_rss(proc)
     wall = time.perf_counter() - t0
     usage = os.times()
     return {"wall_s": wall, "cpu_s": usage.children_user + usage.children_system, "peak_rss_mib": peak / 2**20,
             "stdout": (proc.stdout.read() if proc.stdout else "").strip()}  # fmt: skip
 
 
-def run_tree(cmd: list[str]) -> dict[str, float | str]:
-    """``cmd`` in a fresh process: wall, CPU of the process tree (user + sys of the children waited for),
-    peak RSS summed over the process tree (psutil, sampled every 50 ms)."""
+def _tree_peak_rss(proc: subprocess.Popen) -> int:
+    """Peak RSS (bytes) summed over ``proc`` and its children, sampled every 50 ms until it exits."""
     import psutil
 
-    t0 = time.perf_counter()
-    before = os.times()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     root, peak = psutil.Process(proc.pid), 0
     while proc.poll() is None:
         try:
             rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
             peak = max(peak, rss)
-        except psutil.Error:
+        except psutil.Error:  # a child that ended between the listing and the read
             pass
         time.sleep(0.05)
+    return peak
+
+
+def run_tree(cmd: list[str]) -> dict[str, float | str]:
+    """``cmd`` in a fresh process: wall, CPU of the process tree (user + sys of the children waited for),
+    peak RSS summed over the process tree (psutil, sampled every 50 ms)."""
+
+    t0 = time.perf_counter()
+    before = os.times()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    peak = _tree_peak_rss(proc)
     out, err = proc.communicate()
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
