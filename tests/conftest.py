@@ -37,3 +37,21 @@ def fractal_terrain(
     z = np.fft.irfft2(spec, s=(n, n))[:rows, :cols]
     z = (z - z.min()) / max(np.ptp(z), 1e-12) * relief_m
     return z.astype(np.float32)
+
+
+def crop_geotiff(src: Path, dest: Path, col: int, row: int, side: int) -> Path:
+    """A side x side window of the GeoTIFF ``src`` from (col, row) written to ``dest``, its georeferencing
+    kept (untiled); asserts the window holds no nodata."""
+    import rasterio
+    from rasterio.windows import Window
+
+    with rasterio.open(src) as ds:
+        win = Window(col, row, side, side)
+        a = ds.read(1, window=win)
+        prof = dict(ds.profile, width=side, height=side, transform=ds.window_transform(win), tiled=False)
+    prof.pop("blockxsize", None)
+    prof.pop("blockysize", None)
+    assert prof.get("nodata") is None or not (a == prof["nodata"]).any()
+    with rasterio.open(dest, "w", **prof) as out:
+        out.write(a, 1)
+    return dest

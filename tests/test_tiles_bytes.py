@@ -168,20 +168,10 @@ def test_quantized_positions_within_the_bound(n: int, seed: int, extent_m: float
 @pytest.fixture(scope="module")
 def crop(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 129² crop of the Big Tujunga DEM (UTM 11N, 30 m, steep mountains, no nodata inside)."""
-    import rasterio
-    from rasterio.windows import Window
+    from conftest import crop_geotiff
 
     d = tmp_path_factory.mktemp("tiles_bytes")
-    with rasterio.open(shared_data / "dem" / "big_tujunga_srtm30m_utm11.tif") as ds:
-        win = Window(400, 200, 129, 129)
-        a = ds.read(1, window=win)
-        prof = dict(ds.profile, width=129, height=129, transform=ds.window_transform(win), tiled=False)
-    prof.pop("blockxsize", None)
-    prof.pop("blockysize", None)
-    assert not (a == prof["nodata"]).any()
-    with rasterio.open(d / "crop.tif", "w", **prof) as out:
-        out.write(a, 1)
-    return d / "crop.tif"
+    return crop_geotiff(shared_data / "dem" / "big_tujunga_srtm30m_utm11.tif", d / "crop.tif", 400, 200, 129)
 
 
 @pytest.fixture(scope="module")

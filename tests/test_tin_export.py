@@ -26,20 +26,10 @@ TOLERANCE_M = 0.01
 @pytest.fixture(scope="module")
 def crop(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 65² crop of the Big Tujunga DEM (UTM 11N, 30 m, steep mountains, no nodata inside)."""
-    import rasterio
-    from rasterio.windows import Window
+    from conftest import crop_geotiff
 
     d = tmp_path_factory.mktemp("tin_export")
-    with rasterio.open(shared_data / "dem" / "big_tujunga_srtm30m_utm11.tif") as ds:
-        win = Window(500, 300, 65, 65)
-        a = ds.read(1, window=win)
-        prof = dict(ds.profile, width=65, height=65, transform=ds.window_transform(win), tiled=False)
-    prof.pop("blockxsize", None)
-    prof.pop("blockysize", None)
-    assert not (a == prof["nodata"]).any()
-    with rasterio.open(d / "crop.tif", "w", **prof) as out:
-        out.write(a, 1)
-    return d / "crop.tif"
+    return crop_geotiff(shared_data / "dem" / "big_tujunga_srtm30m_utm11.tif", d / "crop.tif", 500, 300, 65)
 
 
 @pytest.fixture(scope="module")
