@@ -178,6 +178,17 @@ def build_stage(src: Path, counts: list[int]) -> None:
     write_results("region_build", {"source": src.stem, "runs": results}, table + note)
 
 
+def _earlier_runs(name: str, counts: list[int]) -> list[dict]:
+    """The rows of an earlier run of other mosaic sizes (kept, so a 256-tile run adds its row)."""
+    import json
+
+    p = Path(__file__).resolve().parent / "results" / f"{name}.json"
+    try:
+        return [r for r in json.loads(p.read_text())["runs"] if r["srtm_tiles"] not in counts]
+    except (OSError, KeyError, ValueError):
+        return []
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--tiles", default="16,64", help="mosaic sizes in SRTM tiles (squares: 4, 16, 64, ...)")
@@ -190,7 +201,7 @@ def main() -> None:
         build_stage(src, [int(v) for v in args.tiles.split(",")])
     if "export" not in stages:
         return
-    rows, results = [], []
+    results = _earlier_runs("region", [int(v) for v in args.tiles.split(",")])
     for count in [int(v) for v in args.tiles.split(",")]:
         n = int(round(count**0.5))
         assert n * n == count, f"Expected a square number of tiles, got {count}"
@@ -203,14 +214,20 @@ def main() -> None:
             nbytes = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
         res = {"srtm_tiles": count, "files": len(files), "samples": samples, "tiles": tiles, "bytes": nbytes,
                "tiles_per_s": tiles / r["wall_s"], "us_per_sample": r["wall_s"] / samples * 1e6,
+               "cpu_us_per_sample": r["cpu_s"] / samples * 1e6, "load_1min": os.getloadavg()[0],
+               "date": time.strftime("%Y-%m-%d %H:%M"),
                **{k: v for k, v in r.items() if k != "stdout"}, "summary": r["stdout"]}  # fmt: skip
-        results.append(res)
-        rows.append([f"{count} SRTM3 tiles ({1200 * n + 1}²)", samples, tiles, round(r["wall_s"], 1),
-                     round(r["cpu_s"], 1), round(r["peak_rss_mib"], 1), round(res["tiles_per_s"], 2),
-                     round(res["us_per_sample"], 3), f"{nbytes / 1e6:.1f} MB"])  # fmt: skip
-        print(rows[-1], flush=True)
-    table = md_table(["region", "samples", "tiles", "wall s", "CPU s", "peak RSS MiB", "tiles/s", "µs/sample",
-                      "bytes"], rows)  # fmt: skip
+        results = sorted(
+            [x for x in results if x["srtm_tiles"] != count] + [res], key=lambda x: x["srtm_tiles"]
+        )
+        print(res, flush=True)
+    rows = [[f"{x['srtm_tiles']} SRTM3 tiles ({1200 * round(x['srtm_tiles'] ** 0.5) + 1}²)", x["samples"],
+             x["tiles"], round(x["wall_s"], 1), round(x["cpu_s"], 1), round(x["peak_rss_mib"], 1),
+             round(x["tiles_per_s"], 2), round(x["us_per_sample"], 3),
+             round(x.get("cpu_us_per_sample", x["cpu_s"] / x["samples"] * 1e6), 3), f"{x['bytes'] / 1e6:.1f} MB",
+             x.get("date", "")] for x in results]  # fmt: skip
+    table = md_table(["region", "samples", "tiles", "wall s", "CPU s", "peak RSS MiB", "tiles/s", "wall µs/sample",
+                      "CPU µs/sample", "bytes", "run"], rows)  # fmt: skip
     note = (
         "\n`terralod export FOLDER --format quantized-mesh` (a fresh process, start-up included) on SRTM3 "
         f"{args.source} mirror-tiled into separate 1° GeoTIFFs (EPSG:4326); peak RSS of the process. "
