@@ -183,6 +183,26 @@ def water_option(fn: Callable[..., Any]) -> Callable[..., Any]:
     )(fn)  # fmt: skip
 
 
+def _memory(ctx: click.Context, param: click.Parameter, value: str | None) -> int | None:
+    if value is None:
+        return None
+    from terralod.memory import parse_size
+
+    try:
+        return parse_size(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), ctx=ctx, param=param) from None
+
+
+def memory_option(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``--memory SIZE``: the peak memory of the command's process tree it plans for (bytes, as ``memory_bytes``)."""
+    return click.option(
+        "--memory", "memory_bytes", default=None, metavar="SIZE", callback=_memory,
+        help="Memory the command may use, its workers included (e.g. 4GiB; default 2GiB): it decides the work "
+        "units in flight and when one raster builds out of core; refused in one line below what one unit needs.",
+    )(fn)  # fmt: skip
+
+
 def numbers(text: str | None, n: int, name: str, what: str) -> tuple[float, ...] | None:
     """``n`` comma-separated numbers, or None."""
     if text is None:

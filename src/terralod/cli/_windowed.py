@@ -11,20 +11,26 @@ from typing import Any
 from terralod.cli._console import progress
 from terralod.cli._options import parse_pair
 
-#: A single GDAL raster of more samples than this builds out of core without being asked.
+#: A single GDAL raster of more samples than this builds out of core without being asked, whatever
+#: ``--memory`` says (an in-memory build's own limit is :func:`terralod.memory.in_memory_samples`).
 OUT_OF_CORE_SAMPLES = 1 << 28
 _GDAL_SUFFIXES = (".tif", ".tiff", ".vrt", ".img", ".hgt")
 
 
-def is_large_raster(path: str) -> bool:
-    """True for a GDAL raster of over :data:`OUT_OF_CORE_SAMPLES` samples (its header only is read)."""
+def is_large_raster(path: str, memory_bytes: int | None = None) -> bool:
+    """True for a GDAL raster of more samples than an in-memory build holds within ``memory_bytes``
+    (:func:`terralod.memory.in_memory_samples`; at most :data:`OUT_OF_CORE_SAMPLES`); its header only is
+    read."""
+    from terralod.memory import in_memory_samples
+
+    limit = min(OUT_OF_CORE_SAMPLES, in_memory_samples(memory_bytes))
     if Path(path).suffix.lower() not in _GDAL_SUFFIXES or not Path(path).is_file():
         return False
     try:
         import rasterio
 
         with rasterio.open(path) as ds:
-            return ds.width * ds.height > OUT_OF_CORE_SAMPLES
+            return ds.width * ds.height > limit
     except Exception:
         return False  # the in-memory reader reports what is wrong with it
 
@@ -40,8 +46,11 @@ def is_region(path: str) -> bool:
 def run_windowed_build(
     input_paths: tuple[str, ...], output: str, *, tile_size: int, method: str, workers: int | None, resume: bool,
     overwrite: bool, dask_address: str | None, dask_workers: int | None, read: dict[str, Any],
+    memory_bytes: int | None = None,
 ):  # fmt: skip
-    """Open the window source, connect to Dask (before anything is written), build, close the cluster."""
+    """Open the window source, connect to Dask (before anything is written), build, close the cluster. The
+    memory budget (:func:`terralod.memory.plan_memory`) decides the units in flight: threads here, or the
+    local Dask workers, their threads and their memory limit."""
     from terralod.errors import InputError
     from terralod.io.windowed import open_source
     from terralod.pyramid.distributed import build_store_windowed, dask_client
@@ -62,9 +71,19 @@ def run_windowed_build(
 
         src.crs, note = crs_with_vertical_datum(src.crs, read["vertical_datum"], src.source)
         src.notes = (*src.notes, note)
+    from terralod.memory import plan_memory
+
+    try:
+        plan = plan_memory(memory_bytes, threads=workers, dask_workers=dask_workers,
+                           dask_local=dask_address == "local")  # fmt: skip
+    except ValueError as exc:
+        raise InputError(str(exc), "--memory") from None
     client = None
     if dask_address:
-        client = dask_client(dask_address, n_workers=dask_workers, threads=workers)
+        client = dask_client(dask_address, n_workers=plan.dask_workers, threads=plan.threads,
+                             memory_limit=plan.worker_bytes)  # fmt: skip
+    else:
+        workers = plan.threads
     try:
         with progress("building") as prog:
             task = prog.add_task(Path(output).name, total=None)

@@ -12,7 +12,7 @@ import click
 from terralod.cli._console import console, print_store_summary, print_tin_summary
 from terralod.cli._errors import require_extra
 from terralod.cli._inputs import run_build
-from terralod.cli._options import check_output, check_raster_size, load, read_options
+from terralod.cli._options import check_output, check_raster_size, load, memory_option, read_options
 
 
 @click.command()
@@ -64,10 +64,11 @@ from terralod.cli._options import check_output, check_raster_size, load, read_op
 @click.option(
     "--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2)."
 )
+@memory_option
 @read_options
 def build(
     input_paths: tuple[str, ...], output: str, tile_size: int | None, method: str, sub_blocks: str, base_fraction: float,
-    workers, resume, overwrite, fractal_levels, epoch, dask_address, dask_workers, **read: Any,
+    workers, resume, overwrite, fractal_levels, epoch, dask_address, dask_workers, memory_bytes, **read: Any,
 ) -> None:  # fmt: skip
     """Build the level-of-detail tile store of a DEM (or of a mosaic of DEM tiles on one grid), or the
     detail-increment TIN of a LAS/LAZ cloud. Mosaics (files, a folder, a quoted glob), --dask and rasters
@@ -107,12 +108,12 @@ def build(
         )
     if workers is not None and workers < 1:
         raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
-    if windowed_build(input_paths, dask_address, epoch):
+    if windowed_build(input_paths, dask_address, epoch, memory_bytes):
         from terralod.cli._windowed import run_windowed_build
 
         rep = run_windowed_build(input_paths, output, tile_size=tile_size, method=method, workers=workers,
                                  resume=resume, overwrite=overwrite, dask_address=dask_address,
-                                 dask_workers=dask_workers, read=read)  # fmt: skip
+                                 dask_workers=dask_workers, read=read, memory_bytes=memory_bytes)  # fmt: skip
     else:
         hf = load(input_path, **read)
         if epoch is not None:
@@ -135,9 +136,12 @@ def build(
         print_store_summary(store_summary(s))
 
 
-def windowed_build(input_paths: tuple[str, ...], dask_address: str | None, epoch: str | None) -> bool:
+def windowed_build(
+    input_paths: tuple[str, ...], dask_address: str | None, epoch: str | None, memory_bytes: int | None = None
+) -> bool:
     """True when the build reads windows (:mod:`terralod.pyramid.distributed`): a mosaic (several files, a
-    folder or a quoted glob), --dask, or one GDAL raster of over 2^28 samples; --epoch keeps the samples in
+    folder or a quoted glob), --dask, or one GDAL raster of more samples than an in-memory build holds
+    within ``--memory`` (:func:`terralod.memory.in_memory_samples`: 62 M at 2 GiB); --epoch keeps the samples in
     the store and builds in memory. Geographic and Mercator mosaics are warped block by block to a metric
     grid (:class:`terralod.io.windowed.WarpedSource`)."""
     from terralod.cli._windowed import is_large_raster, is_region
@@ -148,7 +152,7 @@ def windowed_build(input_paths: tuple[str, ...], dask_address: str | None, epoch
                 "--epoch builds in memory; not with a mosaic or --dask", param_hint="--epoch"
             )
         return True
-    return epoch is None and is_large_raster(input_paths[0])
+    return epoch is None and is_large_raster(input_paths[0], memory_bytes)
 
 
 def _las_survey(input_paths: tuple[str, ...]) -> list[Path]:

@@ -692,11 +692,13 @@ def _measure_streamed(src, u, v, zq, tris, r0, c0, r1, c1, margin, dx, dy):
 
 # -- executors -----------------------------------------------------------------------------------------
 def dask_client(
-    address: str, *, n_workers: int | None = None, threads: int | None = None, timeout_s: float = 10.0
+    address: str, *, n_workers: int | None = None, threads: int | None = None, timeout_s: float = 10.0,
+    memory_limit: int | None = None,
 ):
     """A dask.distributed Client: ``"local"`` starts a LocalCluster of ``n_workers`` processes with
-    ``threads`` threads each; else ``address`` is a scheduler (``tcp://HOST:PORT``). Raises
-    :class:`InputError` naming the address when the scheduler cannot be reached."""
+    ``threads`` threads each (each allowed ``memory_limit`` bytes; Dask's default without it); else
+    ``address`` is a scheduler (``tcp://HOST:PORT``). Raises :class:`InputError` naming the address when the
+    scheduler cannot be reached."""
     try:
         from dask.distributed import Client, LocalCluster
     except ImportError:
@@ -705,7 +707,8 @@ def dask_client(
         ) from None
     if address == "local":
         cluster = LocalCluster(n_workers=n_workers or 2, threads_per_worker=threads or 1, processes=True,
-                               dashboard_address=None, silence_logs=logging.ERROR)  # fmt: skip
+                               dashboard_address=None, silence_logs=logging.ERROR,
+                               **({"memory_limit": memory_limit} if memory_limit else {}))  # fmt: skip
         return Client(cluster)
     try:
         return Client(address, timeout=timeout_s)
