@@ -14,13 +14,19 @@ from rasterio.transform import from_origin
 
 from terralod import open_store, read_heightfield
 
-from conftest import fractal_terrain
+from conftest import fractal_terrain, terralod_cli
 
 
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+def real_cli(*args: str, cwd: Path | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    """``python -m terralod ARGS`` in a fresh process: the whole stderr of a real run."""
     return subprocess.run(
         [sys.executable, "-m", "terralod", *args], capture_output=True, text=True, cwd=cwd, timeout=timeout
     )
+
+
+def run_cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """The same command in this process (tests/conftest.py ``terralod_cli``): a process start saved."""
+    return terralod_cli(*args, cwd=cwd)
 
 
 def write_tif(
@@ -47,7 +53,8 @@ def assert_one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> N
 def test_bad_inputs(tmp_path: Path) -> None:
     out = str(tmp_path / "o.terra")
     missing = tmp_path / "missing.tif"
-    assert_one_line_error(run_cli("build", str(missing), "-o", out), "missing.tif", "not found")
+    # a real process: its whole stderr is the one line (no warning, no log line at start-up or exit)
+    assert_one_line_error(real_cli("build", str(missing), "-o", out), "missing.tif", "not found")
     txt = tmp_path / "notes.tif"
     txt.write_text("not a raster\n" * 50)
     assert_one_line_error(run_cli("build", str(txt), "-o", out), "notes.tif")

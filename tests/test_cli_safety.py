@@ -4,10 +4,11 @@ one size limit in every command, what killed runs leave behind, epoch names."""
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+
+from conftest import terralod_cli
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "change"
 BEFORE = DATA / "st_helens_crater_2000-09-25_10m.tif"
@@ -16,8 +17,9 @@ needs_data = pytest.mark.skipif(not BEFORE.exists(), reason="../shared/data (St 
 
 
 def terralod(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "terralod", *args], capture_output=True, text=True, cwd=cwd,
-                          timeout=600)  # fmt: skip
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``; tests/test_cli.py runs the
+    one-line refusal in a real process too)."""
+    return terralod_cli(*args, cwd=cwd)
 
 
 @pytest.fixture(scope="module")
