@@ -29,7 +29,10 @@ Invariants:
 - a file inside the work folder is whole under its name or absent (:meth:`Output.write`: temporary name,
   then rename). A temporary is named after its process (``.NAME.PID.tmp``) and removed once that process is
   gone (:func:`remove_stale_temporaries`, shared with the store's files);
-- an output is never one of its inputs, never holds one and never lies inside one (:func:`refuse_inputs`).
+- an output is never one of its inputs, never holds one and never lies inside one (:func:`refuse_inputs`);
+- with ``keep_records`` the finished output carries its files' records (``RECORDS``, one JSON object, sorted,
+  the same bytes for the same records), so a later ``update`` knows what each file was made from
+  (:meth:`Output.previous`) and may keep a file without making it again (:meth:`Output.keep`).
 
 This module imports nothing from the exports, the site, the change report or the CLI: all of them use it.
 """
@@ -63,6 +66,9 @@ __all__ = [
     "temporary_path",
     "work_path",
 ]
+
+#: The file of a finished output that holds its files' records (``Output(keep_records=True)``).
+RECORDS = ".terralod-records.json"
 
 PathLike = str | os.PathLike[str]
 
@@ -304,6 +310,9 @@ class Output:
         adopted only when its key is the same.
     keep_on_error
         After an exception, keep the work folder (its lock released) for a later ``resume``; else remove it.
+    keep_records
+        Write every file's record into the finished output (``RECORDS``); an ``update`` reads the previous
+        output's (:meth:`previous`).
     """
 
     def __init__(
@@ -317,6 +326,7 @@ class Output:
         key: Any = None,
         keep_on_error: bool | None = None,
         command: str | None = None,
+        keep_records: bool = False,
     ) -> None:
         self.target = Path(target)
         self.inputs = list(inputs)
@@ -332,6 +342,9 @@ class Output:
         self.adopted: Lock | None = None
         self.rewritten: list[str] = []
         self._records: dict[str, dict[str, Any]] = {}
+        self.keep_records = keep_records
+        self._previous: dict[str, dict[str, Any]] | None = None
+        self._sealed = False
         self._journal: Any = None
         self._open = False
 
@@ -360,6 +373,31 @@ class Output:
     def record(self, rel: str) -> dict[str, Any] | None:
         """What the writer recorded with finished file ``rel`` (:meth:`write`'s ``record``), else None."""
         return self._records.get(rel) if self.done(rel) else None
+
+    def previous(self, rel: str) -> dict[str, Any] | None:
+        """With ``update`` and ``keep_records``: the record the output being updated keeps for ``rel``
+        (None when it has none, or the file is not in the work folder)."""
+        if not (self.update and self.keep_records):
+            return None
+        if self._previous is None:
+            try:
+                got = json.loads((self.target / RECORDS).read_text())
+                self._previous = {str(k): v for k, v in got.items() if isinstance(v, dict)}
+            except (OSError, ValueError, AttributeError):
+                self._previous = {}
+        r = self._previous.get(rel)
+        return r if r is not None and self.path(rel).is_file() else None
+
+    def keep(self, rel: str, record: dict[str, Any] | None = None) -> None:
+        """Count file ``rel``, already in the work folder (the output being updated has it), as finished
+        without writing it (same inode, same mtime), with ``record``."""
+        if not self._open:
+            raise RuntimeError("Output.keep outside its with block")
+        if not self.path(rel).is_file():
+            raise FileNotFoundError(self.path(rel))
+        self._journal.write(json.dumps({"path": rel, "record": record, "changed": False}) + "\n")
+        self._journal.flush()
+        self._records[rel] = record or {}
 
     def write(
         self, rel: str, data: bytes, record: dict[str, Any] | None = None, *, fsync: bool = False
@@ -393,6 +431,22 @@ class Output:
             self.rewritten.append(rel)
         return changed
 
+    def seal(self) -> None:
+        """With ``keep_records``: write ``RECORDS`` (every finished file's record) into the output, like any
+        file (with ``update``, rewritten only when it changes). Entering the end of the block does it when
+        the writer did not; a writer that reports :attr:`rewritten` calls it first."""
+        if not self.keep_records:
+            return
+        recs = {k: v for k, v in sorted(self._records.items()) if k != RECORDS}
+        data = json.dumps(recs, sort_keys=True, separators=(",", ":")).encode()
+        was = self._open
+        self._open = True
+        try:
+            self.write(RECORDS, data)
+        finally:
+            self._open = was
+        self._sealed = True
+
     def files(self) -> list[str]:
         """The output's files now in the work folder (relative, ``/``-separated, sorted)."""
         return sorted(f.relative_to(self.folder).as_posix() for f in self.folder.rglob("*") if f.is_file())
@@ -419,6 +473,8 @@ class Output:
     def __exit__(
         self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
+        if kind is None and self.keep_records and not self._sealed:
+            self.seal()
         self._open = False
         self._journal.close()
         if kind is None:

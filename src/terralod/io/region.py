@@ -476,6 +476,9 @@ class RegionReader:
         self._cache: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._lock = threading.Lock()
         self._fills = _BytesLRU(FILL_CACHE_BYTES)
+        #: the halo each block (br, bc) filled so far needed: over FILL_HALO_EXACT_MAX (a hole that wide),
+        #: its values may depend on samples further away (what an export's update asks)
+        self.fill_halos: dict[tuple[int, int], int] = {}
         self._thin = _BytesLRU(THIN_CACHE_BYTES)
         self._water_bits = _BytesLRU(WATER_CACHE_BYTES)
         #: (some, every) water of each block made: (False, False) land only, (True, True) water only
@@ -562,6 +565,7 @@ class RegionReader:
         if (br, bc) not in self._water:
             self._note_water(br, bc, values, ok)
         if ok.all():
+            self.fill_halos[(br, bc)] = 0
             return values, ok
         kept = self._fills.get((br, bc))
         if kept is not None:  # the fill made before: its cells, or the whole filled block
@@ -595,6 +599,7 @@ class RegionReader:
             if whole:
                 raise InputError("has no valid samples", self.region.name)
             halo *= 2
+        self.fill_halos[(r0 // FILL_BLOCK, c0 // FILL_BLOCK)] = halo
         filled: np.ndarray = fill_nodata(wv, wok).astype(self.dtype)
         return np.ascontiguousarray(filled[r0 - ra : r1 - ra, c0 - ca : c1 - ca])
 
