@@ -30,10 +30,17 @@ normals), ``meshopt`` also compresses them with EXT_meshopt_compression (needs n
 quantisation may add (√3/2 of a grid step) is counted in every tile's declared error. ``--max-error-m E``
 stops the tree at a finest declared error: the tiles whose parent already declares at most E are left out
 (3D Tiles only).
+
+``--dask local|tcp://HOST:PORT`` (``--dask-workers N``: the local cluster's worker processes, 2) encodes the
+tiles on a Dask cluster, for every export but the site: each worker opens the store, DEM or region itself
+and reads its own windows of it; only tile bytes come back. The output is the local run's, byte for byte,
+written here through the same journal (``--resume`` and ``--update`` as without it).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -122,10 +129,21 @@ from terralod.output import Lock, Output, refuse_inputs, work_path
     "egm2008, navd88, ellipsoid or a vertical CRS (EPSG:5773); the tiles then carry heights above the WGS 84 "
     "ellipsoid (the operation PROJ used is recorded in tileset.json / layer.json).",
 )  # fmt: skip
+@click.option(
+    "--dask",
+    "dask_address",
+    default=None,
+    help="Encode the tiles on Dask: local (a LocalCluster of worker processes) or tcp://HOST:PORT (a "
+    "scheduler); the same bytes as without it (3dtiles, quantized-mesh).",
+)
+@click.option(
+    "--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2)."
+)
 def export(
     inputs: tuple[str, ...], fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool,
     gzip_tiles: bool, normals: bool, resume: bool, update_output: bool, bbox: str | None, min_zoom: int,
     max_zoom: int | None, glb_geometry: str | None, max_error_m: float | None, vertical_datum: str | None,
+    dask_address: str | None, dask_workers: int | None,
 ) -> None:  # fmt: skip
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh, or DEMs (a region: files, a quoted glob, a
     folder, a VRT, .hgt/.hgt.zip; where they overlap the last one listed wins) as quantized-mesh."""
@@ -135,12 +153,17 @@ def export(
     if fmt != "3dtiles" and (glb_geometry is not None or max_error_m is not None):
         raise click.BadParameter("--glb-geometry and --max-error-m are for 3dtiles", param_hint="--format")
     tiles = {"geometry": glb_geometry or "quantized", "max_error_m": max_error_m}
+    if dask_address:
+        if fmt == "site":
+            raise click.BadParameter("--dask is for 3dtiles and quantized-mesh", param_hint="--format")
+        require_extra("export --dask", "dask")
+    dask = (dask_address, dask_workers)
     if len(inputs) > 1 or not _is_one_file(inputs[0]):
         if fmt != "quantized-mesh":
             raise click.BadParameter("several inputs, a glob or a folder make a region of DEMs: quantized-mesh "
                                      "only", param_hint="--format")  # fmt: skip
         _run_dem(list(inputs), output, epoch, {"overwrite": overwrite, "resume": resume, "update": update_output},
-                 gzip_tiles, normals, part)  # fmt: skip
+                 gzip_tiles, normals, part, dask)  # fmt: skip
         return
     store = inputs[0]
     if not part.whole and fmt != "quantized-mesh":
@@ -172,7 +195,7 @@ def export(
             raise InputError(
                 "is a DEM; 3D Tiles are written from a store (run `terralod build` first)", store
             )
-        _run_dem([store], output, epoch, opts, gzip_tiles, normals, part)
+        _run_dem([store], output, epoch, opts, gzip_tiles, normals, part, dask)
         return
     with open_terrain(store) as terrain:
         if epoch is not None:
@@ -180,7 +203,7 @@ def export(
         _output(output, store, opts).check()  # refusals first: one line, before any progress output
         Geodesy(terrain.crs, store)
         check_exportable(terrain, epoch)
-        _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals, part, tiles)
+        _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals, part, tiles, dask)
 
 
 def _part(bbox: str | None, min_zoom: int, max_zoom: int | None) -> Any:
@@ -235,7 +258,7 @@ def _is_dem(path: str, is_sqlite) -> bool:  # noqa: ANN001
 
 def _run_dem(
     dems: list[str], output: str, epoch: str | None, opts: dict[str, bool], gzip_tiles: bool,
-    normals: bool = False, part: Any = None,
+    normals: bool = False, part: Any = None, dask: tuple[str | None, int | None] = (None, None),
 ) -> None:  # fmt: skip
     """A DEM or a region of DEMs exported as quantized-mesh: every file read once first (an unreadable one
     named in one line), then the tiles, a window of the region at a time for WGS 84 lon/lat data."""
@@ -255,7 +278,7 @@ def _run_dem(
             check_raster_size(dems[0])  # the one size limit, from the header, before any sample is read
             _output(output, dems[0], opts).check()
             _run(source_from_dem(dems[0]), "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals,
-                 part)  # fmt: skip
+                 part, None, dask)  # fmt: skip
             return
     region = resolve_region(dems)  # headers only: one grid, or one line naming the two files that differ
     if not _lonlat(region.crs):  # read whole, in memory: the one size limit, from the headers
@@ -263,7 +286,7 @@ def _run_dem(
     Output(output, inputs=region.files, overwrite=opts["overwrite"], resume=opts["resume"],
            update=opts["update"]).check()  # fmt: skip
     source = source_from_region(region)
-    _run(source, "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals, part)
+    _run(source, "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals, part, None, dask)
 
 
 def _lonlat(crs: Any) -> bool:
@@ -276,12 +299,13 @@ def _lonlat(crs: Any) -> bool:
 def _run(
     terrain, fmt: str, output: str, metric: str, epoch: str | None, opts: dict[str, bool],
     gzip_tiles: bool = False, normals: bool = False, part: Any = None, tiles: dict[str, Any] | None = None,
+    dask: tuple[str | None, int | None] = (None, None),
 ) -> None:  # fmt: skip
     from terralod.export import export_3dtiles, export_quantized_mesh
 
     adopted = Lock.read(work_path(output)) if opts["resume"] else None
 
-    with _progress("exporting") as prog:
+    with _client(*dask) as client, _progress("exporting") as prog:
         tasks: list[Any] = []  # added at the first tile: a refusal before it prints no progress
 
         def cb(done: int, total: int) -> None:
@@ -290,12 +314,11 @@ def _run(
             prog.update(tasks[0], completed=done, total=total)
 
         if fmt == "3dtiles":
-            rep = export_3dtiles(
-                terrain, output, metric=metric, epoch=epoch, progress=cb, **(tiles or {}), **opts
-            )
+            rep = export_3dtiles(terrain, output, metric=metric, epoch=epoch, progress=cb, client=client,
+                                 **(tiles or {}), **opts)  # fmt: skip
         else:
             rep = export_quantized_mesh(terrain, output, epoch=epoch, gzip_tiles=gzip_tiles, normals=normals,
-                                        part=part, progress=cb, **opts)  # fmt: skip
+                                        part=part, progress=cb, client=client, **opts)  # fmt: skip
     if rep.extra.get("resumed") and adopted is not None:
         console.print(f"resumed the export interrupted in {work_path(output).name} ({adopted.describe()})",
                       highlight=False)  # fmt: skip
@@ -311,6 +334,25 @@ def _run(
             console.print(f"  rewritten {rel}", highlight=False)
         for rel in removed:
             console.print(f"  removed {rel}", highlight=False)
+
+
+@contextmanager
+def _client(address: str | None, workers: int | None) -> Iterator[Any]:
+    """The Dask client of ``--dask`` (None without it), as ``terralod build`` makes it; a local cluster is
+    closed at the end."""
+    if not address:
+        yield None
+        return
+    from terralod.pyramid.distributed import dask_client
+
+    client = dask_client(address, n_workers=workers)
+    try:
+        yield client
+    finally:
+        cluster = client.cluster if address == "local" else None
+        client.close()
+        if cluster is not None:
+            cluster.close()
 
 
 class _PlainProgress(PlainProgress):

@@ -566,6 +566,7 @@ def export_quantized_mesh(
     check_space: bool = True,
     progress: Callable[[int, int], None] | None = None,
     vertical_datum: str | None = None,
+    client: Any = None,
 ) -> ExportReport:
     """Write ``out/layer.json``, ``out/errors.json`` (measured error per tile) and ``out/Z/X/Y.terrain``.
 
@@ -581,8 +582,10 @@ def export_quantized_mesh(
     ``resume``: the tiles an interrupted export of the same terrain and options finished are not encoded
     again; ``update``: only the files whose bytes change are rewritten (``extra["rewritten"]``). With
     ``check_space`` the free disk is checked against :func:`estimate_bytes` before the first tile. The
-    output is written through :class:`terralod.output.Output`.
+    output is written through :class:`terralod.output.Output`. ``client`` (a ``dask.distributed`` Client):
+    the tiles are encoded on its workers (:mod:`terralod.export.distributed`), the same bytes.
     """
+    from terralod.export.distributed import encode_quantized_mesh, recipe_of
     from terralod.export.source import SampleSource
     from terralod.output import Output
 
@@ -602,6 +605,9 @@ def export_quantized_mesh(
     output.check()  # refusals first, before the tiler's set-up
     qm = QuantizedMesh(terrain, normals=normals, vertical_datum=vertical_datum)
     codes = qm.tile_codes(part)
+    recipe = None
+    if client is not None:
+        recipe = recipe_of(terrain, "quantized-mesh", epoch, normals=normals, vertical_datum=vertical_datum)
     if check_space:
         check_free_space(out, estimate_bytes(qm, codes, gzip_tiles=gzip_tiles))
     rep = ExportReport(Path(out))
@@ -611,15 +617,13 @@ def export_quantized_mesh(
     water = {"none": 0, "all": 0, "some": 0}
     level_sq: dict[int, list] = {}
     with output as o:
+        todo = [c for c in codes if o.record("{}/{}/{}.terrain".format(*c)) is None]  # the rest: resumed
+        made = encode_quantized_mesh(qm, todo, gzip_tiles=gzip_tiles, client=client, recipe=recipe)
         for i, (z, x, y) in enumerate(codes):
             rel = f"{z}/{x}/{y}.terrain"
             r = o.record(rel)  # finished by the interrupted export this one resumes
             if r is None:
-                t = qm.tile(z, x, y)
-                data = t.data if gzip_tiles else t.raw
-                r = {"bytes": len(data), "raw": len(t.raw), "gz": len(t.data) if gzip_tiles else 0,
-                     "triangles": int(t.triangles), "sumsq_m2": float(t.sumsq_m2), "samples": int(t.samples),
-                     "water": t.water, "error_m": float(t.error_m)}  # fmt: skip
+                _, data, r = next(made)  # here or on the Dask workers (terralod.export.distributed)
                 o.write(rel, data, r)
             rep.tiles += 1
             rep.bytes += r["bytes"]

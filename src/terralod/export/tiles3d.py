@@ -351,6 +351,10 @@ class Tiles3D:
         }  # fmt: skip
 
     # -- content -----------------------------------------------------------------------------------------
+    def _level_codes(self, group: int) -> list[Any]:
+        """The codes of level ``group``'s nodes, in the tree's order (the order their normals are summed)."""
+        return [n.code for n in self.tree if n.code[0] == group]
+
     def _level(self, group: int) -> _Level:
         """The nodes of level ``group`` and their normals: the nodes merged by position (rounded to 0.1 mm)
         and their area-weighted face normals summed (:func:`terralod.runtime.normals.reference_normals`'s
@@ -363,7 +367,7 @@ class Tiles3D:
 
         nodes: dict[Any, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         seen: dict[int, int] = {}
-        for c in (n.code for n in self.tree if n.code[0] == group):
+        for c in self._level_codes(group):
             v, t = self.terrain.lod_mesh(c)
             v = np.asarray(v, np.float64)
             used, local = compact_triangles(np.ascontiguousarray(t, np.int64), len(v))
@@ -729,6 +733,7 @@ def export_3dtiles(
     vertical_datum: str | None = None,
     geometry: str = "quantized",
     max_error_m: float | None = None,
+    client: Any = None,
 ) -> ExportReport:
     """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree.
 
@@ -742,8 +747,10 @@ def export_3dtiles(
 
     ``resume``: the glbs an interrupted export of the same terrain and options finished are not encoded
     again; ``update``: only the files whose bytes change are rewritten (``extra["rewritten"]``). The output
-    is written through :class:`terralod.output.Output`.
+    is written through :class:`terralod.output.Output`. ``client`` (a ``dask.distributed`` Client): the
+    glbs are encoded on its workers (:mod:`terralod.export.distributed`), the same bytes.
     """
+    from terralod.export.distributed import encode_3dtiles, recipe_of
     from terralod.output import Output
 
     t0 = time.perf_counter()
@@ -756,29 +763,33 @@ def export_3dtiles(
     output.check()  # refusals first, before the view's set-up
     view = Tiles3D(terrain, metric=metric, vertical_datum=vertical_datum, geometry=geometry,
                    max_error_m=max_error_m)  # fmt: skip
+    recipe = None
+    if client is not None:
+        recipe = recipe_of(terrain, "3dtiles", epoch, metric=metric, vertical_datum=vertical_datum,
+                           geometry=geometry, max_error_m=max_error_m)  # fmt: skip
     rep = ExportReport(Path(out))
     moved = 0.0
     with output as o:
         # level by level (a TIN's tree is sub-block by sub-block): each level's meshes are made once and
         # dropped when its tiles are written, so memory holds one level, whatever the pyramid's size
         codes = sorted((n.code for n in view.tree), key=lambda c: c[0])
+        todo = [c for c in codes if o.record(node_uri(c)) is None]  # the others: finished by the run resumed
+        made = encode_3dtiles(view, todo, client=client, recipe=recipe)  # here or on the Dask workers
         for i, code in enumerate(codes):
-            if i and codes[i - 1][0] != code[0]:
-                view.release(codes[i - 1][0])
-            if not view.has_content(code):
-                continue
-            r = o.record(node_uri(code))  # finished by the interrupted export this one resumes
+            r = o.record(node_uri(code))
             if r is None:
-                data, shift = view.encode(code)
-                r = {"bytes": len(data), "moved_m": shift}
+                _, data, r = next(made)
+                if data is None:  # every triangle over nodata: no content
+                    continue
                 o.write(node_uri(code), data, r)
+            else:
+                view._content[code] = True
+                view._triangles.setdefault(code, int(r.get("triangles", 0)))
             rep.tiles += 1
             rep.bytes += r["bytes"]
             moved = max(moved, float(r.get("moved_m", 0.0)))
             if progress is not None:
                 progress(i + 1, len(codes))
-        if codes:
-            view.release(codes[-1][0])
         view.close()
         ts = json.dumps(view.tileset(), separators=(",", ":"))
         o.write("tileset.json", ts.encode())

@@ -1,0 +1,307 @@
+"""The exports' tile encoding on a Dask cluster: the one place where "encode these codes" is done.
+
+:func:`encode_quantized_mesh` and :func:`encode_3dtiles` take the codes an export needs encoded (after
+``--resume`` and whatever filter an export applies) and yield ``(code, bytes, record)`` for each, in the
+order given. Without a client they encode in this process, one tile at a time, as the exports always did.
+With a ``dask.distributed`` client the codes go out in batches of :data:`BATCH_TILES` consecutive codes of
+one level (level by level, rows then columns: neighbouring tiles, so a worker's block cache is reused),
+at most :data:`BATCHES_PER_WORKER` per worker thread in flight, submitted in order and yielded in order as
+they finish; the driver keeps writing through :class:`terralod.output.Output`.
+
+What travels: a :class:`Recipe` (a store's path and epoch, a region's file list and scan, a DEM's path, and
+the export's options: bytes, never samples) to the workers, and each tile's bytes and record back. A worker
+opens the source once (:func:`_opened`: the QuantizedMesh or Tiles3D kept per worker process, keyed by the
+recipe) and reads its own windows of the inputs. A tile is a pure function of (source, options, code), so
+the bytes are the local run's: the one statistic a quantized-mesh tile takes from elsewhere, its parent's
+RMS ratio (:meth:`~terralod.export.quantized_mesh.QuantizedMesh.rms_ratio`), is sent back with the parents
+and handed to the children's batches (a worker that lacks it meshes the parent again, the same).
+
+3D Tiles: a glb's normals are those of its whole level merged (:meth:`~terralod.export.tiles3d.Tiles3D._level`),
+but a node's normals only take sums from the nodes that share a vertex position with it, added in the
+level's node order. A worker therefore builds, per batch, only the batch's nodes and the level's nodes whose
+boxes meet theirs (padded), in the level's order (:class:`_NeighbourhoodTiles3D`): the same sums in the same
+order, so the same bytes, without any worker building a whole level.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pickle
+from collections import OrderedDict, deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from terralod.export.quantized_mesh import QuantizedMesh
+from terralod.export.tiles3d import Tiles3D
+
+__all__ = [
+    "BATCH_TILES",
+    "BATCHES_PER_WORKER",
+    "Recipe",
+    "encode_3dtiles",
+    "encode_quantized_mesh",
+    "neighbourhood",
+    "quantized_mesh_record",
+    "recipe_of",
+    "tiles3d_result",
+]
+
+#: Tiles of one batch: a few dozen neighbours, so a worker reuses its cached blocks and the scheduler's
+#: per-task overhead (a few ms) stays small against the tiles' encoding (tens of ms each).
+BATCH_TILES = 32
+#: Batches in flight per worker thread: one running and one queued, so no worker waits on the driver.
+BATCHES_PER_WORKER = 2
+#: Opened sources a worker process keeps (the last ones used).
+KEEP_OPENED = 2
+#: A node's box is padded by this fraction of its size, and PAD_M metres, when looking for the nodes that
+#: share a vertex position with it (positions are merged at 0.1 mm; extra neighbours cost time, not bytes).
+NEIGHBOUR_PAD = 0.01
+NEIGHBOUR_PAD_M = 1.0
+
+Code = tuple[int, ...]
+Result = tuple[Any, bytes | None, dict[str, Any] | None]
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """How a worker opens an export's source: ``kind`` ("store", "region-grid", "region" or "dem"),
+    ``source`` (what it needs: a path and epoch, a Region and its scan, a path) and the options of the
+    QuantizedMesh or Tiles3D view (``view``: "quantized-mesh" or "3dtiles"). Small and picklable."""
+
+    view: str
+    kind: str
+    source: tuple[Any, ...]
+    options: tuple[tuple[str, Any], ...]
+
+    def key(self) -> str:
+        """The recipe's identity on a worker (its pickled bytes' digest)."""
+        return hashlib.sha256(pickle.dumps(self, protocol=5)).hexdigest()
+
+    def open(self) -> Any:
+        """The view this recipe describes (QuantizedMesh or :class:`_NeighbourhoodTiles3D`)."""
+        from terralod.export.source import RegionGrid, source_from_dem, source_from_region
+        from terralod.terrain import open_terrain
+
+        terrain: Any
+        if self.kind == "store":
+            path, epoch = self.source
+            terrain = open_terrain(path)
+            if epoch is not None and epoch != getattr(terrain, "epoch", None):
+                terrain = terrain.with_epoch(epoch)
+        elif self.kind == "region-grid":
+            terrain = RegionGrid(self.source[0], scan=self.source[1])
+        elif self.kind == "region":
+            terrain = source_from_region(self.source[0])
+        else:
+            terrain = source_from_dem(self.source[0])
+        opts = dict(self.options)
+        if self.view == "3dtiles":
+            return _NeighbourhoodTiles3D(terrain, **opts)
+        return QuantizedMesh(terrain, **opts)
+
+
+def recipe_of(terrain: Any, view: str, epoch: str | None = None, **options: Any) -> Recipe:
+    """The :class:`Recipe` of an export's ``terrain`` (a store opened from a file, or a DEM's or region's
+    samples from :mod:`terralod.export.source`) for ``view`` with ``options``. Raises ValueError for a
+    terrain a worker cannot open again (one built in memory)."""
+    from terralod.export.source import RegionGrid, SampleSource
+
+    opts = tuple(sorted(options.items()))
+    if isinstance(terrain, RegionGrid):
+        return Recipe(view, "region-grid", (terrain.region, terrain.scan), opts)
+    if isinstance(terrain, SampleSource):
+        origin = getattr(terrain, "origin", None)
+        if origin is None:
+            raise ValueError(
+                f"Expected a DEM or region read from files, got samples in memory ({terrain.name})"
+            )
+        return Recipe(view, origin[0], tuple(origin[1:]), opts)
+    path = getattr(terrain, "path", None)
+    if path is None:
+        raise ValueError("Expected a store opened from a file, got a terrain in memory")
+    return Recipe(view, "store", (str(path), epoch), opts)
+
+
+# -- on a worker ---------------------------------------------------------------------------------------
+_OPENED: OrderedDict[str, Any] = OrderedDict()
+
+
+def _opened(recipe: Recipe) -> Any:
+    """The view of ``recipe``, opened once per worker process (the last KEEP_OPENED kept)."""
+    key = recipe.key()
+    view = _OPENED.get(key)
+    if view is None:
+        view = recipe.open()
+        _OPENED[key] = view
+        while len(_OPENED) > KEEP_OPENED:
+            _, old = _OPENED.popitem(last=False)
+            if isinstance(old, Tiles3D):
+                old.close()
+    _OPENED.move_to_end(key)
+    return view
+
+
+def quantized_mesh_record(qm: QuantizedMesh, code: Code, gzip_tiles: bool) -> Result:
+    """(code, the file's bytes, its journal record) of quantized-mesh tile ``code``: the one encoding."""
+    z, x, y = code
+    t = qm.tile(z, x, y)
+    data = t.data if gzip_tiles else t.raw
+    r = {"bytes": len(data), "raw": len(t.raw), "gz": len(t.data) if gzip_tiles else 0,
+         "triangles": int(t.triangles), "sumsq_m2": float(t.sumsq_m2), "samples": int(t.samples),
+         "water": t.water, "error_m": float(t.error_m)}  # fmt: skip
+    return code, data, r
+
+
+def _qm_batch(recipe: Recipe, codes: list[Code], gzip_tiles: bool,
+              ratios: dict[Code, float | None]) -> tuple[list[Result], dict[Code, float | None]]:  # fmt: skip
+    """A batch of quantized-mesh tiles on a worker, and the RMS ratios it made (a child batch's input)."""
+    qm = _opened(recipe)
+    for k, v in ratios.items():
+        qm._rms_ratio.setdefault(k, v)
+    out = [quantized_mesh_record(qm, c, gzip_tiles) for c in codes]
+    made = {c: qm._rms_ratio[c] for c in codes if c in qm._rms_ratio}
+    return out, made
+
+
+class _NeighbourhoodTiles3D(Tiles3D):
+    """A Tiles3D whose levels hold only the nodes of ``only`` (None: every node), in the level's order."""
+
+    only: set[Any] | None = None
+
+    def _level_codes(self, group: int) -> list[Any]:
+        codes = super()._level_codes(group)
+        return codes if self.only is None else [c for c in codes if c in self.only]
+
+
+def neighbourhood(view: Tiles3D, codes: Sequence[Any]) -> set[Any]:
+    """``codes`` and the nodes of their level whose boxes (padded) meet any of theirs: every node that may
+    share a vertex position with one of them."""
+    level = [n for n in view.tree if n.code[0] == codes[0][0]]
+    box = np.array([n.box_m for n in level], np.float64)[:, [0, 1, 3, 4]]  # west, south, east, north
+    pad = NEIGHBOUR_PAD * np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]) + NEIGHBOUR_PAD_M
+    box = box + np.stack([-pad, -pad, pad, pad], axis=1)
+    idx = {n.code: i for i, n in enumerate(level)}
+    mine = box[[idx[c] for c in codes]]
+    meets = np.any(
+        (box[:, None, 0] <= mine[None, :, 2]) & (mine[None, :, 0] <= box[:, None, 2])
+        & (box[:, None, 1] <= mine[None, :, 3]) & (mine[None, :, 1] <= box[:, None, 3]), axis=1,
+    )  # fmt: skip
+    return {n.code for n, m in zip(level, meets.tolist(), strict=True) if m} | set(codes)
+
+
+def tiles3d_result(view: Tiles3D, code: Any) -> Result:
+    """(code, glb bytes or None for a node without content, its journal record) of one 3D Tiles node; the
+    record holds the node's triangles (before the nodata drop) for the report."""
+    if not view.has_content(code):
+        return code, None, {"triangles": int(view._triangles.get(code, 0))}
+    data, shift = view.encode(code)
+    return code, data, {"bytes": len(data), "moved_m": shift, "triangles": int(view._triangles.get(code, 0))}
+
+
+def _3dtiles_batch(recipe: Recipe, codes: list[Any]) -> tuple[list[Result], None]:
+    """A batch of one level's 3D Tiles nodes on a worker: that level built over their neighbourhood only."""
+    view = _opened(recipe)
+    view.only = neighbourhood(view, codes)
+    view.release(codes[0][0])
+    try:
+        return [tiles3d_result(view, c) for c in codes], None
+    finally:
+        view.release(codes[0][0])
+        view.only = None
+        for c in codes:
+            view._content.pop(c, None)
+
+
+# -- on the driver -------------------------------------------------------------------------------------
+def _batches(codes: Sequence[Any], size: int) -> Iterator[list[Any]]:
+    """Runs of at most ``size`` consecutive codes of one level."""
+    run: list[Any] = []
+    for c in codes:
+        if run and (len(run) == size or run[-1][0] != c[0]):
+            yield run
+            run = []
+        run.append(c)
+    if run:
+        yield run
+
+
+def _threads(client: Any) -> int:
+    try:
+        return max(1, int(sum(client.nthreads().values())))
+    except Exception:  # noqa: BLE001 - a scheduler that does not say: assume two
+        return 2
+
+
+def _stream(client: Any, batches: Iterable[list[Any]], submit: Callable[[Any, list[Any]], Any],
+            after: Callable[[Any], None] | None = None) -> Iterator[Result]:  # fmt: skip
+    """The results of ``submit(client, batch)`` futures, in order: at most BATCHES_PER_WORKER per worker
+    thread in flight (memory bounded by the work in flight), the next submitted before a result is yielded."""
+    ahead = BATCHES_PER_WORKER * _threads(client)
+    it = iter(batches)
+    pending: deque[Any] = deque()
+    try:
+        for b in it:
+            pending.append(submit(client, b))
+            if len(pending) >= ahead:
+                break
+        while pending:
+            results, extra = pending.popleft().result()
+            if after is not None:
+                after(extra)
+            nxt = next(it, None)
+            if nxt is not None:
+                pending.append(submit(client, nxt))
+            yield from results
+    finally:
+        for f in pending:
+            f.cancel()
+
+
+def encode_quantized_mesh(qm: QuantizedMesh, codes: Sequence[Code], *, gzip_tiles: bool = False,
+                          client: Any = None, recipe: Recipe | None = None) -> Iterator[Result]:  # fmt: skip
+    """``(code, bytes, record)`` of every quantized-mesh tile of ``codes``, in that order: here, or on
+    ``client``'s workers (each opening ``recipe``) in batches of :data:`BATCH_TILES`."""
+    if client is None:
+        for c in codes:
+            yield quantized_mesh_record(qm, c, gzip_tiles)
+        return
+    if recipe is None:
+        raise ValueError("Expected the source's recipe with a client")
+    goal = qm.max_zoom - 1  # the level whose tiles take their parent's RMS ratio
+    known: dict[Code, float | None] = {}
+
+    def submit(cl: Any, b: list[Code]) -> Any:
+        parents = {(z - 1, x // 2, y // 2) for z, x, y in b if z == goal and z > 0}
+        ratios = {p: known[p] for p in parents if p in known}
+        return cl.submit(_qm_batch, recipe, b, gzip_tiles, ratios, pure=False)
+
+    yield from _stream(client, _batches(codes, BATCH_TILES), submit, lambda made: known.update(made))
+
+
+def encode_3dtiles(view: Tiles3D, codes: Sequence[Any], *, client: Any = None,
+                   recipe: Recipe | None = None) -> Iterator[Result]:  # fmt: skip
+    """``(code, glb bytes or None without content, record)`` of every 3D Tiles node of ``codes`` (sorted by
+    level), in that order: here (each level built once and released when the next starts), or on
+    ``client``'s workers, a batch's level built over its neighbourhood only (:func:`neighbourhood`). The
+    driver's view learns each node's content and triangles from the records (its tileset needs no mesh)."""
+    if client is None:
+        for i, c in enumerate(codes):
+            if i and codes[i - 1][0] != c[0]:
+                view.release(codes[i - 1][0])
+            yield tiles3d_result(view, c)
+        if codes:
+            view.release(codes[-1][0])
+        return
+    if recipe is None:
+        raise ValueError("Expected the store's recipe with a client")
+
+    def submit(cl: Any, b: list[Any]) -> Any:
+        return cl.submit(_3dtiles_batch, recipe, b, pure=False)
+
+    for code, data, r in _stream(client, _batches(codes, BATCH_TILES), submit):
+        view._content[code] = data is not None
+        view._triangles[code] = int((r or {}).get("triangles", 0))
+        yield code, data, r
