@@ -292,9 +292,8 @@ class RegionGrid(SourceGrid):
         from terralod.io.region import CACHE_BLOCKS, RegionReader, scan_region
 
         SampleSource.__init__(self)
-        if not windowed_crs(region.crs):
-            raise InputError("is neither in WGS 84 longitude/latitude (EPSG:4326) nor projected in metres with "
-                             "heights in metres", region.name)  # fmt: skip
+        if not _is_lonlat_wgs84(region.crs):
+            raise InputError("is not in WGS 84 longitude/latitude (EPSG:4326)", region.name)
         self.region = region
         self.reader = RegionReader(
             region, cache_blocks=CACHE_BLOCKS if cache_blocks is None else cache_blocks
@@ -304,12 +303,7 @@ class RegionGrid(SourceGrid):
         self.scan = got
         self.t = region.transform
         self.crs = CRS.from_user_input(region.crs.to_wkt())
-        self.identity = _is_lonlat_wgs84(self.crs)
-        if not self.identity:
-            from pyproj import Transformer
-
-            self._to_crs = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True)
-            self._to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
+        self.identity = True
         self.name = region.footprints[0].shown if len(region.footprints) == 1 else region.name
         self.title = (
             Path(self.name).stem
@@ -319,29 +313,11 @@ class RegionGrid(SourceGrid):
         self.files = region.files
         self.shape = region.shape
         self._any_water = bool(got.any_water)
-        if not self.identity:  # projected: the lon/lat box of the valid samples' rows x cols, from its edges
-            self.bbox = self._projected_bbox(got)
-            self.spacing_deg = float(min(abs(self.t.a), abs(self.t.e))) / 111320.0
-            return
         lons = (self.t.c + (got.c0 + 0.5) * self.t.a, self.t.c + (got.c1 + 0.5) * self.t.a)
         lats = (self.t.f + (got.r0 + 0.5) * self.t.e, self.t.f + (got.r1 + 0.5) * self.t.e)
         self.bbox = (float(min(lons)), float(min(lats)), float(max(lons)), float(max(lats)))
         cos_lat = math.cos(math.radians(0.5 * (self.bbox[1] + self.bbox[3])))
         self.spacing_deg = float(min(abs(self.t.a) * cos_lat, abs(self.t.e)))
-
-    def _projected_bbox(self, got: Any) -> tuple[float, float, float, float]:
-        """The lon/lat box of the sample centres of rows r0..r1 x cols c0..c1 (a projection is a smooth
-        one-to-one map, so its extremes over that rectangle lie on its edge: every edge sample is taken,
-        and the edges densified as :class:`SourceGrid` does, so the box holds every valid sample)."""
-        k = np.linspace(0.0, 1.0, 33)
-        r0, r1, c0, c1 = got.r0, got.r1, got.c0, got.c1
-        rows, cols = np.arange(r0, r1 + 1, dtype=np.float64), np.arange(c0, c1 + 1, dtype=np.float64)
-        ec = np.concatenate([c0 + (c1 - c0) * k, np.full(33, c1), c0 + (c1 - c0) * k, np.full(33, c0),
-                             cols, cols, np.full(rows.size, c0), np.full(rows.size, c1)])  # fmt: skip
-        er = np.concatenate([np.full(33, r0), r0 + (r1 - r0) * k, np.full(33, r1), r0 + (r1 - r0) * k,
-                             np.full(cols.size, r0), np.full(cols.size, r1), rows, rows])  # fmt: skip
-        lon, lat = self._lonlat(self.t.c + (ec + 0.5) * self.t.a, self.t.f + (er + 0.5) * self.t.e)
-        return float(lon.min()), float(lat.min()), float(lon.max()), float(lat.max())
 
     @property
     def z_m(self) -> np.ndarray:  # type: ignore[override]
@@ -387,8 +363,6 @@ class RegionGrid(SourceGrid):
 
         wd, sd, ed, nd = tile_rectangle(z, x, y)
         h, w = self.shape
-        if not self.identity:
-            return self._projected_points_in(wd, sd, ed, nd)
         lon_c = self.t.c + (np.arange(w) + 0.5) * self.t.a
         lat_r = self.t.f + (np.arange(h) + 0.5) * self.t.e
         c0, c1 = int(np.searchsorted(lon_c, wd, "left")), int(np.searchsorted(lon_c, ed, "right"))
@@ -400,46 +374,8 @@ class RegionGrid(SourceGrid):
         rr, cc = np.nonzero(ok)
         return lon_c[c0 + cc], lat_r[r0 + rr], zz[rr, cc]
 
-    def _projected_points_in(self, wd: float, sd: float, ed: float, nd: float) -> tuple[np.ndarray, ...]:
-        """The valid samples whose lon/lat lie in [wd, ed] x [sd, nd] (edges included), read from the
-        window of rows and columns the rectangle's densified edge covers (plus one sample all round)."""
-        k = np.linspace(0.0, 1.0, 65)
-        elon = np.concatenate([wd + (ed - wd) * k, np.full(65, ed), wd + (ed - wd) * k, np.full(65, wd)])
-        elat = np.concatenate([np.full(65, sd), sd + (nd - sd) * k, np.full(65, nd), sd + (nd - sd) * k])
-        x, y = self._to_crs.transform(elon, elat)
-        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-        h, w = self.shape
-        if not (np.isfinite(x).all() and np.isfinite(y).all()):  # beyond the projection's domain: every sample
-            c0, c1, r0, r1 = 0, w, 0, h
-        else:
-            cf, rf = (x - self.t.c) / self.t.a - 0.5, (y - self.t.f) / self.t.e - 0.5
-            c0, c1 = max(int(np.floor(cf.min())) - 1, 0), min(int(np.ceil(cf.max())) + 2, w)
-            r0, r1 = max(int(np.floor(rf.min())) - 1, 0), min(int(np.ceil(rf.max())) + 2, h)
-        if r1 <= r0 or c1 <= c0:
-            e = np.zeros(0)
-            return e, e, e
-        zz, ok = self.window(r0, r1, c0, c1)
-        rr, cc = np.nonzero(ok)
-        lon, lat = self._lonlat(self.t.c + (c0 + cc + 0.5) * self.t.a, self.t.f + (r0 + rr + 0.5) * self.t.e)
-        keep = (lon >= wd) & (lon <= ed) & (lat >= sd) & (lat <= nd)
-        return lon[keep], lat[keep], zz[rr[keep], cc[keep]]
-
     def close(self) -> None:
         self.reader.close()
-
-
-def windowed_crs(crs: Any) -> bool:
-    """True for a CRS whose regions :class:`RegionGrid` reads window by window: WGS 84 longitude/latitude,
-    or a projected CRS whose heights are metres (a vertical axis in feet is scaled by the in-memory reader,
-    :func:`terralod.io.reader.read_heightfield`)."""
-    if _is_lonlat_wgs84(crs):
-        return True
-    try:
-        from terralod.io.raster import vertical_unit_m
-
-        return bool(crs.is_projected) and vertical_unit_m(crs) is None
-    except Exception:  # noqa: BLE001
-        return False
 
 
 class _TriangleLocator:
