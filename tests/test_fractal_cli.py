@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import rasterio
 from rasterio.transform import from_origin
 
-from conftest import fractal_terrain
+from conftest import fractal_terrain, terralod_cli
 
 
 def _write_utm_tif(path: Path, z: np.ndarray, spacing_m: float) -> Path:
@@ -25,8 +23,7 @@ def test_amplify_cli_keeps_samples_and_georeferencing(tmp_path: Path) -> None:
     z = fractal_terrain(33, 41, 4, relief_m=300.0)
     src = _write_utm_tif(tmp_path / "dem.tif", z, 20.0)
     out = tmp_path / "fine.tif"
-    p = subprocess.run([sys.executable, "-m", "terralod", "amplify", str(src), "-o", str(out), "--factor", "4"],
-                       capture_output=True, text=True, timeout=300)  # fmt: skip
+    p = terralod_cli("amplify", str(src), "-o", str(out), "--factor", "4")
     assert p.returncode == 0, p.stderr
     with rasterio.open(out) as ds:
         fine = ds.read(1)
@@ -46,8 +43,7 @@ def test_build_fractal_levels_are_used_by_render(tmp_path: Path) -> None:
     z = fractal_terrain(65, 65, 9, relief_m=400.0)
     src = _write_utm_tif(tmp_path / "dem.tif", z, 30.0)
     store = tmp_path / "dem.terra"
-    p = subprocess.run([sys.executable, "-m", "terralod", "build", str(src), "-o", str(store), "--tile-size", "17",
-                        "--fractal", "2"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    p = terralod_cli("build", str(src), "-o", str(store), "--tile-size", "17", "--fractal", "2")
     assert p.returncode == 0, p.stderr
     from terralod import open_store
 
@@ -58,9 +54,8 @@ def test_build_fractal_levels_are_used_by_render(tmp_path: Path) -> None:
     eye, tgt = f"400975,4999025,{float(z.max()) + 60.0:f}", f"401100,4998900,{float(z.mean()):f}"
     for extra in ([], ["--fractal", "0"]):
         out = tmp_path / f"f{len(extra)}.png"
-        p = subprocess.run([sys.executable, "-m", "terralod", "-v", "render", str(store), "-o", str(out), "--eye", eye,
-                            "--target", tgt, "--size", "320x240", "--threshold-px", "1"] + extra,
-                           capture_output=True, text=True, timeout=300)  # fmt: skip
+        p = terralod_cli("-v", "render", str(store), "-o", str(out), "--eye", eye, "--target", tgt, "--size",
+                         "320x240", "--threshold-px", "1", *extra)  # fmt: skip
         assert p.returncode == 0, p.stderr
         assert out.exists()
     from terralod.cli._inputs import with_fractal as _with_fractal

@@ -21,6 +21,8 @@ import fuzzing
 from terralod.errors import TerralodError
 from terralod.store import decode_triangles, decode_vertices
 
+from conftest import terralod_cli
+
 #: Cases per reader in the suite (derandomized: the same cases on every run).
 EXAMPLES = 12
 
@@ -69,9 +71,8 @@ def test_decoders_refuse_wrong_counts(q: np.ndarray, k: int) -> None:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=600
-    )
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``)."""
+    return terralod_cli(*args)
 
 
 def test_cli_one_line_with_and_without_verbose(seeds: dict[str, Path], tmp_path: Path) -> None:

@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from terralod.errors import InputError
+
+from conftest import terralod_cli
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 AUTZEN = SHARED / "lidar" / "autzen_trim.laz"
@@ -25,9 +26,8 @@ US_FT = 1200.0 / 3937.0
 
 
 def terralod(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=600
-    )
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``)."""
+    return terralod_cli(*args)
 
 
 def one_line_error(r: subprocess.CompletedProcess[str], path: Path, *words: str) -> str:

@@ -11,7 +11,6 @@ where pyproj puts it and its height must be reproduced by the resampled grid's n
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,8 @@ from hypothesis import strategies as st
 pyproj = pytest.importorskip("pyproj")
 
 from tests.test_georef import cloud, wkt_of, write_las, write_tif  # noqa: E402
+
+from conftest import terralod_cli  # noqa: E402
 
 #: (CRS, pixel size in the CRS's unit): projected CRSs keep the input's grid.
 PROJECTED = [
@@ -137,9 +138,8 @@ def test_las_points_land_where_pyproj_puts_them(tmp_path: Path, code: str, u: fl
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=600
-    )
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``)."""
+    return terralod_cli(*args)
 
 
 def test_crs_option_assigns_a_crs_to_a_file_without(tmp_path: Path) -> None:

@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import sqlite3
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -21,14 +20,15 @@ from terralod.store import TIN_METHOD, open_store, read_tin_store, store_method
 from terralod.tin import DetailIncrementModel, read_las
 from terralod.tin.terra import load_model_from_store, model_summary, save_model_to_store
 
+from conftest import terralod_cli
+
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 FOOT_M = 0.3048
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "terralod", *args], capture_output=True, text=True, timeout=300
-    )
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``)."""
+    return terralod_cli(*args)
 
 
 def _points(seed: int, n: int) -> np.ndarray:

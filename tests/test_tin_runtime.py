@@ -21,6 +21,8 @@ from terralod.runtime.tin import TinRuntime, slot_blocks
 from terralod.tin import DetailIncrementModel
 from terralod.tin.delaunay import split_sub_blocks
 
+from conftest import terralod_cli
+
 _MESA = "/usr/share/glvnd/egl_vendor.d/50_mesa.json"
 if os.path.exists(_MESA):
     os.environ.setdefault("__EGL_VENDOR_LIBRARY_FILENAMES", _MESA)
@@ -114,8 +116,7 @@ def test_tin_frame_renders(tmp_path: Path) -> None:
 
     save_model_to_store(m, tmp_path / "m.terra")
     out = tmp_path / "m.png"
-    r = subprocess.run([sys.executable, "-m", "terralod", "render", str(tmp_path / "m.terra"), "-o", str(out),
-                        "--size", "160x90"], capture_output=True, text=True, timeout=300)  # fmt: skip
+    r = terralod_cli("render", str(tmp_path / "m.terra"), "-o", str(out), "--size", "160x90")
     assert r.returncode == 0, r.stderr
     assert out.stat().st_size > 0 and "sub-blocks at their SVO scales" in r.stdout
 

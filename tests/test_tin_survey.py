@@ -5,8 +5,6 @@ contributes none, and says so."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +13,8 @@ import pytest
 pytest.importorskip("laspy")
 
 from tests.test_georef import wkt_of  # noqa: E402
+
+from conftest import terralod_cli
 
 #: One survey's header: every tile shares its scale and offset (as tiles cut from one cloud do).
 OFFSET = np.array([500000.0, 4880000.0, 0.0])
@@ -85,8 +85,7 @@ def test_cli_builds_a_folder_of_tiles(tmp_path: Path) -> None:
     wkt = wkt_of("EPSG:32610")
     _quadrants(_cloud(1500), tmp_path / "tiles", wkt)
     out = tmp_path / "survey.terra"
-    r = subprocess.run([sys.executable, "-m", "terralod", "build", str(tmp_path / "tiles"), "-o", str(out)],
-                       capture_output=True, text=True, timeout=600)  # fmt: skip
+    r = terralod_cli("build", str(tmp_path / "tiles"), "-o", str(out))
     assert r.returncode == 0, r.stderr
     assert out.is_file() and "detail-increment TIN" in r.stdout
 
@@ -95,8 +94,7 @@ def test_a_tile_in_another_crs_is_named_in_one_line(tmp_path: Path) -> None:
     xyz = _cloud(800)
     tiles = _quadrants(xyz, tmp_path / "tiles", wkt_of("EPSG:32610"))
     odd = write_las(tiles[2], xyz[:50], wkt=wkt_of("EPSG:26910"))  # NAD83 / UTM 10N: another datum
-    r = subprocess.run([sys.executable, "-m", "terralod", "build", str(tmp_path / "tiles"), "-o",
-                        str(tmp_path / "s.terra")], capture_output=True, text=True, timeout=600)  # fmt: skip
+    r = terralod_cli("build", str(tmp_path / "tiles"), "-o", str(tmp_path / "s.terra"))
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.startswith("terralod")]
     assert r.returncode == 2 and len(lines) == 1, r.stderr
     assert str(odd) in lines[0] and "CRS" in lines[0] and "t0.las" in lines[0], lines[0]
