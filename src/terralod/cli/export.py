@@ -330,6 +330,8 @@ def _run(
         changed, removed = rep.extra["rewritten"], rep.extra["removed"]
         console.print(f"updated: {len(changed)} file(s) rewritten, {len(removed)} removed, the others untouched",
                       highlight=False)  # fmt: skip
+        if "encoded" in rep.extra:  # the tiles whose inputs changed (terralod.export.incremental)
+            console.print(f"encoded {rep.extra['encoded']} of {rep.tiles} tiles", highlight=False)
         for rel in changed:
             console.print(f"  rewritten {rel}", highlight=False)
         for rel in removed:

@@ -552,6 +552,27 @@ def _inputs_and_key(terrain: Any, fmt: str, **options: Any) -> tuple[list[Path],
     return [Path(f) for f in files], {"format": fmt, "epoch": None, "input": ident, **options}
 
 
+class _Deps:
+    """Each tile's dependency digest (:mod:`terralod.export.incremental`), recorded with it."""
+
+    def __init__(self, qm: QuantizedMesh, options: dict[str, Any]) -> None:
+        from terralod.export.incremental import qm_global
+
+        self.qm = qm
+        self.glob = qm_global(qm, options)
+
+    def unchanged(self, code: tuple[int, int, int], record: dict[str, Any]) -> bool:
+        from terralod.export.incremental import qm_unchanged
+
+        return qm_unchanged(self.qm, *code, self.glob, record)
+
+    def add(self, record: dict[str, Any], code: tuple[int, int, int]) -> dict[str, Any]:
+        from terralod.export.incremental import qm_digest
+
+        got, halo = qm_digest(self.qm, *code, self.glob)
+        return {**record, "deps": got, "halo": halo} if got is not None else record
+
+
 def export_quantized_mesh(
     terrain: Any,
     out: str | Path,
@@ -601,7 +622,8 @@ def export_quantized_mesh(
     if not part.whole:
         options["part"] = part.key()
     inputs, key = _inputs_and_key(terrain, "quantized-mesh", **options)
-    output = Output(out, inputs=inputs, overwrite=overwrite, resume=resume, update=update, key=key)
+    output = Output(out, inputs=inputs, overwrite=overwrite, resume=resume, update=update, key=key,
+                    keep_records=True)  # fmt: skip
     output.check()  # refusals first, before the tiler's set-up
     qm = QuantizedMesh(terrain, normals=normals, vertical_datum=vertical_datum)
     codes = qm.tile_codes(part)
@@ -617,6 +639,13 @@ def export_quantized_mesh(
     water = {"none": 0, "all": 0, "some": 0}
     level_sq: dict[int, list] = {}
     with output as o:
+        deps = _Deps(qm, options)
+        if update:  # a tile made from what it was made of last time is kept as it is, not encoded
+            for c in codes:
+                rel_ = "{}/{}/{}.terrain".format(*c)
+                prev = o.previous(rel_) if o.record(rel_) is None else None
+                if prev is not None and deps.unchanged(c, prev):
+                    o.keep(rel_, prev)
         todo = [c for c in codes if o.record("{}/{}/{}.terrain".format(*c)) is None]  # the rest: resumed
         made = encode_quantized_mesh(qm, todo, gzip_tiles=gzip_tiles, client=client, recipe=recipe)
         for i, (z, x, y) in enumerate(codes):
@@ -624,6 +653,7 @@ def export_quantized_mesh(
             r = o.record(rel)  # finished by the interrupted export this one resumes
             if r is None:
                 _, data, r = next(made)  # here or on the Dask workers (terralod.export.distributed)
+                r = deps.add(r, (z, x, y))
                 o.write(rel, data, r)
             rep.tiles += 1
             rep.bytes += r["bytes"]
@@ -651,6 +681,7 @@ def export_quantized_mesh(
         o.write("layer.json", js.encode())
         o.write("errors.json", json.dumps({"unit": "m", "tiles": per_tile}, separators=(",", ":")).encode())
         rep.bytes += len(js)
+        o.seal()
         changes = {"rewritten": list(o.rewritten), "removed": o.prune()} if update else {}
     rep.seconds = time.perf_counter() - t0
     rep.extra = {
@@ -663,6 +694,7 @@ def export_quantized_mesh(
         "error_m_per_level": layer["terralod"]["error_m"],
         "worst_error_m": max(per_tile.values(), default=0.0),
         "resumed": o.adopted is not None,
+        "encoded": len(todo),
         **changes,
     }
     return rep

@@ -720,6 +720,22 @@ def _glb_container(js: bytes, blob: bytes) -> bytes:
                      struct.pack("<I", len(blob)), b"BIN\x00", blob])  # fmt: skip
 
 
+class _Deps:
+    """Each glb's dependency digest (:mod:`terralod.export.incremental`), recorded with it."""
+
+    def __init__(self, view: Tiles3D, **options: Any) -> None:
+        from terralod.export.incremental import tiles3d_global
+
+        self.view = view
+        self.glob = tiles3d_global(view, options)
+        self.memo: dict[Any, str] = {}
+
+    def of(self, code: Any) -> str | None:
+        from terralod.export.incremental import tiles3d_digest
+
+        return tiles3d_digest(self.view, code, self.glob, self.memo)
+
+
 def export_3dtiles(
     terrain: Any,
     out: str | Path,
@@ -759,7 +775,7 @@ def export_3dtiles(
         terrain = terrain.with_epoch(epoch)
     output = Output(out, inputs=export_inputs(terrain), overwrite=overwrite, resume=resume, update=update,
                     key=export_key(terrain, "3dtiles", metric=metric, vertical_datum=vertical_datum,
-                                   geometry=geometry, max_error_m=max_error_m))  # fmt: skip
+                                   geometry=geometry, max_error_m=max_error_m), keep_records=True)  # fmt: skip
     output.check()  # refusals first, before the view's set-up
     view = Tiles3D(terrain, metric=metric, vertical_datum=vertical_datum, geometry=geometry,
                    max_error_m=max_error_m)  # fmt: skip
@@ -773,6 +789,13 @@ def export_3dtiles(
         # level by level (a TIN's tree is sub-block by sub-block): each level's meshes are made once and
         # dropped when its tiles are written, so memory holds one level, whatever the pyramid's size
         codes = sorted((n.code for n in view.tree), key=lambda c: c[0])
+        deps = _Deps(view, metric=metric, vertical_datum=vertical_datum, geometry=geometry,
+                     max_error_m=max_error_m)  # fmt: skip
+        if update:  # a glb made from what it was made of last time is kept as it is, not encoded
+            for c in codes:
+                prev = o.previous(node_uri(c)) if o.record(node_uri(c)) is None else None
+                if prev is not None and prev.get("deps") is not None and prev["deps"] == deps.of(c):
+                    o.keep(node_uri(c), prev)
         todo = [c for c in codes if o.record(node_uri(c)) is None]  # the others: finished by the run resumed
         made = encode_3dtiles(view, todo, client=client, recipe=recipe)  # here or on the Dask workers
         for i, code in enumerate(codes):
@@ -781,7 +804,7 @@ def export_3dtiles(
                 _, data, r = next(made)
                 if data is None:  # every triangle over nodata: no content
                     continue
-                o.write(node_uri(code), data, r)
+                o.write(node_uri(code), data, {**r, "deps": deps.of(code)})
             else:
                 view._content[code] = True
                 view._triangles.setdefault(code, int(r.get("triangles", 0)))
@@ -794,6 +817,7 @@ def export_3dtiles(
         ts = json.dumps(view.tileset(), separators=(",", ":"))
         o.write("tileset.json", ts.encode())
         rep.bytes += len(ts)
+        o.seal()
         changes = {"rewritten": list(o.rewritten), "removed": o.prune()} if update else {}
     rep.triangles = int(sum(view._triangles.values()))
     rep.seconds = time.perf_counter() - t0
@@ -802,5 +826,5 @@ def export_3dtiles(
                  "heights": view.geo.vertical_record(), "geometry": geometry, "max_error_m_option": max_error_m,
                  "encoding_error_m": moved}  # fmt: skip
     rep.extra["geometric_error_root"] = json.loads(ts)["geometricError"]
-    rep.extra.update(resumed=o.adopted is not None, **changes)
+    rep.extra.update(resumed=o.adopted is not None, encoded=len(todo), **changes)
     return rep
