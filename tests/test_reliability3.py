@@ -7,6 +7,7 @@ DEM too large for memory, and ``export`` straight from a DEM under the one size 
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import shlex
@@ -26,7 +27,7 @@ from terralod import build_store, open_store
 from terralod.heightfield import Heightfield
 from terralod.integrity import check_store
 
-from conftest import fractal_terrain
+from conftest import fractal_terrain, terralod_cli
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "change"
 BEFORE = DATA / "st_helens_crater_2000-09-25_10m.tif"
@@ -38,8 +39,14 @@ CRS = "EPSG:32610"
 ORIGIN = (500000.0, 5200000.0)
 
 
-def terralod(*args: str, cwd: Path | None = None, **kw) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "terralod", *args], capture_output=True, text=True, cwd=cwd,
+def terralod(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``)."""
+    return terralod_cli(*args, cwd=cwd)
+
+
+def terralod_process(*args: str, **kw) -> subprocess.CompletedProcess[str]:
+    """``terralod ARGS`` in a process of its own (a memory limit, a pid that is not this one)."""
+    return subprocess.run([sys.executable, "-m", "terralod", *args], capture_output=True, text=True,
                           timeout=600, **kw)  # fmt: skip
 
 
@@ -128,7 +135,7 @@ def test_killed_change_temporaries_are_cleaned_and_live_ones_kept(tmp_path: Path
     (work_path(live) / "out").mkdir(parents=True)
     (work_path(live) / "out" / "summary.json").write_text("{}")
     Lock.mine(None, "terralod change (live)").write(work_path(live))
-    p = terralod("change", str(BEFORE), str(AFTER), "-o", str(live), "--no-views")
+    p = terralod_process("change", str(BEFORE), str(AFTER), "-o", str(live), "--no-views")
     assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert f"pid {os.getpid()}" in p.stderr and "being written" in p.stderr
     assert (work_path(live) / "out" / "summary.json").read_text() == "{}" and not live.exists()
@@ -363,7 +370,7 @@ def test_info_out_of_memory_names_the_file(tmp_path: Path) -> None:
     """A 20,000² DEM within the size limit on a machine without the memory to read it (the address space
     capped at 2.5 GB): one line naming the file, exit 2, never a bare "out of memory"."""
     vrt = _vrt(tmp_path, 20_000)
-    p = terralod("info", str(vrt), preexec_fn=_limit_memory(2_500 << 20))
+    p = terralod_process("info", str(vrt), preexec_fn=_limit_memory(2_500 << 20))
     lines = p.stderr.strip().splitlines()
     assert p.returncode == 2, p.stdout + p.stderr
     assert len(lines) == 1 and str(vrt) in lines[0] and "memory" in lines[0], p.stderr
@@ -372,19 +379,17 @@ def test_info_out_of_memory_names_the_file(tmp_path: Path) -> None:
 
 # -- 48.2: export straight from a DEM applies the one size limit up front ------------------------------------
 @needs_data
-def test_export_of_a_region_larger_than_memory_is_refused_only_for_want_of_disk(tmp_path: Path) -> None:
+def test_export_of_a_region_larger_than_memory_is_refused_only_for_want_of_disk(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """A geographic DEM of 20,000² samples (a VRT over a small raster: nothing allocated) is not held in
     memory, so no in-memory size limit refuses it; what it would write is checked against the free disk
     (made small here, so the refusal is the same on any machine) in one line, before anything is written."""
     vrt = _vrt(tmp_path, 20_000, srs="EPSG:4326")
     out = tmp_path / "qm"
-    code = (
-        "import shutil, collections\n"
-        "shutil.disk_usage = lambda p: collections.namedtuple('u', 'total used free')(10**9, 10**9 - 10**6, 10**6)\n"
-        "from terralod.cli import main\n"
-        f"main(['export', {str(vrt)!r}, '--format', 'quantized-mesh', '-o', {str(out)!r}])\n"
-    )
-    p = python(code)
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 10**6, 10**6))
+    p = terralod("export", str(vrt), "--format", "quantized-mesh", "-o", str(out))
     lines = _errors(p)
     assert p.returncode == 2, p.stdout + p.stderr
     assert len(lines) == 1 and str(out) in lines[0] and "needs about" in lines[0] and "free" in lines[0], (
@@ -393,21 +398,21 @@ def test_export_of_a_region_larger_than_memory_is_refused_only_for_want_of_disk(
     assert not out.exists() and not list(tmp_path.glob(".qm*"))
 
 
-def test_export_from_a_geographic_dem_beyond_the_in_memory_limit_reads_it_by_windows(tmp_path: Path) -> None:
+def test_export_from_a_geographic_dem_beyond_the_in_memory_limit_reads_it_by_windows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """With the in-memory limit lowered to 10,000 samples in the process, a real 120 x 100 geographic GeoTIFF
     still exports (its lattice is read window by window, never whole), to the same bytes as without."""
     z = fractal_terrain(100, 120, 3, relief_m=200.0) + 500.0
     dem = _tif(tmp_path / "geo.tif", z, crs="EPSG:4326", transform=Affine(0.001, 0, -122.3, 0, -0.001, 46.3))
     outs = []
-    for limit in ("10_000", "f.MAX_SAMPLES"):
-        out = tmp_path / f"qm-{limit.replace('.', '')}"
-        code = (
-            "import terralod.fill as f\n"
-            f"f.MAX_SAMPLES = {limit}\n"
-            "from terralod.cli import main\n"
-            f"main(['export', {str(dem)!r}, '--format', 'quantized-mesh', '-o', {str(out)!r}])\n"
-        )
-        p = python(code)
+    import terralod.fill as f
+
+    for limit in (10_000, f.MAX_SAMPLES):
+        out = tmp_path / f"qm-{limit}"
+        with monkeypatch.context() as m:
+            m.setattr(f, "MAX_SAMPLES", limit)
+            p = terralod("export", str(dem), "--format", "quantized-mesh", "-o", str(out))
         assert p.returncode == 0, p.stdout + p.stderr
         outs.append({f.relative_to(out): f.read_bytes() for f in out.rglob("*") if f.is_file()})
     assert outs[0] == outs[1] and len(outs[0]) > 3
