@@ -19,8 +19,10 @@ and handed to the children's batches (a worker that lacks it meshes the parent a
 3D Tiles: a glb's normals are those of its whole level merged (:meth:`~terralod.export.tiles3d.Tiles3D._level`),
 but a node's normals only take sums from the nodes that share a vertex position with it, added in the
 level's node order. A worker therefore builds, per batch, only the batch's nodes and the level's nodes whose
-boxes meet theirs (padded), in the level's order (:class:`_NeighbourhoodTiles3D`): the same sums in the same
-order, so the same bytes, without any worker building a whole level.
+boxes meet theirs (padded), in the level's order (``Tiles3D.only``): the same sums in the same order, so
+the same bytes, without any worker building a whole level.
+
+This module imports neither tiler (they import it): a recipe carries its view's class, pickled by name.
 """
 
 from __future__ import annotations
@@ -33,9 +35,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from terralod.export.quantized_mesh import QuantizedMesh
-from terralod.export.tiles3d import Tiles3D
 
 __all__ = [
     "BATCH_TILES",
@@ -68,10 +67,10 @@ Result = tuple[Any, bytes | None, dict[str, Any] | None]
 @dataclass(frozen=True)
 class Recipe:
     """How a worker opens an export's source: ``kind`` ("store", "region-grid", "region" or "dem"),
-    ``source`` (what it needs: a path and epoch, a Region and its scan, a path) and the options of the
-    QuantizedMesh or Tiles3D view (``view``: "quantized-mesh" or "3dtiles"). Small and picklable."""
+    ``source`` (what it needs: a path and epoch, a Region and its scan, a path), the view's class
+    (``view``: QuantizedMesh or Tiles3D, pickled by name) and its options. Small and picklable."""
 
-    view: str
+    view: Any
     kind: str
     source: tuple[Any, ...]
     options: tuple[tuple[str, Any], ...]
@@ -81,7 +80,7 @@ class Recipe:
         return hashlib.sha256(pickle.dumps(self, protocol=5)).hexdigest()
 
     def open(self) -> Any:
-        """The view this recipe describes (QuantizedMesh or :class:`_NeighbourhoodTiles3D`)."""
+        """The view this recipe describes (a QuantizedMesh or Tiles3D of the source)."""
         from terralod.export.source import RegionGrid, source_from_dem, source_from_region
         from terralod.terrain import open_terrain
 
@@ -97,15 +96,12 @@ class Recipe:
             terrain = source_from_region(self.source[0])
         else:
             terrain = source_from_dem(self.source[0])
-        opts = dict(self.options)
-        if self.view == "3dtiles":
-            return _NeighbourhoodTiles3D(terrain, **opts)
-        return QuantizedMesh(terrain, **opts)
+        return self.view(terrain, **dict(self.options))
 
 
-def recipe_of(terrain: Any, view: str, epoch: str | None = None, **options: Any) -> Recipe:
+def recipe_of(terrain: Any, view: Any, epoch: str | None = None, **options: Any) -> Recipe:
     """The :class:`Recipe` of an export's ``terrain`` (a store opened from a file, or a DEM's or region's
-    samples from :mod:`terralod.export.source`) for ``view`` with ``options``. Raises ValueError for a
+    samples from :mod:`terralod.export.source`) for the class ``view`` with ``options``. Raises ValueError for a
     terrain a worker cannot open again (one built in memory)."""
     from terralod.export.source import RegionGrid, SampleSource
 
@@ -138,13 +134,13 @@ def _opened(recipe: Recipe) -> Any:
         _OPENED[key] = view
         while len(_OPENED) > KEEP_OPENED:
             _, old = _OPENED.popitem(last=False)
-            if isinstance(old, Tiles3D):
+            if callable(getattr(old, "close", None)):
                 old.close()
     _OPENED.move_to_end(key)
     return view
 
 
-def quantized_mesh_record(qm: QuantizedMesh, code: Code, gzip_tiles: bool) -> Result:
+def quantized_mesh_record(qm: Any, code: Code, gzip_tiles: bool) -> Result:
     """(code, the file's bytes, its journal record) of quantized-mesh tile ``code``: the one encoding."""
     z, x, y = code
     t = qm.tile(z, x, y)
@@ -166,17 +162,7 @@ def _qm_batch(recipe: Recipe, codes: list[Code], gzip_tiles: bool,
     return out, made
 
 
-class _NeighbourhoodTiles3D(Tiles3D):
-    """A Tiles3D whose levels hold only the nodes of ``only`` (None: every node), in the level's order."""
-
-    only: set[Any] | None = None
-
-    def _level_codes(self, group: int) -> list[Any]:
-        codes = super()._level_codes(group)
-        return codes if self.only is None else [c for c in codes if c in self.only]
-
-
-def neighbourhood(view: Tiles3D, codes: Sequence[Any]) -> set[Any]:
+def neighbourhood(view: Any, codes: Sequence[Any]) -> set[Any]:
     """``codes`` and the nodes of their level whose boxes (padded) meet any of theirs: every node that may
     share a vertex position with one of them."""
     level = [n for n in view.tree if n.code[0] == codes[0][0]]
@@ -192,7 +178,7 @@ def neighbourhood(view: Tiles3D, codes: Sequence[Any]) -> set[Any]:
     return {n.code for n, m in zip(level, meets.tolist(), strict=True) if m} | set(codes)
 
 
-def tiles3d_result(view: Tiles3D, code: Any) -> Result:
+def tiles3d_result(view: Any, code: Any) -> Result:
     """(code, glb bytes or None for a node without content, its journal record) of one 3D Tiles node; the
     record holds the node's triangles (before the nodata drop) for the report."""
     if not view.has_content(code):
@@ -260,7 +246,7 @@ def _stream(client: Any, batches: Iterable[list[Any]], submit: Callable[[Any, li
             f.cancel()
 
 
-def encode_quantized_mesh(qm: QuantizedMesh, codes: Sequence[Code], *, gzip_tiles: bool = False,
+def encode_quantized_mesh(qm: Any, codes: Sequence[Code], *, gzip_tiles: bool = False,
                           client: Any = None, recipe: Recipe | None = None) -> Iterator[Result]:  # fmt: skip
     """``(code, bytes, record)`` of every quantized-mesh tile of ``codes``, in that order: here, or on
     ``client``'s workers (each opening ``recipe``) in batches of :data:`BATCH_TILES`."""
@@ -281,7 +267,7 @@ def encode_quantized_mesh(qm: QuantizedMesh, codes: Sequence[Code], *, gzip_tile
     yield from _stream(client, _batches(codes, BATCH_TILES), submit, lambda made: known.update(made))
 
 
-def encode_3dtiles(view: Tiles3D, codes: Sequence[Any], *, client: Any = None,
+def encode_3dtiles(view: Any, codes: Sequence[Any], *, client: Any = None,
                    recipe: Recipe | None = None) -> Iterator[Result]:  # fmt: skip
     """``(code, glb bytes or None without content, record)`` of every 3D Tiles node of ``codes`` (sorted by
     level), in that order: here (each level built once and released when the next starts), or on

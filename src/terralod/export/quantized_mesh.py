@@ -629,7 +629,7 @@ def export_quantized_mesh(
     codes = qm.tile_codes(part)
     recipe = None
     if client is not None:
-        recipe = recipe_of(terrain, "quantized-mesh", epoch, normals=normals, vertical_datum=vertical_datum)
+        recipe = recipe_of(terrain, QuantizedMesh, epoch, normals=normals, vertical_datum=vertical_datum)
     if check_space:
         check_free_space(out, estimate_bytes(qm, codes, gzip_tiles=gzip_tiles))
     rep = ExportReport(Path(out))

@@ -351,9 +351,15 @@ class Tiles3D:
         }  # fmt: skip
 
     # -- content -----------------------------------------------------------------------------------------
+    #: The nodes a level is built over (None: all): a Dask worker's batch and its neighbours
+    #: (:func:`terralod.export.distributed.neighbourhood`), whose glbs are then the whole level's.
+    only: set[Any] | None = None
+
     def _level_codes(self, group: int) -> list[Any]:
-        """The codes of level ``group``'s nodes, in the tree's order (the order their normals are summed)."""
-        return [n.code for n in self.tree if n.code[0] == group]
+        """The codes of level ``group``'s nodes (of ``only``), in the tree's order (the order their normals
+        are summed)."""
+        only = self.only
+        return [n.code for n in self.tree if n.code[0] == group and (only is None or n.code in only)]
 
     def _level(self, group: int) -> _Level:
         """The nodes of level ``group`` and their normals: the nodes merged by position (rounded to 0.1 mm)
@@ -781,7 +787,7 @@ def export_3dtiles(
                    max_error_m=max_error_m)  # fmt: skip
     recipe = None
     if client is not None:
-        recipe = recipe_of(terrain, "3dtiles", epoch, metric=metric, vertical_datum=vertical_datum,
+        recipe = recipe_of(terrain, Tiles3D, epoch, metric=metric, vertical_datum=vertical_datum,
                            geometry=geometry, max_error_m=max_error_m)  # fmt: skip
     rep = ExportReport(Path(out))
     moved = 0.0
