@@ -23,7 +23,7 @@ import pytest
 import rasterio
 from rasterio.transform import from_origin
 
-from conftest import fractal_terrain
+from conftest import fractal_terrain, terralod_cli
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="POSIX resource limits and mounts")
 
@@ -31,13 +31,18 @@ TILE = "17"
 
 
 def _terralod(*args: str, cwd: Path, fsize: int | None = None) -> subprocess.CompletedProcess:
+    """``terralod ARGS`` in ``cwd``: in a process of its own under a file-size limit of ``fsize`` bytes, else
+    in this process (tests/conftest.py ``terralod_cli``; a full or read-only file system needs no process)."""
+    if fsize is None:
+        return terralod_cli(*args, cwd=cwd)
+
     def limit() -> None:  # a write past fsize bytes fails with EFBIG, as a full disk fails with ENOSPC
         signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
         resource.setrlimit(resource.RLIMIT_FSIZE, (fsize, fsize))
 
     return subprocess.run(
         [sys.executable, "-m", "terralod", *args], cwd=cwd, capture_output=True, text=True, timeout=600,
-        preexec_fn=limit if fsize is not None else None,
+        preexec_fn=limit,
     )  # fmt: skip
 
 
