@@ -19,9 +19,11 @@ A region in, for quantized-mesh: several DEMs, a quoted glob, a folder (its rast
 resolution and grid, or one line naming the two files that differ). Where files overlap the last one listed
 wins (a glob's or folder's files in name order); cells no file covers are nodata (filled, flagged in the
 water mask, never in a declared error). Every file is read once before anything is written (an unreadable
-one is named, exit 2) and the free disk is checked against an estimate; a WGS 84 longitude/latitude region
-is then read a window at a time (memory independent of its size). ``--bbox`` and ``--min-zoom`` /
-``--max-zoom`` export a part: the same tiles as the whole export, fewer of them.
+one is named, exit 2) and the free disk is checked against an estimate; a WGS 84 longitude/latitude region, or
+one projected in metres (UTM, a national grid: a county of LiDAR DEM tiles), is then read a window at a time
+(memory independent of its size; a coarse tile's error is measured against its samples strip by strip).
+``--bbox`` and ``--min-zoom`` / ``--max-zoom`` export a part: the same tiles as the whole export, fewer of
+them.
 
 3D Tiles geometry (``--glb-geometry``): ``quantized`` (default) writes KHR_mesh_quantization glbs
 (UNSIGNED_SHORT positions on a power-of-two grid folded into the node's scale and translation, BYTE
@@ -274,14 +276,14 @@ def _run_dem(
             one = resolve_region(dems)
         except InputError:  # a heightmap with a sidecar frame, a .npy: the in-memory readers say what it is
             one = None
-        if one is None or not _lonlat(one.crs):  # one file read whole, as before regions existed
+        if one is None or not _windowed(one.crs):  # one file read whole, as before regions existed
             check_raster_size(dems[0])  # the one size limit, from the header, before any sample is read
             _output(output, dems[0], opts).check()
             _run(source_from_dem(dems[0]), "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals,
                  part, None, dask)  # fmt: skip
             return
     region = resolve_region(dems)  # headers only: one grid, or one line naming the two files that differ
-    if not _lonlat(region.crs):  # read whole, in memory: the one size limit, from the headers
+    if not _windowed(region.crs):  # read whole, in memory: the one size limit, from the headers
         check_dimensions(region.height, region.width, region.name)
     Output(output, inputs=region.files, overwrite=opts["overwrite"], resume=opts["resume"],
            update=opts["update"]).check()  # fmt: skip
@@ -289,11 +291,11 @@ def _run_dem(
     _run(source, "quantized-mesh", output, "vertical", None, opts, gzip_tiles, normals, part, None, dask)
 
 
-def _lonlat(crs: Any) -> bool:
-    try:
-        return bool(crs.is_geographic) and crs.to_epsg() == 4326
-    except Exception:  # noqa: BLE001
-        return False
+def _windowed(crs: Any) -> bool:
+    """A region read window by window: WGS 84 lon/lat, or projected in metres with heights in metres."""
+    from terralod.export.source import windowed_crs
+
+    return windowed_crs(crs)
 
 
 def _run(

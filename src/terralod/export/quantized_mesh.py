@@ -409,14 +409,16 @@ class QuantizedMesh:
             wm, kind = 255, "all"
         else:
             wm, kind = (wmask * 255).astype(np.uint8), "some"
-        plon, plat, pz = self.ref.points_in(z, x, y)
-        if (
-            self.geoid is not None
-        ):  # vertices and samples alike made ellipsoidal: the error is measured on them
+        if self.geoid is not None:  # vertices and samples alike ellipsoidal: the error is measured on them
             hv = hv + self.geoid.undulation_m(lon, lat)
-            pz = pz + self.geoid.undulation_m(plon, plat)
         raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
-        err = _ceil4(true_error_m(decode_tile(raw, rect), rect, plon, plat, pz))
+        dec = decode_tile(raw, rect)
+        err = 0.0
+        for plon, plat, pz in self.ref.points_strips(z, x, y):  # a coarse tile of a region: strip by strip
+            if self.geoid is not None:
+                pz = pz + self.geoid.undulation_m(plon, plat)
+            err = max(err, true_error_m(dec, rect, plon, plat, pz))
+        err = _ceil4(err)
         nodata = float(water[1:-1, 1:-1].mean()) if kind != "none" else 0.0
         if regular is None and target_m is None:
             self._errors[(z, x, y)] = err

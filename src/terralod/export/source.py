@@ -22,6 +22,7 @@ and measured against (and their nodata fill, :func:`terralod.fill.fill_nodata`, 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -118,6 +119,10 @@ class SampleSource:
         keep = (lo >= wd) & (lo <= ed) & (la >= sd) & (la <= nd)
         idx = idx[keep]
         return self.lon[idx], self.lat[idx], self.zv[idx]
+
+    def points_strips(self, z: int, x: int, y: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """:meth:`points_in` in parts (one here; a windowed source reads a coarse tile's in strips)."""
+        yield self.points_in(z, x, y)
 
     def _bucketed(self, z: int) -> tuple[np.ndarray, dict[int, tuple[int, int]]]:
         """The valid samples sorted by their tile of level z: (order, {bucket key: (start, end)}); one
@@ -292,8 +297,9 @@ class RegionGrid(SourceGrid):
         from terralod.io.region import CACHE_BLOCKS, RegionReader, scan_region
 
         SampleSource.__init__(self)
-        if not _is_lonlat_wgs84(region.crs):
-            raise InputError("is not in WGS 84 longitude/latitude (EPSG:4326)", region.name)
+        if not windowed_crs(region.crs):
+            raise InputError("is neither in WGS 84 longitude/latitude (EPSG:4326) nor projected in metres with "
+                             "heights in metres", region.name)  # fmt: skip
         self.region = region
         self.reader = RegionReader(
             region, cache_blocks=CACHE_BLOCKS if cache_blocks is None else cache_blocks
@@ -303,7 +309,12 @@ class RegionGrid(SourceGrid):
         self.scan = got
         self.t = region.transform
         self.crs = CRS.from_user_input(region.crs.to_wkt())
-        self.identity = True
+        self.identity = _is_lonlat_wgs84(self.crs)
+        if not self.identity:
+            from pyproj import Transformer
+
+            self._to_crs = Transformer.from_crs("EPSG:4326", self.crs, always_xy=True)
+            self._to_ll = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
         self.name = region.footprints[0].shown if len(region.footprints) == 1 else region.name
         self.title = (
             Path(self.name).stem
@@ -313,11 +324,29 @@ class RegionGrid(SourceGrid):
         self.files = region.files
         self.shape = region.shape
         self._any_water = bool(got.any_water)
+        if not self.identity:  # projected: the lon/lat box of the valid samples' rows x cols, from its edges
+            self.bbox = self._projected_bbox(got)
+            self.spacing_deg = float(min(abs(self.t.a), abs(self.t.e))) / 111320.0
+            return
         lons = (self.t.c + (got.c0 + 0.5) * self.t.a, self.t.c + (got.c1 + 0.5) * self.t.a)
         lats = (self.t.f + (got.r0 + 0.5) * self.t.e, self.t.f + (got.r1 + 0.5) * self.t.e)
         self.bbox = (float(min(lons)), float(min(lats)), float(max(lons)), float(max(lats)))
         cos_lat = math.cos(math.radians(0.5 * (self.bbox[1] + self.bbox[3])))
         self.spacing_deg = float(min(abs(self.t.a) * cos_lat, abs(self.t.e)))
+
+    def _projected_bbox(self, got: Any) -> tuple[float, float, float, float]:
+        """The lon/lat box of the sample centres of rows r0..r1 x cols c0..c1 (a projection is a smooth
+        one-to-one map, so its extremes over that rectangle lie on its edge: every edge sample is taken,
+        and the edges densified as :class:`SourceGrid` does, so the box holds every valid sample)."""
+        k = np.linspace(0.0, 1.0, 33)
+        r0, r1, c0, c1 = got.r0, got.r1, got.c0, got.c1
+        rows, cols = np.arange(r0, r1 + 1, dtype=np.float64), np.arange(c0, c1 + 1, dtype=np.float64)
+        ec = np.concatenate([c0 + (c1 - c0) * k, np.full(33, c1), c0 + (c1 - c0) * k, np.full(33, c0),
+                             cols, cols, np.full(rows.size, c0), np.full(rows.size, c1)])  # fmt: skip
+        er = np.concatenate([np.full(33, r0), r0 + (r1 - r0) * k, np.full(33, r1), r0 + (r1 - r0) * k,
+                             np.full(cols.size, r0), np.full(cols.size, r1), rows, rows])  # fmt: skip
+        lon, lat = self._lonlat(self.t.c + (ec + 0.5) * self.t.a, self.t.f + (er + 0.5) * self.t.e)
+        return float(lon.min()), float(lat.min()), float(lon.max()), float(lat.max())
 
     @property
     def z_m(self) -> np.ndarray:  # type: ignore[override]
@@ -363,6 +392,8 @@ class RegionGrid(SourceGrid):
 
         wd, sd, ed, nd = tile_rectangle(z, x, y)
         h, w = self.shape
+        if not self.identity:
+            return self._projected_points_in(wd, sd, ed, nd)
         lon_c = self.t.c + (np.arange(w) + 0.5) * self.t.a
         lat_r = self.t.f + (np.arange(h) + 0.5) * self.t.e
         c0, c1 = int(np.searchsorted(lon_c, wd, "left")), int(np.searchsorted(lon_c, ed, "right"))
@@ -374,8 +405,68 @@ class RegionGrid(SourceGrid):
         rr, cc = np.nonzero(ok)
         return lon_c[c0 + cc], lat_r[r0 + rr], zz[rr, cc]
 
+    def points_strips(self, z: int, x: int, y: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """:meth:`points_in` in strips of rows of at most ``READ_STRIP_SAMPLES`` samples read: a coarse tile
+        of a projected region is measured against every sample it covers without holding them at once."""
+        if self.identity:
+            yield self.points_in(z, x, y)
+            return
+        from terralod.export.geodesy import tile_rectangle
+
+        rect = tile_rectangle(z, x, y)
+        r0, r1, c0, c1 = self._projected_window(*rect)
+        step = max(1, READ_STRIP_SAMPLES // max(c1 - c0, 1))
+        for ra in range(r0, r1, step):
+            yield self._projected_points_in(*rect, window=(ra, min(ra + step, r1), c0, c1))
+
+    def _projected_window(self, wd: float, sd: float, ed: float, nd: float) -> tuple[int, int, int, int]:
+        """Rows [r0, r1) and columns [c0, c1) that hold every sample of the lon/lat rectangle: those its
+        densified edge covers, plus one sample all round (the whole grid where the edge leaves the
+        projection's domain)."""
+        k = np.linspace(0.0, 1.0, 65)
+        elon = np.concatenate([wd + (ed - wd) * k, np.full(65, ed), wd + (ed - wd) * k, np.full(65, wd)])
+        elat = np.concatenate([np.full(65, sd), sd + (nd - sd) * k, np.full(65, nd), sd + (nd - sd) * k])
+        x, y = self._to_crs.transform(elon, elat)
+        x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+        h, w = self.shape
+        if not (np.isfinite(x).all() and np.isfinite(y).all()):
+            return 0, h, 0, w
+        cf, rf = (x - self.t.c) / self.t.a - 0.5, (y - self.t.f) / self.t.e - 0.5
+        c0, c1 = max(int(np.floor(cf.min())) - 1, 0), min(int(np.ceil(cf.max())) + 2, w)
+        r0, r1 = max(int(np.floor(rf.min())) - 1, 0), min(int(np.ceil(rf.max())) + 2, h)
+        return r0, max(r1, r0), c0, max(c1, c0)
+
+    def _projected_points_in(
+        self, wd: float, sd: float, ed: float, nd: float, window: tuple[int, int, int, int] | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The valid samples whose lon/lat lie in [wd, ed] x [sd, nd] (edges included), read from
+        ``window`` (rows, columns; default :meth:`_projected_window`)."""
+        r0, r1, c0, c1 = window if window is not None else self._projected_window(wd, sd, ed, nd)
+        if r1 <= r0 or c1 <= c0:
+            e = np.zeros(0)
+            return e, e, e
+        zz, ok = self.window(r0, r1, c0, c1)
+        rr, cc = np.nonzero(ok)
+        lon, lat = self._lonlat(self.t.c + (c0 + cc + 0.5) * self.t.a, self.t.f + (r0 + rr + 0.5) * self.t.e)
+        keep = (lon >= wd) & (lon <= ed) & (lat >= sd) & (lat <= nd)
+        return lon[keep], lat[keep], zz[rr[keep], cc[keep]]
+
     def close(self) -> None:
         self.reader.close()
+
+
+def windowed_crs(crs: Any) -> bool:
+    """True for a CRS whose regions :class:`RegionGrid` reads window by window: WGS 84 longitude/latitude,
+    or a projected CRS whose heights are metres (a vertical axis in feet is scaled by the in-memory reader,
+    :func:`terralod.io.reader.read_heightfield`)."""
+    if _is_lonlat_wgs84(crs):
+        return True
+    try:
+        from terralod.io.raster import vertical_unit_m
+
+        return bool(crs.is_projected) and vertical_unit_m(crs) is None
+    except Exception:  # noqa: BLE001
+        return False
 
 
 class _TriangleLocator:
@@ -563,15 +654,15 @@ def source_from_dem(path: str | Path) -> SourceGrid:
 
 
 def _region_grid(path: Path) -> RegionGrid | None:
-    """A north-up EPSG:4326 raster as a :class:`RegionGrid`; None for anything else (or a file GDAL
-    cannot open: the in-memory readers name the problem)."""
+    """A north-up EPSG:4326 or metric projected raster as a :class:`RegionGrid` (:func:`windowed_crs`); None
+    for anything else (or a file GDAL cannot open: the in-memory readers name the problem)."""
     from terralod.io.region import resolve_region
 
     try:
         region = resolve_region([path])
     except InputError:
         return None
-    if not _is_lonlat_wgs84(region.crs):
+    if not windowed_crs(region.crs):
         return None
     return RegionGrid(region)
 
@@ -579,8 +670,9 @@ def _region_grid(path: Path) -> RegionGrid | None:
 def source_from_region(inputs: Any, crs: Any = None) -> SourceGrid:
     """The samples of a region (a :class:`terralod.io.region.Region`, or what
     :func:`terralod.io.region.resolve_region` resolves: files, globs, folders, VRTs,
-    ``.hgt``, ``.hgt.zip``; ``crs`` assigns one to every file). WGS 84 longitude/latitude regions are read
-    window by window (:class:`RegionGrid`); other CRSs through the VRT, in memory, as
+    ``.hgt``, ``.hgt.zip``; ``crs`` assigns one to every file). WGS 84 longitude/latitude and metric projected
+    regions are read window by window (:class:`RegionGrid`, :func:`windowed_crs`); other CRSs through the
+    VRT, in memory, as
     :func:`source_from_dem` reads one file. Every file is read once first (a file GDAL cannot decode is
     named in one line, InputError). Where files overlap the last one listed wins."""
     import tempfile
@@ -589,7 +681,7 @@ def source_from_region(inputs: Any, crs: Any = None) -> SourceGrid:
     from terralod.io.region import Region, resolve_region
 
     region = inputs if isinstance(inputs, Region) else resolve_region(inputs, crs)
-    if _is_lonlat_wgs84(region.crs):
+    if windowed_crs(region.crs):
         return RegionGrid(region)
     if len(region.footprints) == 1 and region.vrt is None:
         return source_from_dem(region.footprints[0].path)
@@ -611,7 +703,7 @@ def source_from_region(inputs: Any, crs: Any = None) -> SourceGrid:
 
 
 def _windowed_source(terrain: Any) -> RegionGrid | None:
-    """The WGS 84 longitude/latitude samples a store was built from (one file or a region: a folder, glob,
+    """The WGS 84 longitude/latitude or metric projected samples a store was built from (one file or a region: a folder, glob,
     VRT), read window by window (:class:`RegionGrid`), when they are still there and give the store's
     digest; None otherwise (a projected source, a store of epochs, a moved or changed source).
 
@@ -635,7 +727,7 @@ def _windowed_source(terrain: Any) -> RegionGrid | None:
         return None
     try:
         region = resolve_region(files)
-        if not _is_lonlat_wgs84(region.crs):
+        if not windowed_crs(region.crs):
             return None
         warped = open_source(files if len(files) > 1 else files[0])
         if streamed_digest(warped) != digest:
