@@ -57,7 +57,9 @@ __all__ = [
     "Footprint",
     "Region",
     "RegionReader",
+    "RegionCheck",
     "RegionScan",
+    "check_region",
     "resolve_region",
     "scan_region",
 ]
@@ -401,6 +403,88 @@ def scan_region(region: Region) -> RegionScan:
     if covered < region.width * region.height:  # maybe a gap (files may also overlap): check exactly
         water = water or _has_gap(region)
     return RegionScan(r0, r1, c0, c1, count, water)
+
+
+@dataclass
+class RegionCheck:
+    """What ``terralod check`` finds in a region of DEM files: every file read whole, block by block."""
+
+    name: str
+    files: int = 0
+    grid: str = ""
+    samples: int = 0
+    valid_in_files: int = 0  #: valid samples summed over the files (a shared edge row counts in each)
+    checked: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def sound(self) -> bool:
+        return not self.problems
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"kind": "region of DEM files", "name": self.name, "files": self.files, "grid": self.grid,
+                "samples": self.samples, "valid_in_files": self.valid_in_files, "checked": self.checked,
+                "problems": self.problems, "sound": self.sound}  # fmt: skip
+
+
+def check_region(inputs: str | Path | Sequence[str | Path], crs: Any = None) -> RegionCheck:
+    """Check a region of DEM files as an export would read it, reporting every problem (not only the first):
+    the files make one grid (:func:`resolve_region`'s rules), every block of every file decodes, every file
+    holds valid samples; gaps and overlaps are said (they follow the region's rules, so they are no
+    problem). Memory: one strip of one file at a time."""
+    import rasterio
+    from rasterio.windows import Window
+
+    from terralod.io.raster import error_line
+
+    shown = ", ".join(map(str, [inputs] if isinstance(inputs, (str, Path)) else inputs))
+    rep = RegionCheck(shown)
+    try:
+        region = resolve_region(inputs, crs)
+    except InputError as exc:
+        rep.problems.append(str(exc))
+        return rep
+    rep.name, rep.files = region.name, len(region.footprints)
+    rep.grid = f"{region.width} x {region.height} samples, {describe_pixel(region)}"
+    rep.samples = region.width * region.height
+    covered = 0
+    for f in region.footprints:
+        covered += f.width * f.height
+        valid = 0
+        try:
+            with rasterio.open(f.path) as ds:
+                step = max(1, SCAN_STRIP_SAMPLES // max(ds.width, 1))
+                for s0 in range(0, ds.height, step):
+                    a = ds.read(1, window=Window(0, s0, ds.width, min(step, ds.height - s0)), masked=True)
+                    ok = ~np.ma.getmaskarray(a)
+                    vals = np.ma.getdata(a)
+                    if vals.dtype.kind == "f":
+                        ok &= np.isfinite(vals)
+                    valid += int(ok.sum())
+        except Exception as exc:  # noqa: BLE001 - a corrupt block, a truncated file: the file, in one line
+            rep.problems.append(f"{f.shown}: cannot be read ({error_line(exc)})")
+            continue
+        if valid == 0:
+            rep.problems.append(f"{f.shown}: has no valid samples (all nodata)")
+        rep.valid_in_files += valid
+    readable = rep.files - sum(1 for p in rep.problems if "cannot be read" in p)
+    rep.checked.append(f"{readable} of {rep.files} file(s) read whole, every block decoded")
+    rep.checked.append(f"one grid: {rep.grid}")
+    if covered > rep.samples:
+        rep.checked.append("files overlap: the last one listed wins where it has data")
+    if covered < rep.samples and _has_gap(region):
+        rep.checked.append("gaps (cells no file covers) are nodata: filled, flagged as water, in no error")
+    return rep
+
+
+def describe_pixel(region: Region) -> str:
+    """The region's pixel size and CRS in a few words."""
+    from terralod.io.georef import describe_crs
+
+    a, e = region.transform.a, -region.transform.e
+    unit = "°" if region.crs is not None and region.crs.is_geographic else " m"
+    size = f'{a * 3600:.4g}" x {e * 3600:.4g}"' if unit == "°" else f"{a:.6g} x {e:.6g}{unit}"
+    return f"pixels {size}, {describe_crs(region.crs)}"
 
 
 def _has_gap(region: Region) -> bool:
