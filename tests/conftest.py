@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +22,39 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"real terrain data not present at {SHARED_DATA} (../shared/data beside the repository)")
     return SHARED_DATA.resolve()
+
+
+@pytest.fixture(scope="session")
+def browser() -> Iterator[str]:
+    """The one headless Chromium the browser tests share (tests/web/browser.mjs, started on first use and
+    closed at the end of the session): its DevTools websocket URL. A page check (tests/web/stock_check.mjs,
+    site_check.mjs) given it as ``TERRALOD_BROWSER_WS`` opens a fresh browser context of its own in it."""
+    repo = Path(__file__).resolve().parents[1]
+    if shutil.which("chromium") is None:
+        pytest.skip("Debian chromium not installed (bash scripts/install.sh installs it)")
+    if shutil.which("node") is None or not (repo / "node_modules" / "puppeteer-core").is_dir():
+        pytest.skip("node or node_modules/puppeteer-core missing (run `npm ci` in the repository)")
+    import tempfile
+
+    with tempfile.TemporaryFile("w+") as log:
+        proc = subprocess.Popen(["node", str(repo / "tests" / "web" / "browser.mjs")], cwd=repo, text=True,
+                                stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)  # fmt: skip
+        assert proc.stdout is not None and proc.stdin is not None
+        url = proc.stdout.readline().strip()
+        if not url.startswith("ws://"):
+            proc.kill()
+            proc.wait()
+            log.seek(0)
+            pytest.fail(f"the shared Chromium did not start: {url!r} {log.read()[-2000:]}")
+        try:
+            yield url
+        finally:
+            proc.stdin.close()  # browser.mjs closes the browser when its stdin ends
+            try:
+                proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
 def fractal_terrain(
@@ -78,7 +114,6 @@ def terralod_cli(*args: str, cwd: Path | str | None = None, env: dict[str, str] 
     import contextlib
     import io
     import logging
-    import subprocess
     import sys
     import traceback
     import warnings

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -313,11 +314,12 @@ def test_3d_tiles_renderer_loads_and_refines(site: dict, static_server: str) -> 
 
 
 # -- stock CesiumJS -----------------------------------------------------------------------------------
-def _stock(static_server: str, query: str, cfg: dict, tmp: Path) -> dict:
+def _stock(static_server: str, query: str, cfg: dict, tmp: Path, browser: str) -> dict:
+    """tests/web/stock_check.mjs on the page, in a fresh context of the session's ``browser``."""
     (tmp / "cfg.json").write_text(json.dumps(cfg))
     res = subprocess.run(["node", str(WEB / "stock_check.mjs"), f"{static_server}/stock_cesium.html?{query}",
-                          str(tmp / "cfg.json"), str(tmp / "shot_"), "90000"],
-                         capture_output=True, text=True, timeout=400, cwd=REPO)  # fmt: skip
+                          str(tmp / "cfg.json"), str(tmp / "shot_"), "90000"], capture_output=True, text=True,
+                         timeout=400, cwd=REPO, env={**os.environ, "TERRALOD_BROWSER_WS": browser})  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
     return json.loads(res.stdout.strip().splitlines()[-1])
 
@@ -355,7 +357,7 @@ def _sample_points(lon: np.ndarray, lat: np.ndarray, z: np.ndarray, k: int = 25)
 
 
 @pytest.mark.skipif(_browser_missing() is not None, reason=str(_browser_missing()))
-def test_stock_cesium_quantized_mesh(site: dict, static_server: str, tmp_path: Path) -> None:
+def test_stock_cesium_quantized_mesh(site: dict, static_server: str, browser: str, tmp_path: Path) -> None:
     """CesiumTerrainProvider.fromUrl(folder) with no options, from a plain static server: every tile
     loads in three views, no console error, sampleTerrainMostDetailed at the source samples within the
     finest level's declared error, screenshots that show terrain."""
@@ -364,7 +366,7 @@ def test_stock_cesium_quantized_mesh(site: dict, static_server: str, tmp_path: P
     layer = json.loads((site["root"] / "qm_geo" / "layer.json").read_text())
     cfg = {"kind": "terrain", "views": _views(tuple(layer["bounds"]), (plon[-1], plat[-1])),
            "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
-    r = _stock(static_server, f"terrain=qm_geo/&hmin={z.min()}&hmax={z.max()}", cfg, tmp_path)
+    r = _stock(static_server, f"terrain=qm_geo/&hmin={z.min()}&hmax={z.max()}", cfg, tmp_path, browser)
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
     assert r["views"][0]["tileResponses"] > 0 and r["tileResponses"] >= 3, str(
         {k: v for k, v in r.items() if k != "heights"}
@@ -376,7 +378,7 @@ def test_stock_cesium_quantized_mesh(site: dict, static_server: str, tmp_path: P
 
 
 @pytest.mark.skipif(_browser_missing() is not None, reason=str(_browser_missing()))
-def test_stock_cesium_3dtiles(site: dict, static_server: str, tmp_path: Path) -> None:
+def test_stock_cesium_3dtiles(site: dict, static_server: str, browser: str, tmp_path: Path) -> None:
     """Cesium3DTileset.fromUrl(url) with no options: the root draws from the whole-terrain view (the
     tileset's error is the error of drawing nothing), tiles refine close up, no console error, and
     scene.sampleHeightMostDetailed at the source samples lies within the finest tiles' error."""
@@ -392,7 +394,7 @@ def test_stock_cesium_3dtiles(site: dict, static_server: str, tmp_path: Path) ->
         )
     cfg = {"kind": "tileset", "views": _views(tuple(reg), (plon[-1], plat[-1])),
            "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
-    r = _stock(static_server, "tileset=t3_utm/tileset.json", cfg, tmp_path)
+    r = _stock(static_server, "tileset=t3_utm/tileset.json", cfg, tmp_path, browser)
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
     assert r["views"][0]["tileResponses"] >= 1, r  # the overview draws the root
     h = np.array([np.nan if v is None else v for v in r["heights"]], np.float64)
@@ -485,7 +487,9 @@ def test_horizon_occlusion_point_never_hides_a_tile_seen_from_above(site: dict, 
 
 
 @pytest.mark.skipif(_browser_missing() is not None, reason=str(_browser_missing()))
-def test_stock_cesium_heights_above_the_ellipsoid(site: dict, static_server: str, tmp_path: Path) -> None:
+def test_stock_cesium_heights_above_the_ellipsoid(
+    site: dict, static_server: str, browser: str, tmp_path: Path
+) -> None:
     """The geographic crop exported with ``vertical_datum="egm96"``: stock CesiumJS samples the DEM's height
     + the EGM96 undulation (PROJ's grid, checked on NGA's values in test_vertical.py) at the DEM's own
     samples, within the finest level's declared error + 0.5 m; the undulation there is not zero."""
@@ -501,14 +505,18 @@ def test_stock_cesium_heights_above_the_ellipsoid(site: dict, static_server: str
     assert layer["terralod"]["heights"]["datum"] == "egm96"
     cfg = {"kind": "terrain", "views": _views(tuple(layer["bounds"]), (plon[-1], plat[-1])),
            "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
-    r = _stock(static_server, f"terrain=qm_geo_egm96/&hmin={z.min()}&hmax={z.max() + 100}", cfg, tmp_path)
+    r = _stock(
+        static_server, f"terrain=qm_geo_egm96/&hmin={z.min()}&hmax={z.max() + 100}", cfg, tmp_path, browser
+    )
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
     err = np.abs(np.array(r["heights"], np.float64) - (pz + n))
     assert err.max() <= layer["terralod"]["error_m"][layer["maxzoom"]] + 0.5, err
 
 
 @pytest.mark.skipif(_browser_missing() is not None, reason=str(_browser_missing()))
-def test_stock_cesium_3dtiles_of_a_geographic_store(site: dict, static_server: str, tmp_path: Path) -> None:
+def test_stock_cesium_3dtiles_of_a_geographic_store(
+    site: dict, static_server: str, browser: str, tmp_path: Path
+) -> None:
     """A store built from a lon/lat DEM (meshed on a metric grid): stock CesiumJS samples its 3D Tiles at the
     DEM's own sample positions within the finest tiles' declared error (which counts what resampling moved)."""
     from terralod.terrain import open_terrain
@@ -522,7 +530,7 @@ def test_stock_cesium_3dtiles_of_a_geographic_store(site: dict, static_server: s
         leaf_err = max(n.vertical_error_m for n in tree if not any(m.parent == n.code for m in tree))
     cfg = {"kind": "tileset", "views": _views(tuple(reg), (plon[-1], plat[-1])),
            "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
-    r = _stock(static_server, "tileset=t3_geo/tileset.json", cfg, tmp_path)
+    r = _stock(static_server, "tileset=t3_geo/tileset.json", cfg, tmp_path, browser)
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
     h = np.array([np.nan if v is None else v for v in r["heights"]], np.float64)
     ok = np.isfinite(h)

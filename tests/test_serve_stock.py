@@ -83,13 +83,15 @@ def _points(hf, service, k: int = 20) -> tuple[list, np.ndarray]:
     return np.column_stack([lon, lat]).tolist(), z
 
 
-def test_stock_cesium_loads_serve_quantized_mesh_and_3dtiles(serve_and_page: dict, tmp_path: Path) -> None:
+def test_stock_cesium_loads_serve_quantized_mesh_and_3dtiles(
+    serve_and_page: dict, browser: str, tmp_path: Path
+) -> None:
     s = serve_and_page
     pts, z = _points(s["hf"], s["service"])
     w, so, e, n = s["service"].qm().bbox
     views = [{"name": "whole", "rect": [w, so, e, n]}]
     r = _stock(s["page"], f"terrain={s['serve']}/terrain/&hmin={z.min()}&hmax={z.max()}",
-             {"kind": "terrain", "views": views, "points": pts}, tmp_path)  # fmt: skip
+             {"kind": "terrain", "views": views, "points": pts}, tmp_path, browser)  # fmt: skip
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
     assert r["tileResponses"] > 0
     err = np.abs(np.array(r["heights"], np.float64) - z)
@@ -97,7 +99,7 @@ def test_stock_cesium_loads_serve_quantized_mesh_and_3dtiles(serve_and_page: dic
     declared = max(v for (zz, _, _), v in qm._errors.items() if zz == qm.max_zoom)
     assert err.max() <= declared + 2e-3, (err.max(), declared)
     r3 = _stock(s["page"], f"tileset={s['serve']}/3dtiles/tileset.json", {"kind": "tileset", "views": views,
-              "points": pts}, tmp_path)  # fmt: skip
+              "points": pts}, tmp_path, browser)  # fmt: skip
     assert not r3["errors"] and not r3["badResponses"] and not r3["blocked"], r3
     assert r3["views"][0]["tileResponses"] >= 1
     tree = s["terrain"].lod_tree()

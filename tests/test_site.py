@@ -11,6 +11,7 @@ missing.
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import socket
@@ -47,7 +48,8 @@ def _browser_missing() -> str | None:
     return None
 
 
-def _drive(url: str, steps: list[dict], shots: Path, timeout_s: int = 240) -> dict:
+def _drive(url: str, steps: list[dict], shots: Path, browser: str, timeout_s: int = 240) -> dict:
+    """tests/web/site_check.mjs on the site at ``url``, in a fresh context of the session's ``browser``."""
     job = {
         "url": url,
         "shots": str(shots) + "/",
@@ -57,7 +59,8 @@ def _drive(url: str, steps: list[dict], shots: Path, timeout_s: int = 240) -> di
         "height": 600,
     }
     run = subprocess.run(["node", str(REPO / "tests" / "web" / "site_check.mjs")], input=json.dumps(job),
-                         capture_output=True, text=True, timeout=timeout_s, cwd=REPO)  # fmt: skip
+                         capture_output=True, text=True, timeout=timeout_s, cwd=REPO,
+                         env={**os.environ, "TERRALOD_BROWSER_WS": browser})  # fmt: skip
     assert run.stdout.strip(), run.stderr[-2000:]
     return json.loads(run.stdout.strip().splitlines()[-1])
 
@@ -240,7 +243,9 @@ def _cells(change_run: Path, n: int, seed: int) -> tuple[np.ndarray, np.ndarray,
     return r, c, d[r, c], [[float(a), float(b)] for a, b in zip(lon, lat, strict=True)]
 
 
-def test_static_site_answers_like_terralod_change(change_run: Path, static_host: str, tmp_path: Path) -> None:
+def test_static_site_answers_like_terralod_change(
+    change_run: Path, static_host: str, browser: str, tmp_path: Path
+) -> None:
     """From a plain static host: changeAt = dod.tif at 20 cells within 0.01 m; volume of the zone polygon =
     `terralod change --zones` within 0.5 %; the heights CesiumJS samples follow each epoch's DEM within the
     tiles' stored error; the drape is blue on the dome's top and red where dod.tif says the ground dropped;
@@ -275,7 +280,7 @@ def test_static_site_answers_like_terralod_change(change_run: Path, static_host:
     ):
         steps += [{"op": "camera", "args": [lo, la, z, 0, -90]}, {"op": "describeChange", "args": [lo, la],
                    "shot": name, "settleMs": 800}]  # fmt: skip
-    res = _drive(static_host, steps, tmp_path)
+    res = _drive(static_host, steps, tmp_path, browser)
     assert not res["errors"] and not res["blocked"] and not res["failedRequests"], res
     got = res["results"]
     for k in range(20):
@@ -345,7 +350,7 @@ def _dem_values(dem: str, pts: list) -> np.ndarray:
     return z[r, c]
 
 
-def test_serve_shows_the_same_page(shared_data: Path, tmp_path: Path) -> None:
+def test_serve_shows_the_same_page(shared_data: Path, browser: str, tmp_path: Path) -> None:
     """`terralod serve` on a store with two epochs serves the same page and contract: the same epochs and
     pair, changeAt at the dome's top as the exported site says."""
     why = _browser_missing()
@@ -367,7 +372,7 @@ def test_serve_shows_the_same_page(shared_data: Path, tmp_path: Path) -> None:
         big = pair[0]["largest"]
         res = _drive(f"http://127.0.0.1:{srv.server_address[1]}/", [
             {"op": "setSwipe", "args": [A, B, 0.5], "shot": "swipe"},
-            {"op": "changeAt", "args": [big["lon_deg"], big["lat_deg"], A, B]}], tmp_path)  # fmt: skip
+            {"op": "changeAt", "args": [big["lon_deg"], big["lat_deg"], A, B]}], tmp_path, browser)  # fmt: skip
     finally:
         srv.shutdown()
         srv.server_close()
@@ -408,7 +413,7 @@ def _plant_series(src: Path, out: Path) -> tuple[list[Path], dict]:
     return paths, truth
 
 
-def test_planted_series_site(shared_data: Path, tmp_path: Path) -> None:
+def test_planted_series_site(shared_data: Path, browser: str, tmp_path: Path) -> None:
     """A three-epoch series planted on a geographic SRTM crop (another DEM than St Helens): the site carries
     first -> last and both consecutive pairs; in the browser the change at the deposit's top and the scarp's
     bottom is the planted +30 / -20 m, the volume inside a ring around the deposit is the planted volume
@@ -455,7 +460,7 @@ def test_planted_series_site(shared_data: Path, tmp_path: Path) -> None:
             {"op": "describeChange", "args": [slo, sla], "shot": "scarp", "settleMs": 800},
             {"op": "dom"},
         ]
-        res = _drive(f"http://127.0.0.1:{port}/", steps, tmp_path)
+        res = _drive(f"http://127.0.0.1:{port}/", steps, tmp_path, browser)
     finally:
         proc.terminate()
         proc.wait(10)

@@ -61,7 +61,7 @@ def metre_run(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Pa
     ("frame", "crs", "z_scale"), [("lonlat", "EPSG:4326", 1.0), ("feet", "EPSG:2927+6360", 1.0 / US_FT)]
 )
 def test_site_answers_land_on_the_right_cells(
-    shared_data: Path, metre_run: Path, tmp_path: Path, frame: str, crs: str, z_scale: float
+    shared_data: Path, metre_run: Path, browser: str, tmp_path: Path, frame: str, crs: str, z_scale: float
 ) -> None:
     why = _browser_missing()
     if why:
@@ -98,7 +98,7 @@ def test_site_answers_land_on_the_right_cells(
         time.sleep(1.0)
         steps = [{"op": "changeAt", "args": [lo, la, A, B]} for lo, la in pts[:20]]
         steps.append({"op": "volume", "args": [RING, A, B]})
-        res = _drive(f"http://127.0.0.1:{port}/", steps, tmp_path)
+        res = _drive(f"http://127.0.0.1:{port}/", steps, tmp_path, browser)
     finally:
         proc.terminate()
         proc.wait(10)

@@ -5,21 +5,14 @@
 // "heights" (CesiumJS's sampleHeightMostDetailed at [[lon, lat], ...] on what is shown) or "pixels"
 // (RGB of the last screenshot's pixels at the screen positions of [[lon, lat, h], ...]).
 // Prints one JSON line: {errors, blocked, failedRequests, readyMs, firstViewMs, renderer, results: [...]}.
-import puppeteer from "puppeteer-core";
+import { openBrowser } from "./browser.mjs";
 
 const job = JSON.parse(await new Promise((res) => { let s = ""; process.stdin.on("data", (d) => (s += d)); process.stdin.on("end", () => res(s)); }));
 const timeout = job.timeoutMs || 90000;
 const out = { errors: [], blocked: [], failedRequests: [], results: [] };
-const browser = await puppeteer.launch({
-  executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
-  headless: "new",
-  args: ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    `--window-size=${job.width || 900},${job.height || 600}`, "--disable-background-timer-throttling",
-    "--disable-renderer-backgrounding", "--disable-backgrounding-occluded-windows"],
-});
+const browser = await openBrowser(job.width || 900, job.height || 600);
 try {
-  const page = await browser.newPage();
+  const page = await browser.context.newPage();
   await page.setViewport({ width: job.width || 900, height: job.height || 600 });
   await page.setRequestInterception(true);
   const origin = new URL(job.url).origin;

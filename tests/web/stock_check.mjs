@@ -7,24 +7,18 @@
 //            heading, pitch}], points: [[lon, lat], ...]}   (degrees, metres)
 //   prints one JSON line {errors, views: [{name, ms, tileResponses, bad}], heights, wallMs}
 import { readFileSync } from "node:fs";
-import puppeteer from "puppeteer-core";
+import { openBrowser } from "./browser.mjs";
 
 const [pageUrl, configPath, shotPrefix, timeoutArg] = process.argv.slice(2);
 const timeout = Number(timeoutArg || 60000);
 const config = JSON.parse(readFileSync(configPath, "utf8"));
 const t0 = Date.now();
 const out = { errors: [], failedRequests: [], blocked: [], views: [], heights: null };
-const browser = await puppeteer.launch({
-  executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
-  headless: "new",
-  args: ["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync", "--window-size=640,480",
-    "--disable-background-timer-throttling", "--disable-renderer-backgrounding", "--disable-backgrounding-occluded-windows"],
-});
+const browser = await openBrowser(640, 480);
 let tileResponses = 0;
 const bad = [];
 try {
-  const page = await browser.newPage();
+  const page = await browser.context.newPage();
   await page.setViewport({ width: 640, height: 480 });
   await page.setRequestInterception(true);
   const origin = new URL(pageUrl).origin;
