@@ -15,6 +15,24 @@ SHARED = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "benchmarks" / "results"
 
 
+def fractal_terrain(
+    rows: int, cols: int, seed: int, relief_m: float = 500.0, beta: float = 2.2
+) -> np.ndarray:
+    """A spectral-synthesis fBm terrain (power ~ f^-beta), float32 metres; deterministic per seed."""
+    rng = np.random.default_rng(seed)
+    n = max(rows, cols)
+    fy = np.fft.fftfreq(n)[:, None]
+    fx = np.fft.rfftfreq(n)[None, :]
+    f = np.sqrt(fx * fx + fy * fy)
+    f[0, 0] = 1.0
+    amp = f ** (-beta / 2.0)
+    amp[0, 0] = 0.0
+    spec = amp * (rng.normal(size=amp.shape) + 1j * rng.normal(size=amp.shape))
+    z = np.fft.irfft2(spec, s=(n, n))[:rows, :cols]
+    z = (z - z.min()) / max(np.ptp(z), 1e-12) * relief_m
+    return z.astype(np.float32)
+
+
 def puget_sound_1k():
     """Puget Sound 1025² at 160 m (elevation = value * 0.1), or None when ../shared/data is absent."""
     from PIL import Image

@@ -16,7 +16,7 @@ Nuth & Kääb against terralod's own, side by side on known shifts of real DEMs.
    time = median of ``--repeat`` fits; memory = tracemalloc peak of one fit (numpy allocations included).
 
 3. **Planted real pairs, the whole chain against xdem** (issue 43): the plants of
-   ``tests/test_change_pairs.py`` (a landslide's scarp and deposit, a lake whose level changed, AFTER
+   ``benchmarks/change_plants.py`` (a landslide's scarp and deposit, a lake whose level changed, AFTER
    shifted sub-cell or by several cells, a vertical bias, a 1.5x coarser grid, 1-1.5 m of noise) on each
    kind of terrain. terralod's chain (``measure_change``: stable ground, fit, volumes) with either estimator,
    against xdem's ``NuthKaab`` fitted alone on AFTER resampled onto BEFORE's grid, given the chain's stable
@@ -196,18 +196,14 @@ def coreg_bench(quick: bool, repeat: int) -> list[dict]:
 
 def pairs_bench(quick: bool) -> list[dict]:
     """Section 3 of the module docstring."""
-    import sys
-    from pathlib import Path
 
     import xdem
     from rasterio.crs import CRS
 
+    import change_plants as plants
     from terralod.change.coregister import nmad
     from terralod.change.difference import dem_of_difference
     from terralod.change.volumes import budget, measure_change
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    import test_change_pairs as plants
 
     terrains = [*plants.TERRAINS, "flattest_kattegat"]
     cases = [((0.45, -0.3), 1.0), ((2.6, -3.1), 1.0), ((0.7, 0.4), 1.5), ((-1.8, 2.2), 1.5)]
@@ -323,7 +319,7 @@ def main() -> None:
     pairs = pairs_bench(args.quick)
     pairs_md = (
         "\n## Planted real pairs: terralod's chain against xdem's NuthKaab alone (issue 43)\n\n"
-        "Plants as in `tests/test_change_pairs.py` (landslide scarp + deposit, a lake's level change where there "
+        "Plants as in `benchmarks/change_plants.py` (landslide scarp + deposit, a lake's level change where there "
         "is flat land, bias ±3 m, noise 1.2 m, AFTER on the same or a 1.5x coarser grid, shifts (0.45, -0.3), "
         "(2.6, -3.1), (0.7, 0.4), (-1.8, 2.2) cells). Shift error for a bias-only fit is the planted shift "
         "itself (it was not fitted, and said so). xdem alone fits AFTER resampled onto BEFORE's grid; its "

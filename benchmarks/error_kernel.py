@@ -11,12 +11,10 @@ from pathlib import Path
 import numpy as np
 import PIL.Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from terralod.kernels.error import tile_error  # noqa: E402
 
-from _common import SHARED, md_table, write_results  # noqa: E402
-from conftest import fractal_terrain  # noqa: E402
+from _common import SHARED, fractal_terrain, md_table, write_results  # noqa: E402
 
 
 def grid_tile(z, r0, c0, s, m=65, diag="nw"):

@@ -1,6 +1,6 @@
 """The long fuzzing campaign of every reader: ``python benchmarks/fuzz.py --minutes N``.
 
-Hypothesis mutations (``tests/fuzzing.py``: bit flips, truncation, splices, absurd header integers) of a
+Hypothesis mutations (``benchmarks/fuzzing.py``: bit flips, truncation, splices, absurd header integers) of a
 valid seed of each reader, rounds of random cases per target in memory-limited child processes until the
 time is up; then, when atheris installs (``pip install atheris``), libFuzzer-driven mutation of the same
 seeds with the terralod readers instrumented for coverage, one child per target. The contract: a result or
@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import fuzzing  # noqa: E402
@@ -56,7 +55,7 @@ def hypothesis_rounds(seeds: dict[str, Path], folder: Path, seconds: float, per_
 
 ATHERIS_CHILD = r"""
 import sys, atheris
-sys.path.insert(0, {tests!r})
+sys.path.insert(0, {benchmarks!r})
 target, seed_dir, work, seconds = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
 import resource, logging, warnings
 resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))
@@ -96,7 +95,7 @@ def atheris_runs(seeds: dict[str, Path], folder: Path, seconds: float) -> dict[s
         (corpus / f"seed{seed.suffix}").write_bytes(seed.read_bytes())
         work = Path(tempfile.mkdtemp(prefix=f"atheris-{target}-", dir=folder))
         code = ATHERIS_CHILD.format(
-            tests=str(ROOT / "tests"), suffix=seed.suffix, src=str(ROOT / "src" / "terralod")
+            benchmarks=str(ROOT / "benchmarks"), suffix=seed.suffix, src=str(ROOT / "src" / "terralod")
         )
         try:
             p = subprocess.run([sys.executable, "-c", code, target, str(corpus), str(work), str(per)],

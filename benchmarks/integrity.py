@@ -36,7 +36,6 @@ from typing import Any
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import fuzz  # noqa: E402
@@ -95,7 +94,7 @@ def _killed(fn) -> bool:
 def _dem(seed: int, h: int = 240, w: int = 232):
     from terralod import Heightfield
 
-    from conftest import fractal_terrain
+    from _common import fractal_terrain
 
     return Heightfield.from_array(fractal_terrain(h, w, seed, relief_m=400.0).astype(np.float64), 20.0)
 

@@ -5,11 +5,16 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
-import numpy as np
 import pytest
+
+# the benchmarks' helpers (benchmarks/_common.py, fuzzing.py, change_plants.py) serve the tests too: tests
+# import from benchmarks, never the other way round; tests take fractal_terrain from here
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from _common import fractal_terrain  # noqa: E402, F401
 
 SHARED_DATA = Path(
     os.environ.get("TERRALOD_SHARED_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data")
@@ -55,24 +60,6 @@ def browser() -> Iterator[str]:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
-
-
-def fractal_terrain(
-    rows: int, cols: int, seed: int, relief_m: float = 500.0, beta: float = 2.2
-) -> np.ndarray:
-    """A spectral-synthesis fBm terrain (power ~ f^-beta), float32 metres; deterministic per seed."""
-    rng = np.random.default_rng(seed)
-    n = max(rows, cols)
-    fy = np.fft.fftfreq(n)[:, None]
-    fx = np.fft.rfftfreq(n)[None, :]
-    f = np.sqrt(fx * fx + fy * fy)
-    f[0, 0] = 1.0
-    amp = f ** (-beta / 2.0)
-    amp[0, 0] = 0.0
-    spec = amp * (rng.normal(size=amp.shape) + 1j * rng.normal(size=amp.shape))
-    z = np.fft.irfft2(spec, s=(n, n))[:rows, :cols]
-    z = (z - z.min()) / max(np.ptp(z), 1e-12) * relief_m
-    return z.astype(np.float32)
 
 
 def crop_geotiff(src: Path, dest: Path, col: int, row: int, side: int) -> Path:

@@ -1,5 +1,5 @@
-"""Fuzzing harness shared by ``tests/test_fuzz.py`` (a bounded number of cases) and ``benchmarks/fuzz.py``
-(the long campaign): valid seed files of every reader, byte mutations drawn by hypothesis (bit flips,
+"""Fuzzing harness shared by ``benchmarks/fuzz.py`` (the long campaign) and ``tests/test_fuzz.py`` (a
+bounded number of cases): valid seed files of every reader, byte mutations drawn by hypothesis (bit flips,
 truncation, splices, absurd header integers), and the contract each reader must keep.
 
 Contract: a reader given any bytes returns a result or raises a :class:`terralod.errors.TerralodError`
