@@ -261,21 +261,62 @@ def _bounds(b) -> str:
     return "(" + ", ".join(f"{v:.1f}" for v in b) + ")"
 
 
-def write_dod(path: str | Path, dod: np.ndarray, hf: Heightfield, tags: dict | None = None) -> None:
-    """The DoD as a float32 GeoTIFF on ``hf``'s grid (NaN = no data, unit metres, deflate)."""
-    import rasterio
+#: dod.tif's internal tiles (samples a side) and compression: a Cloud Optimized GeoTIFF with overviews.
+DOD_BLOCK = 512
 
-    profile = {
-        "driver": "GTiff", "width": hf.width, "height": hf.height, "count": 1, "dtype": "float32",
-        "transform": hf.transform, "nodata": float("nan"), "compress": "deflate",
-    }  # fmt: skip
-    if hf.crs:
-        profile["crs"] = hf.crs
-    if hf.width >= 256 and hf.height >= 256:
-        profile.update(tiled=True, blockxsize=256, blockysize=256)
-    with rasterio.open(path, "w", **profile) as ds:
-        ds.write(dod.astype(np.float32), 1)
-        ds.set_band_description(1, "elevation change after - before (m)")
-        ds.set_band_unit(1, "metre")
+
+def write_dod(path: str | Path, dod: np.ndarray, hf: Heightfield, tags: dict | None = None) -> None:
+    """The DoD as a float32 Cloud Optimized GeoTIFF on ``hf``'s grid (:class:`DodWriter`)."""
+    w = DodWriter(path, hf, tags)
+    try:
+        w.write(dod, 0, 0)
+    except BaseException:
+        w.abort()
+        raise
+    w.close()
+
+
+class DodWriter:
+    """``dod.tif`` written window by window: a float32 GeoTIFF on ``grid``'s frame (anything with ``width``,
+    ``height``, ``transform``, ``crs``), NaN = no data, unit metres. Windows go to a tiled scratch file beside
+    ``path``; :meth:`close` copies it into a Cloud Optimized GeoTIFF (GDAL's COG driver: 512² tiles,
+    deflate with the floating-point predictor, overviews averaged down to one tile) and removes the scratch.
+    The bytes depend only on the values, never on the order the windows came in."""
+
+    def __init__(self, path: str | Path, grid, tags: dict | None = None) -> None:  # noqa: ANN001
+        import rasterio
+
+        self.path = Path(path)
+        self.scratch = self.path.with_name(f".{self.path.name}.scratch.tif")
+        h, w = grid.shape
+        profile = {
+            "driver": "GTiff", "width": w, "height": h, "count": 1, "dtype": "float32",
+            "transform": grid.transform, "nodata": float("nan"), "compress": "deflate", "predictor": 3,
+            "tiled": True, "blockxsize": DOD_BLOCK, "blockysize": DOD_BLOCK, "BIGTIFF": "IF_SAFER",
+        }  # fmt: skip
+        if grid.crs:
+            profile["crs"] = grid.crs
+        self.ds = rasterio.open(self.scratch, "w", **profile)
+        self.ds.set_band_description(1, "elevation change after - before (m)")
+        self.ds.set_band_unit(1, "metre")
         if tags:
-            ds.update_tags(**{k: str(v) for k, v in tags.items()})
+            self.ds.update_tags(**{k: str(v) for k, v in tags.items()})
+
+    def write(self, dod: np.ndarray, r0: int, c0: int) -> None:
+        """Write a window of the DoD (metres) whose first cell is (r0, c0) of the grid."""
+        from rasterio.windows import Window
+
+        h, w = dod.shape
+        self.ds.write(dod.astype(np.float32), 1, window=Window(c0, r0, w, h))
+
+    def close(self) -> None:
+        from rasterio.shutil import copy
+
+        self.ds.close()
+        copy(self.scratch, self.path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="FLOATING_POINT",
+             BLOCKSIZE=str(DOD_BLOCK), OVERVIEWS="IGNORE_EXISTING", RESAMPLING="AVERAGE", BIGTIFF="IF_SAFER")  # fmt: skip
+        self.scratch.unlink()
+
+    def abort(self) -> None:
+        self.ds.close()
+        self.scratch.unlink(missing_ok=True)

@@ -263,7 +263,8 @@ def figure_map(result: ChangeResult, line=None) -> bytes:
                                   ("max_drop", "v", LOSS_COLOUR, "largest drop")):  # fmt: skip
         e = ext_d.get(key)
         if e and abs(e["value_m"]) > 0:
-            x, y = _to_km(hf, e["row"], e["col"])
+            w_m, s_m, _, _ = hf.bounds_m  # the position in metres: the map may be a decimated copy
+            x, y = (e["x_m"] - w_m) / 1e3, (e["y_m"] - s_m) / 1e3
             ax.plot(x, y, mark, ms=11, mfc="yellow", mec="k", mew=1.2)
             handles.append(
                 plt.Line2D(

@@ -312,53 +312,119 @@ def resampling_error(pair: AlignedPair, after: Heightfield, shift_m=(0.0, 0.0, 0
     x, y = after.world_xy(rows, cols)
     r, c = before.sample_rc(x + tx, y + ty)
     z, ok = sample_surface(before, r, c, order=3)
+    # on one grid the fill is the nearest valid cell's (local: a window with a margin fills as the whole grid
+    # does, :mod:`terralod.change.windowed`); on another grid the median, as it always was
+    fill = (
+        _nearest_filled(z, ok)
+        if pair.same_grid
+        else np.where(ok, z, np.nanmedian(z[ok]) if ok.any() else 0.0)
+    )
     sim = Heightfield(
-        np.where(ok, z, np.nanmedian(z[ok]) if ok.any() else 0.0).astype(np.float32), ok & after.valid,
-        after.transform, crs=after.crs, source="simulated",
-    )  # fmt: skip
+        fill.astype(np.float32), ok & after.valid, after.transform, crs=after.crs, source="simulated"
+    )
     d = dem_of_difference(AlignedPair(before, sim, pair.same_grid), (tx, ty, 0.0))
     return 0.5 * d
+
+
+def _nearest_filled(z: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """``z`` with its invalid cells set to the nearest valid cell's value: the fill a cubic spline rings on
+    least, and a local one (a window with a margin fills as the whole grid does)."""
+    from scipy import ndimage
+
+    if ok.all() or not ok.any():
+        return np.where(ok, z, 0.0) if not ok.any() else z
+    idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
+    return z[tuple(idx)]
 
 
 def budget(dod: np.ndarray, unc: Uncertainty, mask: np.ndarray | None = None) -> dict:
     """Gain/loss/net volumes (all cells, and beyond the LoD) with ± uncertainty, areas beyond the LoD, the
     largest rise and drop, over the finite cells of ``dod`` (inside ``mask`` when given)."""
-    a = unc.cell_area_m2
-    ok = np.isfinite(dod) if mask is None else (np.isfinite(dod) & mask)
-    d = dod[ok]
-    lod = unc.level_of_detection_m
-    pos, neg = d > 0, d < 0
-    up, down = d > lod, d < -lod
-    vol = lambda sel: float(np.sum(d[sel], dtype=np.float64) * a)  # noqa: E731
-    area = lambda sel: float(np.count_nonzero(sel) * a)  # noqa: E731
-    err = None if unc.resampling_error_m is None else unc.resampling_error_m[ok]
+    sums = BudgetSums(unc.level_of_detection_m)
+    sums.add(dod, unc.resampling_error_m, mask)
+    return sums.budget(unc)
 
-    def pm(sel: np.ndarray) -> float:
-        u = unc.volume_sigma_m3(area(sel)) ** 2 + (area(sel) * unc.bias_sigma_m) ** 2
-        if err is not None:
-            u += (float(np.nansum(err[sel], dtype=np.float64)) * a) ** 2
-        return float(unc.t * math.sqrt(u)) if area(sel) > 0 else 0.0
 
-    out = {
-        "gain_m3": vol(pos),
-        "loss_m3": -vol(neg),
-        "net_m3": vol(np.ones_like(pos)),
-        "gain_m3_above_lod": vol(up),
-        "loss_m3_above_lod": -vol(down),
-        "net_m3_above_lod": vol(up | down),
-        "net_uncertainty_m3": pm(np.ones_like(pos)),
-        "gain_uncertainty_m3": pm(pos),
-        "loss_uncertainty_m3": pm(neg),
-        "net_above_lod_uncertainty_m3": pm(up | down),
-        "gain_above_lod_uncertainty_m3": pm(up),
-        "loss_above_lod_uncertainty_m3": pm(down),
-        "area_gain_m2": area(up),
-        "area_loss_m2": area(down),
-        "area_m2": area(np.ones_like(pos)),
-        "max_rise_m": max(0.0, float(d.max())) if d.size else 0.0,
-        "max_drop_m": max(0.0, float(-d.min())) if d.size else 0.0,
-    }
-    return out
+#: The cell sets a budget sums over: every valid cell, gain, loss, beyond the LoD up, down, either.
+_SETS = ("all", "pos", "neg", "up", "down", "beyond")
+
+
+class BudgetSums:
+    """What :func:`budget` needs of a DoD, accumulated window by window: per cell set (:data:`_SETS`) the
+    sum of the difference (float64), the cell count and the sum of the resampling error; the largest rise
+    and drop. ``budget(unc)`` gives :func:`budget`'s dict; the volumes equal a whole-grid sum up to the order
+    of the float64 additions (1e-15 relative)."""
+
+    def __init__(self, lod_m: float) -> None:
+        self.lod_m = float(lod_m)
+        self.vol = dict.fromkeys(_SETS, 0.0)
+        self.count = dict.fromkeys(_SETS, 0)
+        self.err = dict.fromkeys(_SETS, 0.0)
+        self.has_err = False
+        self.d_max = -math.inf
+        self.d_min = math.inf
+
+    def add(self, dod: np.ndarray, err: np.ndarray | None = None, mask: np.ndarray | None = None) -> None:
+        """Add a window of the DoD (metres; NaN = no data), its resampling error (or None) and a mask."""
+        ok = np.isfinite(dod) if mask is None else (np.isfinite(dod) & mask)
+        d = dod[ok]
+        if d.size == 0:
+            return
+        lod = self.lod_m
+        pos, neg = d > 0, d < 0
+        up, down = d > lod, d < -lod
+        sel = {"all": None, "pos": pos, "neg": neg, "up": up, "down": down, "beyond": up | down}
+        e = None if err is None else err[ok]
+        self.has_err = self.has_err or e is not None
+        for k, m in sel.items():
+            v = d if m is None else d[m]
+            self.vol[k] += float(np.sum(v, dtype=np.float64))
+            self.count[k] += int(v.size)
+            if e is not None:
+                self.err[k] += float(np.nansum(e if m is None else e[m], dtype=np.float64))
+        self.d_max = max(self.d_max, float(d.max()))
+        self.d_min = min(self.d_min, float(d.min()))
+
+    def merge(self, other: BudgetSums) -> None:
+        """Add another accumulator's sums (a window done elsewhere)."""
+        for k in _SETS:
+            self.vol[k] += other.vol[k]
+            self.count[k] += other.count[k]
+            self.err[k] += other.err[k]
+        self.has_err = self.has_err or other.has_err
+        self.d_max, self.d_min = max(self.d_max, other.d_max), min(self.d_min, other.d_min)
+
+    def budget(self, unc: Uncertainty) -> dict:
+        a = unc.cell_area_m2
+        vol = lambda k: self.vol[k] * a  # noqa: E731
+        area = lambda k: float(self.count[k] * a)  # noqa: E731
+
+        def pm(k: str) -> float:
+            u = unc.volume_sigma_m3(area(k)) ** 2 + (area(k) * unc.bias_sigma_m) ** 2
+            if self.has_err:
+                u += (self.err[k] * a) ** 2
+            return float(unc.t * math.sqrt(u)) if area(k) > 0 else 0.0
+
+        n = self.count["all"]
+        return {
+            "gain_m3": vol("pos"),
+            "loss_m3": -vol("neg"),
+            "net_m3": vol("all"),
+            "gain_m3_above_lod": vol("up"),
+            "loss_m3_above_lod": -vol("down"),
+            "net_m3_above_lod": vol("beyond"),
+            "net_uncertainty_m3": pm("all"),
+            "gain_uncertainty_m3": pm("pos"),
+            "loss_uncertainty_m3": pm("neg"),
+            "net_above_lod_uncertainty_m3": pm("beyond"),
+            "gain_above_lod_uncertainty_m3": pm("up"),
+            "loss_above_lod_uncertainty_m3": pm("down"),
+            "area_gain_m2": area("up"),
+            "area_loss_m2": area("down"),
+            "area_m2": area("all"),
+            "max_rise_m": max(0.0, self.d_max) if n else 0.0,
+            "max_drop_m": max(0.0, -self.d_min) if n else 0.0,
+        }
 
 
 def extremes(dod: np.ndarray, hf: Heightfield) -> dict:
@@ -425,12 +491,7 @@ def measure_change(
     """
     pair = pair or align(before, after)
     ground = StableGroundFinder(pair, given=stable, exclude=exclude, slope_min_deg=slope_min_deg)
-    if coregistration:
-        co = coregister(pair, method=method, ground=ground)
-        co.applied = co.method != "none"
-    else:
-        co = Coregistration(method="none", notes=["co-registration skipped (--no-coregister)"])
-        co.statement = "The surveys were compared as they are, without lining them up (--no-coregister)."
+    co = fit_alignment(pair, ground, coregistration=coregistration, method=method)
     shift = co.shift_m if co.applied else (0.0, 0.0, 0.0)
     dod = dem_of_difference(pair, shift)
     sg = ground(dod)
@@ -440,9 +501,36 @@ def measure_change(
         dod, st, pair.cell_area_m2, before.spacing_m, sigma_m=sigma_m, corr_range_m=corr_range_m,
         confidence=confidence, resampling_error_m=rerr,
     )  # fmt: skip
-    # the fitted vertical bias is itself uncertain: the standard error of a median over the stable area
+    settle_bias_sigma(co, unc, pair.cell_area_m2)
+    zone_masks = read_zones(zones, before) if zones is not None else []
+    zone_budgets = [(name, budget(dod, unc, mask), frac) for name, mask, frac, _geom in zone_masks]
+    summary = change_summary(
+        pair, co, sg, unc, budget(dod, unc), shift=shift, confidence=confidence, dates=dates,
+        names=(before.source, after.source), valid_cells=int(np.isfinite(dod).sum()),
+        resampled=not (pair.same_grid and pair.after is after), extremes_=extremes(dod, before),
+        zone_budgets=zone_budgets,
+    )  # fmt: skip
+    return ChangeResult(pair, co, dod, st, unc, summary, zone_masks)
+
+
+def fit_alignment(
+    pair: AlignedPair, ground: StableGroundFinder, *, coregistration: bool, method: str
+) -> Coregistration:
+    """The co-registration of a pair (:func:`coregister`), or the note that it was skipped."""
+    if coregistration:
+        co = coregister(pair, method=method, ground=ground)
+        co.applied = co.method != "none"
+    else:
+        co = Coregistration(method="none", notes=["co-registration skipped (--no-coregister)"])
+        co.statement = "The surveys were compared as they are, without lining them up (--no-coregister)."
+    return co
+
+
+def settle_bias_sigma(co: Coregistration, unc: Uncertainty, cell_area_m2: float) -> None:
+    """The fitted vertical bias is itself uncertain: the standard error of a median over the stable area
+    (set on ``unc`` and ``co``)."""
     if co.applied and unc.stable_cells >= MIN_STABLE_CELLS:
-        area_st = unc.stable_cells * pair.cell_area_m2
+        area_st = unc.stable_cells * cell_area_m2
         unc.bias_sigma_m = 1.2533 * unc.volume_sigma_m3(area_st) / area_st
         if unc.sigma_source.startswith("assumed") and unc.stable_nmad_m is not None:
             # an assumed σ is no measure of how well the bias was fitted: the stable ground's own spread is
@@ -450,9 +538,22 @@ def measure_change(
         if co.mode == "bias only":
             unc.bias_sigma_m *= 2.0  # the horizontal alignment could not be checked: widened
         co.bias_sigma_m = unc.bias_sigma_m
+
+
+def change_summary(
+    pair: AlignedPair, co: Coregistration, sg: StableGround, unc: Uncertainty, totals: dict, *,
+    shift: tuple[float, float, float], confidence: float, dates: tuple[str | None, str | None],
+    names: tuple[str, str], valid_cells: int, resampled: bool, extremes_: dict,
+    zone_budgets: list[tuple[str, dict, float]],
+) -> dict:  # fmt: skip
+    """The contract summary of ``terralod change`` (:mod:`terralod.cli.change`) from its parts; BEFORE's
+    grid is ``pair.before``'s frame (a window source or a Heightfield)."""
+    before = pair.before
     bias_only = co.mode == "bias only"
-    fit_words = _fit_words(co, sg, bias_only)
-    summary: dict = dict(budget(dod, unc))
+    dx, dy = before.spacing_m
+    h, w = before.shape
+    t = before.transform
+    summary: dict = dict(totals)
     summary.update(
         {
             "sigma_m": unc.sigma_m,
@@ -460,33 +561,32 @@ def measure_change(
             "level_of_detection_m": unc.level_of_detection_m,
             "confidence": confidence,
             "shift_m": [float(v) for v in shift],
-            "before": {"source": Path(str(before.source)).name, "date": dates[0]},
-            "after": {"source": Path(str(after.source)).name, "date": dates[1]},
+            "before": {"source": Path(str(names[0])).name, "date": dates[0]},
+            "after": {"source": Path(str(names[1])).name, "date": dates[1]},
             "grid": {
                 "crs": crs_label(before.crs),
-                "shape": list(before.shape),
-                "spacing_m": list(before.spacing_m),
-                "bounds_m": list(before.bounds_m),
-                "cell_area_m2": pair.cell_area_m2,
-                "valid_cells": int(np.isfinite(dod).sum()),
-                "resampled": not (pair.same_grid and pair.after is after),
+                "shape": [int(h), int(w)],
+                "spacing_m": [float(dx), float(dy)],
+                "bounds_m": [float(t.c), float(t.f + h * t.e), float(t.c + w * t.a), float(t.f)],
+                "cell_area_m2": float(dx * dy),
+                "valid_cells": int(valid_cells),
+                "resampled": bool(resampled),
             },
             "alignment_notes": list(pair.notes),
             "coregistration": co.as_dict(),
             "stable_ground": sg.as_dict(bias_only),
-            "fit_description": fit_words,
+            "fit_description": _fit_words(co, sg, bias_only),
             "uncertainty": unc.as_dict(),
-            "extremes": extremes(dod, before),
+            "extremes": extremes_,
         }
     )
-    zone_masks = read_zones(zones, before) if zones is not None else []
     summary["zones"] = []
-    for name, mask, frac, _geom in zone_masks:
-        z = {"name": name, **budget(dod, unc, mask), "fraction_on_terrain": frac}
+    for name, b, frac in zone_budgets:
+        z = {"name": name, **b, "fraction_on_terrain": frac}
         if frac < 0.999:
             z["note"] = f"{100 * (1 - frac):.1f} % of the polygon lies outside the terrain and is not counted"
         summary["zones"].append(z)
-    return ChangeResult(pair, co, dod, st, unc, summary, zone_masks)
+    return summary
 
 
 def _fit_words(co: Coregistration, sg: StableGround, bias_only: bool) -> str:

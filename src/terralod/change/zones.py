@@ -26,23 +26,57 @@ def read_zones(path: str | Path, hf: Heightfield) -> list[tuple[str, np.ndarray,
     ------
     InputError : unreadable file, no polygon, a CRS that cannot be used, a polygon outside the terrain.
     """
+    out = []
+    for name, geom, frac in zone_geometries(path, hf.crs, hf.bounds_m):
+        mask = zone_mask(geom, hf.shape, hf.transform)
+        if not (mask & hf.valid).any():
+            raise InputError(outside_message(name, geom, hf.crs, hf.bounds_m), str(Path(path)))
+        out.append((name, mask, frac, geom))
+    return out
+
+
+def zone_mask(geom: dict, shape: tuple[int, int], transform) -> np.ndarray:  # noqa: ANN001
+    """The cells of a grid (``shape``, ``transform``: a whole grid or a window of it) whose centre lies in
+    the polygon ``geom`` (GeoJSON mapping in the grid CRS)."""
     from rasterio.features import rasterize
+
+    return rasterize([(geom, 1)], out_shape=shape, transform=transform, fill=0, dtype="uint8").astype(bool)
+
+
+def outside_message(name: str, geom: dict, crs: str | None, bounds_m) -> str:  # noqa: ANN001
+    from shapely.geometry import shape
+
+    b = ", ".join(f"{v:.1f}" for v in shape(geom).bounds)
+    return (
+        f"polygon {name!r} lies outside the terrain: its bounds ({b}) vs the terrain's "
+        f"({', '.join(f'{v:.1f}' for v in bounds_m)}) in {crs_label(crs)}"
+    )
+
+
+def zone_geometries(path: str | Path, crs: str | None, bounds_m) -> list[tuple[str, dict, float]]:  # noqa: ANN001
+    """The polygons of a GeoJSON file in the grid CRS ``crs``: (name, geometry mapping, fraction of its
+    area inside ``bounds_m``), without rasterizing them (a region's grid is rasterized window by window).
+
+    Raises
+    ------
+    InputError : unreadable file, no polygon, a CRS that cannot be used, a polygon wholly outside.
+    """
     from shapely.geometry import box, mapping, shape
     from shapely.ops import transform as shp_transform
 
     src = str(Path(path))
     feats, crs_name = read_geojson_polygons(path, "zone")
     if crs_name == "local":
-        crs_name = hf.crs  # the terrain's own coordinates
-    if hf.crs is None:
+        crs_name = crs  # the terrain's own coordinates
+    if crs is None:
         raise InputError("the terrain has no CRS, so GeoJSON coordinates cannot be placed on it", src)
     try:
         from pyproj import CRS, Transformer
 
-        tr = Transformer.from_crs(CRS.from_user_input(crs_name), CRS.from_user_input(hf.crs), always_xy=True)
+        tr = Transformer.from_crs(CRS.from_user_input(crs_name), CRS.from_user_input(crs), always_xy=True)
     except Exception as exc:  # noqa: BLE001 - pyproj raises its own CRSError
         raise InputError(f"crs {crs_name!r} cannot be used ({exc})", src) from None
-    terrain_box = box(*hf.bounds_m)
+    terrain_box = box(*bounds_m)
     out = []
     for name, geom in feats:
         try:
@@ -51,20 +85,10 @@ def read_zones(path: str | Path, hf: Heightfield) -> list[tuple[str, np.ndarray,
             raise InputError(f"polygon {name!r} is not a valid geometry ({exc})", src) from None
         if g.is_empty or g.area <= 0:
             raise InputError(f"polygon {name!r} has no area", src)
-        inside = g.intersection(terrain_box)
-        frac = float(inside.area / g.area)
-        mask = (
-            rasterize([(mapping(g), 1)], out_shape=hf.shape, transform=hf.transform, fill=0, dtype="uint8")
-            .astype(bool)
-        )  # fmt: skip
-        if frac <= 0 or not (mask & hf.valid).any():
-            b = ", ".join(f"{v:.1f}" for v in g.bounds)
-            raise InputError(
-                f"polygon {name!r} lies outside the terrain: its bounds ({b}) vs the terrain's "
-                f"({', '.join(f'{v:.1f}' for v in hf.bounds_m)}) in {crs_label(hf.crs)}",
-                src,
-            )
-        out.append((name, mask, frac, mapping(g)))
+        frac = float(g.intersection(terrain_box).area / g.area)
+        if frac <= 0:
+            raise InputError(outside_message(name, mapping(g), crs, bounds_m), src)
+        out.append((name, mapping(g), frac))
     return out
 
 

@@ -3,7 +3,9 @@ their uncertainty, and a report for non-experts.
 
 Input forms:
 
-- ``BEFORE AFTER`` — two DEMs in any format and CRS the readers take;
+- ``BEFORE AFTER`` — two DEMs in any format and CRS the readers take; each side may also be a region of
+  DEM tiles on one grid (a folder, a quoted glob or a .vrt), read window by window
+  (:mod:`terralod.change.windowed`), as is a pair of more than :data:`WINDOWED_MIN_CELLS` cells;
 - ``BEFORE AFTER1 AFTER2 ...`` — a series: the summary is BEFORE → the last, plus the volume of each
   epoch against BEFORE (``series`` in the summary, the volume-against-time figure in the report);
 - ``SERIES.npz`` with arrays ``base``, ``delta`` (epoch i = base + delta[i]), ``dates`` and the
@@ -147,16 +149,21 @@ def change(
     the survey error and the level below which changes cannot be told from error are measured from the
     pair itself. The output folder holds summary.json, dod.tif (the difference map) and report.html.
 
+    BEFORE and AFTER may each be one DEM file, or a region of tiles on one grid: a folder, a quoted glob
+    ("tiles/*.tif") or a .vrt; a region (or a pair too large to hold) is read window by window, lined up
+    on an even sample of it, and dod.tif is written as a Cloud Optimized GeoTIFF.
+
     \b
     Example:
       terralod change dem_2015.tif dem_2021.tif -o site_change --exclude glacier.geojson
+      terralod change tiles_2015/ "tiles_2021/*.tif" -o region_change
     """
     require_extra("change", "change")
     if with_site:
         require_extra("change --site", "web")
     from terralod.change.coregister import read_stable_mask
     from terralod.change.difference import check_vertical_units, write_dod
-    from terralod.change.report import plain_summary, write_report
+    from terralod.change.report import write_report
     from terralod.change.volumes import measure_change, series_volumes
     from terralod.errors import InputError
     from terralod.output import Output
@@ -167,6 +174,13 @@ def change(
     )
     output_of.check()  # refusals first, before the long measurement
     first = inputs[0]
+    if len(inputs) == 2 and _windowed(inputs, read, with_site):
+        _change_windowed(
+            inputs, output_of, out, zones=zones, stable=stable, exclude=exclude, no_coregister=no_coregister,
+            coreg_method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
+            dates=dates, no_views=no_views, min_slope_deg=min_slope_deg, read=read,
+        )  # fmt: skip
+        return
     notes: list[str] = []
     series_hf = None
     if len(inputs) == 1 and Path(first).is_file() and is_store(Path(first)):
@@ -227,6 +241,12 @@ def change(
             _write_site(tmp / "site", result, series_hf or [before, after], list(ds) if series_hf else list(pair_dates),
                         dict(sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
                              coregistration=not no_coregister, method=coreg_method))  # fmt: skip
+    _print_result(result, pair_dates, out)
+
+
+def _print_result(result, pair_dates, out: Path) -> None:  # noqa: ANN001
+    from terralod.change.report import plain_summary
+
     for w in [*result.uncertainty.warnings, *result.summary.get("report_notes", [])]:
         click.echo(f"terralod: warning: {w}", err=True)
     for line in plain_summary(result, pair_dates):
@@ -241,6 +261,88 @@ def change(
     )  # fmt: skip
     for n in s["alignment_notes"]:
         console.print(f"  {n}")
+
+
+#: A pair of more cells than this is read window by window even when each side is one file.
+WINDOWED_MIN_CELLS = 1 << 24
+
+
+def _is_region_input(path: str) -> bool:
+    """A folder, a quoted glob or a VRT: an input that stands for a region of files."""
+    from terralod.cli._windowed import is_region
+
+    return is_region(path) or path.lower().endswith(".vrt")
+
+
+def _cells(path: str) -> int:
+    try:
+        import rasterio
+
+        with rasterio.open(path) as ds:
+            return int(ds.width) * int(ds.height)
+    except Exception:  # noqa: BLE001 - not a raster GDAL reads: the in-memory reader says what is wrong
+        return 0
+
+
+def _windowed(inputs, read: dict, with_site: bool) -> bool:  # noqa: ANN001
+    """Whether a BEFORE AFTER pair is read window by window (:mod:`terralod.change.windowed`): either side a
+    region (folder, glob, VRT), or a pair of more than :data:`WINDOWED_MIN_CELLS` cells; never with
+    options only the in-memory readers know (--encoding, --tile, --spacing) or --site."""
+    if with_site or read.get("encoding") or read.get("tile_zxy") or read.get("spacing"):
+        return False
+    if any(_is_region_input(p) for p in inputs):
+        return True
+    return all(Path(p).is_file() for p in inputs) and max(_cells(p) for p in inputs) > WINDOWED_MIN_CELLS
+
+
+def _open_side(path: str, read: dict):  # noqa: ANN001
+    """The window source of one side: a file, a folder, a quoted glob or a VRT; every file of a region read
+    once first (an unreadable tile named in one line, before anything is written)."""
+    from terralod.io.region import expand_inputs, resolve_region, scan_region
+    from terralod.io.windowed import RasterSource, needs_warp, open_source
+
+    files = [shown for _name, shown in expand_inputs([path])]
+    options = {"vertical_scale": read.get("vertical_scale"), "vertical_offset": read.get("vertical_offset"),
+               "crs": read.get("crs")}  # fmt: skip
+    if not needs_warp(files, read.get("crs")):
+        scan_region(resolve_region(files, crs=read.get("crs")))  # WarpedSource scans its own
+        return RasterSource(files if len(files) > 1 else files[0], **options)
+    return open_source(files if len(files) > 1 else files[0], **options)
+
+
+def _change_windowed(inputs, output_of, out: Path, *, zones, stable, exclude, no_coregister, coreg_method,
+                     sigma_m, corr_range_m, confidence, dates, no_views, min_slope_deg, read) -> None:  # fmt: skip  # noqa: ANN001
+    """BEFORE AFTER read window by window (:func:`terralod.change.windowed.measure_change_windowed`)."""
+    from terralod.change.difference import check_vertical_units
+    from terralod.change.report import write_report
+    from terralod.change.windowed import measure_change_windowed
+    from terralod.io.region import expand_inputs
+
+    before, after = (_open_side(p, read) for p in inputs)
+    firsts = [expand_inputs([p])[0][1] for p in inputs]
+    notes = check_vertical_units(firsts[0], firsts[1])
+    notes += [f"BEFORE note: {n}" for n in before.notes] + [f"AFTER note: {n}" for n in after.notes]
+    ds = [_date_of(p) for p in firsts]
+    if dates:
+        given = [d.strip() for d in dates.split(",")]
+        if len(given) != 2:
+            raise click.BadParameter(f"expected 2 dates, got {len(given)}", param_hint="--dates")
+        ds = given
+    pair_dates = (ds[0], ds[1])
+    names = (Path(inputs[0]).name, Path(inputs[1]).name)
+    with output_of as o:
+        tmp = o.folder
+        result = measure_change_windowed(
+            before, after, names=names, dod_path=tmp / "dod.tif", stable=stable, exclude=exclude,
+            coregistration=not no_coregister, method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m,
+            confidence=confidence, zones=zones, dates=pair_dates, slope_min_deg=min_slope_deg, notes=notes,
+        )  # fmt: skip
+        result.summary = _without_folders(
+            result.summary, [*inputs, *(p for p in (zones, stable, exclude) if p)]
+        )
+        write_report(result, tmp / "report.html", views=not no_views, figures_dir=tmp / "figures")
+        (tmp / "summary.json").write_text(json.dumps(_jsonable(result.summary), indent=2) + "\n")
+    _print_result(result, pair_dates, out)
 
 
 def _without_folders(v, paths: list[str]):
