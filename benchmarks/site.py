@@ -69,7 +69,7 @@ def browser_times(site: Path, epochs: list[str], runs: int) -> dict:
         for _ in range(runs):
             job = {"url": f"http://127.0.0.1:{port}/", "shots": "", "steps": steps, "timeoutMs": 240000,
                    "width": 1280, "height": 720}  # fmt: skip
-            r = subprocess.run(["node", str(ROOT / "tests" / "web" / "site_check.mjs")], input=json.dumps(job),
+            r = subprocess.run(["node", str(ROOT / "benchmarks" / "web" / "site_check.mjs")], input=json.dumps(job),
                                capture_output=True, text=True, timeout=600, cwd=ROOT)  # fmt: skip
             out.append(json.loads(r.stdout.strip().splitlines()[-1]))
     finally:

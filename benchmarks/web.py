@@ -6,7 +6,7 @@ load test of ``terralod serve`` (1,000 concurrent tile requests).
 
 The stock section (``stock_figures``): full DEMs exported as a user would (SRTM3 N41E001 straight from the
 DEM, Big Tujunga through a store), bytes per triangle as written and gzip'd, declared error per zoom, and
-the load time to all tiles in stock CesiumJS (tests/web/stock_cesium.html) from three views.
+the load time to all tiles in stock CesiumJS (benchmarks/web/stock_cesium.html) from three views.
 
 Terrains: the bundled sample (Jacksboro fault, 416 x 440 at 74.6 m) and the 256² SRTM crop of Mt Rainier
 from ../shared/data (skipped when absent). Writes benchmarks/results/web.json and web.md.
@@ -269,7 +269,7 @@ def _site(tmp: Path, exports: dict[str, Path]) -> Path:
     site = tmp / "site"
     site.mkdir(exist_ok=True)
     (site / "cesium").symlink_to(cesium, target_is_directory=True)
-    shutil.copy(ROOT / "tests" / "web" / "stock_cesium.html", site / "stock_cesium.html")
+    shutil.copy(ROOT / "benchmarks" / "web" / "stock_cesium.html", site / "stock_cesium.html")
     for name, d in exports.items():
         (site / name).symlink_to(d, target_is_directory=True)
     return site
@@ -329,7 +329,7 @@ def stock_figures(tmp: Path, browser_runs: bool) -> dict:
                     {"name": "ridge", "lon": ridge[0], "lat": ridge[1], "height": 2000 + 1500, "pitch": -90},
                     {"name": "oblique", "lon": 0.5 * (w + e), "lat": s_ - 0.3 * (n - s_), "height": 1500, "pitch": -5}]}  # fmt: skip
                 (tmp / "cfg.json").write_text(json.dumps(cfg))
-                r = subprocess.run(["node", str(ROOT / "tests" / "web" / "stock_check.mjs"),
+                r = subprocess.run(["node", str(ROOT / "benchmarks" / "web" / "stock_check.mjs"),
                                     f"{base}/stock_cesium.html?{query}", str(tmp / "cfg.json"), str(tmp / "shot_"),
                                     "180000"], capture_output=True, text=True, timeout=900)  # fmt: skip
                 try:

@@ -31,8 +31,8 @@ def shared_data() -> Path:
 
 @pytest.fixture(scope="session")
 def browser() -> Iterator[str]:
-    """The one headless Chromium the browser tests share (tests/web/browser.mjs, started on first use and
-    closed at the end of the session): its DevTools websocket URL. A page check (tests/web/stock_check.mjs,
+    """The one headless Chromium the browser tests share (benchmarks/web/browser.mjs, started on first use and
+    closed at the end of the session): its DevTools websocket URL. A page check (benchmarks/web/stock_check.mjs,
     site_check.mjs) given it as ``TERRALOD_BROWSER_WS`` opens a fresh browser context of its own in it."""
     repo = Path(__file__).resolve().parents[1]
     if shutil.which("chromium") is None:
@@ -42,7 +42,7 @@ def browser() -> Iterator[str]:
     import tempfile
 
     with tempfile.TemporaryFile("w+") as log:
-        proc = subprocess.Popen(["node", str(repo / "tests" / "web" / "browser.mjs")], cwd=repo, text=True,
+        proc = subprocess.Popen(["node", str(repo / "benchmarks" / "web" / "browser.mjs")], cwd=repo, text=True,
                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)  # fmt: skip
         assert proc.stdout is not None and proc.stdin is not None
         url = proc.stdout.readline().strip()

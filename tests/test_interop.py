@@ -1,9 +1,9 @@
 """Every web export works in clients terralod did not write, with their defaults.
 
-- stock CesiumJS: a minimal page that is not terralod's viewer (tests/web/stock_cesium.html:
+- stock CesiumJS: a minimal page that is not terralod's viewer (benchmarks/web/stock_cesium.html:
   ``CesiumTerrainProvider.fromUrl(url)`` / ``Cesium3DTileset.fromUrl(url)`` with no options), served from the
   export folder by a plain ``python -m http.server`` (no headers configured), driven in Debian's headless
-  Chromium by puppeteer-core (tests/web/stock_check.mjs) from three views: the whole terrain, 2 km above a
+  Chromium by puppeteer-core (benchmarks/web/stock_check.mjs) from three views: the whole terrain, 2 km above a
   ridge, an oblique view to the horizon. Tiles load, no console error, CesiumJS's own most-detailed height
   samplers agree with the source samples within the declared error, the screenshots show terrain.
 - loaders.gl's quantized-mesh loader (tests/web/qm_decode.mjs) decodes every ``.terrain`` tile: header
@@ -34,6 +34,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 NODE_MODULES = REPO / "node_modules"
 WEB = REPO / "tests" / "web"
+PAGES = REPO / "benchmarks" / "web"  # the page drivers the benchmarks use too
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 
@@ -125,7 +126,7 @@ def site(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     cesium = _cesium_build()
     if cesium is not None:
         (root / "cesium").symlink_to(cesium, target_is_directory=True)
-    shutil.copy(WEB / "stock_cesium.html", root / "stock_cesium.html")
+    shutil.copy(PAGES / "stock_cesium.html", root / "stock_cesium.html")
     return out
 
 
@@ -315,9 +316,9 @@ def test_3d_tiles_renderer_loads_and_refines(site: dict, static_server: str) -> 
 
 # -- stock CesiumJS -----------------------------------------------------------------------------------
 def _stock(static_server: str, query: str, cfg: dict, tmp: Path, browser: str) -> dict:
-    """tests/web/stock_check.mjs on the page, in a fresh context of the session's ``browser``."""
+    """benchmarks/web/stock_check.mjs on the page, in a fresh context of the session's ``browser``."""
     (tmp / "cfg.json").write_text(json.dumps(cfg))
-    res = subprocess.run(["node", str(WEB / "stock_check.mjs"), f"{static_server}/stock_cesium.html?{query}",
+    res = subprocess.run(["node", str(PAGES / "stock_check.mjs"), f"{static_server}/stock_cesium.html?{query}",
                           str(tmp / "cfg.json"), str(tmp / "shot_"), "90000"], capture_output=True, text=True,
                          timeout=400, cwd=REPO, env={**os.environ, "TERRALOD_BROWSER_WS": browser})  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]

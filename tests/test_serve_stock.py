@@ -1,4 +1,4 @@
-"""``terralod serve``'s tile sets in stock CesiumJS with its defaults: the stock page (tests/web/stock_cesium.html,
+"""``terralod serve``'s tile sets in stock CesiumJS with its defaults: the stock page (benchmarks/web/stock_cesium.html,
 not terralod's) from a plain static host, pointed at a running ``terralod serve``
 (``CesiumTerrainProvider.fromUrl(serve + "/terrain/")``, ``Cesium3DTileset.fromUrl(serve +
 "/3dtiles/tileset.json")``, no options): tiles load across origins, no console error, and the heights CesiumJS
@@ -20,7 +20,7 @@ import pytest
 from test_interop import _stock  # the stock page's driver: one copy
 
 REPO = Path(__file__).resolve().parents[1]
-WEB = REPO / "tests" / "web"
+PAGES = REPO / "benchmarks" / "web"  # the stock page, its driver too (benchmarks/web.py uses them)
 
 
 def _missing() -> str | None:
@@ -51,7 +51,7 @@ def serve_and_page(tmp_path_factory: pytest.TempPathFactory):
     build_store(hf, store, workers=2)
     (root / "page").mkdir()
     (root / "page" / "cesium").symlink_to(cesium_dir(), target_is_directory=True)
-    shutil.copy(WEB / "stock_cesium.html", root / "page" / "stock_cesium.html")
+    shutil.copy(PAGES / "stock_cesium.html", root / "page" / "stock_cesium.html")
     page = subprocess.Popen([sys.executable, "-u", "-m", "http.server", "0", "--bind", "127.0.0.1"],
                             cwd=root / "page", stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)  # fmt: skip
     port = re.search(r"port (\d+)", page.stdout.readline()).group(1)

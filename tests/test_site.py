@@ -49,7 +49,7 @@ def _browser_missing() -> str | None:
 
 
 def _drive(url: str, steps: list[dict], shots: Path, browser: str, timeout_s: int = 240) -> dict:
-    """tests/web/site_check.mjs on the site at ``url``, in a fresh context of the session's ``browser``."""
+    """benchmarks/web/site_check.mjs on the site at ``url``, in a fresh context of the session's ``browser``."""
     job = {
         "url": url,
         "shots": str(shots) + "/",
@@ -58,7 +58,7 @@ def _drive(url: str, steps: list[dict], shots: Path, browser: str, timeout_s: in
         "width": 900,
         "height": 600,
     }
-    run = subprocess.run(["node", str(REPO / "tests" / "web" / "site_check.mjs")], input=json.dumps(job),
+    run = subprocess.run(["node", str(REPO / "benchmarks" / "web" / "site_check.mjs")], input=json.dumps(job),
                          capture_output=True, text=True, timeout=timeout_s, cwd=REPO,
                          env={**os.environ, "TERRALOD_BROWSER_WS": browser})  # fmt: skip
     assert run.stdout.strip(), run.stderr[-2000:]
