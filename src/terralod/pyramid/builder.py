@@ -298,7 +298,12 @@ def measure_tile(
     err, verr = float(rep.hausdorff_m), float(rep.max_vertical_m)
     rms, n_samples = float(rep.rms_vertical_m), int(rep.n_samples)
     if hf.original_grid is not None:  # a resampled source: its own samples too (terralod.pyramid.original)
-        px, py, pz = tile_samples(hf.original_grid, str(hf.crs), hf.origin_m, (dx, dy), (r0, c0), (r1, c1))
+        origin, ro, co = hf.origin_m, 0, 0
+        frame = getattr(pyramid, "frame_origin_m", None)
+        if frame is not None:  # a window of the terrain: placed from the terrain's origin, absolute rows/cols
+            origin, ro, co = frame, pyramid.row_offset, pyramid.col_offset  # type: ignore[attr-defined]
+        px, py, pz = tile_samples(hf.original_grid, str(hf.crs), origin, (dx, dy), (r0 + ro, c0 + co),
+                                  (r1 + ro, c1 + co))  # fmt: skip
         orig = original_error(local, tris, px, py, pz)
         err, verr = max(err, orig.max_vertical_m), max(verr, orig.max_vertical_m)
         rms, n_samples = orig.rms_m, orig.n_samples  # RMS and count over the source's own samples

@@ -348,6 +348,11 @@ class WindowPyramid(TilePyramid):
     row_offset: int = 0
     col_offset: int = 0
     decimation: int = 1
+    #: The whole terrain's north-west sample centre (metres): a tile measured against the original samples
+    #: is placed from it and its absolute rows and columns (``builder.measure_tile``), never from the
+    #: window's own origin, whose rounding depends on which tiles share the window (a resumed build
+    #: groups the tiles left into other windows: the same errors, bit for bit, only this way).
+    frame_origin_m: tuple[float, float] | None = None
 
     def stride(self, level: int) -> int:
         return (1 << (self.max_level - level)) // self.decimation
@@ -503,7 +508,9 @@ def _build_unit(
     rb = min(max(r for r, _ in rs) + span + pad, h - 1)
     cb = min(max(c for _, c in rs) + span + pad, w - 1)
     hf = src.window_heightfield(ra, ca, rb + 1, cb + 1)
-    wp = WindowPyramid(w, h, tile_size, ra, ca)
+    dx, dy = src.spacing_m
+    frame = (float(src.transform.c + 0.5 * dx), float(src.transform.f - 0.5 * dy))  # Heightfield.origin_m's
+    wp = WindowPyramid(w, h, tile_size, ra, ca, frame_origin_m=frame)
     grid = hf.original_grid
     if grid is None or (span + 1) ** 2 <= MEASURE_STRIP_SAMPLES:
         return [builder.build_tile(hf, wp, c, quant, mesh_fn, child_errors[c]) for c in codes]
@@ -692,7 +699,11 @@ def _measure_streamed(src, u, v, zq, tris, r0, c0, r1, c1, margin, dx, dy):
 
 # -- executors -----------------------------------------------------------------------------------------
 def dask_client(
-    address: str, *, n_workers: int | None = None, threads: int | None = None, timeout_s: float = 10.0,
+    address: str,
+    *,
+    n_workers: int | None = None,
+    threads: int | None = None,
+    timeout_s: float = 10.0,
     memory_limit: int | None = None,
 ):
     """A dask.distributed Client: ``"local"`` starts a LocalCluster of ``n_workers`` processes with
