@@ -58,8 +58,6 @@ def _version() -> str:
 def qm_global(qm: Any, options: dict[str, Any]) -> str:
     """What every tile of quantized-mesh view ``qm`` depends on: the options, the grid, its footprint and
     the levels."""
-    from terralod.export import quantized_mesh as q
-
     ref = qm.ref
     t = getattr(ref, "t", None)
     region = getattr(ref, "region", None)
@@ -71,7 +69,7 @@ def qm_global(qm: Any, options: dict[str, Any]) -> str:
         "any_water": bool(getattr(ref, "any_water", False)) if t is not None else None,
         "max_zoom": qm.max_zoom, "target_fraction": qm.target_fraction, "normals": qm.normals,
         "heights": qm.heights, "options": options,
-        "constants": [q.SAMPLES, q.FINEST_ERROR_M, q.RMS_GOAL_M],
+        "constants": list(qm.digest_constants),
         "region": None if region is None else [str(region.dtype), region.scale, region.offset],
     }  # fmt: skip
     return _sha(facts)
@@ -94,15 +92,14 @@ def _lattice_window(qm: Any, z: int, x: int, y: int) -> tuple[int, int, int, int
     return min(r0, lat_.h - 1), max(r1, 1), min(c0, lat_.w - 1), max(c1, 1)
 
 
-def _grid_window(ref: Any, z: int, x: int, y: int) -> tuple[int, int, int, int]:
+def _grid_window(ref: Any, z: int, x: int, y: int, side: int) -> tuple[int, int, int, int]:
     """Rows [r0, r1), columns [c0, c1) of an in-memory grid a 257² tile reads: its rectangle plus one
     sample of the tile's grid, clamped to the footprint (outside it the edge values continue), mapped to
     the grid by its densified border, plus two samples."""
     from terralod.export.geodesy import tile_rectangle
-    from terralod.export.quantized_mesh import SAMPLES
 
     w, s, e, n = tile_rectangle(z, x, y)
-    du, dv = (e - w) / (SAMPLES - 1), (n - s) / (SAMPLES - 1)
+    du, dv = (e - w) / (side - 1), (n - s) / (side - 1)
     k = np.linspace(0.0, 1.0, 65)
     lon = np.concatenate([w - du + (e - w + 2 * du) * k, np.full(65, e + du),
                           w - du + (e - w + 2 * du) * k, np.full(65, w - du)])  # fmt: skip
@@ -157,7 +154,7 @@ def _qm_digest(qm: Any, z: int, x: int, y: int, glob_digest: str, halo: int | No
         if z == qm.max_zoom - 1 and z > 0:  # its target comes from its parent's RMS
             win = _union(win, _lattice_window(qm, z - 1, x // 2, y // 2))
     else:
-        win = _grid_window(ref, z, x, y)
+        win = _grid_window(ref, z, x, y, qm.grid_side)
     r0, r1, c0, c1 = win
     if not isinstance(ref, RegionGrid):
         zz = np.ascontiguousarray(ref.z_m[r0:r1, c0:c1])

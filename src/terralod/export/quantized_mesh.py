@@ -212,6 +212,11 @@ class QuantizedMesh:
     and a record of the errors declared (``_errors``), never an input of another tile.
     """
 
+    #: Samples a side of a resampled tile's grid, and the constants every tile's bytes depend on (recorded
+    #: in each tile's dependency digest, :mod:`terralod.export.incremental`).
+    grid_side = SAMPLES
+    digest_constants = (SAMPLES, FINEST_ERROR_M, RMS_GOAL_M)
+
     def __init__(
         self, terrain: Any, *, target_fraction: float = TARGET_FRACTION, normals: bool = False,
         vertical_datum: str | None = None,
