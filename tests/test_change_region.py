@@ -198,3 +198,17 @@ def test_a_corrupt_tile_is_named_and_nothing_written(pair, tmp_path: Path) -> No
     lines = [ln for ln in r.stderr.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and "se.tif" in lines[0], r.stderr
     assert not out.exists() and not any(p.name.startswith(".out") for p in tmp_path.iterdir())
+
+
+def test_dask_gives_the_local_numbers_and_bytes(pair, tmp_path: Path) -> None:
+    """``--dask local``: the windows differenced on a worker process; the same summary figures and the same
+    dod.tif bytes as the local run."""
+    pytest.importorskip("dask.distributed")
+    b, a = f"{pair['before_dir']}/*.tif", f"{pair['after_dir']}/*.tif"
+    here = _run(b, a, tmp_path / "here", "--zones", str(pair["zones"]))
+    there = _run(
+        b, a, tmp_path / "there", "--zones", str(pair["zones"]), "--dask", "local", "--dask-workers", "1"
+    )
+    _same(there, here)
+    assert there["extremes"] == here["extremes"]
+    assert (tmp_path / "there" / "dod.tif").read_bytes() == (tmp_path / "here" / "dod.tif").read_bytes()

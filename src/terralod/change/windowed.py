@@ -47,6 +47,7 @@ from terralod.change.difference import AlignedPair, DodWriter, dem_of_difference
 from terralod.change.volumes import (
     BudgetSums,
     ChangeResult,
+    _lonlat,
     change_summary,
     estimate_uncertainty,
     fit_alignment,
@@ -181,19 +182,76 @@ class Streamed:
     before_small: Heightfield
 
 
-def stream_change(
-    before: Any, after: Any, shift_m: tuple[float, float, float], lod_m: float, *, with_error: bool,
-    zones: list[tuple[str, dict, float]] = (), dod: DodWriter | None = None, window: int | None = None,
-) -> Streamed:  # fmt: skip
-    """One pass over BEFORE's grid, window by window: budgets (``lod_m`` splits them), zones, extremes,
-    the valid cells, the DoD written to ``dod`` and a decimated copy for the report."""
+@dataclass
+class WindowResult:
+    """What one window of the stream gives: its budgets, zones, valid cells, extremes candidates ((sign ·
+    value, −row, −col), value) and its DoD (float32, as written)."""
+
+    r0: int
+    c0: int
+    totals: BudgetSums
+    zones: list[BudgetSums]
+    zones_seen: list[bool]
+    valid_cells: int
+    best: dict
+    dod: np.ndarray
+    small: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def window_change(
+    before: Any, after: Any, shift_m: tuple[float, float, float], lod_m: float, with_error: bool,
+    zones: list[tuple[str, dict, float]], stride: int, r0: int, r1: int, c0: int, c1: int,
+) -> WindowResult:  # fmt: skip
+    """One window of the stream (rows [r0, r1), cols [c0, c1) of BEFORE's grid): a pure function of the
+    sources and its arguments, run here or on a Dask worker."""
     h, w = before.shape
-    window = WINDOW if window is None else window
     tx, ty, _ = (float(v) for v in shift_m)
     px = min(before.spacing_m)
     moved = tx != 0.0 or ty != 0.0
     m = SPLINE_MARGIN + math.ceil(math.hypot(tx, ty) / px) if moved else 0
-    m_err = 2 * m if (moved and with_error) else m
+    m = 2 * m if (moved and with_error) else m
+    ra, rb, ca, cb = max(r0 - m, 0), min(r1 + m, h), max(c0 - m, 0), min(c1 + m, w)
+    bw, aw = _window_hf(before, ra, ca, rb, cb), _window_hf(after, ra, ca, rb, cb)
+    wp = AlignedPair(bw, aw, True, [])
+    core = (slice(r0 - ra, r1 - ra), slice(c0 - ca, c1 - ca))
+    d = dem_of_difference(wp, shift_m)[core]
+    e = resampling_error(wp, aw, shift_m) if with_error else None
+    e = None if e is None else e[core]
+    totals = BudgetSums(lod_m)
+    totals.add(d, e)
+    fin = np.isfinite(d)
+    best: dict = {}
+    if fin.any():
+        for key, fn, sign in (("max_rise", np.nanargmax, 1.0), ("max_drop", np.nanargmin, -1.0)):
+            r, c = np.unravel_index(int(fn(d)), d.shape)
+            best[key] = ((sign * float(d[r, c]), -(r0 + int(r)), -(c0 + int(c))), float(d[r, c]))
+    zsums = [BudgetSums(lod_m) for _ in zones]
+    seen = [False] * len(zones)
+    if zones:
+        wt = before.transform @ Affine.translation(c0, r0)
+        bvalid = bw.valid[core]
+        for k, (_name, geom, _frac) in enumerate(zones):
+            zm = zone_mask(geom, d.shape, wt)
+            if zm.any():
+                zsums[k].add(d, e, zm)
+                seen[k] = bool((zm & bvalid).any())
+    sr, sc = (-r0) % stride, (-c0) % stride
+    small = (d[sr::stride, sc::stride], bw.elevation_m[core][sr::stride, sc::stride],
+             bw.valid[core][sr::stride, sc::stride])  # fmt: skip
+    return WindowResult(r0, c0, totals, zsums, seen, int(fin.sum()), best, d.astype(np.float32), small)
+
+
+def stream_change(
+    before: Any, after: Any, shift_m: tuple[float, float, float], lod_m: float, *, with_error: bool,
+    zones: list[tuple[str, dict, float]] = (), dod: DodWriter | None = None, window: int | None = None,
+    client: Any = None,
+) -> Streamed:  # fmt: skip
+    """One pass over BEFORE's grid, window by window (:func:`window_change`, on ``client``'s Dask workers
+    when given): budgets (``lod_m`` splits them), zones, extremes, the valid cells, the DoD written to ``dod``
+    and a decimated copy for the report. Windows are merged in raster order of windows whoever computed
+    them, so the figures and ``dod.tif`` are the same bytes with or without Dask."""
+    h, w = before.shape
+    window = WINDOW if window is None else window
     stride = _report_stride(h, w)
     small = np.full((math.ceil(h / stride), math.ceil(w / stride)), np.nan)
     zsmall = np.zeros(small.shape, np.float32)
@@ -202,43 +260,26 @@ def stream_change(
     zsums = [BudgetSums(lod_m) for _ in zones]
     zseen = [False] * len(zones)
     valid = 0
-    best = {"max_rise": None, "max_drop": None}
-    for r0 in range(0, h, window):
-        r1 = min(r0 + window, h)
-        for c0 in range(0, w, window):
-            c1 = min(c0 + window, w)
-            ra, rb, ca, cb = max(r0 - m_err, 0), min(r1 + m_err, h), max(c0 - m_err, 0), min(c1 + m_err, w)
-            bw, aw = _window_hf(before, ra, ca, rb, cb), _window_hf(after, ra, ca, rb, cb)
-            wp = AlignedPair(bw, aw, True, [])
-            core = (slice(r0 - ra, r1 - ra), slice(c0 - ca, c1 - ca))
-            d = dem_of_difference(wp, shift_m)[core]
-            e = resampling_error(wp, aw, shift_m) if with_error else None
-            e = None if e is None else e[core]
-            totals.add(d, e)
-            fin = np.isfinite(d)
-            valid += int(fin.sum())
-            if fin.any():
-                for key, fn, sign in (("max_rise", np.nanargmax, 1.0), ("max_drop", np.nanargmin, -1.0)):
-                    r, c = np.unravel_index(int(fn(d)), d.shape)
-                    cand = (sign * float(d[r, c]), -(r0 + int(r)), -(c0 + int(c)))
-                    if best[key] is None or cand > best[key][0]:
-                        best[key] = (cand, float(d[r, c]))
-            if zones:
-                wt = before.transform @ Affine.translation(c0, r0)
-                bvalid = bw.valid[core]
-                for k, (_name, geom, _frac) in enumerate(zones):
-                    zm = zone_mask(geom, d.shape, wt)
-                    if zm.any():
-                        zsums[k].add(d, e, zm)
-                        zseen[k] = zseen[k] or bool((zm & bvalid).any())
-            if dod is not None:
-                dod.write(d, r0, c0)
-            sr, sc = (-r0) % stride, (-c0) % stride
-            dst = (slice((r0 + sr) // stride, (r1 + stride - 1) // stride),
-                   slice((c0 + sc) // stride, (c1 + stride - 1) // stride))  # fmt: skip
-            small[dst] = d[sr::stride, sc::stride]
-            zsmall[dst] = bw.elevation_m[core][sr::stride, sc::stride]
-            oksmall[dst] = bw.valid[core][sr::stride, sc::stride]
+    best: dict = {"max_rise": None, "max_drop": None}
+    spans = [(r0, min(r0 + window, h), c0, min(c0 + window, w)) for r0 in range(0, h, window)
+             for c0 in range(0, w, window)]  # fmt: skip
+    args = (shift_m, lod_m, with_error, list(zones), stride)
+    for got in _window_results(before, after, args, spans, client):
+        r0, c0 = got.r0, got.c0
+        totals.merge(got.totals)
+        for k in range(len(zones)):
+            zsums[k].merge(got.zones[k])
+            zseen[k] = zseen[k] or got.zones_seen[k]
+        valid += got.valid_cells
+        for key, cand in got.best.items():
+            if best[key] is None or cand[0] > best[key][0]:
+                best[key] = cand
+        if dod is not None:
+            dod.write(got.dod, r0, c0)
+        d_s, z_s, ok_s = got.small
+        dst = (slice((r0 + stride - 1) // stride, (r0 + stride - 1) // stride + d_s.shape[0]),
+               slice((c0 + stride - 1) // stride, (c0 + stride - 1) // stride + d_s.shape[1]))  # fmt: skip
+        small[dst], zsmall[dst], oksmall[dst] = d_s, z_s, ok_s
     for k, (name, geom, _frac) in enumerate(zones):
         if not zseen[k]:
             raise InputError(outside_message(name, geom, before.crs, _bounds(before)), "--zones")
@@ -254,11 +295,32 @@ def stream_change(
         r, c = -nr, -nc
         x, y = t @ (c + 0.5, r + 0.5)
         item = {"value_m": value, "row": r, "col": c, "x_m": float(x), "y_m": float(y)}
-        from terralod.change.volumes import _lonlat
-
         item.update(_lonlat(before.crs, float(x), float(y)))
         ext[key] = item
     return Streamed(totals, zsums, valid, ext, small, bsmall)
+
+
+#: Windows a Dask run keeps in flight per worker thread (their DoDs come back to be written here).
+DASK_WINDOWS_IN_FLIGHT = 2
+
+
+def _window_results(before: Any, after: Any, args: tuple, spans: list, client: Any):  # noqa: ANN202
+    """Each window's :class:`WindowResult`, in the order of ``spans``: computed here one at a time, or on
+    Dask workers with a bounded number in flight."""
+    if client is None:
+        for span in spans:
+            yield window_change(before, after, *args, *span)
+        return
+    threads = max(1, sum(client.nthreads().values()))
+    limit = DASK_WINDOWS_IN_FLIGHT * threads
+    b_f, a_f = client.scatter(before, broadcast=True), client.scatter(after, broadcast=True)
+    futures: dict[int, Any] = {}
+    nxt = 0
+    for i in range(len(spans)):
+        while nxt < len(spans) and nxt < i + limit:
+            futures[nxt] = client.submit(window_change, b_f, a_f, *args, *spans[nxt], pure=False)
+            nxt += 1
+        yield futures.pop(i).result()
 
 
 def _bounds(src: Any) -> tuple[float, float, float, float]:
@@ -272,7 +334,7 @@ def measure_change_windowed(
     method: str = "xdem", sigma_m: float | None = None, corr_range_m: float | None = None,
     confidence: float = 0.95, zones: str | Path | None = None,
     dates: tuple[str | None, str | None] = (None, None), slope_min_deg: float = SLOPE_MIN_DEG,
-    notes: list[str] | None = None,
+    notes: list[str] | None = None, client: Any = None,
 ) -> ChangeResult:  # fmt: skip
     """:func:`terralod.change.volumes.measure_change` of two window sources on one grid (module
     docstring); ``dod.tif`` is written to ``dod_path`` on the way. The result's ``dod`` and ``pair`` are the
@@ -300,7 +362,7 @@ def measure_change_windowed(
     writer = DodWriter(dod_path, before, tags) if dod_path is not None else None
     try:
         got = stream_change(before, after, shift, unc.level_of_detection_m, with_error=rerr_s is not None,
-                            zones=geoms, dod=writer)  # fmt: skip
+                            zones=geoms, dod=writer, client=client)  # fmt: skip
     except BaseException:
         if writer is not None:
             writer.abort()

@@ -138,10 +138,17 @@ def _epoch(store: str, date: str):
 @click.option("--overwrite", is_flag=True, help="Replace an existing output folder.")
 @click.option("--site", "with_site", is_flag=True,
               help="Also write OUT/site/: a web page of the change in 3D that any static web host serves, offline.")  # fmt: skip
+@click.option("--dask", "dask_address", metavar="local|tcp://HOST:PORT",
+              help="Difference the windows of a pair read window by window on Dask workers (a local cluster, or "
+              "a scheduler): the same numbers and dod.tif as without.")  # fmt: skip
+@click.option(
+    "--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2)."
+)
 @read_options
 def change(
     inputs, output, zones, stable, exclude, min_slope_deg, no_coregister, coreg_method, sigma_m, corr_range_m,
-    confidence, date_from, date_to, dates, no_views, overwrite, with_site, **read: Any,
+    confidence, date_from, date_to, dates, no_views, overwrite, with_site, dask_address, dask_workers,
+    **read: Any,
 ) -> None:  # fmt: skip
     """How much ground was added or removed between two surveys (BEFORE AFTER), with a ± range and a report.
 
@@ -174,11 +181,17 @@ def change(
     )
     output_of.check()  # refusals first, before the long measurement
     first = inputs[0]
-    if len(inputs) == 2 and _windowed(inputs, read, with_site):
+    if dask_address:
+        require_extra("change --dask", "dask")
+        if not (len(inputs) == 2 and _windowed(inputs, read, with_site, forced=True)):
+            raise click.BadParameter("is for a BEFORE AFTER pair of DEM files or regions (no --site, --encoding, "
+                                     "--tile or --spacing)", param_hint="--dask")  # fmt: skip
+    if len(inputs) == 2 and _windowed(inputs, read, with_site, forced=bool(dask_address)):
         _change_windowed(
             inputs, output_of, out, zones=zones, stable=stable, exclude=exclude, no_coregister=no_coregister,
             coreg_method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
             dates=dates, no_views=no_views, min_slope_deg=min_slope_deg, read=read,
+            dask=(dask_address, dask_workers),
         )  # fmt: skip
         return
     notes: list[str] = []
@@ -284,13 +297,13 @@ def _cells(path: str) -> int:
         return 0
 
 
-def _windowed(inputs, read: dict, with_site: bool) -> bool:  # noqa: ANN001
+def _windowed(inputs, read: dict, with_site: bool, forced: bool = False) -> bool:  # noqa: ANN001
     """Whether a BEFORE AFTER pair is read window by window (:mod:`terralod.change.windowed`): either side a
     region (folder, glob, VRT), or a pair of more than :data:`WINDOWED_MIN_CELLS` cells; never with
     options only the in-memory readers know (--encoding, --tile, --spacing) or --site."""
     if with_site or read.get("encoding") or read.get("tile_zxy") or read.get("spacing"):
         return False
-    if any(_is_region_input(p) for p in inputs):
+    if forced or any(_is_region_input(p) for p in inputs):
         return True
     return all(Path(p).is_file() for p in inputs) and max(_cells(p) for p in inputs) > WINDOWED_MIN_CELLS
 
@@ -311,8 +324,10 @@ def _open_side(path: str, read: dict):  # noqa: ANN001
 
 
 def _change_windowed(inputs, output_of, out: Path, *, zones, stable, exclude, no_coregister, coreg_method,
-                     sigma_m, corr_range_m, confidence, dates, no_views, min_slope_deg, read) -> None:  # fmt: skip  # noqa: ANN001
-    """BEFORE AFTER read window by window (:func:`terralod.change.windowed.measure_change_windowed`)."""
+                     sigma_m, corr_range_m, confidence, dates, no_views, min_slope_deg, read,
+                     dask=(None, None)) -> None:  # fmt: skip  # noqa: ANN001
+    """BEFORE AFTER read window by window (:func:`terralod.change.windowed.measure_change_windowed`), the
+    windows differenced on Dask workers with ``dask`` = (address, local workers)."""
     from terralod.change.difference import check_vertical_units
     from terralod.change.report import write_report
     from terralod.change.windowed import measure_change_windowed
@@ -330,18 +345,31 @@ def _change_windowed(inputs, output_of, out: Path, *, zones, stable, exclude, no
         ds = given
     pair_dates = (ds[0], ds[1])
     names = (Path(inputs[0]).name, Path(inputs[1]).name)
-    with output_of as o:
-        tmp = o.folder
-        result = measure_change_windowed(
-            before, after, names=names, dod_path=tmp / "dod.tif", stable=stable, exclude=exclude,
-            coregistration=not no_coregister, method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m,
-            confidence=confidence, zones=zones, dates=pair_dates, slope_min_deg=min_slope_deg, notes=notes,
-        )  # fmt: skip
-        result.summary = _without_folders(
-            result.summary, [*inputs, *(p for p in (zones, stable, exclude) if p)]
-        )
-        write_report(result, tmp / "report.html", views=not no_views, figures_dir=tmp / "figures")
-        (tmp / "summary.json").write_text(json.dumps(_jsonable(result.summary), indent=2) + "\n")
+    client = None
+    if dask[0]:
+        from terralod.pyramid.distributed import dask_client
+
+        client = dask_client(dask[0], n_workers=dask[1])  # before anything is written
+    try:
+        with output_of as o:
+            tmp = o.folder
+            result = measure_change_windowed(
+                before, after, names=names, dod_path=tmp / "dod.tif", stable=stable, exclude=exclude,
+                coregistration=not no_coregister, method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m,
+                confidence=confidence, zones=zones, dates=pair_dates, slope_min_deg=min_slope_deg, notes=notes,
+                client=client,
+            )  # fmt: skip
+            result.summary = _without_folders(
+                result.summary, [*inputs, *(p for p in (zones, stable, exclude) if p)]
+            )
+            write_report(result, tmp / "report.html", views=not no_views, figures_dir=tmp / "figures")
+            (tmp / "summary.json").write_text(json.dumps(_jsonable(result.summary), indent=2) + "\n")
+    finally:
+        if client is not None:
+            cluster = client.cluster if dask[0] == "local" else None
+            client.close()
+            if cluster is not None:
+                cluster.close()
     _print_result(result, pair_dates, out)
 
 
