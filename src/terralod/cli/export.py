@@ -23,7 +23,7 @@ one is named, exit 2) and the free disk is checked against an estimate; a WGS 84
 one projected in metres (UTM, a national grid: a county of LiDAR DEM tiles), is then read a window at a time
 (memory independent of its size; a coarse tile's error is measured against its samples strip by strip).
 ``--bbox`` and ``--min-zoom`` / ``--max-zoom`` export a part: the same tiles as the whole export, fewer of
-them.
+them (3D Tiles too: the zooms are the levels of the tree, the nodes above ``--min-zoom`` kept without content).
 
 3D Tiles geometry (``--glb-geometry``): ``quantized`` (default) writes KHR_mesh_quantization glbs
 (UNSIGNED_SHORT positions on a power-of-two grid folded into the node's scale and translation, BYTE
@@ -103,12 +103,13 @@ from terralod.output import Lock, Output, refuse_inputs, work_path
     "--bbox",
     default=None,
     metavar="W,S,E,N",
-    help="quantized-mesh: export only the tiles that meet this box (degrees); each tile is the whole export's.",
+    help="Export only the tiles that meet this box (degrees); each tile is the whole export's (quantized-mesh, "
+    "3dtiles).",
 )
 @click.option("--min-zoom", type=click.IntRange(0, 30), default=0, show_default=True,
-              help="quantized-mesh: first level written.")  # fmt: skip
+              help="First level written (3dtiles: level of the tree; the coarser ones without content).")  # fmt: skip
 @click.option("--max-zoom", type=click.IntRange(0, 30), default=None,
-              help="quantized-mesh: last level written (default: the finest the data holds).")  # fmt: skip
+              help="Last level written (default: the finest the data holds).")  # fmt: skip
 @click.option(
     "--glb-geometry",
     type=click.Choice(["float", "quantized", "meshopt"]),
@@ -168,9 +169,9 @@ def export(
                  gzip_tiles, normals, part, dask)  # fmt: skip
         return
     store = inputs[0]
-    if not part.whole and fmt != "quantized-mesh":
+    if not part.whole and fmt == "site":
         raise click.BadParameter(
-            "--bbox, --min-zoom and --max-zoom are for quantized-mesh", param_hint="--format"
+            "--bbox, --min-zoom and --max-zoom are for quantized-mesh and 3dtiles", param_hint="--format"
         )
     if fmt == "site" and (resume or update_output):
         raise click.BadParameter(
@@ -317,7 +318,7 @@ def _run(
 
         if fmt == "3dtiles":
             rep = export_3dtiles(terrain, output, metric=metric, epoch=epoch, progress=cb, client=client,
-                                 **(tiles or {}), **opts)  # fmt: skip
+                                 part=part, **(tiles or {}), **opts)  # fmt: skip
         else:
             rep = export_quantized_mesh(terrain, output, epoch=epoch, gzip_tiles=gzip_tiles, normals=normals,
                                         part=part, progress=cb, client=client, **opts)  # fmt: skip

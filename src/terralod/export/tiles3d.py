@@ -293,10 +293,43 @@ class Tiles3D:
         shift = self.quant_error_m(code) + (self.quant_error_m(n.parent) if n.parent is not None else 0.0)
         return max(self._skirt_raw_m(code) + shift, MIN_SKIRT_M)
 
+    # -- a part ------------------------------------------------------------------------------------------
+    def lonlat_box(self, code: Any) -> tuple[float, float, float, float]:
+        """(west, south, east, north) degrees of a node's box (its edges densified, 17 points each)."""
+        w, s, _, e, nn, _ = self.nodes[code].box_m
+        k = np.linspace(0.0, 1.0, 17)
+        x = np.concatenate([w + (e - w) * k, np.full(17, e), w + (e - w) * k, np.full(17, w)])
+        y = np.concatenate([np.full(17, s), s + (nn - s) * k, np.full(17, nn), s + (nn - s) * k])
+        lon, lat = self.geo.lonlat(x, y)
+        return float(np.min(lon)), float(np.min(lat)), float(np.max(lon)), float(np.max(lat))
+
+    def part_nodes(self, part: Any) -> set[Any]:
+        """The nodes of a part of the tree (``part``: :class:`terralod.export.quantized_mesh.Part`, its
+        zooms the tree's levels): those of levels up to ``max_zoom`` whose box meets ``bbox``, with their
+        ancestors (a valid tree). Each node's glb is the whole export's: the part chooses which are written."""
+        top = math.inf if part.max_zoom is None else part.max_zoom
+        keep = set()
+        for code in self.nodes:
+            if code[0] > top:
+                continue
+            if part.bbox is not None:
+                w, s, e, n = self.lonlat_box(code)
+                pw, ps, pe, pn = part.bbox
+                if w > pe or e < pw or s > pn or n < ps:
+                    continue
+            keep.add(code)
+        for code in list(keep):  # ancestors, so every kept node hangs from a root
+            up = self.nodes[code].parent
+            while up is not None and up not in keep:
+                keep.add(up)
+                up = self.nodes[up].parent
+        return keep
+
     # -- tileset -----------------------------------------------------------------------------------------
     def _tile_json(self, code: Any, above: np.ndarray) -> dict[str, Any]:
         """A tile and its subtree; ``above`` is the ECEF translation its parent's transform already
-        applies (3D Tiles transforms compose down the tree)."""
+        applies (3D Tiles transforms compose down the tree). With a part (:meth:`tileset`), only its nodes,
+        and content only from its first level."""
         n = self.nodes[code]
         c = self._centre(n)
         w, s, z0, e, nn, z1 = n.box_m
@@ -310,9 +343,9 @@ class Tiles3D:
             "geometricError": self.tile_error_m(code),
             "transform": self._transform(c - above),
         }
-        if self.has_content(code):
+        if code[0] >= self._part_from and self.has_content(code):
             tile["content"] = {"uri": node_uri(code)}
-        kids = self.children.get(code, [])
+        kids = [k for k in self.children.get(code, []) if self._part is None or k in self._part]
         if kids:
             tile["children"] = [self._tile_json(k, c) for k in kids]
         return tile
@@ -326,8 +359,21 @@ class Tiles3D:
         return [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, float(c[0]), float(c[1]),
                 float(c[2]), 1.0]  # fmt: skip
 
-    def tileset(self) -> dict[str, Any]:
-        roots = self.children.get(None, [])
+    _part: set[Any] | None = None  #: the nodes of a part being written (None: all)
+    _part_from: int = 0  #: its first level with content
+
+    def tileset(self, part: Any = None) -> dict[str, Any]:
+        """The tileset JSON; with ``part`` (see :meth:`part_nodes`) only its nodes, content from its
+        ``min_zoom`` (the coarser nodes are its tree without content)."""
+        self._part = None if part is None or part.whole else self.part_nodes(part)
+        self._part_from = 0 if part is None else int(part.min_zoom)
+        try:
+            return self._tileset()
+        finally:
+            self._part, self._part_from = None, 0
+
+    def _tileset(self) -> dict[str, Any]:
+        roots = [c for c in self.children.get(None, []) if self._part is None or c in self._part]
         nothing = self.nothing_error_m()
         if len(roots) == 1:
             root = self._tile_json(roots[0], np.zeros(3))
@@ -756,8 +802,13 @@ def export_3dtiles(
     geometry: str = "quantized",
     max_error_m: float | None = None,
     client: Any = None,
+    part: Any = None,
 ) -> ExportReport:
     """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree.
+
+    ``part`` (:class:`terralod.export.quantized_mesh.Part`: a box in degrees, levels of the tree as zooms)
+    writes only the nodes that meet the box up to ``max_zoom``, with content from ``min_zoom``, each glb
+    byte for byte the whole export's.
 
     ``geometry``: ``"quantized"`` (KHR_mesh_quantization), ``"meshopt"`` (also EXT_meshopt_compression,
     needs node and the npm meshoptimizer package) or ``"float"``; ``max_error_m``: leave out the nodes whose
@@ -781,10 +832,17 @@ def export_3dtiles(
         terrain = terrain.with_epoch(epoch)
     output = Output(out, inputs=export_inputs(terrain), overwrite=overwrite, resume=resume, update=update,
                     key=export_key(terrain, "3dtiles", metric=metric, vertical_datum=vertical_datum,
-                                   geometry=geometry, max_error_m=max_error_m), keep_records=True)  # fmt: skip
+                                   geometry=geometry, max_error_m=max_error_m,
+                                   **({} if part is None or part.whole else {"part": part.key()})),
+                    keep_records=True)  # fmt: skip
     output.check()  # refusals first, before the view's set-up
     view = Tiles3D(terrain, metric=metric, vertical_datum=vertical_datum, geometry=geometry,
                    max_error_m=max_error_m)  # fmt: skip
+    wanted = None if part is None or part.whole else view.part_nodes(part)
+    if wanted is not None and not wanted:
+        from terralod.errors import InputError
+
+        raise InputError(f"has no tile that meets the box {list(part.bbox)}", str(terrain.path))
     recipe = None
     if client is not None:
         recipe = recipe_of(terrain, Tiles3D, epoch, metric=metric, vertical_datum=vertical_datum,
@@ -795,6 +853,8 @@ def export_3dtiles(
         # level by level (a TIN's tree is sub-block by sub-block): each level's meshes are made once and
         # dropped when its tiles are written, so memory holds one level, whatever the pyramid's size
         codes = sorted((n.code for n in view.tree), key=lambda c: c[0])
+        if wanted is not None:  # a part: its nodes from its first level with content
+            codes = [c for c in codes if c in wanted and c[0] >= part.min_zoom]
         deps = _Deps(view, metric=metric, vertical_datum=vertical_datum, geometry=geometry,
                      max_error_m=max_error_m)  # fmt: skip
         if update:  # a glb made from what it was made of last time is kept as it is, not encoded
@@ -820,7 +880,7 @@ def export_3dtiles(
             if progress is not None:
                 progress(i + 1, len(codes))
         view.close()
-        ts = json.dumps(view.tileset(), separators=(",", ":"))
+        ts = json.dumps(view.tileset(part), separators=(",", ":"))
         o.write("tileset.json", ts.encode())
         rep.bytes += len(ts)
         o.seal()

@@ -1,0 +1,97 @@
+"""A part of a 3D Tiles export (``--bbox``, ``--min-zoom``, ``--max-zoom``): the nodes that meet the box up to
+the last level, with their ancestors, content from the first level; every glb byte for byte the whole
+export's, the tileset a valid tree (each content's file there, errors never growing down the tree)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from terralod.cli import main
+
+from conftest import crop_geotiff
+
+pytest.importorskip("pyproj")
+
+
+@pytest.fixture(scope="module")
+def store(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    d = tmp_path_factory.mktemp("part")
+    dem = crop_geotiff(shared_data / "dem" / "kilauea_hawaii_30m_utm5.tif", d / "k.tif", 300, 200, 257)
+    main(["build", str(dem), "-o", str(d / "k.terra"), "--tile-size", "33"])
+    return d / "k.terra"
+
+
+@pytest.fixture(scope="module")
+def whole(store: Path) -> Path:
+    out = store.parent / "whole"
+    main(["export", str(store), "--format", "3dtiles", "-o", str(out)])
+    return out
+
+
+def _nodes(tile: dict, out: list[dict]) -> list[dict]:
+    out.append(tile)
+    for k in tile.get("children", []):
+        _nodes(k, out)
+    return out
+
+
+def _check_tree(out: Path) -> list[dict]:
+    ts = json.loads((out / "tileset.json").read_text())
+    nodes = _nodes(ts["root"], [])
+
+    def walk(t: dict) -> None:
+        for k in t.get("children", []):
+            assert k["geometricError"] <= t["geometricError"]
+            walk(k)
+
+    walk(ts["root"])
+    for n in nodes:
+        if "content" in n:
+            assert (out / n["content"]["uri"]).is_file()
+    return nodes
+
+
+def test_a_box_and_levels_give_the_whole_exports_glbs(store: Path, whole: Path, tmp_path: Path) -> None:
+    from terralod.export.quantized_mesh import Part
+    from terralod.export.tiles3d import Tiles3D
+    from terralod.terrain import open_terrain
+
+    all_glbs = {f.relative_to(whole): f.read_bytes() for f in whole.rglob("*.glb")}
+    levels = sorted({int(p.parts[1]) for p in all_glbs})
+    assert len(levels) >= 3
+    with open_terrain(store) as t:
+        view = Tiles3D(t)
+        w, s, e, n = view.lonlat_box(next(c for c in view.nodes if c[0] == 0))
+        box = (w, s, w + 0.3 * (e - w), s + 0.3 * (n - s))  # the south-west corner
+        part = Part(bbox=box, min_zoom=levels[1], max_zoom=levels[-2])
+        keep = view.part_nodes(part)
+    out = tmp_path / "part"
+    main(["export", str(store), "--format", "3dtiles", "-o", str(out), "--bbox", ",".join(map(str, box)),
+          "--min-zoom", str(levels[1]), "--max-zoom", str(levels[-2])])  # fmt: skip
+    got = {f.relative_to(out): f.read_bytes() for f in out.rglob("*.glb")}
+    assert got and len(got) < len(all_glbs)
+    for rel, data in got.items():
+        assert data == all_glbs[rel], rel  # the whole export's bytes
+        level = int(rel.parts[1])
+        assert levels[1] <= level <= levels[-2]
+    nodes = _check_tree(out)
+    # every node written meets the box, and every node of those levels that meets it is written
+    written = {(int(r.parts[1]), *map(int, r.stem.split("_"))) for r in got}
+    want = {
+        c for c in keep if levels[1] <= c[0] and (f"tiles/{c[0]}/{c[1]}_{c[2]}.glb" in map(str, all_glbs))
+    }
+    assert written == want
+    assert all("content" not in x or int(x["content"]["uri"].split("/")[1]) >= levels[1] for x in nodes)
+
+
+def test_a_box_that_meets_nothing_is_one_line(store: Path, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    with pytest.raises(SystemExit) as exc:
+        main(
+            ["export", str(store), "--format", "3dtiles", "-o", str(tmp_path / "o"), "--bbox", "10,10,11,11"]
+        )
+    err = capsys.readouterr().err.strip()
+    assert exc.value.code == 2 and "has no tile that meets the box" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()
