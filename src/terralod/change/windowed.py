@@ -203,7 +203,11 @@ def window_change(
     zones: list[tuple[str, dict, float]], stride: int, r0: int, r1: int, c0: int, c1: int,
 ) -> WindowResult:  # fmt: skip
     """One window of the stream (rows [r0, r1), cols [c0, c1) of BEFORE's grid): a pure function of the
-    sources and its arguments, run here or on a Dask worker."""
+    sources and its arguments, run here or on a Dask worker (whose allocator gets its adaptive thresholds
+    back first: :func:`terralod.pyramid.distributed.tune_worker_malloc`)."""
+    from terralod.pyramid.distributed import tune_worker_malloc
+
+    tune_worker_malloc()
     h, w = before.shape
     tx, ty, _ = (float(v) for v in shift_m)
     px = min(before.spacing_m)
