@@ -145,3 +145,22 @@ def test_a_smaller_budget_builds_the_same_store(tmp_path: Path, capfd: pytest.Ca
         with sqlite3.connect(out) as db:
             blobs.append(db.execute("SELECT * FROM tiles ORDER BY 1, 2, 3").fetchall())
     assert blobs[0] and blobs[0] == blobs[1]
+
+
+def test_export_plans_its_dask_workers_within_the_budget(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """An export's unit is a batch of tiles: a budget below one process and one batch is refused in one line
+    before anything is written; a local cluster gets the workers and memory limits the budget holds."""
+    from terralod.cli.export import _dask_plan
+    from terralod.memory import EXPORT_UNIT_BYTES
+
+    code, text = _terralod(["export", str(tmp_path / "none.tif"), "--format", "quantized-mesh", "-o",
+                            str(tmp_path / "o"), "--memory", "300MiB"], capfd)  # fmt: skip
+    assert code == 2 and text.strip().startswith("terralod: --memory: 300 MiB cannot hold")
+    assert not (tmp_path / "o").exists()
+    assert _dask_plan(None, None, None)[1:] == (None, None)
+    address, workers, limit = _dask_plan("local", 4, 1 << 30)
+    assert address == "local" and workers == 1 and limit >= WORKER_PROCESS_BYTES + EXPORT_UNIT_BYTES
+    _, workers, limit = _dask_plan("local", 4, 4 << 30)
+    assert workers == 4 and PROCESS_BYTES + 4 * limit <= 4 << 30

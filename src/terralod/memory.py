@@ -23,6 +23,7 @@ from dataclasses import dataclass
 __all__ = [
     "BUILD_UNIT_BYTES",
     "DEFAULT_MEMORY_BYTES",
+    "EXPORT_UNIT_BYTES",
     "IN_MEMORY_BYTES_PER_SAMPLE",
     "PROCESS_BYTES",
     "WORKER_PROCESS_BYTES",
@@ -40,6 +41,9 @@ PROCESS_BYTES = 448 << 20
 #: Bytes a sample costs an in-memory build (a 4097² build in one process peaked at 701 MiB:
 #: ``benchmarks/results/scale_pinned.md``); a raster that needs more than a budget builds out of core.
 IN_MEMORY_BYTES_PER_SAMPLE = 27
+#: One export batch in flight (a few dozen tiles' windows and meshes; the export of 64 SRTM3 tiles in one
+#: process peaked at 444 MiB, PROCESS_BYTES holding it).
+EXPORT_UNIT_BYTES = 128 << 20
 #: One Dask worker process's libraries, without a unit (the tree of client, scheduler and two workers of a
 #: 4097² out-of-core build peaked at 1,149 MiB: ``benchmarks/results/scale_pinned.md``).
 WORKER_PROCESS_BYTES = 256 << 20

@@ -50,7 +50,7 @@ import click
 
 from terralod.cli._console import PlainProgress, console, err_console
 from terralod.cli._errors import require_extra
-from terralod.cli._options import check_raster_size, numbers
+from terralod.cli._options import check_raster_size, memory_option, numbers
 from terralod.output import Lock, Output, refuse_inputs, work_path
 
 
@@ -142,11 +142,12 @@ from terralod.output import Lock, Output, refuse_inputs, work_path
 @click.option(
     "--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2)."
 )
+@memory_option
 def export(
     inputs: tuple[str, ...], fmt: str, output: str, metric: str, epoch: str | None, overwrite: bool,
     gzip_tiles: bool, normals: bool, resume: bool, update_output: bool, bbox: str | None, min_zoom: int,
     max_zoom: int | None, glb_geometry: str | None, max_error_m: float | None, vertical_datum: str | None,
-    dask_address: str | None, dask_workers: int | None,
+    dask_address: str | None, dask_workers: int | None, memory_bytes: int | None,
 ) -> None:  # fmt: skip
     """Export a .terra store as 3D Tiles or Cesium quantized-mesh, or DEMs (a region: files, a quoted glob, a
     folder, a VRT, .hgt/.hgt.zip; where they overlap the last one listed wins) as quantized-mesh."""
@@ -160,7 +161,7 @@ def export(
         if fmt == "site":
             raise click.BadParameter("--dask is for 3dtiles and quantized-mesh", param_hint="--format")
         require_extra("export --dask", "dask")
-    dask = (dask_address, dask_workers)
+    dask = _dask_plan(dask_address, dask_workers, memory_bytes)
     if len(inputs) > 1 or not _is_one_file(inputs[0]):
         if fmt != "quantized-mesh":
             raise click.BadParameter("several inputs, a glob or a folder make a region of DEMs: quantized-mesh "
@@ -261,7 +262,7 @@ def _is_dem(path: str, is_sqlite) -> bool:  # noqa: ANN001
 
 def _run_dem(
     dems: list[str], output: str, epoch: str | None, opts: dict[str, bool], gzip_tiles: bool,
-    normals: bool = False, part: Any = None, dask: tuple[str | None, int | None] = (None, None),
+    normals: bool = False, part: Any = None, dask: tuple[Any, ...] = (None, None, None),
 ) -> None:  # fmt: skip
     """A DEM or a region of DEMs exported as quantized-mesh: every file read once first (an unreadable one
     named in one line), then the tiles, a window of the region at a time for WGS 84 lon/lat data."""
@@ -302,7 +303,7 @@ def _windowed(crs: Any) -> bool:
 def _run(
     terrain, fmt: str, output: str, metric: str, epoch: str | None, opts: dict[str, bool],
     gzip_tiles: bool = False, normals: bool = False, part: Any = None, tiles: dict[str, Any] | None = None,
-    dask: tuple[str | None, int | None] = (None, None),
+    dask: tuple[Any, ...] = (None, None, None),
 ) -> None:  # fmt: skip
     from terralod.export import export_3dtiles, export_quantized_mesh
 
@@ -341,8 +342,22 @@ def _run(
             console.print(f"  removed {rel}", highlight=False)
 
 
+def _dask_plan(address: str | None, workers: int | None, memory_bytes: int | None) -> tuple[Any, ...]:
+    """(address, local workers, each one's memory limit) within ``--memory`` (:func:`terralod.memory.plan_memory`,
+    a batch of tiles as the unit); a budget that cannot hold one is refused in one line, before any work."""
+    from terralod.errors import InputError
+    from terralod.memory import EXPORT_UNIT_BYTES, plan_memory
+
+    try:
+        plan = plan_memory(memory_bytes, threads=1, dask_workers=workers, dask_local=address == "local",
+                           unit_bytes=EXPORT_UNIT_BYTES)  # fmt: skip
+    except ValueError as exc:
+        raise InputError(str(exc), "--memory") from None
+    return address, plan.dask_workers, plan.worker_bytes
+
+
 @contextmanager
-def _client(address: str | None, workers: int | None) -> Iterator[Any]:
+def _client(address: str | None, workers: int | None, memory_limit: int | None = None) -> Iterator[Any]:
     """The Dask client of ``--dask`` (None without it), as ``terralod build`` makes it; a local cluster is
     closed at the end."""
     if not address:
@@ -350,7 +365,7 @@ def _client(address: str | None, workers: int | None) -> Iterator[Any]:
         return
     from terralod.pyramid.distributed import dask_client
 
-    client = dask_client(address, n_workers=workers)
+    client = dask_client(address, n_workers=workers, memory_limit=memory_limit)
     try:
         yield client
     finally:
