@@ -11,8 +11,11 @@ time (:class:`terralod.export.source.RegionGrid`), so its peak memory should not
 
 Rows: samples of the region, tiles written, wall and CPU (user + sys) of the ``terralod`` process, its
 peak RSS (GNU time's maximum resident set size of the child; psutil's sum over the process tree when GNU
-time is absent), tiles per second, µs of wall per sample, bytes written. Writes
-benchmarks/results/region.json and region.md.
+time is absent), tiles per second, µs of wall and of CPU per sample, µs of CPU per sample after the
+start-up (the median CPU of the same export of a 121² DEM, reported apart: interpreter, imports, numba's
+JIT engine), bytes written. A run of some sizes keeps the earlier rows of the others. Writes
+benchmarks/results/region.json and region.md; with 1 among the sizes, the single tile's CPU per sample
+after start-up over the largest mosaic's (the issue's ≤ 1.3x, Cesium Terrain Builder's own ratio).
 
 The ``build`` stage: ``terralod build FOLDER -o region.terra`` (out of core: the region warped block by
 block to the UTM zone of its centre, every tile also measured against the original samples), wall, CPU
@@ -178,6 +181,25 @@ def build_stage(src: Path, counts: list[int]) -> None:
     write_results("region_build", {"source": src.stem, "runs": results}, table + note)
 
 
+def startup_cpu_s(runs: int = 3) -> float:
+    """The fixed cost of a run, reported apart: CPU (user + sys) of ``terralod export`` on a 121² DEM (the
+    interpreter, the imports, numba's JIT engine and cached kernels loaded, one tiny tile set written),
+    the median of ``runs`` fresh processes."""
+    import statistics
+
+    import rasterio
+    from rasterio.transform import from_origin
+
+    with tempfile.TemporaryDirectory(prefix="terralod-startup-") as d:
+        dem = Path(d) / "tiny.tif"
+        z = (np.add.outer(np.arange(121), np.arange(121)) % 97).astype(np.int16)
+        with rasterio.open(dem, "w", driver="GTiff", width=121, height=121, count=1, dtype="int16",
+                           crs="EPSG:4326", transform=from_origin(1.0, 42.0, 1 / 120, 1 / 120)) as ds:  # fmt: skip
+            ds.write(z, 1)
+        cpu = [run_export(dem, Path(d) / f"out{i}")["cpu_s"] for i in range(runs)]
+    return float(statistics.median(cpu))
+
+
 def _earlier_runs(name: str, counts: list[int]) -> list[dict]:
     """The rows of an earlier run of other mosaic sizes (kept, so a 256-tile run adds its row)."""
     import json
@@ -191,7 +213,9 @@ def _earlier_runs(name: str, counts: list[int]) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tiles", default="16,64", help="mosaic sizes in SRTM tiles (squares: 4, 16, 64, ...)")
+    ap.add_argument(
+        "--tiles", default="1,16,64", help="mosaic sizes in SRTM tiles (squares: 1, 4, 16, 64, ...)"
+    )
     ap.add_argument("--source", default="srtm3_N41E001", help="the real SRTM3 tile mirrored")
     ap.add_argument("--stages", default="export,build", help="export, build or both")
     args = ap.parse_args()
@@ -202,6 +226,8 @@ def main() -> None:
     if "export" not in stages:
         return
     results = _earlier_runs("region", [int(v) for v in args.tiles.split(",")])
+    startup = startup_cpu_s()
+    print({"startup_cpu_s": startup}, flush=True)
     for count in [int(v) for v in args.tiles.split(",")]:
         n = int(round(count**0.5))
         assert n * n == count, f"Expected a square number of tiles, got {count}"
@@ -215,6 +241,7 @@ def main() -> None:
         res = {"srtm_tiles": count, "files": len(files), "samples": samples, "tiles": tiles, "bytes": nbytes,
                "tiles_per_s": tiles / r["wall_s"], "us_per_sample": r["wall_s"] / samples * 1e6,
                "cpu_us_per_sample": r["cpu_s"] / samples * 1e6, "load_1min": os.getloadavg()[0],
+               "startup_cpu_s": startup, "cpu_us_per_sample_after_startup": (r["cpu_s"] - startup) / samples * 1e6,
                "date": time.strftime("%Y-%m-%d %H:%M"),
                **{k: v for k, v in r.items() if k != "stdout"}, "summary": r["stdout"]}  # fmt: skip
         results = sorted(
@@ -224,10 +251,17 @@ def main() -> None:
     rows = [[f"{x['srtm_tiles']} SRTM3 tiles ({1200 * round(x['srtm_tiles'] ** 0.5) + 1}²)", x["samples"],
              x["tiles"], round(x["wall_s"], 1), round(x["cpu_s"], 1), round(x["peak_rss_mib"], 1),
              round(x["tiles_per_s"], 2), round(x["us_per_sample"], 3),
-             round(x.get("cpu_us_per_sample", x["cpu_s"] / x["samples"] * 1e6), 3), f"{x['bytes'] / 1e6:.1f} MB",
-             x.get("date", "")] for x in results]  # fmt: skip
+             round(x.get("cpu_us_per_sample", x["cpu_s"] / x["samples"] * 1e6), 3),
+             round(x["cpu_us_per_sample_after_startup"], 3) if "cpu_us_per_sample_after_startup" in x else "–",
+             f"{x['bytes'] / 1e6:.1f} MB", x.get("date", "")] for x in results]  # fmt: skip
     table = md_table(["region", "samples", "tiles", "wall s", "CPU s", "peak RSS MiB", "tiles/s", "wall µs/sample",
-                      "CPU µs/sample", "bytes", "run"], rows)  # fmt: skip
+                      "CPU µs/sample", "CPU µs/sample after start-up", "bytes", "run"], rows)  # fmt: skip
+    per = {x["srtm_tiles"]: x["cpu_us_per_sample_after_startup"] for x in results
+           if "cpu_us_per_sample_after_startup" in x}  # fmt: skip
+    if 1 in per and len(per) > 1:
+        big = max(per)
+        table += (f"\nOne tile's CPU per sample after start-up over the {big}-tile mosaic's: "
+                  f"**{per[1] / per[big]:.2f}x** (Cesium Terrain Builder's own: 1.3x).\n")  # fmt: skip
     note = (
         "\n`terralod export FOLDER --format quantized-mesh` (a fresh process, start-up included) on SRTM3 "
         f"{args.source} mirror-tiled into separate 1° GeoTIFFs (EPSG:4326); peak RSS of the process. "
