@@ -263,11 +263,18 @@ def _bounds(b) -> str:
 
 #: dod.tif's internal tiles (samples a side) and compression: a Cloud Optimized GeoTIFF with overviews.
 DOD_BLOCK = 512
+#: Band description of ``dod.tif`` and of ``sigma.tif`` (σ of each cell, :mod:`terralod.change.uncertainty`).
+DOD_DESCRIPTION = "elevation change after - before (m)"
+SIGMA_DESCRIPTION = "1-sigma uncertainty of the elevation change (m)"
 
 
-def write_dod(path: str | Path, dod: np.ndarray, hf: Heightfield, tags: dict | None = None) -> None:
-    """The DoD as a float32 Cloud Optimized GeoTIFF on ``hf``'s grid (:class:`DodWriter`)."""
-    w = DodWriter(path, hf, tags)
+def write_dod(
+    path: str | Path, dod: np.ndarray, hf: Heightfield, tags: dict | None = None,
+    description: str = DOD_DESCRIPTION,
+) -> None:  # fmt: skip
+    """The DoD (or σ, with its ``description``) as a float32 Cloud Optimized GeoTIFF on ``hf``'s grid
+    (:class:`DodWriter`)."""
+    w = DodWriter(path, hf, tags, description)
     try:
         w.write(dod, 0, 0)
     except BaseException:
@@ -283,7 +290,9 @@ class DodWriter:
     deflate with the floating-point predictor, overviews averaged down to one tile) and removes the scratch.
     The bytes depend only on the values, never on the order the windows came in."""
 
-    def __init__(self, path: str | Path, grid, tags: dict | None = None) -> None:  # noqa: ANN001
+    def __init__(
+        self, path: str | Path, grid, tags: dict | None = None, description: str = DOD_DESCRIPTION
+    ) -> None:  # noqa: ANN001
         import rasterio
 
         self.path = Path(path)
@@ -297,7 +306,7 @@ class DodWriter:
         if grid.crs:
             profile["crs"] = grid.crs
         self.ds = rasterio.open(self.scratch, "w", **profile)
-        self.ds.set_band_description(1, "elevation change after - before (m)")
+        self.ds.set_band_description(1, description)
         self.ds.set_band_unit(1, "metre")
         if tags:
             self.ds.update_tags(**{k: str(v) for k, v in tags.items()})

@@ -34,6 +34,16 @@ Uncertainty (what a geoscientist signs)
     over the volume's cells: interpolation smooths peaks and pits, an error that does not average out.
 
   The ± figures are t · sqrt(σ_V² + (A σ_bias)² + (Σ e · a)²).
+
+- The error that holds where the change is (issue 54, :mod:`terralod.change.uncertainty`): when the stable
+  ground allows it (at least :data:`terralod.change.uncertainty.MIN_MODEL_CELLS` cells), σ of each cell is
+  a function of BEFORE's slope and curvature and the correlation a sum of spherical ranges, both fitted on
+  the stable ground (the bounded sample of a region); σ_V above is then that module's propagation of a
+  sum with per-cell σ, the level of detection of each cell t · σ(cell), and ``sigma.tif`` holds σ(cell).
+  ``sigma_m`` / ``level_of_detection_m`` stay the NMAD of all the stable ground and its t · σ.
+  ``--sigma-m`` overrides σ(slope, curvature) with one value, ``--corr-range-m`` the fitted ranges with
+  one range; given both, or when the stable ground is too small to fit the model (said so in a
+  statement), the single-σ model above is used.
 """
 
 from __future__ import annotations
@@ -60,6 +70,13 @@ from terralod.change.difference import (
     dem_of_difference,
     reproject_onto,
     sample_surface,
+)
+from terralod.change.uncertainty import (
+    ErrorModel,
+    fit_error_model,
+    stable_by_slope,
+    terrain_attributes,
+    where_error_is_larger,
 )
 from terralod.change.zones import read_zones
 from terralod.heightfield import Heightfield
@@ -103,6 +120,12 @@ class Uncertainty:
     resampling_error_m: np.ndarray | None = None
     #: plain statements on what the data could not support
     statements: list[str] = field(default_factory=list)
+    #: σ(slope, curvature) x multi-range correlation (:mod:`terralod.change.uncertainty`); None: single σ
+    model: ErrorModel | None = None
+    #: why the model was not fitted (None: fitted, or not asked for)
+    model_note: str | None = None
+    #: (cells, Σσ, Σσ²) of the stable ground under the model
+    stable_sums: tuple[int, float, float] | None = None
 
     @property
     def resampling_nmad_m(self) -> float | None:
@@ -114,10 +137,18 @@ class Uncertainty:
     def level_of_detection_m(self) -> float:
         return self.t * self.sigma_m
 
-    def volume_sigma_m3(self, area_m2: float) -> float:
-        """1-σ uncertainty of a volume summed over ``area_m2`` (Rolstad et al. 2009 + nugget)."""
+    def volume_sigma_m3(
+        self, area_m2: float, sum_sigma: float | None = None, sum_sigma2: float | None = None
+    ) -> float:
+        """1-σ uncertainty of a volume summed over ``area_m2`` (Rolstad et al. 2009 + nugget); under the
+        model, of cells whose σ sum to ``sum_sigma`` (σ² to ``sum_sigma2``; constant σ when not given)."""
         if area_m2 <= 0:
             return 0.0
+        if self.model is not None:
+            n = area_m2 / self.cell_area_m2
+            s1 = n * self.sigma_m if sum_sigma is None else sum_sigma
+            s2 = n * self.sigma_m**2 if sum_sigma2 is None else sum_sigma2
+            return self.model.volume_sigma_m3(area_m2, self.cell_area_m2, s1, s2)
         corr = min(1.0, math.pi * self.range_m**2 / (5.0 * area_m2)) if self.range_m > 0 else 0.0
         var_mean = self.nugget_m2 * min(1.0, self.cell_area_m2 / area_m2) + self.sill_m2 * corr
         return float(area_m2 * math.sqrt(max(var_mean, 0.0)))
@@ -126,8 +157,17 @@ class Uncertainty:
         """± at the confidence level (t · σ_V)."""
         return self.t * self.volume_sigma_m3(area_m2)
 
+    def sigma_grid(self, z_m: np.ndarray, valid: np.ndarray, spacing_m: tuple[float, float]) -> np.ndarray:
+        """σ of each cell of a grid (float32, NaN where not ``valid``): the model's, or the one σ."""
+        if self.model is not None:
+            return self.model.sigma_of_grid(z_m, valid, spacing_m)
+        return np.where(valid, np.float32(self.sigma_m), np.float32(np.nan)).astype(np.float32)
+
     def as_dict(self) -> dict:
+        model = self.model.as_dict() if self.model is not None else None
         return {
+            "model": model,
+            "model_note": self.model_note,
             "sigma_m": self.sigma_m,
             "sigma_source": self.sigma_source,
             "confidence": self.confidence,
@@ -141,9 +181,13 @@ class Uncertainty:
                 "range_m": self.range_m,
                 "range_source": self.range_source,
             },
-            "propagation": "Rolstad et al. 2009 spherical-correlation area average plus nugget; "
-            "sigma_V = A * sqrt(c0 * a / A + c1 * min(1, pi L^2 / (5 A))); +- = t * sqrt(sigma_V^2 + "
-            "(A * sigma_bias)^2 + (sum of the resampling error * a)^2)",
+            "propagation": (
+                model["propagation"]
+                if model
+                else "Rolstad et al. 2009 spherical-correlation "
+                "area average plus nugget; sigma_V = A * sqrt(c0 * a / A + c1 * min(1, pi L^2 / (5 A)))"
+            )
+            + "; +- = t * sqrt(sigma_V^2 + (A * sigma_bias)^2 + (sum of the resampling error * a)^2)",
             "bias_sigma_m": self.bias_sigma_m,
             "resampling_nmad_m": self.resampling_nmad_m,
             "statements": list(self.statements),
@@ -211,8 +255,16 @@ def estimate_uncertainty(
     corr_range_m: float | None = None,
     confidence: float = 0.95,
     resampling_error_m: np.ndarray | None = None,
+    z_before_m: np.ndarray | None = None,
+    valid_before: np.ndarray | None = None,
+    candidates: np.ndarray | None = None,
 ) -> Uncertainty:
-    """σ, LoD and the correlation model of a co-registered DoD (module docstring).
+    """σ, LoD and the correlation model of a co-registered DoD (module docstring); given BEFORE's
+    elevations (``z_before_m``, ``valid_before``) on the DoD's grid, σ by slope and curvature with a
+    multi-range correlation (:mod:`terralod.change.uncertainty`) unless both ``sigma_m`` and
+    ``corr_range_m`` are given; ``candidates`` (the finder's ground before the change was taken out) lets
+    the model take the change out slope class by slope class
+    (:func:`terralod.change.uncertainty.stable_by_slope`).
 
     σ is refused (a stated default is used, with a warning) when the stable ground cannot give it: too
     few cells, a difference exactly 0 (copied, not surveyed twice), or a difference no larger than the
@@ -287,12 +339,47 @@ def estimate_uncertainty(
             f"How far survey errors stay alike could not be measured ({reason}); {ASSUMED_RANGE_M:g} m "
             "was assumed."
         )
-    return Uncertainty(
+    unc = Uncertainty(
         sigma_m=sigma, sigma_source=source, confidence=confidence, t=t, nugget_m2=c0, sill_m2=c1, range_m=rng,
         range_source=rsrc, stable_cells=n, stable_nmad_m=None if not math.isfinite(s_nmad) else s_nmad,
         cell_area_m2=cell_area_m2, warnings=warns, resampling_error_m=resampling_error_m,
         statements=statements,
     )  # fmt: skip
+    if z_before_m is not None and valid_before is not None and why is None:
+        if sigma_m is not None and corr_range_m is not None:
+            return unc  # both given: the single-σ model, as asked
+        cand = None if candidates is None else candidates & ~zero
+        got = fit_error_model(dod, ok, z_before_m, valid_before, spacing_m, cand)
+        if isinstance(got, str):
+            unc.model_note = got
+            statements.append(
+                f"The survey error was taken as the same everywhere: {got} to tell how it changes with slope."
+            )
+            return unc
+        got.sigma_given_m = None if sigma_m is None else float(sigma_m)
+        got.range_given_m = None if corr_range_m is None else float(corr_range_m)
+        unc.model = got
+        ok = (
+            ok
+            if cand is None
+            else (ok | stable_by_slope(dod, cand, terrain_attributes(z_before_m, valid_before, spacing_m)[0]))
+        )
+        sig = got.sigma_of_grid(z_before_m, valid_before, spacing_m)[ok]
+        sig = sig[np.isfinite(sig)]
+        unc.stable_sums = (int(sig.size), float(np.sum(sig, dtype=np.float64)),
+                           float(np.sum(sig.astype(np.float64) ** 2)))  # fmt: skip
+        if corr_range_m is None:
+            q = dict(zip(got.ranges_m, got.fractions, strict=True))
+            unc.range_m = float(max(got.ranges_m))
+            unc.nugget_m2 = float(q.get(0.0, 0.0)) * sigma**2
+            unc.sill_m2 = sigma**2 - unc.nugget_m2
+            unc.range_source = (f"{len(got.ranges_m) - 1} spherical ranges fitted on {n:,} stable cells: "
+                                + ", ".join(f"{r:,.0f} m ({100 * f:.0f} %)" for r, f in got.correlation() if r > 0))  # fmt: skip
+            unc.statements[:] = [x for x in unc.statements if not x.startswith("How far survey errors")]
+        words = where_error_is_larger(got, t)
+        if words:
+            statements.append(words)
+    return unc
 
 
 def resampling_error(pair: AlignedPair, after: Heightfield, shift_m=(0.0, 0.0, 0.0)) -> np.ndarray | None:
@@ -337,11 +424,14 @@ def _nearest_filled(z: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return z[tuple(idx)]
 
 
-def budget(dod: np.ndarray, unc: Uncertainty, mask: np.ndarray | None = None) -> dict:
+def budget(
+    dod: np.ndarray, unc: Uncertainty, mask: np.ndarray | None = None, sigma: np.ndarray | None = None
+) -> dict:
     """Gain/loss/net volumes (all cells, and beyond the LoD) with ± uncertainty, areas beyond the LoD, the
-    largest rise and drop, over the finite cells of ``dod`` (inside ``mask`` when given)."""
-    sums = BudgetSums(unc.level_of_detection_m)
-    sums.add(dod, unc.resampling_error_m, mask)
+    largest rise and drop, over the finite cells of ``dod`` (inside ``mask`` when given); ``sigma``: σ of
+    each cell under the model (:meth:`Uncertainty.sigma_grid`)."""
+    sums = BudgetSums(unc.level_of_detection_m, unc.t)
+    sums.add(dod, unc.resampling_error_m, mask, sigma if unc.model is not None else None)
     return sums.budget(unc)
 
 
@@ -351,12 +441,17 @@ _SETS = ("all", "pos", "neg", "up", "down", "beyond")
 
 class BudgetSums:
     """What :func:`budget` needs of a DoD, accumulated window by window: per cell set (:data:`_SETS`) the
-    sum of the difference (float64), the cell count and the sum of the resampling error; the largest rise
-    and drop. ``budget(unc)`` gives :func:`budget`'s dict; the volumes equal a whole-grid sum up to the order
-    of the float64 additions (1e-15 relative)."""
+    sum of the difference (float64), the cell count and the sum of the resampling error, and under the error
+    model the sums of σ and σ² (each cell's LoD is then t · σ); the largest rise and drop. ``budget(unc)``
+    gives :func:`budget`'s dict; the volumes equal a whole-grid sum up to the order of the float64 additions
+    (1e-15 relative)."""
 
-    def __init__(self, lod_m: float) -> None:
+    def __init__(self, lod_m: float, t: float | None = None) -> None:
         self.lod_m = float(lod_m)
+        self.t = t
+        self.s1 = dict.fromkeys(_SETS, 0.0)
+        self.s2 = dict.fromkeys(_SETS, 0.0)
+        self.has_sigma = False
         self.vol = dict.fromkeys(_SETS, 0.0)
         self.count = dict.fromkeys(_SETS, 0)
         self.err = dict.fromkeys(_SETS, 0.0)
@@ -364,13 +459,23 @@ class BudgetSums:
         self.d_max = -math.inf
         self.d_min = math.inf
 
-    def add(self, dod: np.ndarray, err: np.ndarray | None = None, mask: np.ndarray | None = None) -> None:
-        """Add a window of the DoD (metres; NaN = no data), its resampling error (or None) and a mask."""
+    def add(
+        self, dod: np.ndarray, err: np.ndarray | None = None, mask: np.ndarray | None = None,
+        sigma: np.ndarray | None = None,
+    ) -> None:  # fmt: skip
+        """Add a window of the DoD (metres; NaN = no data), its resampling error (or None), a mask and σ of
+        each cell under the error model (or None)."""
         ok = np.isfinite(dod) if mask is None else (np.isfinite(dod) & mask)
         d = dod[ok]
         if d.size == 0:
             return
-        lod = self.lod_m
+        sg = None
+        if sigma is not None:
+            if self.t is None:
+                raise ValueError("BudgetSums needs t for a per-cell sigma")
+            sg = sigma[ok].astype(np.float64)
+            self.has_sigma = True
+        lod = self.lod_m if sg is None else self.t * sg
         pos, neg = d > 0, d < 0
         up, down = d > lod, d < -lod
         sel = {"all": None, "pos": pos, "neg": neg, "up": up, "down": down, "beyond": up | down}
@@ -382,6 +487,10 @@ class BudgetSums:
             self.count[k] += int(v.size)
             if e is not None:
                 self.err[k] += float(np.nansum(e if m is None else e[m], dtype=np.float64))
+            if sg is not None:
+                g = sg if m is None else sg[m]
+                self.s1[k] += float(np.sum(g))
+                self.s2[k] += float(np.sum(g * g))
         self.d_max = max(self.d_max, float(d.max()))
         self.d_min = min(self.d_min, float(d.min()))
 
@@ -391,7 +500,10 @@ class BudgetSums:
             self.vol[k] += other.vol[k]
             self.count[k] += other.count[k]
             self.err[k] += other.err[k]
+            self.s1[k] += other.s1[k]
+            self.s2[k] += other.s2[k]
         self.has_err = self.has_err or other.has_err
+        self.has_sigma = self.has_sigma or other.has_sigma
         self.d_max, self.d_min = max(self.d_max, other.d_max), min(self.d_min, other.d_min)
 
     def budget(self, unc: Uncertainty) -> dict:
@@ -400,7 +512,8 @@ class BudgetSums:
         area = lambda k: float(self.count[k] * a)  # noqa: E731
 
         def pm(k: str) -> float:
-            u = unc.volume_sigma_m3(area(k)) ** 2 + (area(k) * unc.bias_sigma_m) ** 2
+            sums = (self.s1[k], self.s2[k]) if self.has_sigma else (None, None)
+            u = unc.volume_sigma_m3(area(k), *sums) ** 2 + (area(k) * unc.bias_sigma_m) ** 2
             if self.has_err:
                 u += (self.err[k] * a) ** 2
             return float(unc.t * math.sqrt(u)) if area(k) > 0 else 0.0
@@ -465,6 +578,8 @@ class ChangeResult:
     uncertainty: Uncertainty
     summary: dict
     zone_masks: list = field(default_factory=list)
+    #: σ of each DoD cell (``sigma.tif``; the decimated copy on a region), metres
+    sigma: np.ndarray | None = None
 
 
 def measure_change(
@@ -499,18 +614,22 @@ def measure_change(
     rerr = resampling_error(pair, after, shift)
     unc = estimate_uncertainty(
         dod, st, pair.cell_area_m2, before.spacing_m, sigma_m=sigma_m, corr_range_m=corr_range_m,
-        confidence=confidence, resampling_error_m=rerr,
+        confidence=confidence, resampling_error_m=rerr, z_before_m=before.elevation_m,
+        valid_before=before.valid, candidates=sg.base,
     )  # fmt: skip
     settle_bias_sigma(co, unc, pair.cell_area_m2)
+    sigma = np.where(
+        np.isfinite(dod), unc.sigma_grid(before.elevation_m, before.valid, before.spacing_m), np.nan
+    )
     zone_masks = read_zones(zones, before) if zones is not None else []
-    zone_budgets = [(name, budget(dod, unc, mask), frac) for name, mask, frac, _geom in zone_masks]
+    zone_budgets = [(name, budget(dod, unc, mask, sigma), frac) for name, mask, frac, _geom in zone_masks]
     summary = change_summary(
-        pair, co, sg, unc, budget(dod, unc), shift=shift, confidence=confidence, dates=dates,
+        pair, co, sg, unc, budget(dod, unc, sigma=sigma), shift=shift, confidence=confidence, dates=dates,
         names=(before.source, after.source), valid_cells=int(np.isfinite(dod).sum()),
         resampled=not (pair.same_grid and pair.after is after), extremes_=extremes(dod, before),
         zone_budgets=zone_budgets,
     )  # fmt: skip
-    return ChangeResult(pair, co, dod, st, unc, summary, zone_masks)
+    return ChangeResult(pair, co, dod, st, unc, summary, zone_masks, sigma.astype(np.float32))
 
 
 def fit_alignment(
@@ -531,7 +650,12 @@ def settle_bias_sigma(co: Coregistration, unc: Uncertainty, cell_area_m2: float)
     (set on ``unc`` and ``co``)."""
     if co.applied and unc.stable_cells >= MIN_STABLE_CELLS:
         area_st = unc.stable_cells * cell_area_m2
-        unc.bias_sigma_m = 1.2533 * unc.volume_sigma_m3(area_st) / area_st
+        if unc.stable_sums is not None:
+            n, s1, s2 = unc.stable_sums
+            area_st = n * cell_area_m2
+            unc.bias_sigma_m = 1.2533 * unc.volume_sigma_m3(area_st, s1, s2) / area_st
+        else:
+            unc.bias_sigma_m = 1.2533 * unc.volume_sigma_m3(area_st) / area_st
         if unc.sigma_source.startswith("assumed") and unc.stable_nmad_m is not None:
             # an assumed σ is no measure of how well the bias was fitted: the stable ground's own spread is
             unc.bias_sigma_m *= unc.stable_nmad_m / unc.sigma_m

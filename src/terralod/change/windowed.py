@@ -25,7 +25,11 @@ The chain, and where it deviates from :func:`terralod.change.volumes.measure_cha
    decimated copy (every s-th cell, at most :data:`REPORT_MAX_CELLS`) kept for the report's figures.
    Without a horizontal shift the DoD is the in-memory chain's bit for bit; volumes equal it up to the
    order of the float64 sums.
-3. ``dod.tif`` becomes a Cloud Optimized GeoTIFF (:func:`terralod.change.difference.DodWriter`).
+3. ``dod.tif`` becomes a Cloud Optimized GeoTIFF (:func:`terralod.change.difference.DodWriter`), and so
+   does ``sigma.tif`` beside it: σ of each cell, the error model fitted on the sample
+   (:mod:`terralod.change.uncertainty`: σ by slope and curvature, a sum of spherical ranges) applied to
+   each window from BEFORE's slope and curvature there (read with 2 cells of margin, so a window's σ is
+   the whole grid's); the volumes' ± add up Σσ and Σσ² of each cell set window by window.
 
 Memory: one window pair in flight (about 1200² cells with margins, some tens of float64 arrays), the sample
 (at most SAMPLE_MAX_CELLS cells, through the co-registration), the decimated report copy and the sources'
@@ -43,10 +47,11 @@ import numpy as np
 from affine import Affine
 
 from terralod.change.coregister import SLOPE_MIN_DEG, StableGroundFinder, read_stable_mask
-from terralod.change.difference import AlignedPair, DodWriter, dem_of_difference, same_crs
+from terralod.change.difference import SIGMA_DESCRIPTION, AlignedPair, DodWriter, dem_of_difference, same_crs
 from terralod.change.volumes import (
     BudgetSums,
     ChangeResult,
+    Uncertainty,
     _lonlat,
     change_summary,
     estimate_uncertainty,
@@ -81,6 +86,8 @@ class Sample:
     exclude: np.ndarray | None
     whole: bool
     cells: int
+    #: BEFORE's valid cells on the composite, margins included (the slope and curvature of a core's edge)
+    terrain_valid: np.ndarray | None = None
 
 
 def same_grid(a: Any, b: Any) -> bool:
@@ -122,7 +129,7 @@ def sample_pair(
         pair = AlignedPair(bh, ah, True, [])
         given = read_stable_mask(stable, bh) if stable else None
         excl = read_stable_mask(exclude, bh, what="cell to leave out") if exclude else None
-        return Sample(pair, given, excl, True, h * w)
+        return Sample(pair, given, excl, True, h * w, bh.valid)
     s, m = SAMPLE_WINDOW, SAMPLE_MARGIN
     side = s + 2 * m
     corners = _sample_windows(h, w, max_cells)
@@ -132,6 +139,7 @@ def sample_pair(
     zb = np.zeros((H, W), np.float32)
     za = np.zeros((H, W), np.float32)
     okb = np.zeros((H, W), bool)
+    okt = np.zeros((H, W), bool)
     oka = np.zeros((H, W), bool)
     given = np.zeros((H, W), bool) if stable else None
     excl = np.zeros((H, W), bool) if exclude else None
@@ -146,6 +154,7 @@ def sample_pair(
             core = np.zeros(bh.shape, bool)
             core[r0 - ra : min(r0 + s, h) - ra, c0 - ca : min(c0 + s, w) - ca] = True
             okb[dst] = bh.valid & core
+            okt[dst] = bh.valid
             for path, out, what in ((stable, given, "stable cell"), (exclude, excl, "cell to leave out")):
                 if path and out is not None:
                     try:
@@ -160,7 +169,7 @@ def sample_pair(
     ct = Affine(t.a, 0.0, t.c, 0.0, t.e, t.f)  # a composite: only its spacing means anything
     bh = Heightfield(zb, okb, ct, crs=before.crs, source=before.source)
     ah = Heightfield(za, oka, ct, crs=after.crs, source=after.source)
-    return Sample(AlignedPair(bh, ah, True, []), given, excl, False, len(corners) * s * s)
+    return Sample(AlignedPair(bh, ah, True, []), given, excl, False, len(corners) * s * s, okt)
 
 
 def _report_stride(h: int, w: int) -> int:
@@ -196,11 +205,14 @@ class WindowResult:
     best: dict
     dod: np.ndarray
     small: tuple[np.ndarray, np.ndarray, np.ndarray]
+    #: σ of each cell of the window (float32, NaN where the DoD is)
+    sigma: np.ndarray | None = None
 
 
 def window_change(
     before: Any, after: Any, shift_m: tuple[float, float, float], lod_m: float, with_error: bool,
     zones: list[tuple[str, dict, float]], stride: int, r0: int, r1: int, c0: int, c1: int,
+    unc: Uncertainty | None = None,
 ) -> WindowResult:  # fmt: skip
     """One window of the stream (rows [r0, r1), cols [c0, c1) of BEFORE's grid): a pure function of the
     sources and its arguments, run here or on a Dask worker (whose allocator gets its adaptive thresholds
@@ -214,6 +226,7 @@ def window_change(
     moved = tx != 0.0 or ty != 0.0
     m = SPLINE_MARGIN + math.ceil(math.hypot(tx, ty) / px) if moved else 0
     m = 2 * m if (moved and with_error) else m
+    m = max(m, 2) if unc is not None else m  # slope and curvature: central differences of differences
     ra, rb, ca, cb = max(r0 - m, 0), min(r1 + m, h), max(c0 - m, 0), min(c1 + m, w)
     bw, aw = _window_hf(before, ra, ca, rb, cb), _window_hf(after, ra, ca, rb, cb)
     wp = AlignedPair(bw, aw, True, [])
@@ -221,15 +234,20 @@ def window_change(
     d = dem_of_difference(wp, shift_m)[core]
     e = resampling_error(wp, aw, shift_m) if with_error else None
     e = None if e is None else e[core]
-    totals = BudgetSums(lod_m)
-    totals.add(d, e)
+    sig = sg_model = None
+    if unc is not None:
+        sig = unc.sigma_grid(bw.elevation_m, bw.valid, before.spacing_m)[core]
+        sig = np.where(np.isfinite(d), sig, np.float32(np.nan)).astype(np.float32)
+        sg_model = sig if unc.model is not None else None
+    totals = BudgetSums(lod_m, None if unc is None else unc.t)
+    totals.add(d, e, None, sg_model)
     fin = np.isfinite(d)
     best: dict = {}
     if fin.any():
         for key, fn, sign in (("max_rise", np.nanargmax, 1.0), ("max_drop", np.nanargmin, -1.0)):
             r, c = np.unravel_index(int(fn(d)), d.shape)
             best[key] = ((sign * float(d[r, c]), -(r0 + int(r)), -(c0 + int(c))), float(d[r, c]))
-    zsums = [BudgetSums(lod_m) for _ in zones]
+    zsums = [BudgetSums(lod_m, None if unc is None else unc.t) for _ in zones]
     seen = [False] * len(zones)
     if zones:
         wt = before.transform @ Affine.translation(c0, r0)
@@ -237,18 +255,18 @@ def window_change(
         for k, (_name, geom, _frac) in enumerate(zones):
             zm = zone_mask(geom, d.shape, wt)
             if zm.any():
-                zsums[k].add(d, e, zm)
+                zsums[k].add(d, e, zm, sg_model)
                 seen[k] = bool((zm & bvalid).any())
     sr, sc = (-r0) % stride, (-c0) % stride
     small = (d[sr::stride, sc::stride], bw.elevation_m[core][sr::stride, sc::stride],
              bw.valid[core][sr::stride, sc::stride])  # fmt: skip
-    return WindowResult(r0, c0, totals, zsums, seen, int(fin.sum()), best, d.astype(np.float32), small)
+    return WindowResult(r0, c0, totals, zsums, seen, int(fin.sum()), best, d.astype(np.float32), small, sig)
 
 
 def stream_change(
     before: Any, after: Any, shift_m: tuple[float, float, float], lod_m: float, *, with_error: bool,
     zones: list[tuple[str, dict, float]] = (), dod: DodWriter | None = None, window: int | None = None,
-    client: Any = None,
+    client: Any = None, unc: Uncertainty | None = None, sigma: DodWriter | None = None,
 ) -> Streamed:  # fmt: skip
     """One pass over BEFORE's grid, window by window (:func:`window_change`, on ``client``'s Dask workers
     when given): budgets (``lod_m`` splits them), zones, extremes, the valid cells, the DoD written to ``dod``
@@ -260,15 +278,17 @@ def stream_change(
     small = np.full((math.ceil(h / stride), math.ceil(w / stride)), np.nan)
     zsmall = np.zeros(small.shape, np.float32)
     oksmall = np.zeros(small.shape, bool)
-    totals = BudgetSums(lod_m)
-    zsums = [BudgetSums(lod_m) for _ in zones]
+    t = None if unc is None else unc.t
+    totals = BudgetSums(lod_m, t)
+    zsums = [BudgetSums(lod_m, t) for _ in zones]
     zseen = [False] * len(zones)
     valid = 0
     best: dict = {"max_rise": None, "max_drop": None}
     spans = [(r0, min(r0 + window, h), c0, min(c0 + window, w)) for r0 in range(0, h, window)
              for c0 in range(0, w, window)]  # fmt: skip
     args = (shift_m, lod_m, with_error, list(zones), stride)
-    for got in _window_results(before, after, args, spans, client):
+    kwargs = {"unc": unc}
+    for got in _window_results(before, after, args, spans, client, kwargs):
         r0, c0 = got.r0, got.c0
         totals.merge(got.totals)
         for k in range(len(zones)):
@@ -280,6 +300,8 @@ def stream_change(
                 best[key] = cand
         if dod is not None:
             dod.write(got.dod, r0, c0)
+        if sigma is not None and got.sigma is not None:
+            sigma.write(got.sigma, r0, c0)
         d_s, z_s, ok_s = got.small
         dst = (slice((r0 + stride - 1) // stride, (r0 + stride - 1) // stride + d_s.shape[0]),
                slice((c0 + stride - 1) // stride, (c0 + stride - 1) // stride + d_s.shape[1]))  # fmt: skip
@@ -308,12 +330,12 @@ def stream_change(
 DASK_WINDOWS_IN_FLIGHT = 2
 
 
-def _window_results(before: Any, after: Any, args: tuple, spans: list, client: Any):  # noqa: ANN202
+def _window_results(before: Any, after: Any, args: tuple, spans: list, client: Any, kwargs: dict):  # noqa: ANN202
     """Each window's :class:`WindowResult`, in the order of ``spans``: computed here one at a time, or on
     Dask workers with a bounded number in flight."""
     if client is None:
         for span in spans:
-            yield window_change(before, after, *args, *span)
+            yield window_change(before, after, *args, *span, **kwargs)
         return
     threads = max(1, sum(client.nthreads().values()))
     limit = DASK_WINDOWS_IN_FLIGHT * threads
@@ -322,7 +344,7 @@ def _window_results(before: Any, after: Any, args: tuple, spans: list, client: A
     nxt = 0
     for i in range(len(spans)):
         while nxt < len(spans) and nxt < i + limit:
-            futures[nxt] = client.submit(window_change, b_f, a_f, *args, *spans[nxt], pure=False)
+            futures[nxt] = client.submit(window_change, b_f, a_f, *args, *spans[nxt], **kwargs, pure=False)
             nxt += 1
         yield futures.pop(i).result()
 
@@ -334,6 +356,7 @@ def _bounds(src: Any) -> tuple[float, float, float, float]:
 
 def measure_change_windowed(
     before: Any, after: Any, *, names: tuple[str, str], dod_path: str | Path | None = None,
+    sigma_path: str | Path | None = None,
     stable: str | None = None, exclude: str | None = None, coregistration: bool = True,
     method: str = "xdem", sigma_m: float | None = None, corr_range_m: float | None = None,
     confidence: float = 0.95, zones: str | Path | None = None,
@@ -341,7 +364,8 @@ def measure_change_windowed(
     notes: list[str] | None = None, client: Any = None,
 ) -> ChangeResult:  # fmt: skip
     """:func:`terralod.change.volumes.measure_change` of two window sources on one grid (module
-    docstring); ``dod.tif`` is written to ``dod_path`` on the way. The result's ``dod`` and ``pair`` are the
+    docstring); ``dod.tif`` is written to ``dod_path`` on the way, ``sigma.tif`` to ``sigma_path`` (beside
+    ``dod_path`` when not given). The result's ``dod`` and ``pair`` are the
     decimated copies the report draws; ``summary`` holds the same contract keys, plus ``windowed``."""
     if not same_grid(before, after):
         raise InputError(f"is not on {names[0]}'s grid (CRS, transform and size must match to be read window "
@@ -358,21 +382,30 @@ def measure_change_windowed(
     dx, dy = before.spacing_m
     unc = estimate_uncertainty(
         dod_s, sg.mask, dx * dy, (dx, dy), sigma_m=sigma_m, corr_range_m=corr_range_m,
-        confidence=confidence, resampling_error_m=rerr_s,
+        confidence=confidence, resampling_error_m=rerr_s, z_before_m=sp.before.elevation_m,
+        valid_before=sample.terrain_valid if sample.terrain_valid is not None else sp.before.valid,
+        candidates=sg.base,
     )  # fmt: skip
     settle_bias_sigma(co, unc, dx * dy)
     tags = {"sigma_m": unc.sigma_m, "level_of_detection_m": unc.level_of_detection_m,
             "shift_m": [float(v) for v in shift], "before": Path(names[0]).name, "after": Path(names[1]).name}  # fmt: skip
     writer = DodWriter(dod_path, before, tags) if dod_path is not None else None
+    if sigma_path is None and dod_path is not None:
+        sigma_path = Path(dod_path).with_name("sigma.tif")
+    swriter = (
+        DodWriter(sigma_path, before, tags, description=SIGMA_DESCRIPTION) if sigma_path is not None else None
+    )
     try:
         got = stream_change(before, after, shift, unc.level_of_detection_m, with_error=rerr_s is not None,
-                            zones=geoms, dod=writer, client=client)  # fmt: skip
+                            zones=geoms, dod=writer, client=client, unc=unc, sigma=swriter)  # fmt: skip
     except BaseException:
-        if writer is not None:
-            writer.abort()
+        for wr in (writer, swriter):
+            if wr is not None:
+                wr.abort()
         raise
-    if writer is not None:
-        writer.close()
+    for wr in (writer, swriter):
+        if wr is not None:
+            wr.close()
     zone_budgets = [
         (name, zs.budget(unc), frac) for (name, _g, frac), zs in zip(geoms, got.zones, strict=True)
     ]

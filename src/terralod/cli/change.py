@@ -21,7 +21,10 @@ with BEFORE) and ``zones`` (one object per polygon of ``--zones``, empty without
 plain sentence), ``stable_ground`` (cells, what was left out and ``description``, e.g. "fitted on 41 % of
 the area: ground outside the change with slopes above 3°; left out: 1 flat water surface …"),
 ``fit_description`` and ``uncertainty`` (variogram, bias σ, resampling error, ``statements``). Inputs are
-named by their file names only; ``OUT/dod.tif``;
+named by their file names only; ``OUT/dod.tif``; ``OUT/sigma.tif`` (σ of each cell of the difference on
+dod.tif's grid: :mod:`terralod.change.uncertainty`'s error model, larger on steep and rugged ground, or
+the one σ of ``--sigma-m``; the ``uncertainty`` object holds its ``model`` or the ``model_note`` of why
+it was not fitted);
 ``OUT/report.html`` (plus the report's PNGs in ``OUT/figures/``). Exit 0, or 2 on bad input with one line
 naming the file. OUT is written in its work folder ``.OUT.work`` beside it and renamed into place at the end
 (:class:`terralod.output.Output`); a run still writing OUT is never disturbed.
@@ -117,12 +120,14 @@ def _epoch(store: str, date: str):
 @click.option(
     "--sigma-m",
     type=float,
-    help="Survey error of the difference, metres (default: measured on unchanged ground).",
+    help="Survey error of one cell of the difference, metres, the same everywhere: overrides the error "
+    "measured on unchanged ground as a function of slope and curvature (default: measured).",
 )
 @click.option(
     "--corr-range-m",
     type=float,
-    help="Distance over which survey errors stay alike, metres (default: measured).",
+    help="Distance over which survey errors stay alike, metres: overrides the ranges fitted on unchanged "
+    "ground (default: measured, a sum of several ranges). Given with --sigma-m: one σ and one range.",
 )
 @click.option(
     "--confidence",
@@ -154,7 +159,8 @@ def change(
 
     The later survey is first lined up with the earlier one on ground that did not change; the volumes,
     the survey error and the level below which changes cannot be told from error are measured from the
-    pair itself. The output folder holds summary.json, dod.tif (the difference map) and report.html.
+    pair itself, the survey error as a function of slope and curvature. The output folder holds summary.json,
+    dod.tif (the difference map), sigma.tif (the survey error of each cell) and report.html.
 
     BEFORE and AFTER may each be one DEM file, or a region of tiles on one grid: a folder, a quoted glob
     ("tiles/*.tif") or a .vrt; a region (or a pair too large to hold) is read window by window, lined up
@@ -169,7 +175,7 @@ def change(
     if with_site:
         require_extra("change --site", "web")
     from terralod.change.coregister import read_stable_mask
-    from terralod.change.difference import check_vertical_units, write_dod
+    from terralod.change.difference import SIGMA_DESCRIPTION, check_vertical_units, write_dod
     from terralod.change.report import write_report
     from terralod.change.volumes import measure_change, series_volumes
     from terralod.errors import InputError
@@ -242,10 +248,12 @@ def change(
     with output_of as o:
         tmp = o.folder
         s = result.summary
-        write_dod(tmp / "dod.tif", result.dod, before, {
+        tags = {
             "sigma_m": s["sigma_m"], "level_of_detection_m": s["level_of_detection_m"],
             "shift_m": s["shift_m"], "before": s["before"]["source"], "after": s["after"]["source"],
-        })  # fmt: skip
+        }  # fmt: skip
+        write_dod(tmp / "dod.tif", result.dod, before, tags)
+        write_dod(tmp / "sigma.tif", result.sigma, before, tags, description=SIGMA_DESCRIPTION)
         write_report(
             result, tmp / "report.html", series=series, views=not no_views, figures_dir=tmp / "figures"
         )

@@ -1,0 +1,153 @@
+"""The error of the change that holds where the change is (issue 54, terralod.change.uncertainty).
+
+A synthetic valley (a flat floor and a 35° side) whose AFTER carries noise growing with slope and a mound
+on the floor: sigma.tif is written beside dod.tif on its grid and is larger on the steep side; --sigma-m
+replaces it by one value; a pair with almost no stable ground falls back to the single σ with a note; the
+windowed path gives the in-memory totals and their ± on the same pair.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.transform import from_origin
+
+from terralod.change.uncertainty import terrain_attributes, volume_sigma_m3
+from terralod.change.volumes import measure_change
+from terralod.cli import main
+from terralod.heightfield import Heightfield
+
+pytest.importorskip("xdem")
+pytest.importorskip("skgstat")
+
+N = 160
+DX = 10.0
+CRS = "EPSG:32633"
+
+
+def _valley(noise_seed: int = 1) -> tuple[Heightfield, Heightfield]:
+    t = from_origin(500_000.0, 5_000_000.0, DX, DX)
+    rows, cols = np.indices((N, N), dtype=np.float64)
+    z = np.where(cols < 80, 100.0 + 0.002 * rows * DX, 100.0 + (cols - 80) * DX * np.tan(np.radians(35)))
+    z = z + 2.0 * np.sin(rows / 7.0) * np.cos(cols / 9.0)
+    ok = np.ones((N, N), bool)
+    before = Heightfield(z.astype(np.float32), ok, t, crs=CRS, source="before.tif")
+    slope, _ = terrain_attributes(z, ok, (DX, DX))
+    rng = np.random.default_rng(noise_seed)
+    mound = np.clip(6.0 * (1 - np.hypot(rows - 80, cols - 35) / 15.0), 0, None)
+    after = z + mound + (0.2 + 0.04 * slope) * rng.normal(size=z.shape)
+    return before, Heightfield(after.astype(np.float32), ok, t, crs=CRS, source="after.tif")
+
+
+def _tif(path: Path, hf: Heightfield) -> Path:
+    with rasterio.open(path, "w", driver="GTiff", width=N, height=N, count=1, dtype="float32", crs=hf.crs,
+                       transform=hf.transform, nodata=np.nan) as ds:  # fmt: skip
+        ds.write(hf.elevation_m.astype(np.float32), 1)
+    return path
+
+
+def _run(capsys, *args) -> tuple[int, str, str]:
+    try:
+        main([str(a) for a in args])
+        code = 0
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> tuple[Path, Path]:
+    d = tmp_path_factory.mktemp("valley")
+    b, a = _valley()
+    return _tif(d / "before.tif", b), _tif(d / "after.tif", a)
+
+
+def test_sigma_raster_is_written_and_larger_on_steep_ground(files, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "o"
+    code, so, se = _run(capsys, "change", *files, "-o", out, "--no-views", "--no-coregister")
+    assert code == 0, se
+    with rasterio.open(out / "sigma.tif") as ds, rasterio.open(out / "dod.tif") as dd:
+        sig = ds.read(1)
+        assert ds.transform == dd.transform and ds.shape == dd.shape and ds.crs == dd.crs
+        assert ds.profile["tiled"] and "1-sigma" in ds.descriptions[0]
+    flat, steep = np.nanmedian(sig[10:-10, 10:70]), np.nanmedian(sig[10:-10, 90:-10])
+    # truth: 0.2 + 0.04 · 2° ≈ 0.28 m on the floor against 0.2 + 0.04 · 35° = 1.6 m on the side
+    assert steep > 2.0 * flat, (flat, steep)
+    assert 0.15 < flat < 0.5 and 0.9 < steep < 2.5
+    s = json.loads((out / "summary.json").read_text())
+    u = s["uncertainty"]
+    assert u["model"] is not None and u["model_note"] is None
+    assert len(u["model"]["ranges_m"]) >= 2
+    words = [x for x in u["statements"] if "steep" in x]
+    assert words and "flat ground" in words[0]
+    assert "steep" in (out / "report.html").read_text()
+    # the planted mound (on the flat floor) inside its ±
+    planted = np.pi * 15**2 * 6.0 / 3 * DX * DX
+    assert abs(s["net_m3"] - planted) <= s["net_uncertainty_m3"]
+
+
+def test_sigma_m_overrides_the_model(files, tmp_path: Path, capsys) -> None:
+    out = tmp_path / "o"
+    code, _so, se = _run(
+        capsys, "change", *files, "-o", out, "--no-views", "--no-coregister", "--sigma-m", "0.7"
+    )
+    assert code == 0, se
+    with rasterio.open(out / "sigma.tif") as ds:
+        sig = ds.read(1)
+    assert np.allclose(sig[np.isfinite(sig)], 0.7)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["sigma_m"] == 0.7 and s["sigma_source"].startswith("given")
+    assert s["uncertainty"]["model"]["sigma_given_m"] == 0.7
+    assert not any("steep" in x for x in s["uncertainty"]["statements"])
+    # both given: the single-σ model exactly (Rolstad et al. with one range)
+    before, after = _valley()
+    r = measure_change(before, after, coregistration=False, sigma_m=0.7, corr_range_m=300.0)
+    assert r.uncertainty.model is None and np.allclose(r.sigma[np.isfinite(r.sigma)], 0.7)
+
+
+def test_fallback_note_when_stable_ground_is_tiny() -> None:
+    before, after = _valley()
+    stable = np.zeros((N, N), bool)
+    stable[:30, :30] = True  # 900 cells: enough for σ, too few for the model
+    r = measure_change(before, after, coregistration=False, stable=stable)
+    u = r.uncertainty
+    assert u.model is None and u.model_note and "900" in u.model_note
+    assert any("the same everywhere" in x for x in r.summary["uncertainty"]["statements"])
+    assert u.sigma_source.startswith("NMAD")
+    assert np.allclose(r.sigma[np.isfinite(r.sigma)], u.sigma_m)
+
+
+def test_windowed_path_gives_the_in_memory_totals(tmp_path: Path, monkeypatch) -> None:
+    import terralod.change.windowed as W
+    from terralod.io.windowed import RasterSource
+
+    before, after = _valley(noise_seed=2)
+    pb, pa = _tif(tmp_path / "b.tif", before), _tif(tmp_path / "a.tif", after)
+    mem = measure_change(before, after, coregistration=False)
+    assert mem.uncertainty.model is not None
+    monkeypatch.setattr(W, "WINDOW", 48)  # windows of 48 cells: σ from slope and curvature at their edges
+    win = W.measure_change_windowed(RasterSource(str(pb)), RasterSource(str(pa)), names=("b.tif", "a.tif"),
+                                    dod_path=tmp_path / "dod.tif", coregistration=False)  # fmt: skip
+    for k in ("net_m3", "gain_m3", "net_uncertainty_m3", "gain_uncertainty_m3", "loss_uncertainty_m3",
+              "gain_m3_above_lod", "area_gain_m2", "net_above_lod_uncertainty_m3", "sigma_m"):  # fmt: skip
+        assert win.summary[k] == pytest.approx(mem.summary[k], rel=1e-9, abs=1e-9), k
+    with rasterio.open(tmp_path / "sigma.tif") as ds:
+        assert np.allclose(ds.read(1), mem.sigma, equal_nan=True, rtol=0, atol=1e-6)
+
+
+def test_propagation_matches_xdem_for_a_constant_sigma() -> None:
+    """One spherical range, constant σ: σ_V / A = σ / sqrt(Neff) of xdem's circular approximation."""
+    import pandas as pd
+    import xdem
+
+    params = pd.DataFrame({"model": ["spherical"], "range": [300.0], "psill": [1.0]})
+    a, n = 100.0, 40_000
+    area = a * n
+    neff = xdem.spatialstats.neff_circular_approx_theoretical(area, params)
+    got = volume_sigma_m3(area, a, n * 1.5, n * 1.5**2, [(300.0, 1.0)]) / area
+    assert got == pytest.approx(1.5 / np.sqrt(neff), rel=1e-6)
