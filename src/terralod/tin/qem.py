@@ -47,6 +47,7 @@ Deviations, and why:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -248,11 +249,21 @@ def run_block(job: BlockJob) -> BlockResult:
     return BlockResult(job.block, out, tris, alive, e)
 
 
+def _placed(job: BlockJob | None) -> BlockJob | None:
+    """``job`` without its inputs: the vertices and slots it names (all :func:`merge_blocks` reads), so a
+    finished block holds no positions, quadrics or triangles while the others run (same log)."""
+    if job is None:
+        return None
+    none = np.zeros(0)
+    return dataclasses.replace(job, p=none, world_m=none, tris=none, kind=none, q=none, w=none)
+
+
 def merge_blocks(
     triangles: np.ndarray, nb: int, jobs: Sequence[BlockJob | None], results: Sequence[BlockResult | None]
 ) -> tuple[CollapseLog, np.ndarray]:
     """One log (block-major, each block's collapses in its order) and its measured errors, in the TIN's
-    numbering, from the per-block results (``jobs[b]``, ``results[b]``; None for an empty block)."""
+    numbering, from the per-block results (``jobs[b]``, ``results[b]``; None for an empty block; a job
+    needs only its ``verts`` and ``slots``)."""
     tris = np.ascontiguousarray(triangles, np.int32).copy()
     alive = np.ones(tris.shape[0], np.bool_)
     parts: dict[str, list[np.ndarray]] = {k: [] for k in
@@ -329,8 +340,11 @@ def simplify_blocks(
 
     def one(b: int) -> BlockResult | None:
         job = make(b)
-        jobs[b] = job
-        return None if job is None else run_block(job)
+        if job is None:
+            return None
+        res = run_block(job)
+        jobs[b] = _placed(job)  # what the merge reads: its inputs (~160 bytes a vertex) go now
+        return res
 
     # biggest blocks first: the pool ends together
     size = np.bincount(np.asarray(tri_block, np.int64), minlength=nb)
@@ -346,6 +360,8 @@ def simplify_blocks(
 
         ran = iter(executor(cut(), run_block))
         got = [None if jobs[b] is None else next(ran) for b in blocks]
+        for b in blocks:
+            jobs[b] = _placed(jobs[b])
     elif n_threads == 1 or nb == 1:
         got = [one(b) for b in blocks]
     else:
