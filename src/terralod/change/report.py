@@ -133,9 +133,15 @@ def plain_summary(result: ChangeResult, dates: tuple[str | None, str | None]) ->
             else f"({'more' if net > 0 else 'less'} material than before)."
         )
     )
+    steeper, lod_flat = "", lod
+    if unc.model is not None and unc.model.sigma_given_m is None and unc.model.contrast is not None:
+        thr, st, fl = unc.model.contrast
+        if st > 1.3 * fl:
+            steeper = f" on flat ground (about {unc.t * st:.1f} m on slopes over {thr:.0f}°)"
+            lod_flat = unc.t * fl
     out.append(
-        f"Changes smaller than {lod:.1f} m up or down cannot be told apart from survey error and are shown "
-        f"in grey; each ± is the range that holds the true value with {conf} confidence."
+        f"Changes smaller than {lod_flat:.1f} m up or down{steeper} cannot be told apart from survey error and are "
+        f"shown in grey; each ± is the range that holds the true value with {conf} confidence."
     )
     src = unc.sigma_source
     if src.startswith("assumed"):
