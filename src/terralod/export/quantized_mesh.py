@@ -417,7 +417,7 @@ class QuantizedMesh:
         if self.geoid is not None:  # vertices and samples alike ellipsoidal: the error is measured on them
             hv = hv + self.geoid.undulation_m(lon, lat)
         raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
-        dec = decode_tile(raw, rect)
+        dec = decode_tile(raw, rect, gzipped=False)
         err = 0.0
         for plon, plat, pz in self.ref.points_strips(z, x, y):  # a coarse tile of a region: strip by strip
             if self.geoid is not None:
@@ -475,7 +475,7 @@ class QuantizedMesh:
             # against the lattice, and N's spread over the tile bounds what N does between vertices
             hv = hv + self.geoid.undulation_m(lon, lat)
         raw = encode_tile(lon, lat, hv, tris, rect, normals=normals, watermask=wm)
-        dec = decode_tile(raw, rect)
+        dec = decode_tile(raw, rect, gzipped=False)
         if self.geoid is not None:
             dec = {**dec, "height": dec["height"] - self.geoid.undulation_m(dec["lon"], dec["lat"])}
             spread = _undulation_spread_m(self.geoid, rect)
