@@ -406,6 +406,7 @@ def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pyte
     from terralod.pyramid.builder import build_store
     from terralod.pyramid.update import update_store
     from terralod.serve import TileService
+    from terralod.site.tiles import read_level
     from terralod.terrain import open_terrain
 
     hf = read_heightfield(shared_data / ALPINE)
@@ -431,8 +432,10 @@ def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pyte
         )
         assert [e["name"] for e in site["epochs"]] == [first, last] and site["pairs"][0]["from"] == first
         meta, files = svc.site_pair(0)
-        dod = np.frombuffer(gzip.decompress(files["pairs/0-dod.f32.gz"]), "<f4")
+        dod = read_level(meta["rasters"]["dod"], files.get)  # terralod.site.tiles: the finest level
         assert np.nanmax(dod) == pytest.approx(60.0, abs=0.5)  # the mound (same grid: no shift)
+        tile = meta["rasters"]["dod"]["url"] + "/0/0_0.i32.gz"  # served as the folder has it
+        assert svc.get("/" + tile)[0] == files[tile]
     out = tmp_path / "first"
     main(["export", str(store), "--format", "3dtiles", "-o", str(out), "--epoch", first])
     ts = json.loads((out / "tileset.json").read_text())

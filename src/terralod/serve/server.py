@@ -4,7 +4,7 @@ Routes (GET and HEAD; everything else is 405; any other path is 404, never a fil
 
 - ``/`` the page of :mod:`terralod.site` (``/site.js``, ``/site.css``: package data), the same page an exported
   site folder holds, answering the same paths: ``/site.json`` (the manifest), ``/epochs/I/tileset.json`` and
-  its tiles (3D Tiles of epoch I, pruned as the site's are), ``/pairs/K.json`` and its rasters: one
+  its tiles (3D Tiles of epoch I, pruned as the site's are), ``/pairs/K.json`` and its rasters' tiles: one
   :class:`terralod.site.plan.SitePlan` (the plan the site writer writes), made on the first request that
   needs it under its own lock (never the encoders'), then kept;
 - ``/cesium/...`` CesiumJS's browser build, the copy the package carries (:func:`terralod.serve.cesium_dir`;
@@ -48,7 +48,8 @@ __all__ = ["TileService", "make_server"]
 #: Files of the page (the change site's, package data of terralod.site); only these names are served.
 PAGE_FILES = ("index.html", "site.js", "site.css")
 _SITE_TILES = re.compile(r"^/epochs/(\d{1,4})(/tileset\.json|/tiles/\d{1,3}/\d{1,9}_\d{1,9}\.glb)$")
-_SITE_PAIR = re.compile(r"^/pairs/(\d{1,4})(\.json|-dod\.f32\.gz|-before\.f32\.gz|-overlay\.png)$")
+_SITE_PAIR = re.compile(r"^/pairs/(\d{1,4})\.json$")
+_SITE_RASTER = re.compile(r"^/pairs/\d{1,4}-(dod|before)/\d{1,2}/\d{1,6}_\d{1,6}\.i32\.gz$")
 _GLB = re.compile(r"^/3dtiles/tiles/(\d{1,3})/(\d{1,9})_(\d{1,9})\.glb$")
 _TERRAIN = re.compile(r"^/terrain/(\d{1,2})/(\d{1,9})/(\d{1,9})\.terrain$")
 _EPOCH = re.compile(r"^/e/([^/]{1,64})(/.*)$")
@@ -193,16 +194,14 @@ class TileService:
             )
         m = _SITE_PAIR.match(path)
         if m:
-            got = self.site_pair(int(m.group(1)))
-            if got is None:
+            plan = self.site_plan()
+            k = int(m.group(1))
+            if k >= len(plan.pairs):
                 return None
-            meta, files = got
-            if m.group(2) == ".json":
-                return json.dumps(meta, separators=(",", ":")).encode(), "application/json", False
-            role = {"-dod.f32.gz": "dod", "-before.f32.gz": "before", "-overlay.png": "overlay"}[m.group(2)]
-            body = files.get(meta["files"][role])
-            ctype = "image/png" if m.group(2).endswith(".png") else "application/gzip"
-            return (body, ctype, False) if body is not None else None
+            return json.dumps(plan.pair_meta[k], separators=(",", ":")).encode(), "application/json", False
+        if _SITE_RASTER.match(path):  # a tile of a pair's raster (terralod.site.tiles), gzip'd as it is read
+            body = self.site_plan().files.get(path[1:])
+            return (body, "application/gzip", False) if body is not None else None
         return None
 
     def info(self) -> dict[str, Any]:

@@ -40,8 +40,9 @@ What is in it:
   index.html, site.js, site.css   the page
   site.json                       what the page shows (dates, places, file names)
   epochs/                         the terrain of each date (3D Tiles)
-  pairs/                          the measured change between dates: the difference of heights (float32
-                                  rasters), its uncertainty, the coloured drape and the plain-language summary
+  pairs/                          the measured change between dates: the difference of heights and the
+                                  heights before (tiles of millimetres at several levels of detail), its
+                                  uncertainty, the colours and the plain-language summary
   cesium/                         CesiumJS, the 3D globe library (Apache-2.0, see cesium/LICENSE.md)
 
 Made with terralod. Size: {size_mb:.1f} MB.
@@ -216,7 +217,8 @@ def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
     rep.keep_error_m = plan.keep_error_m
     shared = share_tiles(tmp / "epochs", len(terrains)) if plan.share_tiles else 0
     (tmp / "pairs").mkdir()
-    for name, data in plan.files.items():
+    for name, data in plan.files.items():  # the rasters' tiles (terralod.site.tiles): pairs/K-ROLE/LEVEL/R_C
+        (tmp / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp / name).write_bytes(data)
     for k, meta in enumerate(plan.pair_meta):
         (tmp / "pairs" / f"{k}.json").write_text(json.dumps(meta, separators=(",", ":")))

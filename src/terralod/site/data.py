@@ -11,19 +11,17 @@ cells at their own heights (its worst residual is stored and tested). Every coor
 
 from __future__ import annotations
 
-import gzip
-import io
 import math
 from typing import Any
 
 import numpy as np
 
+from terralod.site.tiles import array_rows, write_pyramid
+
 #: Lattice nodes per side (lon/lat → grid CRS coordinates).
 LATTICE_NODES = 33
 #: One Olympic swimming pool (50 m × 25 m × 2 m), the page's familiar comparison for a volume.
 OLYMPIC_POOL_M3 = 2500.0
-#: Largest side of the drape texture (WebGL's guaranteed size is 4096).
-MAX_OVERLAY_PX = 4096
 #: Grey of "no measurable change" (inside the level of detection) and its opacity.
 LOD_GREY_RGBA = (150, 150, 150, 110)
 
@@ -86,35 +84,32 @@ def colour_scale(dod: np.ndarray, lod_m: float) -> tuple[float, float]:
     return lo, hi
 
 
-def overlay_png(dod: np.ndarray, lod_m: float) -> tuple[bytes, dict[str, Any]]:
-    """The drape (RGBA PNG on the grid, one pixel per cell up to :data:`MAX_OVERLAY_PX`) and its legend:
-    matplotlib's RdBu (colour-blind safe; blue = rose, red = dropped) on the report's scale, grey inside the
-    level of detection, transparent where there is no data."""
+#: Colours in the legend's look-up table the page colours the drape with (matplotlib's RdBu, evenly in the
+#: two-slope normalised value: 0 = the largest drop, 0.5 = no change, 1 = the largest rise).
+LUT_SIZE = 256
+
+
+def legend_of(dod: np.ndarray, lod_m: float) -> dict[str, Any]:
+    """The drape's legend: matplotlib's RdBu (colour-blind safe; blue = rose, red = dropped) on the report's
+    scale (:func:`colour_scale`), grey inside the level of detection, and the look-up table the page colours
+    the difference's tiles with (``lut_rgb``: LUT_SIZE RGB triples over the two-slope normalised value; the
+    page draws no data transparent, inside the level of detection :data:`LOD_GREY_RGBA`, else the table's
+    colour at opacity ``alpha``)."""
     from matplotlib import colormaps
     from matplotlib.colors import TwoSlopeNorm
-    from PIL import Image
 
     lo, hi = colour_scale(dod, lod_m)
     norm = TwoSlopeNorm(vmin=-lo, vcenter=0.0, vmax=hi)
     cmap = colormaps["RdBu"]
-    step = max(1, math.ceil(max(dod.shape) / MAX_OVERLAY_PX))
-    d = dod[::step, ::step]
-    fin = np.isfinite(d)
-    rgba = (cmap(norm(np.where(fin, d, 0.0))) * 255).round().astype(np.uint8)
-    rgba[..., 3] = 235
-    grey = fin & (np.abs(d) <= lod_m)
-    rgba[grey] = LOD_GREY_RGBA
-    rgba[~fin] = (0, 0, 0, 0)
-    buf = io.BytesIO()
-    Image.fromarray(rgba, "RGBA").save(buf, "PNG", optimize=True)
     values = [-lo, -lo / 2, -lod_m, lod_m, hi / 4, hi / 2, 3 * hi / 4, hi]
     stops = []
     for v in values:
         r, g, b, _ = cmap(norm(v))
         stops.append({"value_m": v, "css": f"rgb({round(255 * r)},{round(255 * g)},{round(255 * b)})"})
-    legend = {"min_m": -lo, "max_m": hi, "lod_m": lod_m, "stops": stops, "lod_css": "rgb(150,150,150)",
-              "rose": "blue", "dropped": "red"}  # fmt: skip
-    return buf.getvalue(), legend
+    lut = (cmap(np.linspace(0.0, 1.0, LUT_SIZE))[:, :3] * 255).round().astype(int)
+    return {"min_m": -lo, "max_m": hi, "lod_m": lod_m, "stops": stops, "lod_css": "rgb(150,150,150)",
+            "rose": "blue", "dropped": "red", "lut_rgb": lut.ravel().tolist(), "alpha": 235,
+            "lod_rgba": list(LOD_GREY_RGBA)}  # fmt: skip
 
 
 def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tuple[str, str], key: str,
@@ -128,7 +123,9 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
         "<f4"
     )
     unc = result.uncertainty
-    png, legend = overlay_png(dod, unc.level_of_detection_m)
+    legend = legend_of(dod, unc.level_of_detection_m)
+    dod_desc, dod_files = write_pyramid(array_rows(dod), dod.shape, f"pairs/{key}-dod")
+    before_desc, before_files = write_pyramid(array_rows(before), before.shape, f"pairs/{key}-before")
     s = result.summary
     ext = {}
     for k in ("max_rise", "max_drop"):
@@ -165,19 +162,10 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
             k: s[k] for k in ("net_m3", "net_uncertainty_m3", "gain_m3_above_lod", "loss_m3_above_lod")
         },
         "largest": big,
-        "files": {
-            "dod": f"pairs/{key}-dod.f32.gz",
-            "before": f"pairs/{key}-before.f32.gz",
-            "overlay": f"pairs/{key}-overlay.png",
-        },  # fmt: skip
+        "rasters": {"dod": dod_desc, "before": before_desc},
         "olympic_pool_m3": OLYMPIC_POOL_M3,
     }
-    files = {
-        f"pairs/{key}-dod.f32.gz": gzip.compress(dod.astype("<f4").tobytes(), 6, mtime=0),
-        f"pairs/{key}-before.f32.gz": gzip.compress(before.tobytes(), 6, mtime=0),
-        f"pairs/{key}-overlay.png": png,
-    }
-    return meta, files
+    return meta, {**dod_files, **before_files}
 
 
 def pairs_of(epochs: list[str]) -> list[tuple[str, str]]:

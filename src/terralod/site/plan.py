@@ -11,13 +11,13 @@ A :class:`SitePlan` holds:
   footprint and nowhere else; the heights, the area and the title;
 - the pruning: ``keep_error_m``, the smallest level of detection of the pairs (tiles whose measured error is at
   most it become leaves; 0 = nothing pruned), and whether tiles several epochs share are kept once;
-- each pair's description (``pairs/K.json``) and its rasters, a raster several pairs share (the same bytes)
-  named once: ``pair_meta[K]["files"]`` names the file to read, ``files`` holds every file once.
+- each pair's description (``pairs/K.json``) and its rasters as tile pyramids (:mod:`terralod.site.tiles`), a
+  pyramid several pairs share (the same tiles) written once: ``pair_meta[K]["rasters"]`` says where each
+  pyramid's tiles are, ``files`` holds every tile once; ``site.json`` states the tiles' encoding.
 """
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +25,7 @@ from types import MappingProxyType
 from typing import Any
 
 from terralod.site.data import epoch_label, pair_payload, pairs_of
+from terralod.site.tiles import ENCODING
 
 __all__ = ["PlannedPair", "SiteOptions", "SitePlan", "plan_site", "plan_store_site"]
 
@@ -80,7 +81,8 @@ class SitePlan:
         return f" between {epoch_label(self.epochs[0])} and {epoch_label(self.epochs[-1])}"
 
     def manifest(self) -> dict[str, Any]:
-        """``site.json``: the epochs, their tilesets, the pairs and where each is described."""
+        """``site.json``: the epochs, their tilesets, the pairs and where each is described, the rasters'
+        encoding (:data:`terralod.site.tiles.ENCODING`)."""
         return {
             "generator": "terralod",
             "title": self.title,
@@ -94,11 +96,13 @@ class SitePlan:
                 {"from": p.before, "to": p.after, "url": f"pairs/{k}.json"} for k, p in enumerate(self.pairs)
             ],
             "heights": dict(self.heights),
+            "rasters": dict(ENCODING),
         }
 
     def pair_files(self, k: int) -> dict[str, bytes]:
-        """The files pair ``k``'s description names (some may be another pair's)."""
-        return {name: self.files[name] for name in self.pair_meta[k]["files"].values()}
+        """The tiles of pair ``k``'s rasters (some may be another pair's)."""
+        prefixes = tuple(d["url"] + "/" for d in self.pair_meta[k]["rasters"].values())
+        return {name: b for name, b in self.files.items() if name.startswith(prefixes)}
 
 
 def height_words(vertical: Any) -> dict[str, str]:
@@ -144,17 +148,16 @@ def plan_site(
         pairs.append(PlannedPair(a, b, dates, res))
     lods = [p.result.uncertainty.level_of_detection_m for p in pairs]
     files: dict[str, bytes] = {}
-    written: dict[str, str] = {}  # content digest -> file name: a raster several pairs share is named once
-    metas = []
+    written: dict[str, dict[str, Any]] = {}  # pyramid digest -> its description: one several pairs share is
+    metas = []  # written once
     for k, p in enumerate(pairs):
         meta, own = pair_payload(p.result, p.dates, (p.before, p.after), str(k))
-        for role, name in list(meta["files"].items()):
-            digest = hashlib.sha256(own[name]).hexdigest()
-            if digest in written:
-                meta["files"][role] = written[digest]
+        for role, desc in list(meta["rasters"].items()):
+            if desc["sha256"] in written:
+                meta["rasters"][role] = written[desc["sha256"]]
             else:
-                written[digest] = name
-                files[name] = own[name]
+                written[desc["sha256"]] = desc
+                files.update((n, b) for n, b in own.items() if n.startswith(desc["url"] + "/"))
         metas.append(meta)
     t = first.transform
     lo, hi = elevation_range_m

@@ -32,23 +32,68 @@
   let site = null;
   const pairCache = new Map();
   const pairIndex = (a, b) => site.pairs.findIndex((p) => p.from === a && p.to === b);
+  // a pair's description (pairs/K.json); its rasters come tile by tile (below), when an answer or the view
+  // needs them
   async function loadPair(a, b) {
     const k = pairIndex(a, b);
     if (k < 0) throw new Error(`this site carries no difference from ${a} to ${b}`);
-    if (!pairCache.has(k)) {
-      pairCache.set(k, (async () => {
-        const meta = await (await fetch(site.pairs[k].url)).json();
-        // gzip'd float32 rasters, inflated here (DecompressionStream): any host serves them as they are
-        const inflate = async (u) => {
-          const body = (await fetch(u)).body.pipeThrough(new DecompressionStream("gzip"));
-          return new Float32Array(await new Response(body).arrayBuffer());
-        };
-        const [dod, before] = await Promise.all([inflate(meta.files.dod), inflate(meta.files.before)]);
-        return Object.assign(meta, { dod, beforeZ: before });
-      })());
-    }
+    if (!pairCache.has(k)) pairCache.set(k, fetch(site.pairs[k].url).then((r) => r.json()));
     return pairCache.get(k);
   }
+
+  // -- rasters: a pair's difference and BEFORE heights as tile pyramids (terralod.site.tiles) ----------------
+  // Level 0 is the grid (each cell's own value): changeAt and volume read only it; coarser levels (means of
+  // 2^k-cell blocks) are for the drape. Tiles are int32 steps (site.json's rasters: step_m, nodata), each row
+  // delta-coded, the int32s' bytes in four planes, gzip'd: inflated here, so any host serves them as they are.
+  const TILE_CACHE_MAX = 96;  // decoded tiles kept (least recently used go first)
+  const tileCache = new Map();  // tile URL -> Promise of its samples (Float64Array, NaN = no data)
+  function levelTiles(R, level) {
+    const [h, w] = R.levels[level].shape, n = R.tile_px;
+    return { h, w, rows: Math.ceil(h / n), cols: Math.ceil(w / n) };
+  }
+  function hasTile(R, level, tr, tc) {
+    const t = levelTiles(R, level);
+    return tr >= 0 && tc >= 0 && tr < t.rows && tc < t.cols && R.levels[level].tiles[tr * t.cols + tc] === "1";
+  }
+  function decodeTile(buf, rows, cols) {
+    const { step_m: step, nodata } = site.rasters, n = rows * cols, b = new Uint8Array(buf);
+    if (b.length !== 4 * n) throw new Error(`a tile of ${b.length} bytes is not ${rows} x ${cols} int32s`);
+    const out = new Float64Array(n);
+    for (let r = 0; r < rows; r++) {
+      let acc = 0;
+      for (let i = r * cols, end = i + cols; i < end; i++) {
+        acc = (acc + (b[i] | (b[n + i] << 8) | (b[2 * n + i] << 16) | (b[3 * n + i] << 24))) | 0;
+        out[i] = acc === nodata ? NaN : acc * step;
+      }
+    }
+    return out;
+  }
+  // tile (tr, tc) of a level: {data, rows, cols, r0, c0} (r0, c0: its first sample in the level), null where
+  // the pyramid has none (no data there)
+  function getTile(R, level, tr, tc) {
+    if (!hasTile(R, level, tr, tc)) return Promise.resolve(null);
+    const url = `${R.url}/${level}/${tr}_${tc}.i32.gz`;
+    let got = tileCache.get(url);
+    if (got) { tileCache.delete(url); tileCache.set(url, got); return got; }
+    got = (async () => {
+      const res = await fetch(url);
+      if (!res.ok) throw new Error(`${url}: HTTP ${res.status}`);
+      const buf = await new Response(res.body.pipeThrough(new DecompressionStream("gzip"))).arrayBuffer();
+      const n = R.tile_px, { h, w } = levelTiles(R, level);
+      const rows = Math.min(n, h - tr * n), cols = Math.min(n, w - tc * n);
+      return { data: decodeTile(buf, rows, cols), rows, cols, r0: tr * n, c0: tc * n };
+    })();
+    got.catch(() => tileCache.delete(url));
+    tileCache.set(url, got);
+    while (tileCache.size > TILE_CACHE_MAX) tileCache.delete(tileCache.keys().next().value);
+    return got;
+  }
+  // one cell of level 0 (the cell's own value), NaN outside the grid or where there is no data
+  async function cellValue(R, row, col) {
+    const n = R.tile_px, t = await getTile(R, 0, Math.floor(row / n), Math.floor(col / n));
+    return t ? t.data[(row - t.r0) * t.cols + (col - t.c0)] : NaN;
+  }
+  S.tileCacheSize = () => tileCache.size;
   // lon/lat (degrees) -> fractional grid (col, row): the lattice of grid-CRS coordinates, then the affine
   function toGrid(P, lon, lat) {
     const L = P.lattice, n = L.nodes;
@@ -79,18 +124,21 @@
     const [col, row] = toGrid(P, lon, lat);
     const c = Math.floor(col), r = Math.floor(row);
     const inside = c >= 0 && r >= 0 && c < w && r < h;
-    const d = inside ? P.dod[r * w + c] : NaN, b = inside ? P.beforeZ[r * w + c] : NaN;
+    const [d, b] = inside ? await Promise.all([cellValue(P.rasters.dod, r, c), cellValue(P.rasters.before, r, c)]) : [NaN, NaN];
     return { before_m: num(b), after_m: num(b + d), change_m: num(d), lod_m: P.error_model.lod_m,
       uncertainty_m: volumeUncertainty(P, P.grid.cell_area_m2) / P.grid.cell_area_m2, row: r, col: c };
   };
+  // the volume inside a polygon: the level-0 tiles it covers, streamed (a few at a time), each cell whose centre
+  // lies inside counted once (the rule of terralod change --zones)
   S.volume = async (ring, from, to) => {
     const P = await loadPair(from, to);
-    const [h, w] = P.grid.shape;
+    const R = P.rasters.dod, [h, w] = P.grid.shape, n = R.tile_px;
     const pts = ring.map(([lo, la]) => toGrid(P, lo, la));
     if (pts.length > 1 && pts[0][0] === pts[pts.length - 1][0] && pts[0][1] === pts[pts.length - 1][1]) pts.pop();
     if (pts.length < 3) throw new Error("a polygon needs at least three corners");
     const r0 = Math.max(0, Math.floor(Math.min(...pts.map((p) => p[1])))), r1 = Math.min(h - 1, Math.ceil(Math.max(...pts.map((p) => p[1]))));
-    let gain = 0, loss = 0, net = 0, cells = 0;
+    const spans = new Map();  // row -> [first col, last col, ...] of the cells whose centre lies inside
+    let c0 = w, c1 = -1;
     for (let r = r0; r <= r1; r++) {
       const yc = r + 0.5, xs = [];
       for (let k = 0, m = pts.length - 1; k < pts.length; m = k++) {  // crossings of the row's centre line
@@ -98,16 +146,34 @@
         if ((ya > yc) !== (yb > yc)) xs.push(xa + (yc - ya) * (xb - xa) / (yb - ya));
       }
       xs.sort((p, q) => p - q);
-      for (let k = 0; k + 1 < xs.length; k += 2) {  // cells whose centre lies between two crossings
-        const c0 = Math.max(0, Math.ceil(xs[k] - 0.5)), c1 = Math.min(w - 1, Math.floor(xs[k + 1] - 0.5));
-        for (let c = c0; c <= c1; c++) {
-          const v = P.dod[r * w + c];
-          if (!Number.isFinite(v)) continue;
-          cells++; net += v;
-          if (v > 0) gain += v; else loss -= v;
+      const row = [];
+      for (let k = 0; k + 1 < xs.length; k += 2) {
+        const a = Math.max(0, Math.ceil(xs[k] - 0.5)), b = Math.min(w - 1, Math.floor(xs[k + 1] - 0.5));
+        if (a <= b) { row.push(a, b); c0 = Math.min(c0, a); c1 = Math.max(c1, b); }
+      }
+      if (row.length) spans.set(r, row);
+    }
+    const jobs = [];
+    for (let tr = Math.floor(r0 / n); tr <= Math.floor(r1 / n); tr++)
+      for (let tc = Math.floor(c0 / n); c1 >= 0 && tc <= Math.floor(c1 / n); tc++) jobs.push([tr, tc]);
+    let gain = 0, loss = 0, net = 0, cells = 0;
+    const sumTile = (t) => {
+      for (let r = t.r0; r < t.r0 + t.rows; r++) {
+        const row = spans.get(r);
+        if (!row) continue;
+        for (let k = 0; k < row.length; k += 2) {
+          const a = Math.max(row[k], t.c0), b = Math.min(row[k + 1], t.c0 + t.cols - 1);
+          for (let c = a, i = (r - t.r0) * t.cols + (a - t.c0); c <= b; c++, i++) {
+            const v = t.data[i];
+            if (!Number.isFinite(v)) continue;
+            cells++; net += v;
+            if (v > 0) gain += v; else loss -= v;
+          }
         }
       }
-    }
+    };
+    const worker = async () => { for (let j = jobs.shift(); j; j = jobs.shift()) { const t = await getTile(R, 0, j[0], j[1]); if (t) sumTile(t); } };
+    await Promise.all([worker(), worker(), worker(), worker()]);
     const a = P.grid.cell_area_m2;
     return { gain_m3: gain * a, loss_m3: loss * a, net_m3: net * a, net_uncertainty_m3: volumeUncertainty(P, cells * a),
       cells, area_m2: cells * a };
@@ -170,6 +236,7 @@
         u_north: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3(0, 1, 0) },
         u_u: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3() },
         u_v: { type: Cesium.UniformType.VEC3, value: new Cesium.Cartesian3() },
+        u_win: { type: Cesium.UniformType.VEC4, value: new Cesium.Cartesian4(0, 0, 1, 1) },
         u_zc: { type: Cesium.UniformType.VEC3, value: centre },
         u_up: { type: Cesium.UniformType.VEC3, value: Cesium.Cartesian3.normalize(centre, new Cesium.Cartesian3()) },
         u_range: { type: Cesium.UniformType.VEC2, value: new Cesium.Cartesian2(zlo, zhi) },
@@ -184,9 +251,10 @@
           if (u_drape > 0.5) {
             vec3 d = p - u_centre;
             float e = dot(d, u_east), n = dot(d, u_north);
-            vec2 uv = vec2(u_u.x + u_u.y * e + u_u.z * n, u_v.x + u_v.y * e + u_v.z * n);
-            if (uv.x >= 0.0 && uv.x <= 1.0 && uv.y >= 0.0 && uv.y <= 1.0) {
-              vec4 c = texture(u_overlay, vec2(uv.x, 1.0 - uv.y));
+            vec2 g = vec2(u_u.x + u_u.y * e + u_u.z * n, u_v.x + u_v.y * e + u_v.z * n);  // col / w, row / h
+            vec2 uv = (g - u_win.xy) / u_win.zw;  // in the drawn window: its first row first
+            if (g.x >= 0.0 && g.x <= 1.0 && g.y >= 0.0 && g.y <= 1.0 && uv.x >= 0.0 && uv.x <= 1.0 && uv.y >= 0.0 && uv.y <= 1.0) {
+              vec4 c = texture(u_overlay, uv);
               material.diffuse = mix(base, c.rgb, c.a);
             }
           }
@@ -213,8 +281,57 @@
     return i;
   };
 
-  // the drape: pair (a -> b) on tileset i
-  const drapeOn = new Map();
+  // the drape: the part of the difference in view, coloured here with the legend's table, at the pyramid's
+  // level whose samples are about the screen's pixels (at most one sample per device pixel across the view)
+  function viewWindow(P) {
+    const [h, w] = P.grid.shape, rect = page.viewer.camera.computeViewRectangle();
+    if (!rect) return [0, h, 0, w];
+    const deg = Cesium.Math.toDegrees, corners = [];
+    for (const fx of [0, 0.5, 1]) for (const fy of [0, 0.5, 1])
+      corners.push(toGrid(P, deg(rect.west + fx * (rect.east - rect.west)), deg(rect.south + fy * (rect.north - rect.south))));
+    const cs = corners.map((p) => p[0]), rs = corners.map((p) => p[1]);
+    const padC = 0.1 * (Math.max(...cs) - Math.min(...cs)), padR = 0.1 * (Math.max(...rs) - Math.min(...rs));
+    const r0 = Math.max(0, Math.floor(Math.min(...rs) - padR)), r1 = Math.min(h, Math.ceil(Math.max(...rs) + padR));
+    const c0 = Math.max(0, Math.floor(Math.min(...cs) - padC)), c1 = Math.min(w, Math.ceil(Math.max(...cs) + padC));
+    return r1 > r0 && c1 > c0 ? [r0, r1, c0, c1] : [0, h, 0, w];
+  }
+  function drapePlan(P) {
+    const R = P.rasters.dod, n = R.tile_px, [r0, r1, c0, c1] = viewWindow(P);
+    const px = Math.max(page.scene.drawingBufferWidth || page.scene.canvas.width, page.scene.drawingBufferHeight || page.scene.canvas.height, 256);
+    let level = 0;
+    while (level < R.levels.length - 1 && Math.max(r1 - r0, c1 - c0) / 2 ** level > px) level++;
+    const f = 2 ** level, t = levelTiles(R, level);
+    const tr0 = Math.floor(r0 / f / n), tr1 = Math.min(t.rows - 1, Math.floor((r1 - 1) / f / n));
+    const tc0 = Math.floor(c0 / f / n), tc1 = Math.min(t.cols - 1, Math.floor((c1 - 1) / f / n));
+    return { level, tr0, tr1, tc0, tc1, key: `${R.url} ${level} ${tr0} ${tr1} ${tc0} ${tc1}` };
+  }
+  function paintTile(P, t, rgba, cols, r0, c0) {
+    const L = P.legend, lut = L.lut_rgb, nl = lut.length / 3, lod = L.lod_m;
+    for (let r = 0; r < t.rows; r++) {
+      for (let c = 0, i = r * t.cols, o = 4 * ((r0 + r) * cols + c0); c < t.cols; c++, i++, o += 4) {
+        const v = t.data[i];
+        if (!Number.isFinite(v)) continue;  // transparent: no data
+        if (Math.abs(v) <= lod) { rgba.set(L.lod_rgba, o); continue; }
+        const x = v < 0 ? 0.5 - 0.5 * Math.min(1, v / L.min_m) : 0.5 + 0.5 * Math.min(1, v / L.max_m);
+        const k = 3 * Math.min(nl - 1, Math.floor(x * nl));
+        rgba[o] = lut[k]; rgba[o + 1] = lut[k + 1]; rgba[o + 2] = lut[k + 2]; rgba[o + 3] = L.alpha;
+      }
+    }
+  }
+  // the drape's texture of a plan: its RGBA (the window's first row first) and where it lies in the grid
+  async function drapeImage(P, plan) {
+    const R = P.rasters.dod, n = R.tile_px, f = 2 ** plan.level, t = levelTiles(R, plan.level);
+    const [h, w] = P.grid.shape;
+    const rows = Math.min(t.h, (plan.tr1 + 1) * n) - plan.tr0 * n, cols = Math.min(t.w, (plan.tc1 + 1) * n) - plan.tc0 * n;
+    const rgba = new Uint8Array(4 * rows * cols), jobs = [];
+    for (let tr = plan.tr0; tr <= plan.tr1; tr++)
+      for (let tc = plan.tc0; tc <= plan.tc1; tc++)
+        jobs.push(getTile(R, plan.level, tr, tc).then((tile) => tile && paintTile(P, tile, rgba, cols, tile.r0 - plan.tr0 * n, tile.c0 - plan.tc0 * n)));
+    await Promise.all(jobs);
+    return { rgba, rows, cols, win: [(plan.tc0 * n * f) / w, (plan.tr0 * n * f) / h, (cols * f) / w, (rows * f) / h] };
+  }
+  // pair (a -> b) on tileset i (a === null: none)
+  const drapeOn = new Map();  // tileset index -> {pair, key}
   async function drape(i, a, b) {
     const sh = page.tilesets[i].customShader;
     if (!$("drape").checked || a === null || pairIndex(a, b) < 0) {
@@ -223,17 +340,29 @@
       return null;
     }
     const P = await loadPair(a, b);
+    const plan = drapePlan(P), was = drapeOn.get(i);
+    drapeOn.set(i, { pair: [a, b], key: plan.key });
+    if (!was || was.key !== plan.key || was.pair[0] !== a || was.pair[1] !== b) {
+      const img = await drapeImage(P, plan);
+      if ((drapeOn.get(i) || {}).key !== plan.key) return P;  // the view or the pair moved on meanwhile
+      sh.setUniform("u_overlay", new Cesium.TextureUniform({ typedArray: img.rgba, width: img.cols, height: img.rows, repeat: false }));
+      sh.setUniform("u_win", new Cesium.Cartesian4(...img.win));
+    }
     const D = P.drape;
-    sh.setUniform("u_overlay", new Cesium.TextureUniform({ url: P.files.overlay }));
     sh.setUniform("u_centre", Cesium.Cartesian3.fromArray(D.centre_ecef));
     sh.setUniform("u_east", Cesium.Cartesian3.fromArray(D.east));
     sh.setUniform("u_north", Cesium.Cartesian3.fromArray(D.north));
     sh.setUniform("u_u", Cesium.Cartesian3.fromArray(D.u));
     sh.setUniform("u_v", Cesium.Cartesian3.fromArray(D.v));
     sh.setUniform("u_drape", 1.0);
-    drapeOn.set(i, [a, b]);
     showLegend(P);
     return P;
+  }
+  // when the camera stops, each drape is redrawn for the new view (tiles already fetched are reused)
+  function wireDrapeFollowsView() {
+    page.viewer.camera.moveEnd.addEventListener(() => {
+      for (const [i, { pair }] of [...drapeOn]) drape(i, pair[0], pair[1]).catch((err) => S.errors.push("drape: " + err));
+    });
   }
   function showLegend(P) {
     // two slopes, as the report's colour bar: 0 in the middle, each side scaled to its own extreme
@@ -490,6 +619,7 @@
     wireSeries();
     wireScaleAndNorth();
     firstView();
+    wireDrapeFollowsView();
     await showSummary();
     const t0 = performance.now();
     await setEpoch(S.epochs.length > 1 ? page.last : page.first);
