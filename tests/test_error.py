@@ -108,9 +108,35 @@ def reference(verts, tris, z, valid, dx, dy, chunk=4096):
         vert[r, c] = v
         hit = np.isfinite(v)
         p = np.stack([c * dx, r * dy, z[r, c].astype(np.float64)], axis=1)[hit]
-        if p.shape[0]:
-            dist[r[hit], c[hit]] = np.sqrt(_point_tri_dist2(p, *tri_pts).min(axis=1))
+        rh, ch = r[hit], c[hit]
+        for i, j, reach2 in _blocks(p, tri_pts, v[hit]):  # the minimum over every triangle, square by square
+            d2 = _point_tri_dist2(p[i], *(t[j] for t in tri_pts)).min(axis=1) if j.size else np.inf
+            if not np.all(d2 <= reach2):  # a triangle left out could be nearer: take them all
+                d2 = _point_tri_dist2(p[i], *tri_pts).min(axis=1)
+            dist[rh[i], ch[i]] = np.sqrt(d2)
     return vert, dist
+
+
+def _blocks(p, tri_pts, v, cell=8.0):
+    """(samples, triangles, reach²) of squares of samples: every triangle whose box is within reach of the
+    square's box, reach being the square's largest vertical error (a covered sample lies about that far
+    from the mesh: its drop onto the covering triangle). The caller checks each minimum is within reach; a
+    triangle left out is further than reach, so the minimum over the rest is the minimum over all."""
+    if p.shape[0] == 0:
+        return []
+    lo = np.minimum.reduce(tri_pts)
+    hi = np.maximum.reduce(tri_pts)
+    size = max(float(np.ptp(p[:, :2], axis=0).max()) / cell, 1e-9)
+    key = np.floor((p[:, :2] - p[:, :2].min(axis=0)) / size).astype(np.int64)
+    key = key[:, 0] * (int(cell) + 2) + key[:, 1]
+    out = []
+    for k in np.unique(key):
+        i = np.nonzero(key == k)[0]
+        plo, phi = p[i].min(axis=0), p[i].max(axis=0)
+        gap = np.maximum(np.maximum(lo - phi, plo - hi), 0.0)
+        reach2 = (float(v[i].max()) * (1.0 + 1e-6) + 1e-6 * (1.0 + float(np.abs(p[i]).max()))) ** 2
+        out.append((i, np.nonzero((gap * gap).sum(-1) <= reach2 * (1.0 + 1e-6))[0], reach2))
+    return out
 
 
 def check_against_reference(
