@@ -2,7 +2,8 @@
 // puppeteer-core and its window.terralodSite contract. Reads a JSON job on stdin:
 //   {url, timeoutMs, shots: prefix, width, height, steps: [{op, args, shot?}]}
 // op is a contract function (setEpoch, setSwipe, changeAt, volume, describeChange, describeVolume) or
-// "heights" (CesiumJS's sampleHeightMostDetailed at [[lon, lat], ...] on what is shown) or "pixels"
+// "heights" (CesiumJS's sampleHeightMostDetailed at [[lon, lat], ...] on what is shown), "transfer" (the
+// bytes fetched so far, by part: cesium, page, json, tiles3d, rasters) or "pixels"
 // (RGB of the last screenshot's pixels at the screen positions of [[lon, lat, h], ...]).
 // Prints one JSON line: {errors, blocked, failedRequests, readyMs, firstViewMs, renderer, results: [...]}.
 import { openBrowser } from "./browser.mjs";
@@ -64,6 +65,18 @@ try {
         return { play: !$("play").hidden, legend: !$("legend").hidden, legendText: $("legend").innerText,
           chartPoints: path ? (path.getAttribute("d").match(/[ML]/g) || []).length : 0, summary: $("summary").innerText,
           north: !!$("north-needle"), scale: $("scale-text").textContent };
+      });
+    } else if (step.op === "transfer") {  // bytes fetched so far (resource timing's body sizes), by part
+      value = await page.evaluate(() => {
+        const parts = { cesium: 0, page: 0, tiles3d: 0, rasters: 0, json: 0 }, count = { ...parts };
+        let largest = 0;
+        for (const e of performance.getEntriesByType("resource").concat(performance.getEntriesByType("navigation"))) {
+          const p = new URL(e.name).pathname, b = e.encodedBodySize || 0;
+          const k = p.startsWith("/cesium/") ? "cesium" : p.startsWith("/epochs/") && !p.endsWith(".json") ? "tiles3d"
+            : p.startsWith("/pairs/") && !p.endsWith(".json") ? "rasters" : p.endsWith(".json") ? "json" : "page";
+          parts[k] += b; count[k] += 1; largest = Math.max(largest, b);
+        }
+        return { bytes: parts, files: count, largest };
       });
     } else if (step.op === "press") {  // a button of the page, by id
       await page.click("#" + step.args[0]);

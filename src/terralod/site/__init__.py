@@ -13,13 +13,15 @@ What the page reads (relative URLs, so a folder on any static host works; ``serv
 
 - ``site.json`` — the manifest (:meth:`terralod.site.plan.SitePlan.manifest`, the plan both the writer and
   ``serve`` read): epochs (name, label, tileset URL),
-  pairs (names, the URL of each pair's description), bounds and heights;
+  pairs (names, the URL of each pair's description), bounds and heights, the rasters' encoding (its step);
 - ``pairs/K.json`` — one pair (:func:`terralod.site.data.pair_payload`): the grid (shape, affine transform),
   a lon/lat lattice of grid coordinates (the page maps a point to its cell without a projection library),
-  the error model (σ, t, variogram), the legend, the plain-language summary; and its rasters
-  ``pairs/K-dod.f32.gz`` / ``pairs/K-before.f32.gz`` (little-endian float32, NaN = no data, gzip'd: the page
-  inflates them itself, so no host configuration is needed) and
-  ``pairs/K-overlay.png`` (the drape);
+  the error model (σ, t, variogram), the legend (with the colour table the page colours the drape with), the
+  plain-language summary, and where its rasters' tiles are: the difference and the BEFORE heights as tile
+  pyramids ``pairs/K-dod/LEVEL/ROW_COL.i32.gz`` (:mod:`terralod.site.tiles`: 256² tiles of int32 millimetres,
+  gzip'd, which the page inflates itself, so no host configuration is needed; level 0 is the grid, which
+  "how much changed here?" and the volume read, coarser levels the block means the drape shows), the page
+  fetching only the tiles its view or its answer needs;
 - ``epochs/I/tileset.json`` — 3D Tiles of epoch I; ``cesium/`` — CesiumJS's build.
 """
 

@@ -1,11 +1,13 @@
-"""What the change site's page reads: the manifest and, per pair of epochs, the difference raster with
-everything needed to answer "how much changed here?" in the browser (see :mod:`terralod.site`).
+"""What the change site's page reads: the manifest and, per pair of epochs, the difference raster (as tile
+pyramids, :mod:`terralod.site.tiles`) with everything needed to answer "how much changed here?" in the
+browser (see :mod:`terralod.site`).
 
 The page has no projection library. It maps a longitude/latitude to the difference raster's cell through a
 lattice of the grid CRS's coordinates at regular longitudes and latitudes (bilinear between nodes: over a
-lattice step of a few hundred metres a projection bends by millimetres), and drapes the overlay on the 3D
-Tiles through an affine map from local east/north metres to texture coordinates, fitted here on the grid's
-cells at their own heights (its worst residual is stored and tested). Every coordinate transform is
+lattice step of a few hundred metres a projection bends by millimetres), and drapes the difference (coloured in
+the page with the legend's table) on the 3D Tiles through an affine map from local east/north metres to
+texture coordinates, fitted here on the grid's cells at their own heights (its worst residual is stored and
+tested). Every coordinate transform is
 :mod:`terralod.export.geodesy`'s.
 """
 
