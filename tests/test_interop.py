@@ -107,6 +107,7 @@ def site(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     with open_terrain(store) as t:
         out["reports"]["qm_utm"] = export_quantized_mesh(t, root / "qm_utm")
         out["reports"]["t3_utm"] = export_3dtiles(t, root / "t3_utm")
+        out["reports"]["t3_split"] = export_3dtiles(t, root / "t3_split", split_levels=1)  # a file a level
     try:  # heights above EGM96 made ellipsoidal (needs PROJ's EGM96 grid: Debian's proj-data)
         out["reports"]["qm_geo_egm96"] = export_quantized_mesh(source_from_dem(geo), root / "qm_geo_egm96",
                                                                vertical_datum="egm96")  # fmt: skip
@@ -305,7 +306,7 @@ def test_3d_tiles_renderer_loads_and_refines(site: dict, static_server: str) -> 
     """3DTilesRendererJS with its defaults loads the root from an overview, and its children close up."""
     if (why := _node_missing("3d-tiles-renderer", "three")) is not None:
         pytest.skip(why)
-    for name in ("t3_utm", "t3_tin"):
+    for name in ("t3_utm", "t3_tin", "t3_split"):
         res = subprocess.run(["node", str(WEB / "tiles_renderer_check.mjs"), f"{static_server}/{name}/tileset.json",
                               "60000"], capture_output=True, text=True, timeout=200, cwd=REPO)  # fmt: skip
         r = json.loads(res.stdout.strip().splitlines()[-1])
@@ -379,15 +380,19 @@ def test_stock_cesium_quantized_mesh(site: dict, static_server: str, browser: st
 
 
 @pytest.mark.skipif(_browser_missing() is not None, reason=str(_browser_missing()))
-def test_stock_cesium_3dtiles(site: dict, static_server: str, browser: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize("name", ["t3_utm", "t3_split"])
+def test_stock_cesium_3dtiles(
+    site: dict, static_server: str, browser: str, tmp_path: Path, name: str
+) -> None:
     """Cesium3DTileset.fromUrl(url) with no options: the root draws from the whole-terrain view (the
     tileset's error is the error of drawing nothing), tiles refine close up, no console error, and
-    scene.sampleHeightMostDetailed at the source samples lies within the finest tiles' error."""
+    scene.sampleHeightMostDetailed at the source samples lies within the finest tiles' error; the same
+    through external tilesets (``t3_split``: a tileset file per level)."""
     from terralod.terrain import open_terrain
 
     lon, lat, z = _source_points(site["utm_dem"])
     plon, plat, pz = _sample_points(lon, lat, z)
-    ts = json.loads((site["root"] / "t3_utm" / "tileset.json").read_text())
+    ts = json.loads((site["root"] / name / "tileset.json").read_text())
     reg = np.degrees(ts["root"]["boundingVolume"]["region"][:4])
     with open_terrain(site["root"] / "tujunga.terra") as t:
         leaf_err = max(
@@ -395,7 +400,7 @@ def test_stock_cesium_3dtiles(site: dict, static_server: str, browser: str, tmp_
         )
     cfg = {"kind": "tileset", "views": _views(tuple(reg), (plon[-1], plat[-1])),
            "points": np.column_stack([plon, plat]).tolist()}  # fmt: skip
-    r = _stock(static_server, "tileset=t3_utm/tileset.json", cfg, tmp_path, browser)
+    r = _stock(static_server, f"tileset={name}/tileset.json", cfg, tmp_path, browser)
     assert not r["errors"] and not r["badResponses"] and not r["blocked"], r
     assert r["views"][0]["tileResponses"] >= 1, r  # the overview draws the root
     h = np.array([np.nan if v is None else v for v in r["heights"]], np.float64)

@@ -81,7 +81,7 @@ import numpy as np
 from terralod.export.common import check_exportable, export_inputs, export_key, source_heightfield, valid_at
 from terralod.export.geodesy import Geodesy
 
-__all__ = ["ExportReport", "Tiles3D", "export_3dtiles", "node_uri"]
+__all__ = ["ExportReport", "Tiles3D", "export_3dtiles", "node_uri", "split_tileset"]
 
 #: Skirts never shorter than this (metres): closes float rounding where both errors are zero.
 MIN_SKIRT_M = 0.01
@@ -94,6 +94,46 @@ QUANT_STEPS = 65535
 #: side, by under 4 m of its 100 km).
 QUANT_PAD = 0.02
 QUANT_PAD_M = 1.0
+
+
+#: Levels of the tree one tileset file holds: every node this many levels below the root of its file that
+#: has children starts an external tileset (``tileset-K.json``), so no file grows with the region (a
+#: 7.9 M-cell store's one tileset.json was 3.26 MB) and a viewer fetches the parts it refines into.
+SPLIT_LEVELS = 4
+
+
+def split_tileset(ts: dict[str, Any], levels: int = SPLIT_LEVELS) -> dict[str, dict[str, Any]]:
+    """``ts`` (one nested tileset) as files: ``{"tileset.json": ..., "tileset-K.json": ...}``.
+
+    A node ``levels`` levels below the root of its file, with children, moves with its subtree to an
+    external tileset (3D Tiles 1.1 § External tilesets): in its place a tile with the same bounding volume,
+    geometric error and transform whose content is the external file; the external file's root is the node
+    itself without a transform (it composes with the referencing tile's) and with its refinement stated.
+    Files sit beside tileset.json, so every content URI keeps its meaning; K counts the external files in
+    the order a depth-first walk meets them, so the same tree always gives the same files."""
+    files: dict[str, dict[str, Any]] = {}
+    counter = [0]
+    refine = ts["root"].get("refine", "REPLACE")
+
+    def cut(tile: dict[str, Any], depth: int) -> dict[str, Any]:
+        kids = tile.get("children")
+        if depth > 0 and depth % levels == 0 and kids:
+            counter[0] += 1
+            name = f"tileset-{counter[0]}.json"
+            root = {k: v for k, v in tile.items() if k != "transform"}
+            root["refine"] = tile.get("refine", refine)
+            root["children"] = [cut(k, 1) for k in kids]
+            files[name] = {"asset": ts["asset"], "geometricError": tile["geometricError"], "root": root}
+            ref = {k: tile[k] for k in ("boundingVolume", "geometricError", "transform") if k in tile}
+            ref["content"] = {"uri": name}
+            return ref
+        out = dict(tile)
+        if kids:
+            out["children"] = [cut(k, depth + 1) for k in kids]
+        return out
+
+    files["tileset.json"] = {**ts, "root": cut(ts["root"], 0)}
+    return files
 
 
 def node_uri(code: tuple[int, int, int]) -> str:
@@ -803,12 +843,14 @@ def export_3dtiles(
     max_error_m: float | None = None,
     client: Any = None,
     part: Any = None,
+    split_levels: int | None = SPLIT_LEVELS,
 ) -> ExportReport:
     """Write ``out/tileset.json`` and ``out/tiles/L/X_Y.glb`` for every node of ``terrain``'s LOD tree.
 
     ``part`` (:class:`terralod.export.quantized_mesh.Part`: a box in degrees, levels of the tree as zooms)
     writes only the nodes that meet the box up to ``max_zoom``, with content from ``min_zoom``, each glb
-    byte for byte the whole export's.
+    byte for byte the whole export's. ``split_levels``: the tileset in files of that many levels
+    (:func:`split_tileset`); None writes one tileset.json (the site splits its own after pruning).
 
     ``geometry``: ``"quantized"`` (KHR_mesh_quantization), ``"meshopt"`` (also EXT_meshopt_compression,
     needs node and the npm meshoptimizer package) or ``"float"``; ``max_error_m``: leave out the nodes whose
@@ -880,9 +922,13 @@ def export_3dtiles(
             if progress is not None:
                 progress(i + 1, len(codes))
         view.close()
-        ts = json.dumps(view.tileset(part), separators=(",", ":"))
-        o.write("tileset.json", ts.encode())
-        rep.bytes += len(ts)
+        whole = view.tileset(part)
+        files = {"tileset.json": whole} if split_levels is None else split_tileset(whole, split_levels)
+        for name, js in files.items():
+            data = json.dumps(js, separators=(",", ":"))
+            o.write(name, data.encode())
+            rep.bytes += len(data)
+
         o.seal()
         changes = {"rewritten": list(o.rewritten), "removed": o.prune()} if update else {}
     rep.triangles = int(sum(view._triangles.values()))
@@ -891,6 +937,6 @@ def export_3dtiles(
                  "levels": len({c[0] for c in view.nodes}), "geometric_error_root": math.nan,
                  "heights": view.geo.vertical_record(), "geometry": geometry, "max_error_m_option": max_error_m,
                  "encoding_error_m": moved}  # fmt: skip
-    rep.extra["geometric_error_root"] = json.loads(ts)["geometricError"]
+    rep.extra["geometric_error_root"] = whole["geometricError"]
     rep.extra.update(resumed=o.adopted is not None, encoded=len(todo), **changes)
     return rep

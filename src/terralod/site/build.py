@@ -206,16 +206,20 @@ def _atomic_site(
 def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
     """The site of ``plan`` into ``tmp``: each of ``terrains`` (one per epoch, in order) as 3D Tiles, pruned
     and shared as the plan says, the pairs' files, the manifest, the page and CesiumJS."""
-    from terralod.export.tiles3d import export_3dtiles
+    from terralod.export.tiles3d import export_3dtiles, split_tileset
 
     rep = SiteReport(tmp, epochs=len(plan.epochs), pairs=len(plan.pairs), area_km2=plan.area_km2)
     (tmp / "epochs").mkdir()
     pruned = 0
     for i, t in enumerate(terrains):
-        export_3dtiles(t, tmp / "epochs" / str(i))
+        export_3dtiles(t, tmp / "epochs" / str(i), split_levels=None)  # pruned and shared whole, then split
         pruned += prune_tiles(tmp / "epochs" / str(i), plan.keep_error_m)
     rep.keep_error_m = plan.keep_error_m
     shared = share_tiles(tmp / "epochs", len(terrains)) if plan.share_tiles else 0
+    for i in range(len(terrains)):  # each epoch's tileset in files a viewer fetches as it refines
+        ts_path = tmp / "epochs" / str(i) / "tileset.json"
+        for name, js in split_tileset(json.loads(ts_path.read_text())).items():
+            (ts_path.parent / name).write_text(json.dumps(js, separators=(",", ":")))
     (tmp / "pairs").mkdir()
     for name, data in plan.files.items():  # the rasters' tiles (terralod.site.tiles): pairs/K-ROLE/LEVEL/R_C
         (tmp / name).parent.mkdir(parents=True, exist_ok=True)
