@@ -384,7 +384,14 @@ class RegionGrid(SourceGrid):
         return self.reader.water_gather(rows, cols)
 
     def _points(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        raise NotImplementedError("a region gives its samples a tile at a time (points_in)")
+        """lon, lat, height of every valid sample, read now (memory of the whole region, as :attr:`z_m`: for
+        small DEMs and independent checks; the tiler reads a tile's, :meth:`points_in`, or strips of them)."""
+        if self._flat is None:
+            z, ok = self.window(0, self.shape[0], 0, self.shape[1])
+            rr, cc = np.nonzero(ok)
+            lon, lat = self._lonlat(self.t.c + (cc + 0.5) * self.t.a, self.t.f + (rr + 0.5) * self.t.e)
+            self._flat = (lon, lat, z[rr, cc])
+        return self._flat
 
     def points_in(self, z: int, x: int, y: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The valid samples inside geographic tile z/x/y, edges included (read from its window)."""
