@@ -42,7 +42,7 @@ import click
 
 from terralod.cli._console import console
 from terralod.cli._errors import require_extra
-from terralod.cli._options import is_store, load, read_options
+from terralod.cli._options import check_raster_size, is_store, load, read_options
 
 _DATE = re.compile(r"(\d{4}-\d{2}-\d{2})")
 
@@ -186,13 +186,18 @@ def change(
         out, inputs=[*inputs, *(p for p in (zones, stable, exclude) if p)], overwrite=overwrite
     )
     output_of.check()  # refusals first, before the long measurement
+    for path in inputs:  # the one size limit, from the headers, before anything is read (windowed or not)
+        check_raster_size(path)
     first = inputs[0]
+    lidar = _lidar_pair(inputs)
+    if dask_address and lidar is not None:
+        raise click.BadParameter("is for DEM files or regions, not LiDAR surveys", param_hint="--dask")
     if dask_address:
         require_extra("change --dask", "dask")
         if not (len(inputs) == 2 and _windowed(inputs, read, with_site, forced=True)):
             raise click.BadParameter("is for a BEFORE AFTER pair of DEM files or regions (no --site, --encoding, "
                                      "--tile or --spacing)", param_hint="--dask")  # fmt: skip
-    if len(inputs) == 2 and _windowed(inputs, read, with_site, forced=bool(dask_address)):
+    if lidar is None and len(inputs) == 2 and _windowed(inputs, read, with_site, forced=bool(dask_address)):
         _change_windowed(
             inputs, output_of, out, zones=zones, stable=stable, exclude=exclude, no_coregister=no_coregister,
             coreg_method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
@@ -202,7 +207,13 @@ def change(
         return
     notes: list[str] = []
     series_hf = None
-    if len(inputs) == 1 and Path(first).is_file() and is_store(Path(first)):
+    gridding = None
+    if lidar is not None:
+        gridding = _grid_lidar(inputs, read)
+        hfs = [gridding.before, gridding.after]
+        ds = [_date_of(p) for p in inputs]
+        notes.append(f"gridding: {gridding.statement}")
+    elif len(inputs) == 1 and Path(first).is_file() and is_store(Path(first)):
         if not (date_from and date_to):
             raise InputError("a .terra store needs --from DATE and --to DATE", first)
         hfs, ds = [_epoch(first, date_from), _epoch(first, date_to)], [date_from, date_to]
@@ -237,6 +248,8 @@ def change(
         slope_min_deg=min_slope_deg,
     )  # fmt: skip
     result.summary["alignment_notes"] = notes + result.summary["alignment_notes"]
+    if gridding is not None:
+        result.summary["gridding"] = gridding.as_dict()
     # the machine's folders are nobody's business: inputs are named by their file names only
     result.summary = _without_folders(result.summary, [*inputs, *(p for p in (zones, stable, exclude) if p)])
     series = None
@@ -282,6 +295,50 @@ def _print_result(result, pair_dates, out: Path) -> None:  # noqa: ANN001
     )  # fmt: skip
     for n in s["alignment_notes"]:
         console.print(f"  {n}")
+
+
+def _lidar_pair(inputs) -> bool | None:  # noqa: ANN001
+    """True when BEFORE AFTER are two LiDAR surveys (LAS/LAZ files, folders or globs), None when neither is;
+    one of each is refused in one line naming the LiDAR side."""
+    from terralod.change.lidar import is_lidar_input
+    from terralod.errors import InputError
+
+    if len(inputs) < 2:
+        return None
+    is_las = [is_lidar_input(p) for p in inputs]
+    if not any(is_las):
+        return None
+    if len(inputs) != 2 or not all(is_las):
+        bad = inputs[is_las.index(True)]
+        raise InputError("is a LiDAR survey: compare it with another LiDAR survey (BEFORE AFTER, two of them), "
+                         "not with a DEM or a series", bad)  # fmt: skip
+    return True
+
+
+def _grid_lidar(inputs, read: dict):  # noqa: ANN001
+    """The two surveys gridded on one grid (:func:`terralod.change.lidar.grid_survey_pair`); --spacing is the
+    grid's spacing in metres (one number, or DX,DY with DX = DY)."""
+    from terralod.change.lidar import grid_survey_pair
+
+    spacing_m = None
+    if read.get("spacing"):
+        try:
+            parts = [float(v) for v in str(read["spacing"]).split(",")]
+        except ValueError:
+            raise click.BadParameter(
+                f"expected metres, got {read['spacing']!r}", param_hint="--spacing"
+            ) from None
+        if not parts or any(not (v > 0) for v in parts) or len(set(parts)) != 1:
+            raise click.BadParameter(
+                "a LiDAR pair takes one positive spacing in metres", param_hint="--spacing"
+            )
+        spacing_m = parts[0]
+    dem_only = {"encoding": "--encoding", "tile_zxy": "--tile", "vertical_scale": "--vertical-scale",
+                "vertical_offset": "--vertical-offset"}  # fmt: skip
+    for k, flag in dem_only.items():
+        if read.get(k):
+            raise click.BadParameter("is for DEM files, not LiDAR surveys", param_hint=flag)
+    return grid_survey_pair(inputs[0], inputs[1], spacing_m=spacing_m, crs=read.get("crs"))
 
 
 #: A pair of more cells than this is read window by window even when each side is one file.
