@@ -120,3 +120,28 @@ def test_nice_spacing() -> None:
     assert [nice_spacing_m(v) for v in (0.4, 1.0, 1.2, 1.53, 2.7, 3.1, 6.0, 8.0)] == [
         0.4, 1.0, 1.5, 2.0, 3.0, 4.0, 7.5, 10.0,
     ]  # fmt: skip
+
+
+def test_folder_of_tiles_and_site(pair, tmp_path: Path, capsys) -> None:
+    """AFTER as a folder of LAS tiles (the survey resolver, las_inputs) and --site: both epochs as the gridded
+    surfaces' 3D Tiles."""
+    pytest.importorskip("terralod.site")
+    before, after, _ = pair
+    las = laspy.read(str(after))
+    tiles = tmp_path / "after_tiles"
+    tiles.mkdir()
+    mid = float(np.median(las.x))
+    for i, m in enumerate((np.asarray(las.x) < mid, np.asarray(las.x) >= mid)):
+        sub = laspy.LasData(las.header)
+        sub.points = las.points[m]
+        sub.write(str(tiles / f"t{i}.las"))
+    out = tmp_path / "out"
+    code, _, se = _run(capsys, "change", before, tiles, "-o", out, "--no-views", "--site")
+    assert code == 0, se
+    s = json.loads((out / "summary.json").read_text())
+    assert s["gain_m3"] == pytest.approx(PLANTED_M3, rel=0.05)
+    assert s["after"]["source"] == "after_tiles (2 point-cloud files)"
+    site = json.loads((out / "site" / "site.json").read_text())
+    assert len(site["epochs"]) == 2
+    for e in site["epochs"]:
+        assert (out / "site" / e["tileset"]).is_file()

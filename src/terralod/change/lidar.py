@@ -183,12 +183,15 @@ def grid_survey_pair(
     t = Affine(spacing, 0.0, x0, 0.0, -spacing, y1)
     max_edge = MAX_EDGE_SPACINGS * spacing
     hfs = []
-    for f, c, which in zip(files, clouds, ("BEFORE", "AFTER"), strict=True):
+    for given, f, c, which in zip((before, after), files, clouds, ("BEFORE", "AFTER"), strict=True):
         z = sample_tin(c.xyz_m, xc, yc, max_edge)
         ok = np.isfinite(z)
         if not ok.any():
             raise InputError(f"{which}: no cell of the common grid lies in its ground surface", str(f[0]))
-        name = str(f[0]) if len(f) == 1 else f"{len(f)} LAS/LAZ files ({f[0].name}, ...)"
+        # a survey of several files by what was given (no slash: the summary names inputs by file name)
+        name = (
+            str(f[0]) if len(f) == 1 else f"{Path(str(given).rstrip('/')).name} ({len(f)} point-cloud files)"
+        )
         hfs.append(georeferenced_heightfield(np.where(ok, z, np.nan), ok, t, a.crs, name, notes=c.notes))
     # points per cell: over each survey's own hull (what the density supports), not the common grid
     ppc = tuple(float((spacing / d) ** 2) for d in density_m)

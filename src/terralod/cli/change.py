@@ -6,6 +6,10 @@ Input forms:
 - ``BEFORE AFTER`` — two DEMs in any format and CRS the readers take; each side may also be a region of
   DEM tiles on one grid (a folder, a quoted glob or a .vrt), read window by window
   (:mod:`terralod.change.windowed`), as is a pair of more than :data:`WINDOWED_MIN_CELLS` cells;
+- ``BEFORE AFTER`` — two LiDAR surveys, each a LAS/LAZ file, a folder or a quoted glob of tiles: each
+  survey's ground points (class 2 when classified) joined into a Delaunay TIN whose linear surface is read
+  on one grid (:mod:`terralod.change.lidar`: the spacing their density supports, or ``--spacing``); the
+  rule is stated in ``gridding`` of the summary and in the report's notes;
 - ``BEFORE AFTER1 AFTER2 ...`` — a series: the summary is BEFORE → the last, plus the volume of each
   epoch against BEFORE (``series`` in the summary, the volume-against-time figure in the report);
 - ``SERIES.npz`` with arrays ``base``, ``delta`` (epoch i = base + delta[i]), ``dates`` and the
@@ -166,10 +170,15 @@ def change(
     ("tiles/*.tif") or a .vrt; a region (or a pair too large to hold) is read window by window, lined up
     on an even sample of it, and dod.tif is written as a Cloud Optimized GeoTIFF.
 
+    BEFORE and AFTER may also be two LiDAR surveys (LAS/LAZ files, folders or quoted globs): the ground
+    points of each are joined into a surface of triangles read on one grid, every --spacing metres or at
+    the spacing the point density supports; the summary and report say the rule.
+
     \b
     Example:
       terralod change dem_2015.tif dem_2021.tif -o site_change --exclude glacier.geojson
       terralod change tiles_2015/ "tiles_2021/*.tif" -o region_change
+      terralod change lidar_2015/ lidar_2021/ -o lidar_change --site
     """
     require_extra("change", "change")
     if with_site:
