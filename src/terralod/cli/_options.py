@@ -66,7 +66,10 @@ def parse_pair(text: str | None, name: str) -> tuple[float, float] | None:
 def read_options(f: Callable[..., Any]) -> Callable[..., Any]:
     """The options that tell a reader how to decode a heightmap without georeferencing of its own."""
     f = click.option(
-        "--spacing", "spacing", help="Ground spacing DX[,DY] in metres (un-georeferenced inputs)."
+        "--spacing",
+        "spacing",
+        help="Ground spacing DX[,DY] in metres (un-georeferenced inputs; for a LiDAR "
+        "pair in `change`, the grid its ground points are read on).",
     )(f)
     f = click.option("--vertical-scale", type=float, help="Metres per stored unit (PNG/NPY heightmaps).")(f)
     f = click.option("--vertical-offset", type=float, help="Metres added after scaling.")(f)
