@@ -7,8 +7,9 @@ mirror-tiled into separate 1° GeoTIFFs, EPSG:4326):
 
 1. the command runs uninterrupted once (the reference, its wall time T);
 2. the same command, into another output, is killed with SIGKILL ``--kills`` times at seeded random moments
-   (uniform in (0.05 T, 0.9 T) after each start, so a kill can fall on the start-up, a tile, a commit or
-   the final swap), each time started again with ``--resume``; then it runs to the end with ``--resume``;
+   (once a share of the work drawn uniformly in (0.05, 0.9) is done, polled at random intervals, or at that
+   share of T at the latest, so a kill can fall on the start-up, a tile, a commit or the final swap), each
+   time started again with ``--resume``; then it runs to the end with ``--resume``;
 3. the result is compared with the reference: every file's bytes (export: the output folder; build: every
    tile row of the store, which names its own path and build time in its metadata, so rows only), and
    the finished work counted before each kill is checked to be there after it (export: tiles in the work
@@ -32,14 +33,24 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import SHARED, md_table, write_results  # noqa: E402
 from region import write_mosaic  # noqa: E402
 
+from _common import SHARED, md_table, write_results  # noqa: E402
 
 
 def _cmd(stage: str, dem: Path, out: Path) -> list[str]:
     if stage == "export":
-        return [sys.executable, "-m", "terralod", "export", str(dem), "--format", "quantized-mesh", "-o", str(out)]
+        return [
+            sys.executable,
+            "-m",
+            "terralod",
+            "export",
+            str(dem),
+            "--format",
+            "quantized-mesh",
+            "-o",
+            str(out),
+        ]
     return [sys.executable, "-m", "terralod", "build", str(dem), "-o", str(out)]
 
 
@@ -60,7 +71,11 @@ def _done(stage: str, out: Path) -> dict[str, int]:
     """What is finished at this moment: export: {tile: inode} in the work folder; build: committed rows."""
     if stage == "export":
         work = out.parent / f".{out.name}.work" / "out"
-        return {str(f.relative_to(work)): f.stat().st_ino for f in work.rglob("*.terrain")} if work.is_dir() else {}
+        return (
+            {str(f.relative_to(work)): f.stat().st_ino for f in work.rglob("*.terrain")}
+            if work.is_dir()
+            else {}
+        )
     if not out.exists():
         return {}
     try:
@@ -76,17 +91,25 @@ def run_stage(stage: str, dem: Path, d: Path, kills: int, rng: random.Random) ->
     subprocess.run(_cmd(stage, dem, ref), check=True, capture_output=True)
     ref_s = time.perf_counter() - t0
     out = d / f"{stage}-killed" if stage == "export" else d / f"{stage}-killed.terra"
+    total = len(_tree(ref)) if stage == "export" else _done(stage, ref).get("rows", 0)
     lost = 0
     moments = []
     for k in range(kills):
         cmd = _cmd(stage, dem, out) + (["--resume"] if k else [])
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        wait = rng.uniform(0.05, 0.9) * ref_s
+        # killed once a drawn share of the work is done (a moment drawn in seconds misses when the load
+        # changes between runs), at a drawn instant within the next poll, or at the drawn time at the latest
+        share = rng.uniform(0.05, 0.9)
+        wait = share * ref_s
         t = time.perf_counter()
         while proc.poll() is None and time.perf_counter() - t < wait:
-            time.sleep(0.01)
+            got = _done(stage, out)
+            n = len(got) if stage == "export" else got.get("rows", 0)
+            if n >= share * total:
+                break
+            time.sleep(rng.uniform(0.05, 0.5))
         if proc.poll() is not None:
-            moments.append(f"finished before {wait:.1f} s")
+            moments.append(f"finished before the kill ({share:.0%})")
             continue
         before = _done(stage, out)
         proc.send_signal(signal.SIGKILL)
@@ -103,7 +126,9 @@ def run_stage(stage: str, dem: Path, d: Path, kills: int, rng: random.Random) ->
     last_s = time.perf_counter() - t0
     if stage == "export":
         same = _tree(out) == _tree(ref)
-        reused = sum(1 for rel, ino in kept.items() if (out / rel).exists() and (out / rel).stat().st_ino == ino)
+        reused = sum(
+            1 for rel, ino in kept.items() if (out / rel).exists() and (out / rel).stat().st_ino == ino
+        )
         kept_n = len(kept)
     else:
         same = _rows(out) == _rows(ref)
