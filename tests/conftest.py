@@ -158,3 +158,28 @@ def terralod_cli(*args: str, cwd: Path | str | None = None, env: dict[str, str] 
             else:
                 os.environ[k] = v
     return subprocess.CompletedProcess(["terralod", *map(str, args)], rc, out.getvalue(), err.getvalue())
+
+
+def read_tileset(folder: Path | str, name: str = "tileset.json") -> dict:
+    """A 3D Tiles tileset read as a client reads it: an external tileset (a tile whose content is a
+    ``.json``) replaced by that file's root, which takes the referencing tile's transform (3D Tiles 1.1,
+    external tilesets): one nested tree, whatever the files it is split into."""
+    import json
+
+    folder = Path(folder)
+    ts = json.loads((folder / name).read_text())
+
+    def walk(tile: dict) -> dict:
+        uri = tile.get("content", {}).get("uri", "")
+        if uri.endswith(".json"):
+            ext = read_tileset(folder, uri)["root"]
+            ref = tile
+            tile = {k: v for k, v in ext.items() if k != "transform"}
+            if "transform" in ref:
+                tile["transform"] = ref["transform"]
+        out = dict(tile)
+        if "children" in tile:
+            out["children"] = [walk(k) for k in tile["children"]]
+        return out
+
+    return {**ts, "root": walk(ts["root"])}

@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import read_tileset
+
 REPO = Path(__file__).resolve().parents[1]
 NODE_MODULES = REPO / "node_modules"
 WEB = REPO / "tests" / "web"
@@ -276,7 +278,7 @@ def test_3dtiles_geometric_error_as_specified(site: dict) -> None:
     """The tileset's geometricError (drawing nothing) is at least the terrain's horizontal diagonal; each
     tile's is at least its children's; a TIN's content-less root carries the tileset's."""
     for name in ("t3_utm", "t3_tin"):
-        ts = json.loads((site["root"] / name / "tileset.json").read_text())
+        ts = read_tileset(site["root"] / name)
         reg = ts["root"]["boundingVolume"]["region"]
         lat = 0.5 * (reg[1] + reg[3])
         diag = math.hypot((reg[2] - reg[0]) * 6378137 * math.cos(lat), (reg[3] - reg[1]) * 6378137)
@@ -392,7 +394,7 @@ def test_stock_cesium_3dtiles(
 
     lon, lat, z = _source_points(site["utm_dem"])
     plon, plat, pz = _sample_points(lon, lat, z)
-    ts = json.loads((site["root"] / name / "tileset.json").read_text())
+    ts = read_tileset(site["root"] / name)
     reg = np.degrees(ts["root"]["boundingVolume"]["region"][:4])
     with open_terrain(site["root"] / "tujunga.terra") as t:
         leaf_err = max(
@@ -529,7 +531,7 @@ def test_stock_cesium_3dtiles_of_a_geographic_store(
 
     lon, lat, z = _source_points(site["geo_dem"])
     plon, plat, pz = _sample_points(lon, lat, z)
-    ts = json.loads((site["root"] / "t3_geo" / "tileset.json").read_text())
+    ts = read_tileset(site["root"] / "t3_geo")
     reg = np.degrees(ts["root"]["boundingVolume"]["region"][:4])
     with open_terrain(site["root"] / "tarragona.terra") as t:
         tree = t.lod_tree()

@@ -28,6 +28,8 @@ from hypothesis import strategies as st
 
 from terralod.cli import main
 
+from conftest import read_tileset
+
 REPO = Path(__file__).resolve().parents[1]
 BEFORE = "change/st_helens_crater_2000-09-25_10m.tif"
 AFTER = "change/st_helens_crater_2007-07-05_10m.tif"
@@ -177,7 +179,7 @@ def test_site_folder_is_whole_and_names_no_machine(change_run: Path) -> None:
     assert pair["drape"]["residual_cells"] < 0.5
     lod = pair["error_model"]["lod_m"]
     for i in (0, 1):  # levels finer than the level of detection are left out; every tile referenced is there
-        ts = json.loads((site / "epochs" / str(i) / "tileset.json").read_text())
+        ts = read_tileset(site / "epochs" / str(i))
         leaves = _leaves(ts["root"])
         assert all(n["geometricError"] <= lod for n in leaves)
         stack = [ts["root"]]
@@ -297,7 +299,7 @@ def test_static_site_answers_like_terralod_change(
     for i, (epoch, dem) in enumerate(((A, BEFORE), (B, AFTER))):
         src = _dem_values(dem, hpts)
         h = heights[epoch]
-        ts = json.loads((change_run / "site" / "epochs" / str(i) / "tileset.json").read_text())
+        ts = read_tileset(change_run / "site" / "epochs" / str(i))
         stored = max(n["geometricError"] for n in _leaves(ts["root"]))
         assert np.isfinite(h).sum() >= 6
         assert np.nanmax(np.abs(h - src)) <= stored + 0.5, (epoch, h - src, stored)  # + picking precision

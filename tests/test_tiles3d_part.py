@@ -4,14 +4,13 @@ export's, the tileset a valid tree (each content's file there, errors never grow
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import pytest
 
 from terralod.cli import main
 
-from conftest import crop_geotiff
+from conftest import crop_geotiff, read_tileset
 
 pytest.importorskip("pyproj")
 
@@ -39,7 +38,7 @@ def _nodes(tile: dict, out: list[dict]) -> list[dict]:
 
 
 def _check_tree(out: Path) -> list[dict]:
-    ts = json.loads((out / "tileset.json").read_text())
+    ts = read_tileset(out)
     nodes = _nodes(ts["root"], [])
 
     def walk(t: dict) -> None:

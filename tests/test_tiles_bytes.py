@@ -22,6 +22,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from conftest import read_tileset
+
 pytest.importorskip("pygltflib")
 pytest.importorskip("pyproj")
 
@@ -234,7 +236,7 @@ def test_declared_errors_bound_the_dem(crop: Path, exports: dict[str, Path], geo
     out = exports[geometry]
     pts, wkt = _samples(crop)
     back = Transformer.from_crs(CRS.from_epsg(4978), CRS.from_wkt(wkt), always_xy=True)
-    ts = json.loads((out / "tileset.json").read_text())
+    ts = read_tileset(out)
     checked, worst_shift = 0, 0.0
     for node, centre in _tiles(ts["root"], np.zeros(3)):
         pos, _, tri, gl = decode_glb((out / node["content"]["uri"]).read_bytes())
@@ -271,7 +273,7 @@ def test_stored_vertices_within_the_encoding_bound(store: Path, exports: dict[st
         to_ecef = Transformer.from_crs(t.crs, "EPSG:4978", always_xy=True)
         tree = {n.code: n for n in t.lod_tree()}
         for g, out in exports.items():
-            ts = json.loads((out / "tileset.json").read_text())
+            ts = read_tileset(out)
             for node, centre in _tiles(ts["root"], np.zeros(3)):
                 pos, _, tri, gl = decode_glb((out / node["content"]["uri"]).read_bytes())
                 code = tuple(gl["extras"]["code"])
@@ -324,7 +326,7 @@ def test_max_error_cuts_the_tree(store: Path, tmp_path: Path) -> None:
 
     full, cut = tmp_path / "full", tmp_path / "cut"
     main(["export", str(store), "--format", "3dtiles", "--metric", "vertical", "-o", str(full)])
-    whole = {n["content"]["uri"]: n for n, _ in _tiles(json.loads((full / "tileset.json").read_text())["root"],
+    whole = {n["content"]["uri"]: n for n, _ in _tiles(read_tileset(full)["root"],
                                                        np.zeros(3))}  # fmt: skip
     errs = sorted({n["geometricError"] for n in whole.values()})
     e = errs[len(errs) // 2]
@@ -342,7 +344,7 @@ def test_max_error_cuts_the_tree(store: Path, tmp_path: Path) -> None:
             str(cut),
         ]
     )
-    kept = _tiles(json.loads((cut / "tileset.json").read_text())["root"], np.zeros(3))
+    kept = _tiles(read_tileset(cut)["root"], np.zeros(3))
     parent_of = {}
     for n in whole.values():
         for k in n.get("children", []):

@@ -9,11 +9,12 @@ function of the store: the same bytes tile by tile in any order, and the export 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from conftest import read_tileset
 
 pytest.importorskip("pygltflib")
 pytest.importorskip("pyproj")
@@ -119,7 +120,7 @@ def test_3dtiles_declared_errors_bound_the_dem(crop: Path, exported: Path) -> No
 
     pts, wkt = _samples(crop)
     back = Transformer.from_crs(CRS.from_epsg(4978), CRS.from_wkt(wkt), always_xy=True)
-    ts = json.loads((exported / "tileset.json").read_text())
+    ts = read_tileset(exported)
     covered: dict[int, np.ndarray] = {}
     checked = 0
     for node, centre in _tiles(ts["root"], np.zeros(3)):
@@ -149,7 +150,7 @@ def test_3dtiles_declared_errors_bound_the_dem(crop: Path, exported: Path) -> No
 
 def test_3dtiles_full_resolution_is_exact(exported: Path) -> None:
     """The finest node of each sub-block holds the input TIN: its measured error is 0."""
-    ts = json.loads((exported / "tileset.json").read_text())
+    ts = read_tileset(exported)
     leaves = [n for n, _ in _tiles(ts["root"], np.zeros(3)) if "content" in n and not n.get("children")]
     assert leaves
     for n in leaves:

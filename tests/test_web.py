@@ -29,6 +29,8 @@ from terralod.export.quantized_mesh import decode_tile, encode_tile, oct_decode,
 from terralod.export.tiles3d import Tiles3D, export_3dtiles, node_uri
 from test_tiles_bytes import decode_glb
 
+from conftest import read_tileset
+
 REPO = Path(__file__).resolve().parents[1]
 NODE_MODULES = REPO / "node_modules"
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -131,7 +133,7 @@ def test_3dtiles_export_round_trip(sample_store: Path, tmp_path: Path) -> None:
     with open_terrain(sample_store) as t:
         rep = export_3dtiles(t, out)
         tree = {n.code: n for n in t.lod_tree()}
-        ts = json.loads((out / "tileset.json").read_text())
+        ts = read_tileset(out)
         assert ts["asset"]["version"] == "1.1" and ts["root"]["refine"] == "REPLACE"
         root = ts["root"]
         view = Tiles3D(t)
@@ -438,7 +440,7 @@ def test_epochs_export_and_serve(shared_data: Path, tmp_path: Path, capsys: pyte
         assert svc.get("/" + tile)[0] == files[tile]
     out = tmp_path / "first"
     main(["export", str(store), "--format", "3dtiles", "-o", str(out), "--epoch", first])
-    ts = json.loads((out / "tileset.json").read_text())
+    ts = read_tileset(out)
     assert _top_sum(ts["root"]) < hi - 20
     capsys.readouterr()
     with pytest.raises(SystemExit) as exc:
