@@ -151,16 +151,40 @@ def _bucket_span(lo, hi, nb, ibs):
 
 
 @jit
+def csr_from_boxes(box, nrow, ncol):  # pragma: no cover - numba
+    """CSR index of items over a nrow x ncol grid of cells: item t goes to every cell (i, j) with
+    ``box[t, 0] <= i <= box[t, 1]`` and ``box[t, 2] <= j <= box[t, 3]`` (inclusive, inside the grid); the
+    items of cell (i, j) are ``items[start[i*ncol+j]:start[i*ncol+j+1]]``, ascending. Count first, then
+    fill: two passes, no resizing."""
+    k = box.shape[0]
+    nb = nrow * ncol
+    count = np.zeros(nb + 1, np.int64)
+    for t in range(k):
+        for i in range(box[t, 0], box[t, 1] + 1):
+            for j in range(box[t, 2], box[t, 3] + 1):
+                count[i * ncol + j + 1] += 1
+    for b in range(nb):
+        count[b + 1] += count[b]
+    start = count.copy()
+    items = np.empty(count[nb], np.int64)
+    for t in range(k):
+        for i in range(box[t, 0], box[t, 1] + 1):
+            for j in range(box[t, 2], box[t, 3] + 1):
+                b = i * ncol + j
+                items[count[b]] = t
+                count[b] += 1
+    return start, items
+
+
+@jit
 def _bin_triangles(uv, tris, nbr, nbc, bs):
     """CSR bucket index: triangles of bucket (i, j) are ``items[start[i*nbc+j]:start[i*nbc+j+1]]``.
 
     A triangle goes to every bucket its bounding box (in samples) touches.
     """
     k = tris.shape[0]
-    nb = nbr * nbc
     ibs = 1.0 / bs
-    span = np.empty((k, 4), np.int32)
-    count = np.zeros(nb + 1, np.int64)
+    span = np.empty((k, 4), np.int64)
     for t in range(k):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         ua, ub, uc = uv[a, 0], uv[b, 0], uv[c, 0]
@@ -168,20 +192,7 @@ def _bin_triangles(uv, tris, nbr, nbc, bs):
         i0, i1 = _bucket_span(min(va, vb, vc), max(va, vb, vc), nbr, ibs)
         j0, j1 = _bucket_span(min(ua, ub, uc), max(ua, ub, uc), nbc, ibs)
         span[t, 0], span[t, 1], span[t, 2], span[t, 3] = i0, i1, j0, j1
-        for i in range(i0, i1 + 1):
-            for j in range(j0, j1 + 1):
-                count[i * nbc + j + 1] += 1
-    for b in range(nb):
-        count[b + 1] += count[b]
-    start = count.copy()
-    items = np.empty(count[nb], np.int64)
-    for t in range(k):
-        for i in range(span[t, 0], span[t, 1] + 1):
-            for j in range(span[t, 2], span[t, 3] + 1):
-                b = i * nbc + j
-                items[count[b]] = t
-                count[b] += 1
-    return start, items
+    return csr_from_boxes(span, nbr, nbc)
 
 
 @jit

@@ -18,6 +18,7 @@ import math
 import numpy as np
 
 from terralod.kernels import jit
+from terralod.kernels.error import csr_from_boxes
 
 __all__ = ["bucket_triangles", "locate_points"]
 
@@ -28,34 +29,18 @@ def bucket_triangles(x, y, tris, nx, ny, x0, y0, inv_dx, inv_dy):  # pragma: no 
     ascending triangle index within a cell); cell (i, j) spans x0 + [i, i+1) / inv_dx, y0 + [j, j+1) /
     inv_dy, the last row and column closed. ``tris`` (T, 3) int64 indices into x, y (float64)."""
     nt = tris.shape[0]
-    ncell = nx * ny
-    start = np.zeros(ncell + 1, np.int64)
-    box = np.empty((nt, 4), np.int64)
+    box = np.empty((nt, 4), np.int64)  # rows (y cells) then columns (x cells): cell (i, j) is row j
     for t in range(nt):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         xmin = min(x[a], x[b], x[c])
         xmax = max(x[a], x[b], x[c])
         ymin = min(y[a], y[b], y[c])
         ymax = max(y[a], y[b], y[c])
-        i0 = min(max(int(math.floor((xmin - x0) * inv_dx)), 0), nx - 1)
-        i1 = min(max(int(math.floor((xmax - x0) * inv_dx)), 0), nx - 1)
-        j0 = min(max(int(math.floor((ymin - y0) * inv_dy)), 0), ny - 1)
-        j1 = min(max(int(math.floor((ymax - y0) * inv_dy)), 0), ny - 1)
-        box[t, 0], box[t, 1], box[t, 2], box[t, 3] = i0, i1, j0, j1
-        for j in range(j0, j1 + 1):
-            for i in range(i0, i1 + 1):
-                start[j * nx + i + 1] += 1
-    for k in range(ncell):
-        start[k + 1] += start[k]
-    fill = start[:-1].copy()
-    items = np.empty(start[ncell], np.int64)
-    for t in range(nt):
-        for j in range(box[t, 2], box[t, 3] + 1):
-            for i in range(box[t, 0], box[t, 1] + 1):
-                k = j * nx + i
-                items[fill[k]] = t
-                fill[k] += 1
-    return start, items
+        box[t, 2] = min(max(int(math.floor((xmin - x0) * inv_dx)), 0), nx - 1)
+        box[t, 3] = min(max(int(math.floor((xmax - x0) * inv_dx)), 0), nx - 1)
+        box[t, 0] = min(max(int(math.floor((ymin - y0) * inv_dy)), 0), ny - 1)
+        box[t, 1] = min(max(int(math.floor((ymax - y0) * inv_dy)), 0), ny - 1)
+    return csr_from_boxes(box, ny, nx)  # cell (i, j) at j * nx + i, as before
 
 
 @jit
