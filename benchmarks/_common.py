@@ -93,3 +93,27 @@ def md_table(headers: list[str], rows: list[list[Any]]) -> str:
     out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
     out += ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]
     return "\n".join(out) + "\n"
+
+
+def tree_peak_rss(proc: Any, *, max_rss_b: float = float("inf"), timeout_s: float = float("inf"),
+                  interval_s: float = 0.05) -> tuple[int, str | None]:  # fmt: skip
+    """Peak RSS (bytes) summed over ``proc`` (a subprocess.Popen) and its children, sampled every
+    ``interval_s`` until it exits; it is killed past ``max_rss_b`` bytes or ``timeout_s`` seconds (the
+    machine is shared). Returns (peak, None) or (peak, "rss" | "timeout") when it was killed."""
+    import time
+
+    import psutil
+
+    root, peak, t0 = psutil.Process(proc.pid), 0, time.perf_counter()
+    while proc.poll() is None:
+        try:
+            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
+            peak = max(peak, rss)
+        except psutil.Error:  # a child that ended between the listing and the read: the next sample has it
+            pass
+        why = "rss" if peak > max_rss_b else "timeout" if time.perf_counter() - t0 > timeout_s else None
+        if why is not None:
+            proc.kill()
+            return peak, why
+        time.sleep(interval_s)
+    return peak, None

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import SHARED, md_table, mirror_tile, write_results  # noqa: E402
+from _common import SHARED, md_table, mirror_tile, tree_peak_rss, write_results  # noqa: E402
 
 
 def write_mosaic(src: Path, n: int, folder: Path) -> list[Path]:
@@ -105,18 +105,8 @@ def run_export(folder: Path, out: Path) -> dict[str, float]:
 
 
 def _tree_peak_rss(proc: subprocess.Popen) -> int:
-    """Peak RSS (bytes) summed over ``proc`` and its children, sampled every 50 ms until it exits."""
-    import psutil
-
-    root, peak = psutil.Process(proc.pid), 0
-    while proc.poll() is None:
-        try:
-            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
-            peak = max(peak, rss)
-        except psutil.Error:  # a child that ended between the listing and the read
-            pass
-        time.sleep(0.05)
-    return peak
+    """Peak RSS (bytes) summed over ``proc`` and its children (``_common.tree_peak_rss``)."""
+    return tree_peak_rss(proc)[0]
 
 
 def run_tree(cmd: list[str]) -> dict[str, float | str]:

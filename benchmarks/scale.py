@@ -44,10 +44,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import RESULTS, SHARED, md_table, mirror_tile, write_results  # noqa: E402
+from _common import RESULTS, SHARED, md_table, mirror_tile, tree_peak_rss, write_results  # noqa: E402
 
 DEM = SHARED / "dem" / "srtm3_N42E001.tif"
 CROP = 1025
@@ -210,19 +209,9 @@ def run_config(config: str, dem: Path, folder: Path, timeout_s: float, pin: bool
     proc = subprocess.Popen([sys.executable, __file__, "--child", config, str(dem), str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=(lambda: os.sched_setaffinity(0, cpus)) if cpus else None)  # fmt: skip
-    root = psutil.Process(proc.pid)
-    peak = 0
-    t0 = time.perf_counter()
-    while proc.poll() is None:
-        try:
-            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
-            peak = max(peak, rss)
-        except psutil.Error:
-            pass
-        if time.perf_counter() - t0 > timeout_s:
-            proc.kill()
-            return {"config": config, "error": f"timed out after {timeout_s:.0f} s"}
-        time.sleep(0.1)
+    peak, why = tree_peak_rss(proc, timeout_s=timeout_s, interval_s=0.1)
+    if why is not None:
+        return {"config": config, "error": f"timed out after {timeout_s:.0f} s"}
     stdout, stderr = proc.communicate()
     if proc.returncode != 0:
         return {"config": config, "error": stderr.strip().splitlines()[-1] if stderr.strip() else "failed"}

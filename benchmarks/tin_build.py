@@ -35,7 +35,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import SHARED, md_table, write_results  # noqa: E402
+from _common import SHARED, md_table, tree_peak_rss, write_results  # noqa: E402
 
 STAGES = ("read", "dedup", "delaunay", "split", "qem", "records", "save")
 SCALE_STAGES = ("read", "dedup", "delaunay", "split", "qem", "records", "store")
@@ -217,23 +217,12 @@ def run_tree(
     """``cmd`` in a fresh process: wall seconds, CPU seconds of the tree, peak RSS summed over the process
     tree (psutil, every 50 ms; see benchmarks/region.py), its last stdout line as JSON. Killed (and
     ``killed`` set) when the tree passes ``max_rss_b`` bytes: the machine is shared."""
-    import psutil
 
     t0 = time.perf_counter()
     before = os.times()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-    root, peak, killed = psutil.Process(proc.pid), 0, False
-    while proc.poll() is None:
-        try:
-            rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
-            peak = max(peak, rss)
-        except psutil.Error:
-            pass
-        if peak > max_rss_b:
-            killed = True
-            proc.kill()
-            break
-        time.sleep(0.05)
+    peak, why = tree_peak_rss(proc, max_rss_b=max_rss_b)
+    killed = why is not None
     out, err = proc.communicate()
     after = os.times()
     res: dict[str, Any] = {"wall_s": time.perf_counter() - t0, "peak_rss_mib": peak / 2**20, "killed": killed,
