@@ -10,9 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from test_change import run as _run  # the CLI in this process: (exit code, stdout, stderr)
+
 laspy = pytest.importorskip("laspy")
 
-from terralod.cli import main  # noqa: E402
 
 AUTZEN = Path("/work/shared/data/lidar/autzen_trim.laz")
 FT_M = 0.3048  # Autzen's x, y and z are international feet
@@ -22,16 +23,6 @@ HEIGHT_M = 2.0
 PLANTED_M3 = math.pi * RADIUS_M**2 * HEIGHT_M * (0.5 - 2.0 / math.pi**2)
 
 pytestmark = pytest.mark.skipif(not AUTZEN.exists(), reason="the Autzen sample is not here")
-
-
-def _run(capsys, *args) -> tuple[int, str, str]:
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    o = capsys.readouterr()
-    return code, o.out, o.err
 
 
 @pytest.fixture(scope="module")

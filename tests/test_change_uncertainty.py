@@ -18,8 +18,8 @@ from rasterio.transform import from_origin
 
 from terralod.change.uncertainty import terrain_attributes, volume_sigma_m3
 from terralod.change.volumes import measure_change
-from terralod.cli import main
 from terralod.heightfield import Heightfield
+from test_change import run as _run  # the CLI in this process: (exit code, stdout, stderr)
 
 pytest.importorskip("xdem")
 pytest.importorskip("skgstat")
@@ -48,16 +48,6 @@ def _tif(path: Path, hf: Heightfield) -> Path:
                        transform=hf.transform, nodata=np.nan) as ds:  # fmt: skip
         ds.write(hf.elevation_m.astype(np.float32), 1)
     return path
-
-
-def _run(capsys, *args) -> tuple[int, str, str]:
-    try:
-        main([str(a) for a in args])
-        code = 0
-    except SystemExit as exc:
-        code = int(exc.code or 0)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")
