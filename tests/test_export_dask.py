@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from terralod.cli import main
+from test_outputs import _small_dem  # a 200² UTM hill, no shared data needed
 
 pytest.importorskip("distributed")
 pytest.importorskip("pydelatin")
@@ -39,23 +40,6 @@ def dask_address() -> Any:
 
 def _tree(out: Path) -> dict[str, bytes]:
     return {str(f.relative_to(out)): f.read_bytes() for f in sorted(out.rglob("*")) if f.is_file()}
-
-
-def _small_dem(path: Path) -> Path:
-    """A 200 x 200 UTM 31N GeoTIFF (30 m): a smooth hill with ripples."""
-    import rasterio
-    from affine import Affine
-
-    y, x = np.mgrid[0:200, 0:200].astype(np.float32)
-    z = (
-        400.0
-        + 150.0 * np.exp(-((x - 90) ** 2 + (y - 110) ** 2) / 3000.0)
-        + 5.0 * np.sin(x / 7.0) * np.cos(y / 9.0)
-    )
-    with rasterio.open(path, "w", driver="GTiff", width=200, height=200, count=1, dtype="float32",
-                       crs="EPSG:32631", transform=Affine(30.0, 0, 400000.0, 0, -30.0, 4600000.0)) as dst:  # fmt: skip
-        dst.write(z.astype(np.float32), 1)
-    return path
 
 
 def _quads(shared_data: Path, d: Path) -> list[Path]:
