@@ -352,8 +352,12 @@ def test_dask_workers_lost_on_every_try_is_one_clear_line(tmp_path: Path) -> Non
         cluster = client.cluster
         client.close()
         cluster.close()
-    with TileStore.open(out) as s:
-        assert not s.complete and s.verify() == []
+    # the store holds what was committed (sound, incomplete); when the workers died before the store's
+    # metadata was ready there is none at all, never a half-written one: --resume finishes either way
+    if out.exists():
+        with TileStore.open(out) as s:
+            assert not s.complete and s.verify() == []
+    assert not [f for f in tmp_path.iterdir() if f.name.startswith(".lost.terra")]
     build_store_windowed(RasterSource(tif), out, tile_size=9, method="chunked", workers=1, resume=True)
     build_store(read_heightfield(tif), tmp_path / "mem.terra", tile_size=9, method="chunked", workers=1)
     assert _rows(out) == _rows(tmp_path / "mem.terra")
