@@ -17,6 +17,14 @@ from terralod.kernels import jit, leaf
 
 
 @leaf
+def _slot(key, shift):  # pragma: no cover - numba
+    """Fibonacci hashing: the top ``64 - shift`` bits of key x 2^64/φ, the slot of ``key`` in a table of
+    2^(64 - shift) slots. (The low bits of the product depend only on the low bits of the key: a u * 32768 + v
+    key's slot was its v alone, so the vertices of one lattice row all probed one run of slots.)"""
+    return np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(shift))
+
+
+@leaf
 def _free(nbr, seen, t):  # pragma: no cover - numba
     """How many unvisited neighbours triangle t has."""
     k = 0
@@ -35,9 +43,9 @@ def walk_order(tris, seeds, nv):  # pragma: no cover - numba
     centroids), restarting at the next unvisited seed when the walk is stuck."""
     nt = tris.shape[0]
     # each undirected edge's two triangles through an open-addressing table of edge keys (one pass)
-    cap = 16
+    cap, bits = 16, 4
     while cap < 6 * nt:
-        cap *= 2
+        cap, bits = cap * 2, bits + 1
     slot_key = np.full(cap, -1, np.int64)
     slot_half = np.empty(cap, np.int64)
     nbr = np.full(3 * nt, -1, np.int64)
@@ -46,7 +54,7 @@ def walk_order(tris, seeds, nv):  # pragma: no cover - numba
             a = tris[t, q]
             b = tris[t, (q + 1) % 3]
             key = min(a, b) * nv + max(a, b)
-            h = (key * 2654435761) & (cap - 1)
+            h = _slot(key, 64 - bits)
             while slot_key[h] >= 0 and slot_key[h] != key:
                 h = (h + 1) & (cap - 1)
             if slot_key[h] == key:
@@ -145,9 +153,9 @@ def merge_uv(tris, u, v):  # pragma: no cover - numba
     for t in range(tris.shape[0]):
         for q in range(3):
             used[tris[t, q]] = True
-    cap = 16
+    cap, bits = 16, 4
     while cap < 2 * n:
-        cap *= 2
+        cap, bits = cap * 2, bits + 1
     slot_key = np.full(cap, -1, np.int64)
     slot_val = np.empty(cap, np.int64)
     remap = np.full(n, -1, np.int64)
@@ -157,7 +165,7 @@ def merge_uv(tris, u, v):  # pragma: no cover - numba
         if not used[i]:
             continue
         key = u[i] * 32768 + v[i]
-        h = (key * 2654435761) & (cap - 1)
+        h = _slot(key, 64 - bits)
         while slot_key[h] >= 0 and slot_key[h] != key:
             h = (h + 1) & (cap - 1)
         if slot_key[h] == key:
