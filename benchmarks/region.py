@@ -135,7 +135,7 @@ def build_stage(src: Path, counts: list[int]) -> None:
     """The build rows (see the module docstring)."""
     import sqlite3
 
-    rows, results = [], []
+    results = _earlier_runs("region_build", counts)  # a 64-tile run adds its row to the 16-tile one
     for count in counts:
         n = int(round(count**0.5))
         with tempfile.TemporaryDirectory(prefix="terralod-region-build-") as d:
@@ -153,15 +153,19 @@ def build_stage(src: Path, counts: list[int]) -> None:
             nbytes = out.stat().st_size
         wall = float(r["wall_s"])
         res = {"srtm_tiles": count, "samples": samples, "grid": [w, h], "tiles": tiles, "bytes": nbytes,
-               "us_per_sample": wall / samples * 1e6, **{k: v for k, v in r.items() if k != "stdout"},
+               "us_per_sample": wall / samples * 1e6, "load_1min": os.getloadavg()[0],
+               "date": time.strftime("%Y-%m-%d %H:%M"), **{k: v for k, v in r.items() if k != "stdout"},
                "summary": r["stdout"]}  # fmt: skip
-        results.append(res)
-        rows.append([f"{count} SRTM3 tiles ({1200 * n + 1}²)", samples, f"{w} x {h}", tiles, round(wall, 1),
-                     round(float(r["cpu_s"]), 1), round(float(r["peak_rss_mib"]), 1),
-                     round(res["us_per_sample"], 3), f"{nbytes / 1e6:.1f} MB"])  # fmt: skip
-        print(rows[-1], flush=True)
+        results = sorted(
+            [x for x in results if x["srtm_tiles"] != count] + [res], key=lambda x: x["srtm_tiles"]
+        )
+        print(res, flush=True)
+    rows = [[f"{x['srtm_tiles']} SRTM3 tiles ({int(round(x['samples'] ** 0.5))}²)", x["samples"],
+             f"{x['grid'][0]} x {x['grid'][1]}", x["tiles"], round(float(x["wall_s"]), 1),
+             round(float(x["cpu_s"]), 1), round(float(x["peak_rss_mib"]), 1), round(x["us_per_sample"], 3),
+             f"{x['bytes'] / 1e6:.1f} MB", x.get("date", "")] for x in results]  # fmt: skip
     table = md_table(["region", "original samples", "UTM grid", "tiles", "wall s", "CPU s", "peak RSS MiB",
-                      "µs/sample", "store"], rows)  # fmt: skip
+                      "µs/sample", "store", "run"], rows)  # fmt: skip
     note = (
         "\n`terralod build FOLDER -o region.terra` (a fresh process, start-up included; out of core: warped "
         "block by block to UTM, every tile also measured against the original samples) on SRTM3 "

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from terralod.export.geodesy import ecef_lonlat
-from terralod.kernels.qmesh import first_use, rotate_after, walk_order
+from terralod.kernels.qmesh import first_use, morton_seeds, rotate_after, walk_order
 
 __all__ = [
     "EXT_METADATA",
@@ -100,26 +100,15 @@ def oct_decode(e: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
-def _spread10(a: np.ndarray) -> np.ndarray:
-    """The low 10 bits of ``a`` spread to the even bits (half of a Morton code)."""
-    a = a.astype(np.int64) & 0x3FF
-    a = (a | (a << 8)) & 0x00FF00FF
-    a = (a | (a << 4)) & 0x0F0F0F0F
-    a = (a | (a << 2)) & 0x33333333
-    return (a | (a << 1)) & 0x55555555
-
-
-def _reorder(uvh: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _reorder(u: np.ndarray, v: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Triangles in a walk across shared edges seeded in Morton order of their centroids, vertices
     renumbered in first-use order of them (what high-water-mark coding wants; neighbours come together,
     so the zig-zag deltas and the index codes are small and gzip well)."""
     tris = np.ascontiguousarray(tris, np.int64)
     if len(tris):
-        cu = uvh[tris, 0].sum(axis=1) // 96  # centroid / 32: 10 bits
-        cv = uvh[tris, 1].sum(axis=1) // 96
-        seeds = np.argsort(_spread10(cu) | (_spread10(cv) << 1), kind="stable")
-        tris = rotate_after(tris[walk_order(tris, seeds, len(uvh))])
-    return first_use(tris, len(uvh))
+        seeds = morton_seeds(tris, u, v)
+        tris = rotate_after(tris[walk_order(tris, seeds, len(u))])
+    return first_use(tris, len(u))
 
 
 #: WGS 84 radii (a, a, b), metres: the ellipsoid's scaled space of the horizon-occlusion point.
@@ -166,7 +155,7 @@ def encode_tile(
     hi32 = hi32 if hi32 >= h.max() else np.nextafter(hi32, np.float32(np.inf))
     hmin, hmax = float(lo32), float(hi32)
     hq = np.rint((h - hmin) / max(hmax - hmin, 1e-9) * 32767).astype(np.int64) if hmax > hmin else 0 * u
-    order, t = _reorder(np.column_stack([u, v]), np.asarray(tris, np.int64))
+    order, t = _reorder(u, v, np.asarray(tris, np.int64))
     u, v, hq = u[order], v[order], hq[order]
     # the header bounds the vertices as a decoder sees them (after quantisation, float32 height range)
     ecef = ecef_lonlat(

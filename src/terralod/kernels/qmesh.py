@@ -43,11 +43,11 @@ def walk_order(tris, seeds, nv):  # pragma: no cover - numba
     centroids), restarting at the next unvisited seed when the walk is stuck."""
     nt = tris.shape[0]
     # each undirected edge's two triangles through an open-addressing table of edge keys (one pass)
+    # (key, first half-edge) side by side, at most 3 nt keys in 4 nt slots or more: one cache line a probe
     cap, bits = 16, 4
-    while cap < 6 * nt:
+    while cap < 4 * nt:
         cap, bits = cap * 2, bits + 1
-    slot_key = np.full(cap, -1, np.int64)
-    slot_half = np.empty(cap, np.int64)
+    slot = np.full(2 * cap, -1, np.int64)
     nbr = np.full(3 * nt, -1, np.int64)
     for t in range(nt):
         for q in range(3):
@@ -55,15 +55,15 @@ def walk_order(tris, seeds, nv):  # pragma: no cover - numba
             b = tris[t, (q + 1) % 3]
             key = min(a, b) * nv + max(a, b)
             h = _slot(key, 64 - bits)
-            while slot_key[h] >= 0 and slot_key[h] != key:
+            while slot[2 * h] >= 0 and slot[2 * h] != key:
                 h = (h + 1) & (cap - 1)
-            if slot_key[h] == key:
-                o = slot_half[h]
+            if slot[2 * h] == key:
+                o = slot[2 * h + 1]
                 nbr[3 * t + q] = o // 3
                 nbr[o] = t
             else:
-                slot_key[h] = key
-                slot_half[h] = 3 * t + q
+                slot[2 * h] = key
+                slot[2 * h + 1] = 3 * t + q
     rank = np.empty(nt, np.int64)
     for i in range(nt):
         rank[seeds[i]] = i
@@ -103,6 +103,46 @@ def walk_order(tris, seeds, nv):  # pragma: no cover - numba
                 break
             cur = best
     return out
+
+
+@leaf
+def _spread10(a):  # pragma: no cover - numba
+    """The low 10 bits of ``a`` spread to the even bits (half of a Morton code)."""
+    a &= 0x3FF
+    a = (a | (a << 8)) & 0x00FF00FF
+    a = (a | (a << 4)) & 0x0F0F0F0F
+    a = (a | (a << 2)) & 0x33333333
+    return (a | (a << 1)) & 0x55555555
+
+
+@jit
+def morton_seeds(tris, u, v):  # pragma: no cover - numba
+    """The triangles in Morton order of their centroids (the sums of their corners' u and v over 96:
+    10 bits each), ties in index order: what ``np.argsort(codes, kind="stable")`` gives, by two
+    counting-sort passes of 10 bits (the walk's seeds, :func:`walk_order`)."""
+    nt = tris.shape[0]
+    code = np.empty(nt, np.int64)
+    for t in range(nt):
+        cu = (u[tris[t, 0]] + u[tris[t, 1]] + u[tris[t, 2]]) // 96
+        cv = (v[tris[t, 0]] + v[tris[t, 1]] + v[tris[t, 2]]) // 96
+        code[t] = _spread10(cu) | (_spread10(cv) << 1)
+    return _counting_pass(code, _counting_pass(code, np.arange(nt), 0), 10)
+
+
+@jit
+def _counting_pass(code, src, shift):  # pragma: no cover - numba
+    """``src`` stably sorted by the 10 bits of ``code[src]`` from bit ``shift``."""
+    at = np.zeros(1025, np.int64)
+    for i in range(src.size):
+        at[((code[src[i]] >> shift) & 0x3FF) + 1] += 1
+    for b in range(1024):
+        at[b + 1] += at[b]
+    dst = np.empty_like(src)
+    for i in range(src.size):
+        b = (code[src[i]] >> shift) & 0x3FF
+        dst[at[b]] = src[i]
+        at[b] += 1
+    return dst
 
 
 @jit
