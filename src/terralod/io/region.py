@@ -605,12 +605,19 @@ class RegionReader:
 
         from terralod.io.raster import error_line
 
+        ds = self._dataset()
+        nodata = self._plain_nodata(ds)
         try:
-            a = self._dataset().read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
+            a = ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=nodata is None)
         except Exception as exc:  # noqa: BLE001 - a file that went bad after the scan
             raise InputError(f"cannot read rows {r0}-{r1} ({error_line(exc)})", self.region.name) from None
-        ok = ~np.ma.getmaskarray(a)
-        raw = np.ma.getdata(a)
+        if nodata is None:
+            ok = ~np.ma.getmaskarray(a)
+            raw = np.ma.getdata(a)
+        elif isinstance(nodata, bool):  # every sample valid (NaN aside, below)
+            raw, ok = a, np.ones(a.shape, bool)
+        else:  # the samples equal to the nodata value, as GDAL's mask has them (NaN: isfinite, below)
+            raw, ok = a, a != nodata
         if self.region.scale != 1.0 or self.region.offset != 0.0:
             values = raw.astype(np.float64)
             values *= self.region.scale
@@ -619,6 +626,31 @@ class RegionReader:
             values = raw.astype(self.dtype)
         ok &= np.isfinite(values)
         return values, np.ascontiguousarray(ok)
+
+    def _plain_nodata(self, ds: Any) -> Any:
+        """How validity can be had without GDAL's mask band (which reads a VRT's window a second time):
+        True when every sample is valid, the nodata value of an integer band or a NaN one (compared
+        exactly, as GDAL does), or None: a mask band, an alpha band or a float nodata that is not NaN (GDAL
+        compares those with a tolerance), read through ``masked=True``."""
+        got = getattr(self._local, "nodata", ())
+        if got != ():
+            return got
+        from rasterio.enums import MaskFlags
+
+        flags, nodata, dtype = ds.mask_flag_enums[0], ds.nodata, np.dtype(ds.dtypes[0])
+        if flags == [MaskFlags.all_valid]:
+            got = True
+        elif flags == [MaskFlags.nodata] and nodata is not None:
+            if np.issubdtype(dtype, np.integer) and float(nodata).is_integer():
+                got = dtype.type(nodata) if np.can_cast(np.min_scalar_type(nodata), dtype) else None
+            elif np.issubdtype(dtype, np.floating) and math.isnan(nodata):
+                got = True  # NaN is never equal: isfinite below drops it
+            else:
+                got = None
+        else:
+            got = None
+        self._local.nodata = got
+        return got
 
     def block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
         """Block (br, bc): filled heights (the region's dtype) and validity, FILL_BLOCK² or less at the
