@@ -1,6 +1,8 @@
 """Web globe figures: export throughput, bytes per triangle against quantized-mesh-encoder, greedy insertion
-against the regular grid at equal measured error, CesiumJS load times in headless Chromium, and a loopback
-load test of ``terralod serve`` (1,000 concurrent tile requests).
+against the regular grid at equal measured error, a loopback load test of ``terralod serve`` (1,000
+concurrent tile requests), and CesiumJS load times in headless Chromium: the stock page's (the stock
+section; the page ``terralod serve`` once showed, which an earlier section loaded, is the change site now,
+measured by ``benchmarks/site.py``).
 
     python benchmarks/web.py [--runs 3] [--no-browser] [--stock-only]
 
@@ -224,30 +226,6 @@ def load_test(base: str, n: int = 1000) -> dict:
             "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)), "wall_s": wall}  # fmt: skip
 
 
-def browser(base: str, runs: int) -> dict:
-    node_mod = ROOT / "node_modules"
-    if not shutil.which("chromium") or not (node_mod / "cesium").is_dir():
-        return {"skipped": "chromium or node_modules missing"}
-    res: dict = {"terrain": [], "3dtiles": []}
-    for _ in range(runs):
-        for fmt in ("terrain", "3dtiles"):
-            with tempfile.TemporaryDirectory() as d:
-                r = subprocess.run(["node", str(ROOT / "tests/web/browser_check.mjs"), base + "/", fmt, "[]",
-                                    d + "/", "90000"], capture_output=True, text=True, timeout=150)  # fmt: skip
-            out = json.loads(r.stdout.strip().splitlines()[-1])[fmt]
-            res[fmt].append(out)
-    summary = {}
-    for fmt, rs in res.items():
-        ok = [r for r in rs if r.get("loaded")]
-        summary[fmt] = {"runs": len(rs), "loaded": len(ok),
-                        "first_frame_ms": statistics.median(r["firstFrameMs"] for r in ok) if ok else None,
-                        "all_loaded_ms": statistics.median(r["loadedMs"] for r in ok) if ok else None,
-                        "page_to_loaded_ms": statistics.median(r["loadMs"] for r in ok) if ok else None,
-                        "tiles": ok[-1]["tiles"] if ok else None, "triangles": ok[-1]["triangles"] if ok else None,
-                        "errors": sum(len(r["errors"]) for r in rs)}  # fmt: skip
-    return summary
-
-
 def _dir_bytes(d: Path, suffix: str) -> tuple[int, int]:
     """(bytes as written, bytes gzip'd at level 6) of every file with ``suffix`` under ``d``."""
     raw = gz = 0
@@ -389,8 +367,6 @@ def main() -> None:
             proc, base = start_server(path)
             try:
                 entry["serve"] = load_test(base, a.requests)
-                if not a.no_browser:
-                    entry["browser"] = browser(base, max(1, a.runs - 1))
             finally:
                 proc.terminate()
                 proc.wait(10)
@@ -440,18 +416,6 @@ def main() -> None:
         r = e["serve"]
         md.append(f"| {name} | {r['requests']} | {r['distinct_tiles']} | {r['errors']} | {r['p50_ms']:.1f} | "
                   f"{r['p99_ms']:.1f} | {r['wall_s']:.2f} |")  # fmt: skip
-    if not a.no_browser:
-        md += ["", "## CesiumJS in headless Chromium (SwiftShader), server cache warm", "",
-               "| terrain | format | runs loaded | first frame ms | all tiles loaded ms | page→loaded ms | tiles | triangles | errors |",
-               "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
-        for name, e in payload["terrains"].items():
-            for fmt, r in e.get("browser", {}).items():
-                if not isinstance(r, dict):
-                    continue
-                ms = [f"{r[k]:.0f}" if r[k] is not None else "–" for k in ("first_frame_ms", "all_loaded_ms",
-                                                                            "page_to_loaded_ms")]  # fmt: skip
-                md.append(f"| {name} | {fmt} | {r['loaded']}/{r['runs']} | {' | '.join(ms)} | {r['tiles']} | "
-                          f"{r['triangles']:,} | {r['errors']} |")  # fmt: skip
     md += _stock_md(payload["stock"])
     write_results("web", payload, "\n".join(md) + "\n")
 
