@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from region import run_export, write_mosaic  # noqa: E402
+from region import _earlier_runs, run_export, write_mosaic  # noqa: E402
 
 from _common import ROOT, SHARED, md_table, mirror_tile, write_results  # noqa: E402
 
@@ -73,31 +73,15 @@ def baseline_tree(rev: str, where: Path) -> Path:
 
 
 def run(inp: Path, out: Path, pythonpath: Path | None) -> dict:
-    env = dict(os.environ)
-    env.pop("PYTHONPATH", None)
+    """One export in a fresh process: the baseline's (its src/ first on PYTHONPATH) or today's."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     if pythonpath is not None:
         env["PYTHONPATH"] = str(pythonpath)
-    old = os.environ.copy()
-    os.environ.clear()
-    os.environ.update(env)
+    shutil.rmtree(out, ignore_errors=True)
     try:
-        shutil.rmtree(out, ignore_errors=True)
-        return run_export(inp, out)
+        return run_export(inp, out, env)
     finally:
-        os.environ.clear()
-        os.environ.update(old)
         shutil.rmtree(out, ignore_errors=True)
-
-
-def _earlier(counts: list[int]) -> list[dict]:
-    """The rows of an earlier run for other mosaic sizes (kept)."""
-    import json
-
-    p = Path(__file__).resolve().parent / "results" / "ctb_transfer.json"
-    try:
-        return [r for r in json.loads(p.read_text())["runs"] if r["srtm_tiles"] not in counts]
-    except (OSError, KeyError, ValueError):
-        return []
 
 
 def main() -> None:
@@ -108,7 +92,7 @@ def main() -> None:
     args = ap.parse_args()
     src = SHARED / "dem" / "srtm3_N41E001.tif"
     counts = [int(v) for v in args.tiles.split(",")]
-    results, rows = _earlier(counts), []
+    results, rows = _earlier_runs("ctb_transfer", counts), []
     with tempfile.TemporaryDirectory(prefix="terralod-ctb-transfer-") as d:
         tmp = Path(d)
         base_src = baseline_tree(args.baseline_rev, tmp / "baseline")

@@ -67,8 +67,9 @@ def write_mosaic(src: Path, n: int, folder: Path) -> list[Path]:
     return out
 
 
-def run_export(folder: Path, out: Path) -> dict[str, float]:
-    """``terralod export FOLDER --format quantized-mesh -o OUT`` in a fresh process: wall, CPU, peak RSS."""
+def run_export(folder: Path, out: Path, env: dict[str, str] | None = None) -> dict[str, float]:
+    """``terralod export FOLDER --format quantized-mesh -o OUT`` in a fresh process (environment ``env``,
+    this one's when None): wall, CPU, peak RSS."""
     cmd = [
         sys.executable,
         "-m",
@@ -83,7 +84,7 @@ def run_export(folder: Path, out: Path) -> dict[str, float]:
     gnu_time = shutil.which("time") or ("/usr/bin/time" if Path("/usr/bin/time").exists() else None)
     t0 = time.perf_counter()
     if gnu_time:
-        p = subprocess.run([gnu_time, "-v", *cmd], capture_output=True, text=True)
+        p = subprocess.run([gnu_time, "-v", *cmd], capture_output=True, text=True, env=env)
         wall = time.perf_counter() - t0
         if p.returncode != 0:
             raise RuntimeError(p.stderr[-2000:])
@@ -96,7 +97,7 @@ def run_export(folder: Path, out: Path) -> dict[str, float]:
         cpu = field("User time (seconds)") + field("System time (seconds)")
         return {"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": rss_mib, "stdout": p.stdout.strip()}
 
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
     peak = _tree_peak_rss(proc)
     wall = time.perf_counter() - t0
     usage = os.times()

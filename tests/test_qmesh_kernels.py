@@ -51,10 +51,7 @@ def test_walk_order_is_a_walk_across_shared_edges(seed, rows, cols, drop) -> Non
     edges = [{frozenset((t[q], t[(q + 1) % 3])) for q in range(3)} for t in tris]
     seen_edges: set = set()
     for k, t in enumerate(order):
-        if k and edges[t] & seen_edges:
-            pass  # joined to the walk so far
-        elif k:
-            # a restart: allowed only when no unvisited triangle touches the triangles walked so far
-            rest = order[k:]
-            assert not any(edges[r] & seen_edges for r in rest), "walk restarted while it could go on"
+        restart = k > 0 and not edges[t] & seen_edges  # not joined to the triangles walked so far
+        if restart:  # allowed only when no unvisited triangle touches them
+            assert not any(edges[r] & seen_edges for r in order[k:]), "walk restarted while it could go on"
         seen_edges |= edges[t]
