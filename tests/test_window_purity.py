@@ -9,6 +9,7 @@ depended on the window: errors moved in the 11th digit after a resume).
 
 from __future__ import annotations
 
+import weakref
 from pathlib import Path
 
 import pytest
@@ -30,3 +31,33 @@ def test_the_same_tiles_from_any_grouping_into_windows(tmp_path: Path) -> None:
         build_store_windowed(open_source(tiles), out, **{**BUILD, "workers": 1, "unit_span_samples": span})
         got.append(_rows(out))
     assert got[0] and got[0] == got[1] == got[2]
+
+
+def test_positions_dropped_from_memory_come_back_from_the_spill_file(tmp_path: Path, monkeypatch) -> None:
+    """A region larger than the position blocks kept in memory transforms each block once: the blocks the
+    LRU drops are read back from the spill file, and the tiles are the same numbers as with every block
+    kept."""
+    import terralod.pyramid.original as original
+    from terralod.io.windowed import open_source
+    from terralod.pyramid.distributed import build_store_windowed
+
+    tiles = _quarters(_merged(tmp_path / "merged.tif"), tmp_path / "tiles")
+    kept = tmp_path / "kept.terra"
+    build_store_windowed(open_source(tiles), kept, **{**BUILD, "workers": 1})
+    transformed: dict[tuple[int, int, int], int] = {}
+    plain = original._Positions._transform
+
+    def counted(self, br, bc, shape):
+        key = (id(self), br, bc)  # per source grid: a mosaic has one per input tile
+        transformed[key] = transformed.get(key, 0) + 1
+        return plain(self, br, bc, shape)
+
+    monkeypatch.setattr(original, "_POSITIONS", weakref.WeakKeyDictionary())  # no block of the first build
+    monkeypatch.setattr(original, "POSITION_BLOCK", 8)
+    monkeypatch.setattr(original, "POSITION_BLOCKS_KEPT", 2)
+    monkeypatch.setattr(original._Positions, "_transform", counted)
+    spilled = tmp_path / "spilled.terra"
+    build_store_windowed(open_source(tiles), spilled, **{**BUILD, "workers": 1})
+    assert len(transformed) > 4 * original.POSITION_BLOCKS_KEPT  # most blocks went through the spill file
+    assert set(transformed.values()) == {1}, transformed
+    assert _rows(kept) and _rows(kept) == _rows(spilled)

@@ -139,6 +139,15 @@ def _library_kernels(hf) -> None:
     used_bounds(pts, tri)
     pts.setflags(write=False)
     used_bounds(pts, tri)
+    # the crack detector (runtime.find_cracks): border segments of a tile and the gaps across one line
+    from terralod.kernels.stitch import border_segments, line_pair_gaps
+
+    segs = border_segments(tri, np.arange(3.0), np.ones(3, np.bool_), np.zeros(3))
+    two = np.array([0, len(segs), 2 * len(segs)], np.int64)
+    line_pair_gaps(
+        np.concatenate([segs, segs]), two, np.zeros(2), np.full(2, 2.0), np.array([-1, 1]), np.arange(2),
+        np.linspace(0.0, 1.0, 5), 1e-9,
+    )  # fmt: skip
     # a TIN store's quantized-mesh export: the bucket grid that locates points in its triangles
     from terralod.kernels.tinlocate import bucket_triangles, locate_points
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from terralod.kernels import jit
+from terralod.kernels import jit, leaf
 
 
 @jit
@@ -503,3 +503,123 @@ def stitch_tile(
     bvid = np.unique(vid_all)
     rows = np.searchsorted(bvid, vid_all)
     return True, verts, tris, sums, normals, vid_all, t_all, h_all, off, s_all, g_all, goff, bvid, rows
+
+
+# -- the crack detector (terralod.runtime.stitch.find_cracks) -----------------------------------------------
+@jit
+def border_segments(tris, along, on, z):
+    """The triangle edges with both ends on a line (``on[v]``) as rows (t_a, z_a, t_b, z_b) with
+    t_a <= t_b (``along``: position along the line, ``z``: height), duplicates removed, in lexicographic
+    order of the rows (numpy's ``unique(axis=0)`` order)."""
+    k = tris.shape[0]
+    buf = np.empty((3 * k, 4), np.float64)
+    n = 0
+    for i in range(k):
+        for e in range(3):
+            a = tris[i, e]
+            b = tris[i, (e + 1) % 3]
+            if on[a] and on[b]:
+                if along[a] > along[b]:
+                    a, b = b, a
+                buf[n, 0] = along[a]
+                buf[n, 1] = z[a]
+                buf[n, 2] = along[b]
+                buf[n, 3] = z[b]
+                n += 1
+    order = np.argsort(buf[:n, 0], kind="mergesort")
+    rows = np.empty((n, 4), np.float64)
+    for i in range(n):
+        rows[i] = buf[order[i]]
+    # rows sharing t_a: insertion sort on the remaining columns (runs are a few rows long)
+    i = 0
+    while i < n:
+        j = i + 1
+        while j < n and rows[j, 0] == rows[i, 0]:
+            j += 1
+        for p in range(i + 1, j):
+            q = p
+            while q > i and _row_less(rows, q, q - 1):
+                for c in range(4):
+                    rows[q, c], rows[q - 1, c] = rows[q - 1, c], rows[q, c]
+                q -= 1
+        i = j
+    m = 0
+    for i in range(n):
+        if m == 0 or not (
+            rows[i, 0] == rows[m - 1, 0]
+            and rows[i, 1] == rows[m - 1, 1]
+            and rows[i, 2] == rows[m - 1, 2]
+            and rows[i, 3] == rows[m - 1, 3]
+        ):
+            for c in range(4):
+                rows[m, c] = rows[i, c]
+            m += 1
+    return rows[:m].copy()
+
+
+@leaf
+def _row_less(rows, p, q):
+    for c in range(4):
+        if rows[p, c] < rows[q, c]:
+            return True
+        if rows[p, c] > rows[q, c]:
+            return False
+    return False
+
+
+@jit
+def line_pair_gaps(segs, start, lo_t, hi_t, sign, code, frac, tol):
+    """Gaps between the tiles that share one line, for every ordered pair (a, b) of its border polylines
+    on opposite sides (``sign``) of different tiles (``code``) whose spans [lo_t, hi_t] meet.
+
+    ``segs[start[i]:start[i + 1]]`` are polyline i's segments (t_a, z_a, t_b, z_b), sorted by t_a. Points
+    at fractions ``frac`` along each segment of a are compared with b's height there: a point inside b's
+    span that no segment of b covers (within ``tol``) is a hole (gap inf). Returns, for the pairs with a
+    point checked: a, b, overlap of the spans, largest gap, points checked."""
+    n = start.shape[0] - 1
+    out_a, out_b, out_n = [0], [0], [0]
+    out_overlap, out_gap = [0.0], [0.0]
+    for ia in range(n):
+        for ib in range(n):
+            if sign[ib] == sign[ia] or code[ib] == code[ia]:
+                continue
+            if lo_t[ib] > hi_t[ia] + 1e-9 or lo_t[ia] > hi_t[ib] + 1e-9:
+                continue
+            b0, b1 = start[ib], start[ib + 1]
+            checked = 0
+            worst = 0.0
+            for s in range(start[ia], start[ia + 1]):
+                ta, za, tb, zb = segs[s, 0], segs[s, 1], segs[s, 2], segs[s, 3]
+                for f in frac:
+                    t = ta + f * (tb - ta)
+                    if t < lo_t[ib] - tol or t > hi_t[ib] + tol:
+                        continue
+                    pz = za + f * (zb - za)
+                    j = b0 + np.searchsorted(segs[b0:b1, 0], t + tol, side="right") - 1
+                    j = min(max(j, b0), b1 - 1)
+                    sa, sza, sb, szb = segs[j, 0], segs[j, 1], segs[j, 2], segs[j, 3]
+                    if t >= sa - tol and t <= sb + tol:
+                        w = (t - sa) / ((sb - sa) if sb > sa else 1.0)
+                        w = min(max(w, 0.0), 1.0)
+                        h = sza + w * (szb - sza)
+                        if np.isnan(h):
+                            continue
+                        gap = abs(pz - h)
+                    else:
+                        gap = np.inf
+                    checked += 1
+                    if gap > worst:
+                        worst = gap
+            if checked:
+                out_a.append(ia)
+                out_b.append(ib)
+                out_n.append(checked)
+                out_overlap.append(min(hi_t[ia], hi_t[ib]) - max(lo_t[ia], lo_t[ib]))
+                out_gap.append(worst)
+    return (
+        np.array(out_a[1:]),
+        np.array(out_b[1:]),
+        np.array(out_overlap[1:]),
+        np.array(out_gap[1:]),
+        np.array(out_n[1:]),
+    )

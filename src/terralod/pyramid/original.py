@@ -32,6 +32,8 @@ from __future__ import annotations
 import collections
 import functools
 import math
+import os
+import tempfile
 import threading
 import weakref
 from dataclasses import dataclass
@@ -160,15 +162,14 @@ def tile_samples(
     return qx[keep] - west, north - qy[keep], z
 
 
-#: Side of the blocks of source samples whose store-CRS positions are transformed together and cached
-#: (16 bytes a sample: 1 MiB a block), and the blocks kept per source (LRU, 96 MiB): the tiles of a work
-#: unit and of its neighbours read the positions of their blocks instead of transforming them again
-#: (PROJ through GDAL costs about 0.7 us a point). A unit's window (about 1024² store samples) covers some
-#: 5 x 5 blocks of a 3" source. The levels sweep the region in the same order, so a region of up to 96
-#: blocks (4 SRTM3 tiles: 88) is transformed once for all of them, and a larger one again at each level
-#: whatever the count (16 tiles: 352 blocks, and an LRU swept by more blocks than it keeps misses each
-#: one, as 256 kept did). A block is the same
-#: numbers whenever it is transformed: the count changes time, not values.
+#: Side of the blocks of source samples whose store-CRS positions are transformed together (16 bytes a
+#: sample: 1 MiB a block), and the blocks kept in memory per source (LRU, 96 MiB). PROJ through GDAL costs
+#: about 0.7 us a point, and the levels sweep the region again and again (a unit's window, about 1024²
+#: store samples, covers some 5 x 5 blocks of a 3" source): so a block is transformed once per source
+#: and process, and a block the LRU drops goes to a spill file (unlinked temporary, 16 bytes a sample of
+#: the blocks dropped) from which it is read back instead of transformed again. Memory stays at the blocks
+#: kept whatever the region; disk grows with it (a 16-tile SRTM3 region: 352 blocks, 352 MiB). A block is
+#: the same numbers whether transformed or read back: the count changes time, not values.
 POSITION_BLOCK = 256
 POSITION_BLOCKS_KEPT = 96
 
@@ -176,7 +177,8 @@ POSITION_BLOCKS_KEPT = 96
 class _Positions:
     """Store-CRS positions (x, y) of every sample centre of a source grid, transformed once per block of
     :data:`POSITION_BLOCK` rows and columns on first use (each point transformed alone by PROJ, so a
-    block's numbers are those a window's own transform would give)."""
+    block's numbers are those a window's own transform would give); blocks the memory LRU drops are kept
+    in a spill file and read back from it."""
 
     def __init__(self, grid: Any, store_crs: str) -> None:
         self.grid, self.store_crs = grid, store_crs
@@ -184,6 +186,31 @@ class _Positions:
             collections.OrderedDict()
         )
         self.lock = threading.Lock()
+        self.spill: Any = None  # the spill file, opened at the first drop
+        self.spilled: set[tuple[int, int]] = set()
+
+    def _offset(self, br: int, bc: int) -> int:
+        w = self.grid.shape[1]
+        return (br * -(-w // POSITION_BLOCK) + bc) * POSITION_BLOCK * POSITION_BLOCK * 16
+
+    def _block_shape(self, br: int, bc: int) -> tuple[int, int]:
+        h, w = self.grid.shape
+        r0, c0 = br * POSITION_BLOCK, bc * POSITION_BLOCK
+        return min(r0 + POSITION_BLOCK, h) - r0, min(c0 + POSITION_BLOCK, w) - c0
+
+    def _drop(self) -> None:
+        """Drop the least recently used blocks beyond :data:`POSITION_BLOCKS_KEPT` to the spill file
+        (caller holds the lock)."""
+        while len(self.blocks) > POSITION_BLOCKS_KEPT:
+            key, (qx, qy) = self.blocks.popitem(last=False)
+            if key in self.spilled:
+                continue
+            if self.spill is None:
+                self.spill = tempfile.TemporaryFile(prefix="terralod-positions-")
+            buf = np.concatenate([qx.ravel(), qy.ravel()]).tobytes()
+            if os.pwrite(self.spill.fileno(), buf, self._offset(*key)) != len(buf):
+                raise OSError(f"short write to the position spill file {self.spill.name}")
+            self.spilled.add(key)
 
     def _block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
         with self.lock:
@@ -191,21 +218,32 @@ class _Positions:
             if hit is not None:
                 self.blocks.move_to_end((br, bc))
                 return hit
+            spilled = (br, bc) in self.spilled
+        shape = self._block_shape(br, bc)
+        if spilled:
+            n = shape[0] * shape[1]
+            raw = os.pread(self.spill.fileno(), 16 * n, self._offset(br, bc))
+            both = np.frombuffer(raw, np.float64)
+            qx, qy = both[:n].reshape(shape), both[n:].reshape(shape)
+        else:
+            qx, qy = self._transform(br, bc, shape)
+        with self.lock:
+            self.blocks[(br, bc)] = (qx, qy)
+            self._drop()
+        return qx, qy
+
+    def _transform(self, br: int, bc: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         from rasterio.warp import transform as warp_points
 
         t = self.grid.transform
-        h, w = self.grid.shape
         r0, c0 = br * POSITION_BLOCK, bc * POSITION_BLOCK
-        r1, c1 = min(r0 + POSITION_BLOCK, h), min(c0 + POSITION_BLOCK, w)
-        cc, rr = np.meshgrid(np.arange(c0, c1, dtype=np.float64), np.arange(r0, r1, dtype=np.float64))
+        cc, rr = np.meshgrid(
+            np.arange(c0, c0 + shape[1], dtype=np.float64), np.arange(r0, r0 + shape[0], dtype=np.float64)
+        )
         px = t.c + (cc.ravel() + 0.5) * t.a
         py = t.f + (rr.ravel() + 0.5) * t.e
         src, dst = _horizontal(self.grid.crs), _horizontal(self.store_crs)
-        qx, qy = (np.asarray(v, np.float64).reshape(rr.shape) for v in warp_points(src, dst, px, py))
-        with self.lock:
-            self.blocks[(br, bc)] = (qx, qy)
-            while len(self.blocks) > POSITION_BLOCKS_KEPT:
-                self.blocks.popitem(last=False)
+        qx, qy = (np.asarray(v, np.float64).reshape(shape) for v in warp_points(src, dst, px, py))
         return qx, qy
 
     def window(self, r0: int, r1: int, c0: int, c1: int) -> tuple[np.ndarray, np.ndarray]:

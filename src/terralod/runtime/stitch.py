@@ -48,7 +48,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from terralod.kernels.stitch import border_segments as _k_border_segments
 from terralod.kernels.stitch import (
+    line_pair_gaps,
     normal_sums,
     normalize_all,
     polyline_at,
@@ -633,41 +635,12 @@ class CrackReport:
 
 def _border_segments(
     v: np.ndarray, tris: np.ndarray, rows: np.ndarray, cols: np.ndarray, side: int, line: float
-):
-    """Segments (t_a, z_a, t_b, z_b), t_a < t_b, of triangle edges lying on one side's line."""
+) -> np.ndarray:
+    """Segments (t_a, z_a, t_b, z_b), t_a <= t_b, of triangle edges lying on one side's line, sorted."""
     coord = cols if side in (0, 2) else rows
     along = rows if side in (0, 2) else cols
     on = np.abs(coord - line) <= 1e-6
-    t = tris.astype(np.int64)
-    a = np.concatenate([t[:, 0], t[:, 1], t[:, 2]])
-    b = np.concatenate([t[:, 1], t[:, 2], t[:, 0]])
-    k = on[a] & on[b]
-    a, b = a[k], b[k]
-    ta, tb = along[a], along[b]
-    sw = ta > tb
-    a2 = np.where(sw, b, a)
-    b2 = np.where(sw, a, b)
-    segs = np.stack([along[a2], v[a2, 2], along[b2], v[b2, 2]], axis=1)
-    segs = np.unique(segs, axis=0)
-    return segs[np.argsort(segs[:, 0], kind="stable")]
-
-
-def _polyline_z(segs: np.ndarray, t: np.ndarray, tol: float) -> np.ndarray:
-    """Height of a set of border segments at positions t: nan outside their span, inf in a hole."""
-    out = np.full(t.shape, np.nan)
-    if not len(segs):
-        return out
-    lo, hi = segs[:, 0].min(), segs[:, 2].max()
-    inside = (t >= lo - tol) & (t <= hi + tol)
-    j = np.clip(np.searchsorted(segs[:, 0], t + tol, side="right") - 1, 0, len(segs) - 1)
-    ta, za, tb, zb = segs[j, 0], segs[j, 1], segs[j, 2], segs[j, 3]
-    ok = (t >= ta - tol) & (t <= tb + tol)
-    # a point at a segment start can also end the previous segment: both agree on a closed polyline
-    w = np.clip((t - ta) / np.where(tb > ta, tb - ta, 1.0), 0.0, 1.0)
-    z = za + w * (zb - za)
-    out[inside] = np.inf
-    out[inside & ok] = z[inside & ok]
-    return out
+    return _k_border_segments(tris, along, on, np.ascontiguousarray(v[:, 2]))
 
 
 def find_cracks(
@@ -696,7 +669,7 @@ def find_cracks(
     lines: dict[tuple[int, float], list[tuple[TileCode, int, np.ndarray]]] = {}
     for code, m in meshes.items():
         v = np.asarray(m[0], dtype=np.float64)
-        t = np.asarray(m[1])
+        t = np.ascontiguousarray(m[1], dtype=np.int64)
         rows = (v[:, 1] - y0) / transform.e
         cols = (v[:, 0] - x0) / transform.a
         r0, c0 = pyramid.origin_rc(code)
@@ -709,28 +682,22 @@ def find_cracks(
     rep = CrackReport()
     frac = np.linspace(0.0, 1.0, max(2, samples))
     pairs: dict[tuple[TileCode, TileCode], list[float]] = {}
+    code_ids: dict[TileCode, int] = {}
     for items in lines.values():
-        spans = [(segs[:, 0].min(), segs[:, 2].max()) for _, _, segs in items]
-        for ia, (ca, sa, segs_a) in enumerate(items):
-            pts_t = (segs_a[:, 0:1] + frac * (segs_a[:, 2:3] - segs_a[:, 0:1])).ravel()
-            pts_z = (segs_a[:, 1:2] + frac * (segs_a[:, 3:4] - segs_a[:, 1:2])).ravel()
-            for ib, (cb, sb, segs_b) in enumerate(items):
-                if sb == sa or cb == ca:
-                    continue
-                if spans[ib][0] > spans[ia][1] + 1e-9 or spans[ia][0] > spans[ib][1] + 1e-9:
-                    continue
-                zb = _polyline_z(segs_b, pts_t, 1e-9)
-                chk = ~np.isnan(zb)
-                if not chk.any():
-                    continue
-                gap = np.abs(pts_z[chk] - zb[chk])
-                rep.points += int(chk.sum())
-                lo = max(segs_a[:, 0].min(), segs_b[:, 0].min())
-                hi = min(segs_a[:, 2].max(), segs_b[:, 2].max())
-                key = (min(ca, cb), max(ca, cb))
-                rec = pairs.setdefault(key, [0.0, 0.0])
-                rec[0] = max(rec[0], hi - lo)
-                rec[1] = max(rec[1], float(gap.max()))
+        segs = np.concatenate([sg for _, _, sg in items])
+        start = np.zeros(len(items) + 1, np.int64)
+        np.cumsum([len(sg) for _, _, sg in items], out=start[1:])
+        lo_t = segs[start[:-1], 0]  # rows sorted: the first starts leftmost
+        hi_t = np.maximum.reduceat(segs[:, 2], start[:-1])
+        sign = np.array([sg for _, sg, _ in items], np.int64)
+        code = np.array([code_ids.setdefault(c, len(code_ids)) for c, _, _ in items], np.int64)
+        ia, ib, overlap, gap, n = line_pair_gaps(segs, start, lo_t, hi_t, sign, code, frac, 1e-9)
+        rep.points += int(n.sum())
+        for a, b, ov, g in zip(ia.tolist(), ib.tolist(), overlap.tolist(), gap.tolist(), strict=True):
+            ca, cb = items[a][0], items[b][0]
+            rec = pairs.setdefault((min(ca, cb), max(ca, cb)), [0.0, 0.0])
+            rec[0] = max(rec[0], ov)
+            rec[1] = max(rec[1], g)
     for (ca, cb), (overlap, gap) in pairs.items():
         bad = gap > tol_m
         rep.max_gap_m = max(rep.max_gap_m, gap)
