@@ -94,29 +94,40 @@ def srtm_crop(path: Path) -> Path:
 
 # -- the independent check -------------------------------------------------------------------------------
 def _mesh_heights(verts: np.ndarray, tris: np.ndarray, px: np.ndarray, py: np.ndarray) -> np.ndarray:
-    """Height of the mesh at each (px, py), NaN where no triangle covers it (edges included)."""
+    """Height of the mesh at each (px, py), NaN where no triangle covers it (edges included).
+
+    Every (triangle, point) pair whose point lies in the triangle's bounding box (1e-6 m margin) is tested
+    with barycentric coordinates, in numpy batches of pairs (a later triangle wins a shared edge)."""
     out = np.full(px.size, np.nan)
     order = np.argsort(px, kind="stable")
     xs = px[order]
-    for a, b, c in verts[tris]:
-        lo, hi = (
-            int(i) for i in np.searchsorted(xs, [min(a[0], b[0], c[0]) - 1e-6, max(a[0], b[0], c[0]) + 1e-6])
-        )
-        if hi <= lo:
-            continue
-        idx = order[lo:hi]
-        idx = idx[(py[idx] >= min(a[1], b[1], c[1]) - 1e-6) & (py[idx] <= max(a[1], b[1], c[1]) + 1e-6)]
-        if idx.size == 0:
-            continue
-        det = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1])
-        if det == 0.0:
-            continue
+    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    x_lo = np.minimum(np.minimum(a[:, 0], b[:, 0]), c[:, 0]) - 1e-6
+    x_hi = np.maximum(np.maximum(a[:, 0], b[:, 0]), c[:, 0]) + 1e-6
+    y_lo = np.minimum(np.minimum(a[:, 1], b[:, 1]), c[:, 1]) - 1e-6
+    y_hi = np.maximum(np.maximum(a[:, 1], b[:, 1]), c[:, 1]) + 1e-6
+    lo, hi = np.searchsorted(xs, x_lo), np.searchsorted(xs, x_hi)
+    count = np.maximum(hi - lo, 0)
+    ends = np.cumsum(count)
+    t0 = 0
+    while t0 < len(tris):  # batches of about 4 M pairs
+        t1 = max(int(np.searchsorted(ends, ends[t0 - 1] + 4_000_000 if t0 else 4_000_000)), t0 + 1)
+        t1 = min(t1, len(tris))
+        k = np.repeat(np.arange(t0, t1), count[t0:t1])
+        first = np.repeat(ends[t0:t1] - count[t0:t1], count[t0:t1])
+        idx = order[lo[k] + np.arange(k.size) - (first - (ends[t0 - 1] if t0 else 0))]
+        keep = (py[idx] >= y_lo[k]) & (py[idx] <= y_hi[k])
+        k, idx = k[keep], idx[keep]
+        ak, bk, ck = a[k], b[k], c[k]
+        det = (bk[:, 1] - ck[:, 1]) * (ak[:, 0] - ck[:, 0]) + (ck[:, 0] - bk[:, 0]) * (ak[:, 1] - ck[:, 1])
         x, y = px[idx], py[idx]
-        la = ((b[1] - c[1]) * (x - c[0]) + (c[0] - b[0]) * (y - c[1])) / det
-        lb = ((c[1] - a[1]) * (x - c[0]) + (a[0] - c[0]) * (y - c[1])) / det
+        with np.errstate(divide="ignore", invalid="ignore"):
+            la = ((bk[:, 1] - ck[:, 1]) * (x - ck[:, 0]) + (ck[:, 0] - bk[:, 0]) * (y - ck[:, 1])) / det
+            lb = ((ck[:, 1] - ak[:, 1]) * (x - ck[:, 0]) + (ak[:, 0] - ck[:, 0]) * (y - ck[:, 1])) / det
         lc = 1.0 - la - lb
-        inside = (la >= -1e-12) & (lb >= -1e-12) & (lc >= -1e-12)
-        out[idx[inside]] = (la * a[2] + lb * b[2] + lc * c[2])[inside]
+        inside = (det != 0.0) & (la >= -1e-12) & (lb >= -1e-12) & (lc >= -1e-12)
+        out[idx[inside]] = (la * ak[:, 2] + lb * bk[:, 2] + lc * ck[:, 2])[inside]
+        t0 = t1
     return out
 
 
