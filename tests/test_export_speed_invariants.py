@@ -47,7 +47,7 @@ def _reader(path: Path, cache_blocks: int) -> object:
     return RegionReader(resolve_region([path]), cache_blocks=cache_blocks)
 
 
-def test_an_evicted_block_reads_back_as_made_without_a_second_fill(holed: Path) -> None:
+def test_an_evicted_block_reads_back_as_made_without_a_second_read_or_fill(holed: Path) -> None:
     whole = _reader(holed, 1000)
     z, ok = whole.window(0, 1100, 0, 900)
     small = _reader(holed, 1)  # every block evicted by the next
@@ -58,7 +58,7 @@ def test_an_evicted_block_reads_back_as_made_without_a_second_fill(holed: Path) 
                 r0, c0 = br * 512, bc * 512
                 assert np.array_equal(bz, z[r0 : r0 + bz.shape[0], c0 : c0 + bz.shape[1]])
                 assert np.array_equal(bok, ok[r0 : r0 + bz.shape[0], c0 : c0 + bz.shape[1]])
-    assert small.blocks_read == 12
+    assert small.blocks_read == 6  # each block read from the files once, again from the spill file
     assert small.blocks_filled == whole.blocks_filled  # each holed block filled once
 
 
