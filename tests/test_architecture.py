@@ -7,6 +7,7 @@ Every ``import terralod...`` / ``from terralod... import`` in ``src/terralod`` c
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
 
 import pytest
@@ -28,8 +29,9 @@ def _module_name(path: Path) -> str:
     return name[: -len(".__init__")] if name.endswith(".__init__") else name
 
 
+@functools.cache
 def _imports() -> dict[str, set[str]]:
-    """{module: terralod modules it imports} over every source file."""
+    """{module: terralod modules it imports} over every source file (parsed once per session: read only)."""
     out: dict[str, set[str]] = {}
     for f in sorted(SRC.rglob("*.py")):
         mod = _module_name(f)
