@@ -11,6 +11,7 @@ plain computation they stand in for.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -138,3 +139,35 @@ def test_tin_heights_are_matplotlibs_where_the_triangle_is_the_same() -> None:
     mine = planes[t[same], 0] * q[same, 0] + planes[t[same], 1] * q[same, 1] + planes[t[same], 2]
     assert same.sum() > 0.99 * (t >= 0).sum()
     assert np.array_equal(mine, np.ma.getdata(ref)[same])
+
+
+def test_a_spill_file_lives_beside_the_output_and_never_eats_the_disk_reserve(
+    holed: Path, tmp_path: Path, monkeypatch
+) -> None:
+    """Spill files go to the output's folder (not a RAM-backed /tmp) and decline past the disk's reserve:
+    the reader then reads a dropped block from the files again, the same values."""
+    import terralod.output as output
+
+    beside = tmp_path / "out"
+    beside.mkdir()
+    with output.scratch_beside(beside / "web"):
+        spill = output.SpillFile("t-")
+        assert spill.put(4096, b"abc") and spill.get(4096, 3) == b"abc"
+        assert os.readlink(f"/proc/self/fd/{spill._file.fileno()}").startswith(str(beside))
+    monkeypatch.setattr(output, "SPILL_RESERVE_BYTES", 1 << 62)  # no disk is that large: every put declines
+    full = output.SpillFile("t-")
+    assert not full.put(0, b"abc") and full.bytes_written == 0
+    whole = _reader(holed, 1000)
+    z, ok = whole.window(0, 1100, 0, 900)
+    small = _reader(holed, 1)
+    for _ in range(2):
+        for br in range(3):
+            for bc in range(2):
+                bz, bok = small.block(br, bc)
+                assert np.array_equal(
+                    bz, z[br * 512 : br * 512 + bz.shape[0], bc * 512 : bc * 512 + bz.shape[1]]
+                )
+                assert np.array_equal(
+                    bok, ok[br * 512 : br * 512 + bz.shape[0], bc * 512 : bc * 512 + bz.shape[1]]
+                )
+    assert small.blocks_read == 12  # nothing spilled: each block read from the files each time

@@ -57,12 +57,14 @@ from terralod.errors import InputError, OutputBusyError
 __all__ = [
     "Lock",
     "Output",
+    "SpillFile",
     "check_target",
     "pid_alive",
     "refuse_inputs",
     "remove_stale_temporaries",
     "restore_set_aside",
     "same_file",
+    "scratch_beside",
     "temporary_path",
     "work_path",
 ]
@@ -602,3 +604,70 @@ def _link_tree(src: Path, dst: Path) -> None:
                 os.link(s, t)
             except OSError:
                 shutil.copy2(s, t)
+
+
+# -- spill files: what a bounded memory cache drops, kept on disk instead of made again -----------------------
+_SCRATCH: list[Path] = []
+
+
+@contextlib.contextmanager
+def scratch_beside(target: PathLike) -> Any:
+    """While inside, this process's spill files go to the folder of ``target`` (the output's file system:
+    a large disk, seldom a RAM-backed ``/tmp``) instead of the system's temporary folder."""
+    _SCRATCH.append(Path(target).resolve().parent)
+    try:
+        yield
+    finally:
+        _SCRATCH.pop()
+
+
+#: Free space a spill file leaves on its file system: the larger of these (bytes, fraction of the free
+#: space when the file is made). Past it, :meth:`SpillFile.put` declines and the caller makes the data
+#: again: a spill never fills the disk the output is written to, it only stops saving time.
+SPILL_RESERVE_BYTES = 2 << 30
+SPILL_RESERVE_FRACTION = 0.25
+
+
+class SpillFile:
+    """Fixed-size slots of bytes at given offsets of one unlinked temporary file (sparse: only the slots
+    written take space), for caches that drop what memory cannot hold and read it back later as the same
+    bytes. Thread-safe (positional reads and writes); made on the first :meth:`put`, in the folder of
+    :func:`scratch_beside` or the system's temporary folder; gone with the process or this object."""
+
+    def __init__(self, prefix: str) -> None:
+        self.prefix = prefix
+        self._file: Any = None
+        self._allowance = 0
+        self.bytes_written = 0
+
+    def put(self, offset: int, data: bytes) -> bool:
+        """Write ``data`` at ``offset``; False (nothing written) when the disk's reserve would be reached."""
+        import tempfile
+
+        if self._file is None:
+            folder = _SCRATCH[-1] if _SCRATCH else Path(tempfile.gettempdir())
+            try:
+                free = shutil.disk_usage(folder).free
+                self._file = tempfile.TemporaryFile(prefix=self.prefix, dir=folder)
+            except OSError:
+                self._allowance = -1  # a folder that takes no file: no spill, the data made again
+                return False
+            self._allowance = int(free - max(SPILL_RESERVE_BYTES, SPILL_RESERVE_FRACTION * free))
+        if self.bytes_written + len(data) > self._allowance:
+            return False
+        try:
+            done = os.pwrite(self._file.fileno(), data, offset)
+        except OSError:
+            done = -1
+        if done != len(data):
+            self._allowance = -1  # the disk said no: stop spilling, never fail the caller for it
+            return False
+        self.bytes_written += done
+        return True
+
+    def get(self, offset: int, size: int) -> bytes:
+        """The ``size`` bytes at ``offset`` (a slot :meth:`put` wrote)."""
+        got = os.pread(self._file.fileno(), size, offset)
+        if len(got) != size:
+            raise OSError(f"short read from the spill file at {offset}")
+        return got

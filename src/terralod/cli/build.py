@@ -13,6 +13,7 @@ from terralod.cli._console import console, print_store_summary, print_tin_summar
 from terralod.cli._errors import require_extra
 from terralod.cli._inputs import run_build
 from terralod.cli._options import check_output, check_raster_size, load, memory_option, read_options
+from terralod.output import scratch_beside
 
 
 @click.command()
@@ -111,19 +112,21 @@ def build(
     if windowed_build(input_paths, dask_address, epoch, memory_bytes):
         from terralod.cli._windowed import run_windowed_build
 
-        rep = run_windowed_build(input_paths, output, tile_size=tile_size, method=method, workers=workers,
-                                 resume=resume, overwrite=overwrite, dask_address=dask_address,
-                                 dask_workers=dask_workers, read=read, memory_bytes=memory_bytes)  # fmt: skip
+        with scratch_beside(output):  # spill files (positions of a geographic source) on the store's disk
+            rep = run_windowed_build(input_paths, output, tile_size=tile_size, method=method, workers=workers,
+                                     resume=resume, overwrite=overwrite, dask_address=dask_address,
+                                     dask_workers=dask_workers, read=read, memory_bytes=memory_bytes)  # fmt: skip
     else:
         hf = load(input_path, **read)
         if epoch is not None:
             from terralod.pyramid.update import validate_epoch_name
 
             epoch = validate_epoch_name(epoch, output)
-        rep = run_build(
-            hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume, overwrite=overwrite,
-            **({"epoch": epoch} if epoch is not None else {}),
-        )  # fmt: skip
+        with scratch_beside(output):
+            rep = run_build(
+                hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume,
+                overwrite=overwrite, **({"epoch": epoch} if epoch is not None else {}),
+            )  # fmt: skip
     console.print(
         f"built {rep.tiles_built} tiles ({rep.tiles_skipped} already done) in {rep.seconds:.2f} s, "
         f"{rep.samples_per_second / 1e6:.2f} M source samples/s"

@@ -51,7 +51,7 @@ import click
 from terralod.cli._console import PlainProgress, console, err_console
 from terralod.cli._errors import require_extra
 from terralod.cli._options import check_raster_size, memory_option, numbers
-from terralod.output import Lock, Output, refuse_inputs, work_path
+from terralod.output import Lock, Output, refuse_inputs, scratch_beside, work_path
 
 
 @click.command()
@@ -166,8 +166,9 @@ def export(
         if fmt != "quantized-mesh":
             raise click.BadParameter("several inputs, a glob or a folder make a region of DEMs: quantized-mesh "
                                      "only", param_hint="--format")  # fmt: skip
-        _run_dem(list(inputs), output, epoch, {"overwrite": overwrite, "resume": resume, "update": update_output},
-                 gzip_tiles, normals, part, dask)  # fmt: skip
+        with scratch_beside(output):  # the reader's spill file on the output's disk
+            _run_dem(list(inputs), output, epoch, {"overwrite": overwrite, "resume": resume,
+                     "update": update_output}, gzip_tiles, normals, part, dask)  # fmt: skip
         return
     store = inputs[0]
     if not part.whole and fmt == "site":
@@ -199,7 +200,8 @@ def export(
             raise InputError(
                 "is a DEM; 3D Tiles are written from a store (run `terralod build` first)", store
             )
-        _run_dem([store], output, epoch, opts, gzip_tiles, normals, part, dask)
+        with scratch_beside(output):
+            _run_dem([store], output, epoch, opts, gzip_tiles, normals, part, dask)
         return
     with open_terrain(store) as terrain:
         if epoch is not None:
@@ -207,7 +209,8 @@ def export(
         _output(output, store, opts).check()  # refusals first: one line, before any progress output
         Geodesy(terrain.crs, store)
         check_exportable(terrain, epoch)
-        _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals, part, tiles, dask)
+        with scratch_beside(output):
+            _run(terrain, fmt, output, metric, epoch, opts, gzip_tiles, normals, part, tiles, dask)
 
 
 def _part(bbox: str | None, min_zoom: int, max_zoom: int | None) -> Any:

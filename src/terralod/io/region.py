@@ -36,7 +36,6 @@ from __future__ import annotations
 import glob as _glob
 import math
 import os
-import tempfile
 import threading
 import warnings
 import zipfile
@@ -52,6 +51,7 @@ from affine import Affine
 
 from terralod.errors import InputError, InputNotFoundError
 from terralod.fill import FILL_SMOOTH_ITERATIONS, fill_nodata
+from terralod.output import SpillFile
 
 __all__ = [
     "FILL_BLOCK",
@@ -554,8 +554,8 @@ class RegionReader:
       thinned copies made with each block (kept within THIN_CACHE_BYTES) and the region's last row and
       column (kept: the grids clamp to them), not every block at full resolution.
 
-    A block the LRU drops goes to a spill file (an unlinked temporary: the region's dtype and one bit a
-    sample, about 4.1 bytes a sample of the blocks dropped) and comes back from it as the same bytes, a
+    A block the LRU drops goes to a spill file (:class:`terralod.output.SpillFile`: the region's dtype and
+    one bit a sample, about 4.1 bytes a sample of the blocks dropped) and comes back from it as the same bytes, a
     copy instead of a GDAL read and decode: the finer zooms of an export sweep the region again and again.
 
     Memory: ``cache_blocks`` blocks plus those three budgets, whatever the region's size.
@@ -580,7 +580,7 @@ class RegionReader:
         self._edges: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         #: blocks the LRU dropped, kept in an unlinked temporary file (the region's dtype and a bit a
         #: sample: 4.1 bytes a sample for float32) and read back from it instead of from the files
-        self._spill_file: Any = None
+        self._spill_file = SpillFile("terralod-blocks-")
         self._spilled: set[tuple[int, int]] = set()
         self.blocks_read = 0  #: blocks read from the files (cache misses), for benchmarks
         self.blocks_filled = 0  #: blocks whose nodata fill was computed, for benchmarks
@@ -690,16 +690,14 @@ class RegionReader:
 
     def _spill(self, key: tuple[int, int], got: tuple[np.ndarray, np.ndarray]) -> None:
         """Keep a block the LRU drops in the spill file (caller holds the lock): read back, it costs a
-        copy instead of a GDAL read (decode, VRT) and its fill."""
+        copy instead of a GDAL read (decode, VRT) and its fill. A block the file declines (its disk's
+        reserve reached) is read from the files again when asked."""
         if key in self._spilled or self.cache_blocks <= 0:
             return
-        if self._spill_file is None:
-            self._spill_file = tempfile.TemporaryFile(prefix="terralod-blocks-")
         z, ok = got
         buf = np.ascontiguousarray(z, self.dtype).tobytes() + np.packbits(ok, axis=None).tobytes()
-        if os.pwrite(self._spill_file.fileno(), buf, self._spill_offset(*key)[0]) != len(buf):
-            raise OSError(f"short write to the block spill file {self._spill_file.name}")
-        self._spilled.add(key)
+        if self._spill_file.put(self._spill_offset(*key)[0], buf):
+            self._spilled.add(key)
 
     def _spilled_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray] | None:
         """Block (br, bc) read back from the spill file, or None if it was never dropped there."""
@@ -710,7 +708,7 @@ class RegionReader:
         shape = (r1 - r0, c1 - c0)
         n = shape[0] * shape[1]
         width = n * np.dtype(self.dtype).itemsize
-        raw = os.pread(self._spill_file.fileno(), width + (n + 7) // 8, self._spill_offset(br, bc)[0])
+        raw = self._spill_file.get(self._spill_offset(br, bc)[0], width + (n + 7) // 8)
         z = np.frombuffer(raw, self.dtype, count=n).reshape(shape).copy()
         ok = np.unpackbits(np.frombuffer(raw, np.uint8, offset=width), count=n).view(bool).reshape(shape)
         return z, ok

@@ -32,8 +32,6 @@ from __future__ import annotations
 import collections
 import functools
 import math
-import os
-import tempfile
 import threading
 import weakref
 from dataclasses import dataclass
@@ -166,8 +164,8 @@ def tile_samples(
 #: sample: 1 MiB a block), and the blocks kept in memory per source (LRU, 96 MiB). PROJ through GDAL costs
 #: about 0.7 us a point, and the levels sweep the region again and again (a unit's window, about 1024²
 #: store samples, covers some 5 x 5 blocks of a 3" source): so a block is transformed once per source
-#: and process, and a block the LRU drops goes to a spill file (unlinked temporary, 16 bytes a sample of
-#: the blocks dropped) from which it is read back instead of transformed again. Memory stays at the blocks
+#: and process, and a block the LRU drops goes to a spill file (:class:`terralod.output.SpillFile`, 16 bytes a
+#: sample of the blocks dropped) from which it is read back instead of transformed again. Memory stays at the blocks
 #: kept whatever the region; disk grows with it (a 16-tile SRTM3 region: 352 blocks, 352 MiB). A block is
 #: the same numbers whether transformed or read back: the count changes time, not values.
 POSITION_BLOCK = 256
@@ -181,12 +179,14 @@ class _Positions:
     in a spill file and read back from it."""
 
     def __init__(self, grid: Any, store_crs: str) -> None:
+        from terralod.output import SpillFile
+
         self.grid, self.store_crs = grid, store_crs
         self.blocks: collections.OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = (
             collections.OrderedDict()
         )
         self.lock = threading.Lock()
-        self.spill: Any = None  # the spill file, opened at the first drop
+        self.spill = SpillFile("terralod-positions-")
         self.spilled: set[tuple[int, int]] = set()
 
     def _offset(self, br: int, bc: int) -> int:
@@ -200,17 +200,13 @@ class _Positions:
 
     def _drop(self) -> None:
         """Drop the least recently used blocks beyond :data:`POSITION_BLOCKS_KEPT` to the spill file
-        (caller holds the lock)."""
+        (caller holds the lock; a block the spill file declines is transformed again when asked)."""
         while len(self.blocks) > POSITION_BLOCKS_KEPT:
             key, (qx, qy) = self.blocks.popitem(last=False)
-            if key in self.spilled:
-                continue
-            if self.spill is None:
-                self.spill = tempfile.TemporaryFile(prefix="terralod-positions-")
-            buf = np.concatenate([qx.ravel(), qy.ravel()]).tobytes()
-            if os.pwrite(self.spill.fileno(), buf, self._offset(*key)) != len(buf):
-                raise OSError(f"short write to the position spill file {self.spill.name}")
-            self.spilled.add(key)
+            if key not in self.spilled and self.spill.put(
+                self._offset(*key), np.concatenate([qx.ravel(), qy.ravel()]).tobytes()
+            ):
+                self.spilled.add(key)
 
     def _block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
         with self.lock:
@@ -222,8 +218,7 @@ class _Positions:
         shape = self._block_shape(br, bc)
         if spilled:
             n = shape[0] * shape[1]
-            raw = os.pread(self.spill.fileno(), 16 * n, self._offset(br, bc))
-            both = np.frombuffer(raw, np.float64)
+            both = np.frombuffer(self.spill.get(self._offset(br, bc), 16 * n), np.float64)
             qx, qy = both[:n].reshape(shape), both[n:].reshape(shape)
         else:
             qx, qy = self._transform(br, bc, shape)
