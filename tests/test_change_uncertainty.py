@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from rasterio.transform import from_origin
 
 from terralod.change.uncertainty import terrain_attributes, volume_sigma_m3
@@ -141,3 +143,40 @@ def test_propagation_matches_xdem_for_a_constant_sigma() -> None:
     neff = xdem.spatialstats.neff_circular_approx_theoretical(area, params)
     got = volume_sigma_m3(area, a, n * 1.5, n * 1.5**2, [(300.0, 1.0)]) / area
     assert got == pytest.approx(1.5 / np.sqrt(neff), rel=1e-6)
+
+
+@settings(max_examples=12, deadline=None)
+@given(st.integers(0, 2**31))
+def test_the_variogram_fit_is_xdems_bit_for_bit(seed: int) -> None:
+    """fit_sum_spherical (the models' sum in one kernel call) gives xdem's fit_sum_model_variogram numbers
+    exactly, on noisy two-range variograms, or fails where it fails."""
+    import warnings
+
+    import pandas as pd
+    import xdem
+
+    from terralod.change.uncertainty import fit_sum_spherical
+
+    rng = np.random.default_rng(seed)
+    lags = np.arange(1, 65, dtype=float) * rng.uniform(1, 30)
+    r1, r2 = rng.uniform(1, 10) * lags[0], rng.uniform(10, 60) * lags[0]
+    s1, s2 = rng.uniform(0.1, 1), rng.uniform(0.1, 1)
+    sph = lambda h, r, c: np.where(h <= r, c * (1.5 * h / r - 0.5 * (h / r) ** 3), c)  # noqa: E731
+    gam = np.abs(sph(lags, r1, s1) + sph(lags, r2, s2) + rng.normal(0, 0.05, lags.size) + rng.uniform(0, 0.3))
+    cnt = rng.integers(100, 100_000, lags.size).astype(float)
+    df = pd.DataFrame({"lags": lags, "exp": gam, "count": cnt, "err_exp": gam / np.sqrt(cnt) + 1e-6})
+    top = gam.max() * 1.5
+    bounds = [(0.1 * lags[0], lags[-1]), (0.0, top), (lags[0], 4 * lags[-1]), (0.0, top)]
+    p0 = [lags[0], 0.5 * gam[0], lags[32], 0.5 * top]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            _f, params = xdem.spatialstats.fit_sum_model_variogram(["Sph"] * 2, df, bounds=bounds, p0=p0,
+                                                                   maxfev=10000)  # fmt: skip
+        except RuntimeError:
+            with pytest.raises(RuntimeError):
+                fit_sum_spherical(df, bounds=bounds, p0=p0, maxfev=10000)
+            return
+        got = fit_sum_spherical(df, bounds=bounds, p0=p0, maxfev=10000)
+    want = np.ravel(np.c_[params["range"].values, params["psill"].values])
+    assert np.array_equal(got, want), (got, want)

@@ -148,6 +148,10 @@ def _library_kernels(hf) -> None:
         np.concatenate([segs, segs]), two, np.zeros(2), np.full(2, 2.0), np.array([-1, 1]), np.arange(2),
         np.linspace(0.0, 1.0, 5), 1e-9,
     )  # fmt: skip
+    # the change's error model: the sum of spherical variograms its fit evaluates
+    from terralod.kernels.variogram import spherical_sum
+
+    spherical_sum(np.arange(1.0, 4.0), np.array([2.0, 1.0]))
     # a TIN store's quantized-mesh export: the bucket grid that locates points in its triangles
     from terralod.kernels.tinlocate import bucket_triangles, locate_points
 

@@ -13,7 +13,8 @@ The model (Hugonnet et al. 2022, IEEE JSTARS 15, 6456, as xdem 0.2 implements it
 2. **Spatial correlation**: the stable difference standardised by σ(slope, curvature), its empirical
    semivariogram along rows and columns (lags of 1 to 64 cells: the bounded sample of
    :mod:`terralod.change.windowed` lays its windows 65 cells apart), fitted as a sum of
-   :data:`N_RANGES` spherical models by :func:`xdem.spatialstats.fit_sum_model_variogram`; the partial sills
+   :data:`N_RANGES` spherical models as :func:`xdem.spatialstats.fit_sum_model_variogram` fits it (its steps,
+   with the models' sum in a kernel: :func:`fit_sum_spherical`, bit for bit xdem's); the partial sills
    are kept as fractions of the standardised variance.
 3. **Propagation** to a volume over a set S of n cells of area a (A = n·a), the circular-area
    approximation of xdem's ``spatial_error_propagation`` for a numeric area (Rolstad et al. 2009
@@ -39,6 +40,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -294,13 +296,11 @@ def fit_error_model(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            _f, params = xdem.spatialstats.fit_sum_model_variogram(
-                ["Sph"] * N_RANGES, df, bounds=bounds, p0=p0, maxfev=10000
-            )
+            cof = fit_sum_spherical(df, bounds=bounds, p0=p0, maxfev=10000)
         except (RuntimeError, ValueError) as e:
             return f"how far errors stay alike could not be fitted ({e})"
-    rng = [float(v) for v in params["range"].values]
-    ps = np.clip(np.asarray(params["psill"].values, np.float64), 0, None)
+    rng = [float(v) for v in cof[0::2]]
+    ps = np.clip(np.asarray(cof[1::2], np.float64), 0, None)
     total = max(float(ps.sum()), float(np.mean(gam[-3:])), 1e-12)
     q = ps / total
     nugget = max(0.0, 1.0 - float(q.sum()))
@@ -310,6 +310,34 @@ def fit_error_model(
     model.variogram = [(float(h), float(g), int(c)) for h, g, c in emp]
     model.contrast = _contrast(dod[ok], s_ok)
     return model
+
+
+def fit_sum_spherical(
+    empirical: Any, *, bounds: list[tuple[float, float]], p0: list[float], maxfev: int
+) -> np.ndarray:
+    """xdem's ``fit_sum_model_variogram(["Sph"] * K, empirical, bounds=..., p0=..., maxfev=...)``, its steps
+    (finite values kept, a weighted trust-region fit by ``scipy.optimize.curve_fit`` where the errors are
+    given) with the models' sum evaluated by :func:`terralod.kernels.variogram.spherical_sum`: the same
+    numbers bit for bit (tests/test_change_uncertainty.py), one kernel call per evaluation instead of one
+    Python call per lag and model. Returns (r_0, psill_0, r_1, psill_1, ...)."""
+    from scipy.optimize import curve_fit
+
+    from terralod.kernels.variogram import spherical_sum
+
+    def model(h: np.ndarray, *args: float) -> np.ndarray:
+        return spherical_sum(np.ascontiguousarray(h, np.float64), np.array(args, np.float64))
+
+    emp = empirical[np.isfinite(empirical.exp.values)]
+    final_bounds = np.transpose(np.array(bounds))
+    err = emp.err_exp.values
+    if np.all(np.isnan(err)) or np.all(err == 0):
+        cof, _ = curve_fit(model, emp.lags.values, emp.exp.values, method="trf", p0=p0, bounds=final_bounds,
+                           maxfev=maxfev)  # fmt: skip
+    else:
+        ok = np.isfinite(err)
+        cof, _ = curve_fit(model, emp.lags.values[ok], emp.exp.values[ok], method="trf", p0=p0,
+                           bounds=final_bounds, sigma=err[ok], maxfev=maxfev)  # fmt: skip
+    return np.asarray(cof, np.float64)
 
 
 def _contrast(d: np.ndarray, slope: np.ndarray) -> tuple[float, float, float] | None:
