@@ -183,7 +183,8 @@ def _png(fig) -> bytes:
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    # zlib level 3, not PIL's 6: the same pixels, files some 13 % larger, written in about half the time
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight", pil_kwargs={"compress_level": 3})
     plt.close(fig)
     return buf.getvalue()
 
