@@ -252,17 +252,11 @@ def add_edge_contributions(t_tab, s_tab, g_tab, t_q, rows, tol, acc):
 
 
 @jit
-def segment_triangles(tris, edge_vid, n_vertices):
-    """For each boundary segment (edge_vid[j], edge_vid[j + 1]) of one side: the triangle holding it and the
-    corner r of that triangle where the directed edge (r, r + 1) starts; -1 / 0 where none holds it."""
-    rank = np.full(n_vertices, -1, np.int64)
-    return segment_triangles_among(tris, np.arange(tris.shape[0]), edge_vid, rank)
-
-
-@jit
 def segment_triangles_among(tris, ids, edge_vid, rank):
-    """:func:`segment_triangles` looking only at the triangles ``ids`` (ascending; they must include every
-    triangle holding a segment of the side, e.g. those touching the tile boundary). ``rank`` is a work
+    """For each boundary segment (edge_vid[j], edge_vid[j + 1]) of one side: the triangle holding it and the
+    corner r of that triangle where the directed edge (r, r + 1) starts (-1 / 0 where none holds it),
+    looking only at the triangles ``ids`` (ascending; they must include every triangle holding a segment of
+    the side, e.g. those touching the tile boundary). ``rank`` is a work
     array of -1 with a row per vertex; it is -1 again on return."""
     m = edge_vid.shape[0]
     seg_tri = np.full(max(m - 1, 0), -1, np.int64)
@@ -335,7 +329,7 @@ def stitch_tile(
     Inputs: the prepared tile (vertices (N, 3), triangles (K, 3) uint32, own normal sums / normals, the
     triangles touching the boundary and their vertices), its sides' vertex ids ``ev`` and positions ``et``
     concatenated side after side (side e is ``eoff[e]:eoff[e + 1]``) and the triangles holding its side
-    segments (:func:`segment_triangles`, at ``segoff``), its corner vertex ids (-1: none); per side, the
+    segments (:func:`segment_triangles_among`, at ``segoff``), its corner vertex ids (-1: none); per side, the
     coarse polyline to fit to (``fit_t``/``fit_h`` at ``fitoff``, used where ``fit_on``) and the finer
     neighbours' boundary positions (``fine_t`` at ``fineoff``, used where ``fine_on``); per corner the
     height it takes (where ``corner_on``); ``geo`` as in :func:`_insert_on_side`; a position tolerance.
@@ -623,3 +617,83 @@ def line_pair_gaps(segs, start, lo_t, hi_t, sign, code, frac, tol):
         np.array(out_gap[1:]),
         np.array(out_n[1:]),
     )
+
+
+@jit
+def tile_edges(rc, tris, r0, c0, r1, c1, tol):
+    """A tile's boundary bookkeeping in one pass (:meth:`terralod.runtime.stitch.TilePrep.from_tile`).
+
+    ``rc`` (N, 2) the vertices' (row, col) in source samples, ``tris`` (K, 3); the tile square's rows r0, r1
+    and columns c0, c1; a vertex is on a side within ``tol``. Returns the sides L, U, R, D concatenated:
+    vertex ids ascending along each side (ties in id order) and their positions t (row on L/R, col on U/D)
+    with offsets (5,); each side's segment triangles and start corners (:func:`segment_triangles_among`) with
+    offsets (5,); the corner vertices LU, RU, RD, LD (lowest id, -1 where none); the triangles touching the
+    boundary and their vertices, both ascending."""
+    n = rc.shape[0]
+    on = np.zeros((4, n), np.bool_)
+    count = np.zeros(4, np.int64)
+    for v in range(n):
+        on[0, v] = abs(rc[v, 1] - c0) <= tol
+        on[1, v] = abs(rc[v, 0] - r0) <= tol
+        on[2, v] = abs(rc[v, 1] - c1) <= tol
+        on[3, v] = abs(rc[v, 0] - r1) <= tol
+        for e in range(4):
+            if on[e, v]:
+                count[e] += 1
+    eoff = np.zeros(5, np.int64)
+    for e in range(4):
+        eoff[e + 1] = eoff[e] + count[e]
+    ev = np.empty(eoff[4], np.int64)
+    et = np.empty(eoff[4], np.float64)
+    for e in range(4):
+        col = 0 if e == 0 or e == 2 else 1
+        idx = np.empty(count[e], np.int64)
+        t = np.empty(count[e], np.float64)
+        k = 0
+        for v in range(n):
+            if on[e, v]:
+                idx[k] = v
+                t[k] = rc[v, col]
+                k += 1
+        order = np.argsort(t, kind="mergesort")
+        for j in range(count[e]):
+            ev[eoff[e] + j] = idx[order[j]]
+            et[eoff[e] + j] = t[order[j]]
+    corners = np.full(4, -1, np.int64)
+    for c in range(4):
+        a, b = c, (c + 1) % 4  # LU = L & U, RU = U & R, RD = R & D, LD = D & L
+        for v in range(n):
+            if on[a, v] and on[b, v]:
+                corners[c] = v
+                break
+    nb = 0
+    bt = np.empty(tris.shape[0], np.int64)
+    nv = n
+    for i in range(tris.shape[0]):
+        hit = False
+        for r in range(3):
+            w = tris[i, r]
+            if w + 1 > nv:
+                nv = w + 1
+            if w < n and (on[0, w] or on[1, w] or on[2, w] or on[3, w]):
+                hit = True
+        if hit:
+            bt[nb] = i
+            nb += 1
+    btris = bt[:nb].copy()
+    mark = np.zeros(nv, np.bool_)
+    for i in range(nb):
+        for r in range(3):
+            mark[tris[btris[i], r]] = True
+    touched = np.flatnonzero(mark).astype(np.int64)
+    rank = np.full(nv, -1, np.int64)
+    soff = np.zeros(5, np.int64)
+    for e in range(4):
+        soff[e + 1] = soff[e] + max(count[e] - 1, 0)
+    seg_tri = np.empty(soff[4], np.int64)
+    seg_rot = np.empty(soff[4], np.int64)
+    for e in range(4):
+        st, sr = segment_triangles_among(tris, btris, ev[eoff[e] : eoff[e + 1]], rank)
+        seg_tri[soff[e] : soff[e + 1]] = st
+        seg_rot[soff[e] : soff[e + 1]] = sr
+    return ev, et, eoff, seg_tri, seg_rot, soff, corners, btris, touched

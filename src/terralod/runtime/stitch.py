@@ -55,8 +55,8 @@ from terralod.kernels.stitch import (
     normalize_all,
     polyline_at,
     stitch_tile,
+    tile_edges,
 )
-from terralod.kernels.stitch import segment_triangles as _segment_triangles
 from terralod.runtime.adjacency import CULLED, OPPOSITE, VISIBLE, Adjacency, QuadIndex
 from terralod.runtime.normals import boundary_normals, edge_tables
 from terralod.tiles import TileCode, TilePyramid
@@ -162,29 +162,13 @@ class TilePrep:
         r0, c0 = pyramid.origin_rc(code)  # type: ignore[arg-type]
         span = pyramid.span(code[0])
         r1, c1 = r0 + span, c0 + span
-        on = [
-            np.abs(rc[:, 1] - c0) <= POS_TOL,
-            np.abs(rc[:, 0] - r0) <= POS_TOL,
-            np.abs(rc[:, 1] - c1) <= POS_TOL,
-            np.abs(rc[:, 0] - r1) <= POS_TOL,
-        ]
-        edge_vid, edge_t = [], []
-        for e in range(4):
-            idx = np.flatnonzero(on[e])
-            t = rc[idx, 0 if e in (0, 2) else 1]
-            order = np.argsort(t, kind="stable")
-            edge_vid.append(idx[order].astype(np.int64))
-            edge_t.append(np.ascontiguousarray(t[order]))
-        seg = [segment_triangles(tris, ev) for ev in edge_vid]
-
-        def corner(a: int, b: int) -> int:
-            w = np.flatnonzero(on[a] & on[b])
-            return int(w[0]) if w.size else -1
-
-        corners = (corner(0, 1), corner(1, 2), corner(2, 3), corner(3, 0))
-        bmask = on[0] | on[1] | on[2] | on[3]
-        btris = np.flatnonzero(bmask[tris].any(axis=1)).astype(np.int64)
-        touched = np.unique(tris[btris].astype(np.int64))
+        ev, et, eoff, st, sr, soff, cor, btris, touched = tile_edges(
+            np.ascontiguousarray(rc), tris, float(r0), float(c0), float(r1), float(c1), POS_TOL
+        )
+        edge_vid = [ev[eoff[e] : eoff[e + 1]] for e in range(4)]
+        edge_t = [et[eoff[e] : eoff[e + 1]] for e in range(4)]
+        seg = [(st[soff[e] : soff[e + 1]], sr[soff[e] : soff[e + 1]]) for e in range(4)]
+        corners = (int(cor[0]), int(cor[1]), int(cor[2]), int(cor[3]))
         sums = normal_sums(v, tris)
         prep = cls(
             code, v, tris, rc, float(r0), float(c0), float(r1), float(c1), edge_vid, edge_t,
@@ -227,12 +211,6 @@ def _pack(arrays: Sequence[np.ndarray | None]) -> tuple[np.ndarray, np.ndarray, 
     """Four optional float64 arrays as (concatenation, offsets (5,), present (4,) bool) for a kernel."""
     parts = [_NONE if a is None else a for a in arrays]
     return np.concatenate(parts), _offsets(parts), np.array([a is not None for a in arrays])
-
-
-def segment_triangles(tris: np.ndarray, edge_vid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For consecutive boundary vertices (edge_vid[j], edge_vid[j + 1]): (triangle, start corner) or -1."""
-    n = int(max(int(tris.max()) if tris.size else -1, int(edge_vid.max()) if edge_vid.size else -1)) + 1
-    return _segment_triangles(tris, np.ascontiguousarray(edge_vid, dtype=np.int64), n)
 
 
 class TileCache:
