@@ -671,12 +671,13 @@ class RegionReader:
                 self._cache.move_to_end(key)
                 return got
         got = self._spilled_block(br, bc)
+        read = got is None
         if got is None:
             got = self._make_block(br, bc)
-            self.blocks_read += 1
         elif self._thin.get(key) is None:
             self._note_thinned(br, bc, *got)
         with self._lock:
+            self.blocks_read += read
             self._cache[key] = got
             while len(self._cache) > self.cache_blocks:
                 self._spill(*self._cache.popitem(last=False))
