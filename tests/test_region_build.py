@@ -192,6 +192,25 @@ def test_cli_builds_a_folder_of_geographic_tiles(region, tmp_path: Path) -> None
         assert s.meta["errors_measured_against"]["samples"] == "original"
 
 
+def test_a_build_the_disk_cannot_hold_is_refused_before_anything_is_written(
+    region, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The free-disk check of an out-of-core build: a store estimated beyond the disk's free space is one
+    line naming the output, exit 2, no file written (with the default estimate the build above runs)."""
+    import terralod.cli._windowed as windowed
+
+    from conftest import terralod_cli
+
+    _, tiles = region
+    out = tmp_path / "big.terra"
+    monkeypatch.setattr(windowed, "STORE_BYTES_PER_SAMPLE", 1e12)  # a petabyte a sample: no disk has it
+    res = terralod_cli("build", tiles[0].parent, "-o", out, "--tile-size", "17")
+    assert res.returncode == 2, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and str(out) in lines[0] and "free" in lines[0], res.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_large_tiles_measure_original_samples_in_strips(
     region, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
