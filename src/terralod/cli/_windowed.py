@@ -21,16 +21,16 @@ _GDAL_SUFFIXES = (".tif", ".tiff", ".vrt", ".img", ".hgt")
 STORE_BYTES_PER_SAMPLE = 12.0
 
 
-def check_store_space(output: str, samples: int) -> None:
+def check_store_space(output: str, samples: int, resume: bool = False) -> None:
     """Refuse (InputError, one line naming the output) an out-of-core build whose store would need more
     than its disk has free: about :data:`STORE_BYTES_PER_SAMPLE` a sample of the build's grid, less what a
-    store being resumed already holds."""
+    store being resumed already holds (a store being replaced stays until the new one is whole)."""
     import shutil
 
     from terralod.errors import InputError
 
     p = Path(output).resolve()
-    have = p.stat().st_size if p.is_file() else 0
+    have = p.stat().st_size if resume and p.is_file() else 0
     need = int(STORE_BYTES_PER_SAMPLE * samples) - have
     folder = p.parent
     while not folder.exists() and folder != folder.parent:
@@ -98,7 +98,7 @@ def run_windowed_build(
 
         src.crs, note = crs_with_vertical_datum(src.crs, read["vertical_datum"], src.source)
         src.notes = (*src.notes, note)
-    check_store_space(output, src.width * src.height)  # before a worker starts or a file is written
+    check_store_space(output, src.width * src.height, resume)  # before a worker starts or a file is written
     from terralod.memory import plan_memory
 
     try:
