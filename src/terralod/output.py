@@ -46,6 +46,7 @@ import os
 import shutil
 import socket
 import sys
+import tempfile
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -642,8 +643,6 @@ class SpillFile:
 
     def put(self, offset: int, data: bytes) -> bool:
         """Write ``data`` at ``offset``; False (nothing written) when the disk's reserve would be reached."""
-        import tempfile
-
         if self._file is None:
             folder = _SCRATCH[-1] if _SCRATCH else Path(tempfile.gettempdir())
             try:

@@ -683,11 +683,11 @@ class RegionReader:
                 self._spill(*self._cache.popitem(last=False))
         return got
 
-    def _spill_offset(self, br: int, bc: int) -> tuple[int, int]:
-        """(offset, bytes) of block (br, bc)'s slot in the spill file: heights, then validity bits."""
+    def _spill_offset(self, br: int, bc: int) -> int:
+        """Offset of block (br, bc)'s slot in the spill file (heights, then validity bits)."""
         b = FILL_BLOCK
         slot = b * b * np.dtype(self.dtype).itemsize + b * b // 8
-        return (br * -(-self.width // b) + bc) * slot, slot
+        return (br * -(-self.width // b) + bc) * slot
 
     def _spill(self, key: tuple[int, int], got: tuple[np.ndarray, np.ndarray]) -> None:
         """Keep a block the LRU drops in the spill file (caller holds the lock): read back, it costs a
@@ -697,7 +697,7 @@ class RegionReader:
             return
         z, ok = got
         buf = np.ascontiguousarray(z, self.dtype).tobytes() + np.packbits(ok, axis=None).tobytes()
-        if self._spill_file.put(self._spill_offset(*key)[0], buf):
+        if self._spill_file.put(self._spill_offset(*key), buf):
             self._spilled.add(key)
 
     def _spilled_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -709,7 +709,7 @@ class RegionReader:
         shape = (r1 - r0, c1 - c0)
         n = shape[0] * shape[1]
         width = n * np.dtype(self.dtype).itemsize
-        raw = self._spill_file.get(self._spill_offset(br, bc)[0], width + (n + 7) // 8)
+        raw = self._spill_file.get(self._spill_offset(br, bc), width + (n + 7) // 8)
         z = np.frombuffer(raw, self.dtype, count=n).reshape(shape).copy()
         ok = np.unpackbits(np.frombuffer(raw, np.uint8, offset=width), count=n).view(bool).reshape(shape)
         return z, ok
