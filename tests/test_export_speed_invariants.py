@@ -171,3 +171,31 @@ def test_a_spill_file_lives_beside_the_output_and_never_eats_the_disk_reserve(
                     bok, ok[br * 512 : br * 512 + bz.shape[0], bc * 512 : bc * 512 + bz.shape[1]]
                 )
     assert small.blocks_read == 12  # nothing spilled: each block read from the files each time
+
+
+def test_a_dropped_warped_block_reads_back_as_warped_without_a_second_warp(holed: Path, monkeypatch) -> None:
+    """A geographic region's warped blocks that the LRU drops come back from the spill file as the same
+    bytes (heights, NaN where invalid, and the mask), whatever the order windows ask for them; each block
+    is warped from the source once."""
+    from collections import OrderedDict
+
+    import terralod.io.windowed as windowed
+
+    monkeypatch.setattr(windowed, "WARP_ROWS", 128)  # several block rows on this small grid
+    whole = windowed.WarpedSource([holed])
+    z, ok = whole.read_raw(0, 0, whole.height, whole.width)
+    distinct = whole._state.blocks_warped
+    assert distinct == -(-whole.height // 128) * (len(whole._bands) - 1)
+    monkeypatch.setattr(windowed, "_warp_states", OrderedDict())  # a fresh process's caches
+    monkeypatch.setattr(windowed, "WARP_CACHE_SAMPLES", 1)  # every block dropped by the next
+    small = windowed.WarpedSource([holed])
+    rng = np.random.default_rng(3)
+    for _ in range(12):
+        r0, c0 = int(rng.integers(0, small.height - 1)), int(rng.integers(0, small.width - 1))
+        r1 = int(rng.integers(r0 + 1, min(small.height, r0 + 400) + 1))
+        c1 = int(rng.integers(c0 + 1, small.width + 1))
+        wz, wok = small.read_raw(r0, c0, r1, c1)
+        assert np.array_equal(wz, z[r0:r1, c0:c1], equal_nan=True)
+        assert np.array_equal(wok, ok[r0:r1, c0:c1])
+    assert small._state.blocks_warped <= distinct  # never a block warped twice
+    assert small._state.spill.bytes_written > 0
