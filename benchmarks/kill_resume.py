@@ -147,24 +147,43 @@ def main() -> None:
     args = ap.parse_args()
     n = round(args.tiles**0.5)
     rng = random.Random(args.seed)
-    rows, runs = [], []
+    stages = args.stages.split(",")
+    # rows of earlier runs of other (stage, size) pairs are kept, so one size's run adds its rows
+    runs = [
+        r for r in _earlier_runs() if (r["stage"], r.get("tiles")) not in {(s, args.tiles) for s in stages}
+    ]
     with tempfile.TemporaryDirectory(prefix="terralod-kill-") as tmp:
         d = Path(tmp)
         write_mosaic(SHARED / "dem" / f"{args.source}.tif", n, d / "dem")
-        for stage in args.stages.split(","):
+        for stage in stages:
             r = run_stage(stage, d / "dem", d, args.kills, rng)
+            r.update(tiles=args.tiles, seed=args.seed, load_1min=os.getloadavg()[0],
+                     date=time.strftime("%Y-%m-%d %H:%M"))  # fmt: skip
             runs.append(r)
             print(r, flush=True)
-            rows.append([f"{stage} ({args.tiles} SRTM3 tiles)", round(r["reference_s"], 1), r["kills"],
-                         "; ".join(r["kill_moments"]), r["lost_at_kills"], r["done_before_last_run"],
-                         r["kept_by_last_run"], round(r["last_run_s"], 1), "yes" if r["identical"] else "**NO**"])  # fmt: skip
+    runs.sort(key=lambda r: (r["stage"], r.get("tiles", 0)))
+    rows = [[f"{r['stage']} ({r.get('tiles', '?')} SRTM3 tiles)", round(r["reference_s"], 1), r["kills"],
+             "; ".join(r["kill_moments"]), r["lost_at_kills"], r["done_before_last_run"], r["kept_by_last_run"],
+             round(r["last_run_s"], 1), "yes" if r["identical"] else "**NO**", r.get("date", "")] for r in runs]  # fmt: skip
     table = md_table(["command", "uninterrupted s", "SIGKILLs", "killed at (finished so far)", "finished work lost",
-                      "finished before the last run", "kept by it", "last run s", "identical to uninterrupted"],
-                     rows)  # fmt: skip
-    note = (f"\nSeed {args.seed}; one run each, on a shared 2-core machine (load {os.getloadavg()[0]:.1f}). "
-            "Export: every file of the output compared; build: every tile row. 'Kept by it': finished tiles "
-            "whose file (inode) the last run kept, or committed rows it did not build again.\n")  # fmt: skip
-    write_results("kill_resume", {"tiles": args.tiles, "seed": args.seed, "runs": runs}, table + note)
+                      "finished before the last run", "kept by it", "last run s", "identical to uninterrupted",
+                      "run"], rows)  # fmt: skip
+    note = ("\nOne run per row (seed 7 unless the JSON says otherwise), on a shared 2-core machine. Export: "
+            "every file of the output compared; build: every tile row. 'Kept by it': finished tiles whose "
+            "file (inode) the last run kept, or committed rows it did not build again. A run of some sizes "
+            "and stages keeps the rows of the others.\n")  # fmt: skip
+    write_results("kill_resume", {"runs": runs}, table + note)
+
+
+def _earlier_runs() -> list[dict]:
+    """The runs of the results file (each with its stage and mosaic size), if any."""
+    import json
+
+    p = Path(__file__).resolve().parent / "results" / "kill_resume.json"
+    try:
+        return list(json.loads(p.read_text())["runs"])
+    except (OSError, KeyError, ValueError):
+        return []
 
 
 if __name__ == "__main__":
