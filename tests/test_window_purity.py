@@ -61,3 +61,74 @@ def test_positions_dropped_from_memory_come_back_from_the_spill_file(tmp_path: P
     assert len(transformed) > 4 * original.POSITION_BLOCKS_KEPT  # most blocks went through the spill file
     assert set(transformed.values()) == {1}, transformed
     assert _rows(kept) and _rows(kept) == _rows(spilled)
+
+
+@pytest.fixture(scope="module")
+def islet(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 1,800² projected DEM whose only data is a 300² patch near its north-west corner (the rest
+    nodata: the open sea of a coastal survey, the corners of a region warped to UTM)."""
+    import numpy as np
+    import rasterio
+    from rasterio.transform import from_origin
+
+    rng = np.random.default_rng(11)
+    z = np.full((1800, 1800), -9999.0, np.float32)
+    yy, xx = np.mgrid[0:300, 0:300]
+    z[100:400, 150:450] = 40 + 30 * np.sin(xx / 23.0) * np.cos(yy / 31.0) + rng.normal(0, 0.5, (300, 300))
+    p = tmp_path_factory.mktemp("islet") / "islet.tif"
+    with rasterio.open(p, "w", driver="GTiff", width=1800, height=1800, count=1, dtype="float32",
+                       crs="EPSG:32631", transform=from_origin(400000, 4600000, 10, 10), nodata=-9999,
+                       tiled=True, blockxsize=256, blockysize=256) as ds:  # fmt: skip
+        ds.write(z, 1)
+    return p
+
+
+def test_a_block_far_from_the_data_takes_one_value_without_a_window_that_grows_with_the_distance(
+    islet: Path,
+) -> None:
+    """A fill block with no valid sample within FILL_HALO_EXACT_MAX of it is one value: a valid sample's,
+    the one nearest its centre here (one patch of data), read a block at a time (no read over the
+    largest exact halo); any order of windows gives the same heights."""
+    import numpy as np
+
+    from terralod.io.region import FILL_HALO_EXACT_MAX
+    from terralod.io.windowed import FILL_BLOCK, RasterSource
+
+    src = RasterSource(islet)
+    sizes: list[int] = []
+    raw = src.read_raw
+
+    def counted(r0: int, c0: int, r1: int, c1: int):
+        sizes.append((r1 - r0) * (c1 - c0))
+        return raw(r0, c0, r1, c1)
+
+    src.read_raw = counted  # type: ignore[method-assign]
+    z, ok = src.read(0, 0, 1800, 1800)
+    assert sizes[0] == 1800 * 1800  # the window asked for, then the fill's reads
+    assert max(sizes[1:]) <= (FILL_BLOCK + 2 * FILL_HALO_EXACT_MAX) ** 2
+    data, valid = raw(0, 0, 1800, 1800)
+    vr, vc = np.nonzero(valid)
+    b = FILL_BLOCK
+    far = 0
+    for br in range(4):
+        for bc in range(4):
+            r0, c0 = br * b, bc * b
+            near = valid[max(r0 - FILL_HALO_EXACT_MAX, 0) : r0 + b + FILL_HALO_EXACT_MAX,
+                         max(c0 - FILL_HALO_EXACT_MAX, 0) : c0 + b + FILL_HALO_EXACT_MAX].any()  # fmt: skip
+            if near:
+                continue
+            far += 1
+            block = z[r0 : r0 + b, c0 : c0 + b]
+            cr = (r0 + min(r0 + b, 1800) - 1) / 2.0
+            cc = (c0 + min(c0 + b, 1800) - 1) / 2.0
+            d2 = (vr - cr) ** 2 + (vc - cc) ** 2
+            nearest = np.lexsort((vc, vr, d2))[0]
+            assert np.all(block == np.float32(data[vr[nearest], vc[nearest]]))
+    assert far >= 6
+    again = RasterSource(islet)  # another process's copy, windows in another order
+    rng = np.random.default_rng(2)
+    for _ in range(10):
+        r0, c0 = int(rng.integers(0, 1700)), int(rng.integers(0, 1700))
+        r1, c1 = int(rng.integers(r0 + 1, 1801)), int(rng.integers(c0 + 1, 1801))
+        wz, wok = again.read(r0, c0, r1, c1)
+        assert np.array_equal(wz, z[r0:r1, c0:c1]) and np.array_equal(wok, ok[r0:r1, c0:c1])

@@ -28,7 +28,11 @@ Deviations from the in-memory reader, and why:
    (doubled until the halo holds a valid sample) and only its own cells are kept: a cell's value depends
    on its block alone, whichever window reads it, so neighbouring tiles agree on shared vertices (no
    cracks). Filled values differ from the global fill near block edges; valid samples never change, and
-   errors are never measured on filled cells.
+   errors are never measured on filled cells. A block with no valid sample within
+   ``FILL_HALO_EXACT_MAX`` samples of it (the corners of a geographic region warped to UTM, open sea
+   stored as nodata) takes one value, the valid sample nearest its centre found block by block
+   (:meth:`_BlockFilled._far_value`), instead of a window grown until it reaches the data: that window's
+   fill cost time and memory that grew with the region.
 2. Georeferencing. :class:`RasterSource` reads rasters already in a metric frame: a projected CRS in
    metres (or in feet, re-expressed in metres as the in-memory reader does), or no CRS with
    ``spacing_m``. A geographic or Mercator raster or region (every global DEM product: SRTM, Copernicus
@@ -247,17 +251,61 @@ class _BlockFilled(WindowSource):
                 break
             if whole:
                 break
+            if halo >= FILL_HALO_EXACT_MAX:  # far from every valid sample: one value, found block by block
+                break
             halo *= 2
-        if not ok.any():
-            raise InputError("band has no valid samples (all nodata)", self.source)
-        # a copy: a view would keep the haloed array (up to (FILL_BLOCK + 2 FILL_HALO_EXACT_MAX)^2) alive
-        filled = np.array(fill_nodata(values, ok)[r0 - ra : r1 - ra, c0 - ca : c1 - ca], np.float32)
+        if ok.any():
+            # a copy: a view would keep the haloed array (up to (FILL_BLOCK + 2 FILL_HALO_EXACT_MAX)^2) alive
+            filled = np.array(fill_nodata(values, ok)[r0 - ra : r1 - ra, c0 - ca : c1 - ca], np.float32)
+        else:
+            filled = np.full((r1 - r0, c1 - c0), self._far_value(br, bc), np.float32)
         del values, ok
         with self._lock:
             self._cache[key] = filled
             while len(self._cache) > FILL_CACHE_BLOCKS:
                 self._cache.popitem(last=False)
         return filled
+
+    def _far_value(self, br: int, bc: int) -> float:
+        """The one value of a block with no valid sample within ``FILL_HALO_EXACT_MAX`` of it (deviation
+        1): the valid sample nearest its centre among the fill blocks of the nearest ring of blocks that
+        holds one (ties: the lowest row, then column). Blocks are visited one at a time, each read for
+        its validity once per source, so memory stays one block whatever the distance (a haloed window
+        grown to reach the data held up to (FILL_BLOCK + 2 x distance)² samples: the exterior wedges of
+        a 64-tile SRTM3 region warped to UTM are thousands of samples wide)."""
+        b = FILL_BLOCK
+        nbr, nbc = -(-self.height // b), -(-self.width // b)
+        cr = (br * b + min((br + 1) * b, self.height) - 1) / 2.0
+        cc = (bc * b + min((bc + 1) * b, self.width) - 1) / 2.0
+        for k in range(1, max(nbr, nbc) + 1):
+            best: tuple[float, int, int, float] | None = None
+            for i in range(br - k, br + k + 1):
+                for j in range(bc - k, bc + k + 1):
+                    if max(abs(i - br), abs(j - bc)) != k or not (0 <= i < nbr and 0 <= j < nbc):
+                        continue
+                    if not self._block_has_valid(i, j):
+                        continue
+                    ra, ca = i * b, j * b
+                    values, ok = self.read_raw(ra, ca, min(ra + b, self.height), min(ca + b, self.width))
+                    rr, cc_ = np.nonzero(ok)
+                    d2 = (rr + ra - cr) ** 2 + (cc_ + ca - cc) ** 2
+                    m = int(np.lexsort((cc_ + ca, rr + ra, d2))[0])
+                    cand = (float(d2[m]), int(rr[m]) + ra, int(cc_[m]) + ca, float(values[rr[m], cc_[m]]))
+                    if best is None or cand[:3] < best[:3]:
+                        best = cand
+            if best is not None:
+                return best[3]
+        raise InputError("band has no valid samples (all nodata)", self.source)
+
+    def _block_has_valid(self, i: int, j: int) -> bool:
+        """Whether fill block (i, j) holds a valid sample (one bool a block, kept for the source)."""
+        flags = self.__dict__.setdefault("_has_valid", {})
+        got = flags.get((i, j))
+        if got is None:
+            b = FILL_BLOCK
+            _, ok = self.read_raw(i * b, j * b, min(i * b + b, self.height), min(j * b + b, self.width))
+            got = flags[(i, j)] = bool(ok.any())
+        return got
 
 
 class RasterSource(_BlockFilled):
@@ -339,6 +387,7 @@ class RasterSource(_BlockFilled):
         state = self.__dict__.copy()
         for key in ("_local", "_cache", "_lock"):
             state.pop(key)
+        state.pop("_has_valid", None)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -586,6 +635,7 @@ class WarpedSource(_BlockFilled):
         state = self.__dict__.copy()
         for key in ("_state", "_cache", "_lock"):
             state.pop(key)
+        state.pop("_has_valid", None)
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -687,7 +737,7 @@ class WarpedSource(_BlockFilled):
         edges = self._bands
         shape = (n // (edges[bc + 1] - edges[bc]), edges[bc + 1] - edges[bc])
         raw = st.spill.get(offset, 8 * n + (n + 7) // 8)
-        z = np.frombuffer(raw, np.float64, count=n).reshape(shape).copy()
+        z = np.frombuffer(raw, np.float64, count=n).reshape(shape)  # read-only: blocks are only read
         ok = np.unpackbits(np.frombuffer(raw, np.uint8, offset=8 * n), count=n).view(bool).reshape(shape)
         return z, ok
 
