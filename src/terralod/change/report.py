@@ -254,11 +254,22 @@ def figure_map(result: ChangeResult, line=None) -> bytes:
     im = ax.imshow(
         shown, cmap="RdBu", norm=norm, extent=ext, origin="upper", interpolation="nearest", alpha=0.9
     )
-    cb = fig.colorbar(im, ax=ax, shrink=0.85, pad=0.02)
+    # the scale tops out at the 99.5th percentiles: beyond them the colour stays full, and the bar says so
+    beyond_hi = bool(fin.size) and float(fin.max()) > hi
+    beyond_lo = bool(fin.size) and float(fin.min()) < -lo
+    extend = {(True, True): "both", (True, False): "max", (False, True): "min"}.get(
+        (beyond_hi, beyond_lo), "neither"
+    )
+    cb = fig.colorbar(im, ax=ax, shrink=0.85, pad=0.02, extend=extend)
     cb.set_label("change in ground height (m)\nblue: the ground rose · red: it dropped")
     ticks = [-lo, -lo / 2, 0.0, hi / 4, hi / 2, 3 * hi / 4, hi]
     cb.set_ticks(ticks)
-    cb.set_ticklabels(["0" if v == 0 else (f"{v:+.0f}" if max(hi, lo) >= 20 else f"{v:+.1f}") for v in ticks])
+    labels = ["0" if v == 0 else (f"{v:+.0f}" if max(hi, lo) >= 20 else f"{v:+.1f}") for v in ticks]
+    if beyond_hi:
+        labels[-1] += " or more"
+    if beyond_lo:
+        labels[0] += " or less"
+    cb.set_ticklabels(labels)
     cb.ax.axhspan(-lod, lod, color="0.6")
     from matplotlib.patches import Patch
 
