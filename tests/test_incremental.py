@@ -145,3 +145,37 @@ def test_region_update_encodes_only_the_tiles_near_the_replaced_file(
 def want_codes(out: Path) -> list[tuple[int, int, int]]:
     return [tuple(int(v) for v in f.relative_to(out).with_suffix("").parts)  # type: ignore[misc]
             for f in out.rglob("*.terrain")]  # fmt: skip
+
+
+@pytest.mark.parametrize("fmt", ["quantized-mesh", "3dtiles"])
+def test_a_tin_stores_update_encodes_nothing_when_the_model_is_the_same_and_everything_when_not(
+    tmp_path: Path, fmt: str
+) -> None:
+    """A TIN's web tiles depend on the stored model as a whole (its SHA-256) and their code: an update of
+    an export from the same model encodes and rewrites nothing; after the store is rebuilt from other
+    points, it gives a fresh export's bytes."""
+    from terralod.export import export_3dtiles, export_quantized_mesh
+    from terralod.terrain import open_terrain
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.pointcloud import read_las
+    from terralod.tin.terra import save_model_to_store
+
+    laz = Path(__file__).resolve().parents[2] / "shared" / "data" / "lidar" / "autzen_trim.laz"
+    if not laz.exists():
+        pytest.skip("../shared/data/lidar/autzen_trim.laz is absent (the shared data folder)")
+    pc = read_las(laz)
+    store = tmp_path / "tin.terra"
+    save_model_to_store(DetailIncrementModel.from_points(pc.xyz_m, crs=pc.crs, workers=1), store)
+    export = export_3dtiles if fmt == "3dtiles" else export_quantized_mesh
+    export(open_terrain(store), tmp_path / "web")
+    before = _tree(tmp_path / "web")
+    same = export(open_terrain(store), tmp_path / "web", update=True)
+    assert same.extra["encoded"] == 0 and same.extra["rewritten"] == []
+    assert _tree(tmp_path / "web") == before
+    xyz = pc.xyz_m.copy()
+    xyz[xyz[:, 0] > np.median(xyz[:, 0]), 2] += 3.0  # half the survey 3 m higher
+    save_model_to_store(DetailIncrementModel.from_points(xyz, crs=pc.crs, workers=1), store, overwrite=True)
+    want = export(open_terrain(store), tmp_path / "want")
+    got = export(open_terrain(store), tmp_path / "web", update=True)
+    assert got.extra["encoded"] == got.tiles == want.tiles
+    assert _tree(tmp_path / "web") == _tree(tmp_path / "want")

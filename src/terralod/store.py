@@ -905,6 +905,20 @@ def store_method(path: str | os.PathLike[str]) -> str | None:
         conn.close()
 
 
+def tin_model_sha256(path: str | os.PathLike[str]) -> str | None:
+    """The SHA-256 a TIN store records for its model (what :func:`read_tin_store` verifies), or None when
+    the file holds none or cannot be read."""
+    try:
+        conn = sqlite3.connect(f"file:{Path(path).resolve()}?mode=ro", uri=True)
+        try:
+            row = conn.execute("SELECT sha256 FROM tin_model WHERE name = 'model'").fetchone()
+        finally:
+            conn.close()
+    except sqlite3.DatabaseError:
+        return None
+    return None if row is None else str(row[0])
+
+
 def read_tin_store(path: str | os.PathLike[str]) -> tuple[dict[str, Any], bytes]:
     """(meta, model bytes) of a store written by :func:`write_tin_store`, the model's SHA-256 verified.
 

@@ -326,6 +326,16 @@ class TinTerrain(_TerrainBase):
         return getattr(self.model, "crs", None) or self._meta.get("crs")
 
     @property
+    def model_digest(self) -> str | None:
+        """The stored model's SHA-256 (its store's checksum, verified when it was opened), or None for a
+        model held only in memory: what every web tile of this TIN depends on, with the export's options."""
+        if self.path is None:
+            return None
+        from terralod.store import tin_model_sha256
+
+        return tin_model_sha256(self.path)
+
+    @property
     def bounds_m(self) -> tuple[float, float, float, float]:
         v = self.model.vertices_m
         lo, hi = v.min(axis=0), v.max(axis=0)

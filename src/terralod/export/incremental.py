@@ -15,11 +15,14 @@ export, so each one errs wide:
   validity; for a region of DEM files (:class:`terralod.export.source.RegionGrid`) it hashes the identity
   (path, size, mtime, place on the grid, order) of every file that meets the fill blocks of that window
   widened by the widest halo their fill took (recorded with the tile: a block's halo is decided by the raw
-  samples inside it, so unchanged files there give the same halo and the same fill). A TIN source gives
-  no digest: its tiles are always encoded;
+  samples inside it, so unchanged files there give the same halo and the same fill). A TIN's tile
+  hashes the stored model's SHA-256 (in the global facts) and its code: any change to the model makes
+  every tile again, none leaves every tile as it is (a TIN held only in memory gives no digest: its
+  tiles are always encoded);
 - a 3D Tiles glb reads its node's stored row, its parent's and grandparent's (skirt depth, encoding step),
   and its level neighbours' (normals are summed across shared vertices): the digest hashes those rows as
-  stored, and the store's validity mask where the export drops nodata triangles.
+  stored, and the store's validity mask where the export drops nodata triangles. A TIN's glb: the stored
+  model's SHA-256 and its code, as for quantized-mesh.
 """
 
 from __future__ import annotations
@@ -71,6 +74,7 @@ def qm_global(qm: Any, options: dict[str, Any]) -> str:
         "heights": qm.heights, "options": options,
         "constants": list(qm.digest_constants),
         "region": None if region is None else [str(region.dtype), region.scale, region.offset],
+        "model": getattr(ref, "model_digest", None),
     }  # fmt: skip
     return _sha(facts)
 
@@ -147,8 +151,9 @@ def _qm_digest(qm: Any, z: int, x: int, y: int, glob_digest: str, halo: int | No
     from terralod.export.source import RegionGrid, SourceGrid
 
     ref = qm.ref
-    if not isinstance(ref, SourceGrid):
-        return None, 0
+    if not isinstance(ref, SourceGrid):  # a TIN: the whole stored model (in the global facts) and the code
+        model = getattr(ref, "model_digest", None)
+        return (_sha(glob_digest, [z, x, y], model), 0) if model else (None, 0)
     if qm.lattice is not None:
         win = _lattice_window(qm, z, x, y)
         if z == qm.max_zoom - 1 and z > 0:  # its target comes from its parent's RMS
@@ -181,8 +186,14 @@ def _qm_digest(qm: Any, z: int, x: int, y: int, glob_digest: str, halo: int | No
 # -- 3D Tiles ----------------------------------------------------------------------------------------------
 def tiles3d_global(view: Any, options: dict[str, Any]) -> str | None:
     """What every glb of 3D Tiles view ``view`` depends on (None: a terrain whose rows cannot be read, a
-    TIN: every glb is encoded)."""
+    TIN held only in memory: every glb is encoded)."""
     store = getattr(view.terrain, "store", None)
+    model = (
+        getattr(view.terrain, "model_digest", None) if getattr(view.terrain, "kind", "") == "tin" else None
+    )
+    if model:
+        return _sha({"v": DIGEST_VERSION, "terralod": _version(), "tin": model,
+                     "heights": view.geo.vertical_record(), "options": options})  # fmt: skip
     if store is None or not hasattr(store, "raw_tile"):
         return None
     meta = dict(store.meta)
@@ -214,6 +225,8 @@ def tiles3d_digest(view: Any, code: Any, glob_digest: str | None, memo: dict[Any
     (None with no ``glob_digest``). ``memo`` keeps each row's digest for the run."""
     if glob_digest is None:
         return None
+    if getattr(view.terrain, "kind", "") == "tin":  # the whole stored model is in the global digest
+        return _sha(glob_digest, list(code))
     store = view.terrain.store
     n = view.nodes[code]
     chain = [code]

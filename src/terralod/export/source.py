@@ -550,6 +550,8 @@ class TinSource(SampleSource):
         self._kd = cKDTree(xyz[:, :2])
         self.xyz = xyz
         self.name = str(terrain.path)
+        #: what every tile made from this TIN depends on (None: encoded every time, see incremental)
+        self.model_digest: str | None = getattr(terrain, "model_digest", None)
         lon, lat = geo.lonlat(xyz[:, 0], xyz[:, 1])
         self._flat = (np.asarray(lon, np.float64), np.asarray(lat, np.float64), xyz[:, 2])
         self.bbox = (
