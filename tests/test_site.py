@@ -486,3 +486,35 @@ def test_planted_series_site(shared_data: Path, browser: str, tmp_path: Path) ->
     assert (
         re.fullmatch(r"\d+ k?m", dom["scale"]) and "rose" in dom["legendText"] and "Between" in dom["summary"]
     )
+
+
+def test_a_series_site_updates_only_what_a_new_survey_changed(shared_data: Path, tmp_path: Path) -> None:
+    """`terralod update` of a store with a third survey, then `export --format site --update`: the site is a
+    fresh export's bytes, the files that did not change are the same inodes (not rewritten), and the
+    rewritten ones are listed; an update with nothing new rewrites nothing."""
+    paths, _ = _plant_series(shared_data / "dem" / "srtm1_crop256_alpine.tif", tmp_path)
+    store = tmp_path / "series.terra"
+    dates = ["2019-06-01", "2020-06-01", "2021-06-01"]
+    _cli(["build", str(paths[0]), "-o", str(store), "--epoch", dates[0]])
+    _cli(["update", str(store), str(paths[1]), "--epoch", dates[1]])
+    site = tmp_path / "site"
+    _cli(["export", str(store), "--format", "site", "-o", str(site)])
+    files = {f.relative_to(site).as_posix(): f.stat().st_ino for f in site.rglob("*") if f.is_file()}
+    _cli(["update", str(store), str(paths[2]), "--epoch", dates[2]])
+    _cli(["export", str(store), "--format", "site", "-o", str(tmp_path / "fresh")])
+    _cli(["export", str(store), "--format", "site", "-o", str(site), "--update"])
+    got = {f.relative_to(site).as_posix(): f for f in site.rglob("*") if f.is_file()}
+    fresh = {
+        f.relative_to(tmp_path / "fresh").as_posix(): f
+        for f in (tmp_path / "fresh").rglob("*")
+        if f.is_file()
+    }
+    assert sorted(got) == sorted(fresh)
+    assert all(got[k].read_bytes() == fresh[k].read_bytes() for k in got)
+    kept = [k for k in got if files.get(k) == got[k].stat().st_ino]
+    assert "site.json" not in kept  # the manifest names the new epoch and its pairs
+    assert len(kept) > len(got) // 2  # CesiumJS, the page and the earlier epochs' tiles were not rewritten
+    assert any(k.startswith("epochs/2/") for k in got) and not any(k.startswith("epochs/2/") for k in kept)
+    inodes = {k: f.stat().st_ino for k, f in got.items()}
+    _cli(["export", str(store), "--format", "site", "-o", str(site), "--update"])
+    assert {f.relative_to(site).as_posix(): f.stat().st_ino for f in site.rglob("*") if f.is_file()} == inodes

@@ -97,7 +97,7 @@ from terralod.output import Lock, Output, refuse_inputs, scratch_beside, work_pa
     "update_output",
     is_flag=True,
     help="Rewrite, in an existing output, only the files whose bytes change (after `terralod update`) and "
-    "list them; the others are left untouched (3dtiles, quantized-mesh).",
+    "list them; the others are left untouched (3dtiles, quantized-mesh, site).",
 )
 @click.option(
     "--bbox",
@@ -175,10 +175,8 @@ def export(
         raise click.BadParameter(
             "--bbox, --min-zoom and --max-zoom are for quantized-mesh and 3dtiles", param_hint="--format"
         )
-    if fmt == "site" and (resume or update_output):
-        raise click.BadParameter(
-            "--resume and --update are for 3dtiles and quantized-mesh", param_hint="--format"
-        )
+    if fmt == "site" and resume:
+        raise click.BadParameter("--resume is for 3dtiles and quantized-mesh", param_hint="--format")
     opts = {
         "overwrite": overwrite,
         "resume": resume,
@@ -191,7 +189,7 @@ def export(
 
     if fmt == "site":
         require_extra("export --format site", "change")  # the pairs are measured as `terralod change` does
-        _run_site(store, output, overwrite)
+        _run_site(store, output, overwrite, update_output)
         return
     if _is_dem(store, _is_sqlite):
         if fmt == "3dtiles":
@@ -242,11 +240,19 @@ def _output(output: str, source: str, opts: dict[str, bool]) -> Output:
     )
 
 
-def _run_site(store: str, output: str, overwrite: bool) -> None:
-    """The change site of a store's epochs (:mod:`terralod.site`), its size printed."""
+def _run_site(store: str, output: str, overwrite: bool, update: bool = False) -> None:
+    """The change site of a store's epochs (:mod:`terralod.site`), its size printed (with ``update``, the
+    files rewritten and removed)."""
     from terralod.site import site_from_store
 
-    rep = site_from_store(store, output, overwrite=overwrite)
+    rep = site_from_store(store, output, overwrite=overwrite, update=update)
+    if update:
+        console.print(f"updated: {len(rep.rewritten)} file(s) rewritten, {len(rep.removed)} removed, the others "
+                      "untouched", highlight=False)  # fmt: skip
+        for rel in rep.rewritten:
+            console.print(f"  rewritten {rel}", highlight=False)
+        for rel in rep.removed:
+            console.print(f"  removed {rel}", highlight=False)
     d = rep.as_dict()
     parts = ", ".join(f"{k} {v / 1e6:.1f} MB" for k, v in d["parts"].items())
     console.print(

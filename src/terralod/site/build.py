@@ -62,6 +62,9 @@ class SiteReport:
     shared_bytes: int = 0
     pruned_bytes: int = 0
     keep_error_m: float = 0.0
+    #: with ``update``: the files whose bytes changed (rewritten) and those the new site no longer has
+    rewritten: list[str] = field(default_factory=list)
+    removed: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
         per_epoch = self.parts.get("epochs", 0) / max(self.epochs, 1)
@@ -191,14 +194,35 @@ def _folder_bytes(p: Path) -> int:
 
 
 def _atomic_site(
-    out: Path, overwrite: bool, inputs: Sequence[Path], fill: Callable[[Path], SiteReport]
+    out: Path,
+    overwrite: bool,
+    inputs: Sequence[Path],
+    fill: Callable[[Path], SiteReport],
+    update: bool = False,
 ) -> SiteReport:
     """``fill`` the work folder of ``out`` (:class:`terralod.output.Output`), which becomes ``out`` whole; an
-    output on, in or around an input is refused first, even with ``overwrite``."""
+    output on, in or around an input is refused first, even with ``overwrite``.
+
+    With ``update`` (after ``terralod update`` of the store), the site is made whole in the scratch folder,
+    then each of its files goes through the output's update (:meth:`~terralod.output.Output.write`): a file
+    whose bytes are the existing site's stays as it is (same inode, same mtime), the others are rewritten
+    and listed, files the new site no longer has are removed; the swap is atomic as always."""
     from terralod.output import Output
 
-    with Output(out, inputs=inputs, overwrite=overwrite) as o:
-        rep = fill(o.folder)
+    if not update:
+        with Output(out, inputs=inputs, overwrite=overwrite) as o:
+            rep = fill(o.folder)
+        rep.path = out
+        return rep
+    with Output(out, inputs=inputs, update=True) as o:
+        made = o.scratch / "site"
+        made.mkdir()
+        rep = fill(made)
+        for f in sorted(q for q in made.rglob("*") if q.is_file()):
+            o.write(f.relative_to(made).as_posix(), f.read_bytes())
+            f.unlink()  # the scratch copy goes as it is taken: one site's bytes on the disk, not two
+        rep.removed = o.prune()
+        rep.rewritten = list(o.rewritten)
     rep.path = out
     return rep
 
@@ -243,9 +267,11 @@ def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
 
 
 def site_from_store(store: str | Path, out: str | Path, *, overwrite: bool = False,
-                    coregistration: bool = True) -> SiteReport:  # fmt: skip
+                    coregistration: bool = True, update: bool = False) -> SiteReport:  # fmt: skip
     """The site of a store's epochs (``terralod export STORE --format site -o OUT``): every epoch's 3D Tiles,
-    the pairs :func:`terralod.site.plan.plan_store_site` plans, measured as ``terralod change`` measures them."""
+    the pairs :func:`terralod.site.plan.plan_store_site` plans, measured as ``terralod change`` measures them.
+    ``update``: rewrite, in the existing site ``out``, only the files whose bytes change (see
+    :func:`_atomic_site`)."""
     from terralod.terrain import open_terrain
 
     store, out = Path(store), Path(out)
@@ -253,7 +279,7 @@ def site_from_store(store: str | Path, out: str | Path, *, overwrite: bool = Fal
         plan = plan_store_site(terrain, SiteOptions(coregistration=coregistration))
         names = list(terrain.epochs)
         terrains = [terrain.with_epoch(e) for e in names] if names else [terrain]
-        return _atomic_site(out, overwrite, [store], lambda tmp: _write(tmp, plan, terrains))
+        return _atomic_site(out, overwrite, [store], lambda tmp: _write(tmp, plan, terrains), update)
 
 
 def _on_grid_of(first: Any, hf: Any) -> Any:
