@@ -3,8 +3,9 @@
 Each 3D Tiles glb is decoded (pygltflib), its positions taken back through the tileset's transforms and
 pyproj to the store's CRS, and every DEM sample the TIN was built from (read again with rasterio, not
 taken from the model) that falls on a tile's surface is compared with it: the vertical distance stays
-within the tile's declared ``vertical_error_m`` (and its ``geometricError``). Then the export is a pure
-function of the store: the same bytes tile by tile in any order, and the export level by level.
+within the tile's declared ``vertical_error_m`` (and its ``geometricError``). The quantized-mesh export
+likewise: each tile decoded, the DEM samples it covers within its error in ``errors.json``. Then the export
+is a pure function of the store: the same bytes tile by tile in any order, and the export level by level.
 """
 
 from __future__ import annotations
@@ -173,3 +174,47 @@ def test_3dtiles_tin_tiles_in_any_order(tin: Path, exported: Path) -> None:
         assert got[c] == (exported / node_uri(c)).read_bytes()
     for c, data in fresh.items():
         assert data == got[c]
+
+
+def test_quantized_mesh_declared_errors_bound_the_dem(crop: Path, tin: Path) -> None:
+    """The TIN exported as quantized-mesh (re-tiled on Cesium's geographic grid): each tile decoded, its
+    surface taken in lon/lat, and every DEM sample it covers (read again with rasterio, moved to lon/lat
+    with pyproj) within the tile's declared error in errors.json."""
+    import json
+
+    import matplotlib.tri as mtri
+    from pyproj import CRS, Transformer
+
+    from terralod.export import export_quantized_mesh
+    from terralod.export.geodesy import tile_rectangle
+    from terralod.export.quantized_mesh_format import decode_tile
+    from terralod.terrain import open_terrain
+
+    out = tin.parent / "qm"
+    with open_terrain(tin) as t:
+        export_quantized_mesh(t, out, overwrite=True)
+    pts, wkt = _samples(crop)
+    lon, lat = Transformer.from_crs(CRS.from_wkt(wkt), CRS.from_epsg(4326), always_xy=True).transform(
+        pts[:, 0], pts[:, 1]
+    )
+    errors = json.loads((out / "errors.json").read_text())["tiles"]
+    finest = max(int(k.split("/")[0]) for k in errors)
+    checked = covered = 0
+    for key, declared in errors.items():
+        z, x, y = map(int, key.split("/"))
+        rect = tile_rectangle(z, x, y)
+        tile = decode_tile((out / f"{key}.terrain").read_bytes(), rect)
+        w, s, e, n = rect
+        inside = (lon >= w) & (lon <= e) & (lat >= s) & (lat <= n)
+        if not inside.any():
+            continue
+        interp = mtri.LinearTriInterpolator(mtri.Triangulation(tile["lon"], tile["lat"], tile["triangles"]),
+                                            tile["height"])  # fmt: skip
+        at = np.asarray(interp(lon[inside], lat[inside]).filled(np.nan))
+        on = np.isfinite(at)
+        gap = np.abs(at[on] - pts[inside, 2][on])
+        assert gap.max() <= declared + TOLERANCE_M, (key, float(gap.max()), declared)
+        checked += int(on.sum())
+        covered += int(on.sum()) if z == finest else 0
+    assert covered > 0.95 * len(pts)  # the finest tiles cover the DEM: the check is not vacuous
+    assert checked > 2 * len(pts)
