@@ -218,3 +218,38 @@ def test_quantized_mesh_declared_errors_bound_the_dem(crop: Path, tin: Path) -> 
         covered += int(on.sum()) if z == finest else 0
     assert covered > 0.95 * len(pts)  # the finest tiles cover the DEM: the check is not vacuous
     assert checked > 2 * len(pts)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="the kill forks the export (POSIX only)")
+@pytest.mark.parametrize("fmt", ["3dtiles", "quantized-mesh"])
+def test_a_killed_tin_export_resumes_to_the_uninterrupted_bytes(tin: Path, tmp_path: Path, fmt: str) -> None:
+    """A TIN's export killed with SIGKILL halfway, then run again with ``resume``: the tiles it finished are
+    kept (same inodes), and the output is the uninterrupted export's, byte for byte."""
+    from terralod.export import export_3dtiles, export_quantized_mesh
+    from terralod.output import work_path
+    from terralod.terrain import open_terrain
+    from test_kill import _die, _killed, _tree
+
+    export = export_3dtiles if fmt == "3dtiles" else export_quantized_mesh
+    totals: list[int] = []
+    with open_terrain(tin) as t:
+        export(t, tmp_path / "want", progress=lambda d, n: totals.append(n))
+    half = totals[-1] // 2
+
+    def killed_halfway() -> None:
+        def cb(done: int, total: int) -> None:
+            if done >= half:
+                _die()
+
+        with open_terrain(tin) as t:
+            export(t, tmp_path / "out", progress=cb)
+
+    _killed(killed_halfway)
+    work = work_path(tmp_path / "out") / "out"
+    before = {f: f.stat().st_ino for f in work.rglob("*") if f.is_file() and f.suffix in (".glb", ".terrain")}
+    assert before and not (tmp_path / "out").exists()
+    with open_terrain(tin) as t:
+        export(t, tmp_path / "out", resume=True)
+    assert _tree(tmp_path / "out") == _tree(tmp_path / "want")
+    kept = [f for f, ino in before.items() if (tmp_path / "out" / f.relative_to(work)).stat().st_ino == ino]
+    assert len(kept) == len(before)  # every finished tile kept, none encoded again
