@@ -474,3 +474,25 @@ def test_tcp_scheduler_builds_dem_and_tin_as_the_local_build(tmp_path: Path) -> 
                 p.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(40, 2000), st.integers(40, 2000), st.sampled_from([9, 17, 33, 65]),
+       st.lists(st.tuples(st.integers(0, 10**6), st.floats(0, 1e4), st.floats(0, 1e4)), max_size=300))  # fmt: skip
+def test_tile_errors_hold_what_a_dict_holds(w: int, h: int, tile: int, puts: list) -> None:
+    """The build's per-level arrays of tile errors answer as the dict of tuples they replace: the same
+    keys, the same floats bit for bit, the same membership for tiles never put."""
+    from terralod.pyramid.distributed import TileErrors
+    from terralod.tiles import TilePyramid
+
+    p = TilePyramid(w, h, tile)
+    codes = p.all_codes()
+    got, want = TileErrors(p), {}
+    for i, e, v in puts:
+        c = codes[i % len(codes)]
+        got[c] = (e, v)
+        want[c] = (e, v)
+    assert len(got) == len(want) and sorted(got) == sorted(want)
+    assert all(got[c] == want[c] for c in want)
+    assert all((c in got) == (c in want) for c in codes[:: max(1, len(codes) // 200)])
+    assert (p.max_level + 1, 0, 0) not in got

@@ -17,7 +17,7 @@ import logging
 import math
 import os
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, MutableMapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -390,7 +390,7 @@ def _ordered_map(
 
 
 def hold_until(
-    tiles: Iterator[EncodedTile], ready: Future[Any], errors: dict[TileCode, tuple[float, float]]
+    tiles: Iterator[EncodedTile], ready: Future[Any], errors: MutableMapping[TileCode, tuple[float, float]]
 ) -> list[EncodedTile]:
     """The tiles a build finishes before its store exists: taken from ``tiles`` until ``ready`` (the
     store's meta) is done or :data:`_HELD_TILES` are held, each one's errors recorded for its parent."""
@@ -407,7 +407,7 @@ def hold_until(
 def commit_streamed(
     store: TileStore,
     tiles: Iterable[EncodedTile],
-    errors: dict[TileCode, tuple[float, float]],
+    errors: MutableMapping[TileCode, tuple[float, float]],
     built: int,
     written: Callable[[int], None],
 ) -> int:
