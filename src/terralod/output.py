@@ -629,6 +629,24 @@ SPILL_RESERVE_BYTES = 2 << 30
 SPILL_RESERVE_FRACTION = 0.25
 
 
+def pack_block(z: Any, ok: Any, dtype: Any) -> bytes:
+    """A block's heights as ``dtype`` then its validity as one bit a sample: a spill file's slot."""
+    import numpy as np
+
+    return np.ascontiguousarray(z, dtype).tobytes() + np.packbits(ok, axis=None).tobytes()
+
+
+def unpack_block(raw: bytes, dtype: Any, shape: tuple[int, int]) -> tuple[Any, Any]:
+    """:func:`pack_block`'s bytes back as (heights, read-only; validity)."""
+    import numpy as np
+
+    n = shape[0] * shape[1]
+    width = n * np.dtype(dtype).itemsize
+    z = np.frombuffer(raw, dtype, count=n).reshape(shape)
+    ok = np.unpackbits(np.frombuffer(raw, np.uint8, offset=width), count=n).view(bool).reshape(shape)
+    return z, ok
+
+
 class SpillFile:
     """Fixed-size slots of bytes at given offsets of one unlinked temporary file (sparse: only the slots
     written take space), for caches that drop what memory cannot hold and read it back later as the same

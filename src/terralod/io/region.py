@@ -51,7 +51,7 @@ from affine import Affine
 
 from terralod.errors import InputError, InputNotFoundError
 from terralod.fill import FILL_SMOOTH_ITERATIONS, fill_nodata
-from terralod.output import SpillFile
+from terralod.output import SpillFile, pack_block, unpack_block
 
 __all__ = [
     "FILL_BLOCK",
@@ -696,8 +696,7 @@ class RegionReader:
         if key in self._spilled or self.cache_blocks <= 0:
             return
         z, ok = got
-        buf = np.ascontiguousarray(z, self.dtype).tobytes() + np.packbits(ok, axis=None).tobytes()
-        if self._spill_file.put(self._spill_offset(*key), buf):
+        if self._spill_file.put(self._spill_offset(*key), pack_block(z, ok, self.dtype)):
             self._spilled.add(key)
 
     def _spilled_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -709,10 +708,10 @@ class RegionReader:
         shape = (r1 - r0, c1 - c0)
         n = shape[0] * shape[1]
         width = n * np.dtype(self.dtype).itemsize
-        raw = self._spill_file.get(self._spill_offset(br, bc), width + (n + 7) // 8)
-        z = np.frombuffer(raw, self.dtype, count=n).reshape(shape).copy()
-        ok = np.unpackbits(np.frombuffer(raw, np.uint8, offset=width), count=n).view(bool).reshape(shape)
-        return z, ok
+        z, ok = unpack_block(
+            self._spill_file.get(self._spill_offset(br, bc), width + (n + 7) // 8), self.dtype, shape
+        )
+        return z.copy(), ok  # a writable copy, as a block read from the files is
 
     def _bounds(self, br: int, bc: int) -> tuple[int, int, int, int]:
         b = FILL_BLOCK

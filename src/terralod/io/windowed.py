@@ -66,7 +66,7 @@ from terralod.heightfield import Heightfield
 from terralod.io.georef import to_crs
 from terralod.io.raster import crs_text, vertical_unit_m
 from terralod.io.region import FILL_HALO_EXACT_MAX, _exact
-from terralod.output import SpillFile
+from terralod.output import SpillFile, pack_block, unpack_block
 
 __all__ = [
     "ArraySource",
@@ -723,8 +723,7 @@ class WarpedSource(_BlockFilled):
         if key in st.spilled:
             return
         z, ok = block
-        buf = np.ascontiguousarray(z, np.float64).tobytes() + np.packbits(ok, axis=None).tobytes()
-        if st.spill.put(self._spill_slot(*key)[0], buf):
+        if st.spill.put(self._spill_slot(*key)[0], pack_block(z, ok, np.float64)):
             st.spilled.add(key)
 
     def _unspilled(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -736,10 +735,7 @@ class WarpedSource(_BlockFilled):
         offset, n = self._spill_slot(br, bc)
         edges = self._bands
         shape = (n // (edges[bc + 1] - edges[bc]), edges[bc + 1] - edges[bc])
-        raw = st.spill.get(offset, 8 * n + (n + 7) // 8)
-        z = np.frombuffer(raw, np.float64, count=n).reshape(shape)  # read-only: blocks are only read
-        ok = np.unpackbits(np.frombuffer(raw, np.uint8, offset=8 * n), count=n).view(bool).reshape(shape)
-        return z, ok
+        return unpack_block(st.spill.get(offset, 8 * n + (n + 7) // 8), np.float64, shape)  # read-only
 
     def _warp_block(self, br: int, bc: int) -> tuple[np.ndarray, np.ndarray]:
         """Block (br, bc) warped from its source window (see the class docstring)."""
