@@ -496,3 +496,37 @@ def test_tile_errors_hold_what_a_dict_holds(w: int, h: int, tile: int, puts: lis
     assert all(got[c] == want[c] for c in want)
     assert all((c in got) == (c in want) for c in codes[:: max(1, len(codes) // 200)])
     assert (p.max_level + 1, 0, 0) not in got
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(40, 3000), st.integers(40, 3000), st.sampled_from([9, 17, 33, 65]),
+       st.sampled_from([64, 512, 2048]), st.sets(st.integers(0, 10**6), max_size=200),
+       st.one_of(st.none(), st.integers(0, 3000)), st.integers(0, 6))  # fmt: skip
+def test_units_made_as_taken_cover_the_plan(w: int, h: int, tile: int, unit_span: int, done: set,
+                                            stop_after: int | None, early: int) -> None:  # fmt: skip
+    """The work units a build makes as it goes (from a byte per tile, not a list of codes) are the plan:
+    every tile not done, and of those only the first ``stop_after`` in finest-first raster order, each in
+    exactly one unit; a unit is one level's tiles in one aligned g x g block, in raster order; the early
+    levels (few units) coarsest first, then the others finest first."""
+    from terralod.pyramid.distributed import TileErrors, _todo, _unit_order, _unit_side
+
+    p = TilePyramid(w, h, tile)
+    codes = p.all_codes(finest_first=True)
+    errors = TileErrors(p)
+    for i in done:
+        errors[codes[i % len(codes)]] = (1.0, 1.0)
+    want = [c for c in codes if c not in errors]
+    if stop_after is not None:
+        want = want[:stop_after]
+    first, rest = _unit_order(p, _todo(p, errors, stop_after), unit_span, early)
+    units = first + list(rest)
+    got = [c for u in units for c in u]
+    assert sorted(got) == sorted(want) and len(got) == len(set(got))
+    levels = [u[0][0] for u in units]
+    for u in units:
+        level, g = u[0][0], _unit_side(p, u[0][0], unit_span)
+        assert {c[0] for c in u} == {level} and len({(c[1] // g, c[2] // g) for c in u}) == 1
+        assert u == sorted(u, key=lambda c: (c[2], c[1]))
+    n_first = len(first)
+    assert levels[:n_first] == sorted(levels[:n_first])
+    assert levels[n_first:] == sorted(levels[n_first:], reverse=True)

@@ -671,8 +671,12 @@ class TileStore(EpochTables):
 
     def tile_errors(self) -> dict[TileCode, tuple[float, float]]:
         """{code: (error_m, vertical_error_m)} of every stored tile (cheap: no geometry)."""
+        return dict(self.each_tile_error())
+
+    def each_tile_error(self) -> Iterator[tuple[TileCode, tuple[float, float]]]:
+        """(code, (error_m, vertical_error_m)) of every stored tile, read as taken (no dict of them all)."""
         rows = self._conn.execute(f"SELECT level, x, y, error_m, vertical_error_m FROM {self._tiles_src}")
-        return {(k, x, y): (e, v) for k, x, y, e, v in rows}
+        return (((k, x, y), (e, v)) for k, x, y, e, v in rows)
 
     def tile_summaries(self) -> list[dict[str, Any]]:
         """Per-tile scalars (no geometry): code, errors, z-range, counts."""

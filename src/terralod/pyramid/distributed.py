@@ -374,18 +374,32 @@ def _halo(mesh_fn: Callable, stride: int) -> int:
     return 0
 
 
-def _units(
-    pyramid: TilePyramid, level: int, codes: Iterable[TileCode], unit_span: int
-) -> list[list[TileCode]]:
-    """Tiles of a level grouped into g x g blocks (g a power of two, g * span about ``unit_span``)."""
+def _unit_side(pyramid: TilePyramid, level: int, unit_span: int) -> int:
+    """g, the tiles a side of a work unit at ``level`` (a power of two, g * span about ``unit_span``)."""
     span = pyramid.span(level)
     g = 1
     while 2 * g * span <= unit_span:
         g *= 2
-    groups: dict[tuple[int, int], list[TileCode]] = {}
-    for c in codes:
-        groups.setdefault((c[2] // g, c[1] // g), []).append(c)
-    return [groups[k] for k in sorted(groups)]
+    return g
+
+
+def _units(todo: np.ndarray, level: int, g: int) -> Iterator[list[TileCode]]:
+    """The tiles ``todo`` (a level's (ny, nx) mask) grouped into g x g blocks, blocks and the tiles in each
+    in raster order: made as they are taken, so a build holds its units in flight, not the whole plan."""
+    ny, nx = todo.shape
+    for by in range(0, ny, g):
+        for bx in range(0, nx, g):
+            ys, xs = np.nonzero(todo[by : by + g, bx : bx + g])
+            if len(ys):
+                yield [(level, bx + x, by + y) for y, x in zip(ys.tolist(), xs.tolist(), strict=True)]
+
+
+def _unit_count(todo: np.ndarray, g: int) -> int:
+    """How many of the g x g blocks of ``todo`` hold a tile to build."""
+    ny, nx = todo.shape
+    padded = np.zeros((-(-ny // g) * g, -(-nx // g) * g), bool)
+    padded[:ny, :nx] = todo
+    return int(padded.reshape(padded.shape[0] // g, g, -1, g).any(axis=(1, 3)).sum())
 
 
 #: glibc's own ceilings for its adaptive thresholds on 64-bit (its DEFAULT_MMAP_THRESHOLD_MAX, and twice it)
@@ -926,16 +940,34 @@ _EARLY_UNITS_PER_SLOT = 2
 
 
 def _unit_order(
-    pyramid: TilePyramid, todo: list[TileCode], unit_span: int, early_units: int
-) -> tuple[list[list[TileCode]], list[list[TileCode]]]:
-    """The work units of ``todo`` in submission order: (those of the levels with at most ``early_units``
-    units, coarsest first; the others, finest first)."""
-    per_level: dict[int, list[list[TileCode]]] = {}
-    for level in sorted({c[0] for c in todo}, reverse=True):
-        per_level[level] = _units(pyramid, level, [c for c in todo if c[0] == level], unit_span)
-    early = [lv for lv in sorted(per_level) if len(per_level[lv]) <= early_units]
-    rest = [lv for lv in sorted(per_level, reverse=True) if lv not in early]
-    return [u for lv in early for u in per_level[lv]], [u for lv in rest for u in per_level[lv]]
+    pyramid: TilePyramid, todo: dict[int, np.ndarray], unit_span: int, early_units: int
+) -> tuple[list[list[TileCode]], Iterator[list[TileCode]]]:
+    """The work units of the tiles ``todo`` ({level: mask}) in submission order: (those of the levels with
+    at most ``early_units`` units, coarsest first, as a list; the others, finest first, made as taken)."""
+    side = {lv: _unit_side(pyramid, lv, unit_span) for lv in todo}
+    early = [lv for lv in sorted(todo) if _unit_count(todo[lv], side[lv]) <= early_units]
+    rest = [lv for lv in sorted(todo, reverse=True) if lv not in early]
+    return (
+        [u for lv in early for u in _units(todo[lv], lv, side[lv])],
+        (u for lv in rest for u in _units(todo[lv], lv, side[lv])),
+    )
+
+
+def _todo(pyramid: TilePyramid, done: TileErrors, stop_after: int | None) -> dict[int, np.ndarray]:
+    """{level: (ny, nx) mask} of the tiles a build still has to make: those not ``done``, and of them only
+    the first ``stop_after`` in finest-first raster order (a tile's children come before it). A byte a
+    tile, where a list of codes took about 100."""
+    todo: dict[int, np.ndarray] = {}
+    left = stop_after
+    for level in reversed(pyramid.levels):
+        mask = ~done.have(level)
+        if left is not None:
+            flat = mask.reshape(-1)
+            at = np.flatnonzero(flat)
+            flat[at[left:]] = False
+            left = max(0, left - len(at))
+        todo[level] = mask
+    return todo
 
 
 def _monotone(
@@ -982,6 +1014,12 @@ class TileErrors(MutableMapping):
             nx, ny = self._pyramid.grid_count(level)
             got = self._levels[level] = (np.zeros((ny, nx)), np.zeros((ny, nx)), np.zeros((ny, nx), bool))
         return got
+
+    def have(self, level: int) -> np.ndarray:
+        """A (ny, nx) copy of which tiles of ``level`` have their errors."""
+        got = self._levels.get(level)
+        nx, ny = self._pyramid.grid_count(level)
+        return np.zeros((ny, nx), bool) if got is None else got[2].copy()
 
     def _at(self, code: TileCode) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int] | None:
         level, x, y = code
@@ -1093,7 +1131,6 @@ def build_store_windowed(
         if client is not None
         else _ThreadRunner(max(1, workers or os.cpu_count() or 1))
     )
-    codes = pyramid.all_codes(finest_first=True)
     built = n_skipped = total = 0
     store: TileStore | None = None
     target = p
@@ -1101,15 +1138,13 @@ def build_store_windowed(
         errors = TileErrors(pyramid)
         if not fresh:
             store, target = _open_or_create(p, meta_f.result(), resume, overwrite)
-            errors.update(store.tile_errors())
-        total = len(codes)
-        todo = [c for c in codes if c not in errors]
-        n_skipped = total - len(todo)
+            errors.update(store.each_tile_error())
+        total = sum(nx * ny for nx, ny in map(pyramid.grid_count, pyramid.levels))
+        n_skipped = len(errors)
         if progress:
             progress(n_skipped, total)
         shared = runner.share(src)
-        if stop_after is not None:
-            todo = todo[: max(0, stop_after)]  # finest first: a tile's children come before it
+        todo = _todo(pyramid, errors, stop_after)
         slots = runner.slots()
 
         def job(unit: list[TileCode], options: dict | None) -> tuple:
@@ -1117,16 +1152,19 @@ def build_store_windowed(
                     max_window_samples, options)  # fmt: skip
 
         def jobs() -> Iterator[tuple]:
-            _, now = _unit_order(pyramid, [c for c in todo if c[0] in free], unit_span_samples, 0)
-            i = 0
-            while i < len(now) and not meta_f.done():
-                yield job(now[i], None)
-                i += 1
+            _, now = _unit_order(
+                pyramid, {lv: m for lv, m in todo.items() if lv in free}, unit_span_samples, 0
+            )
+            for unit in now:
+                if meta_f.done():
+                    now = itertools.chain([unit], now)
+                    break
+                yield job(unit, None)
             options = meta_f.result()["build_options"]
-            early, rest = _unit_order(pyramid, [c for c in todo if c[0] not in free], unit_span_samples,
-                                      _EARLY_UNITS_PER_SLOT * slots)  # fmt: skip
+            early, rest = _unit_order(pyramid, {lv: m for lv, m in todo.items() if lv not in free},
+                                      unit_span_samples, _EARLY_UNITS_PER_SLOT * slots)  # fmt: skip
             yield from (job(u, options) for u in early)
-            yield from (job(u, None) for u in now[i:])
+            yield from (job(u, None) for u in now)
             yield from (job(u, options) for u in rest)
 
         measured = (enc for tiles in runner.stream(jobs(), _AHEAD_UNITS_PER_SLOT * slots) for enc in tiles)
