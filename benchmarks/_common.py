@@ -96,21 +96,30 @@ def md_table(headers: list[str], rows: list[list[Any]]) -> str:
 
 
 def tree_peak_rss(proc: Any, *, max_rss_b: float = float("inf"), timeout_s: float = float("inf"),
-                  interval_s: float = 0.05) -> tuple[int, str | None]:  # fmt: skip
+                  interval_s: float = 0.05, timeline: list | None = None,
+                  timeline_s: float = 5.0) -> tuple[int, str | None]:  # fmt: skip
     """Peak RSS (bytes) summed over ``proc`` (a subprocess.Popen) and its children, sampled every
     ``interval_s`` until it exits; it is killed past ``max_rss_b`` bytes or ``timeout_s`` seconds (the
-    machine is shared). Returns (peak, None) or (peak, "rss" | "timeout") when it was killed."""
+    machine is shared). Returns (peak, None) or (peak, "rss" | "timeout") when it was killed. With
+    ``timeline`` (a list), appends (seconds, peak MiB of the last ``timeline_s`` seconds) to it: where in a
+    run its memory rose."""
     import time
 
     import psutil
 
     root, peak, t0 = psutil.Process(proc.pid), 0, time.perf_counter()
+    window, t_window = 0, t0
     while proc.poll() is None:
         try:
             rss = root.memory_info().rss + sum(c.memory_info().rss for c in root.children(recursive=True))
             peak = max(peak, rss)
+            window = max(window, rss)
         except psutil.Error:  # a child that ended between the listing and the read: the next sample has it
             pass
+        if timeline is not None and time.perf_counter() - t_window >= timeline_s:
+            t_window = time.perf_counter()
+            timeline.append((round(t_window - t0, 1), round(window / 2**20, 1)))
+            window = 0
         why = "rss" if peak > max_rss_b else "timeout" if time.perf_counter() - t0 > timeout_s else None
         if why is not None:
             proc.kill()

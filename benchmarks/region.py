@@ -116,15 +116,20 @@ def run_tree(cmd: list[str]) -> dict[str, float | str]:
 
     t0 = time.perf_counter()
     before = os.times()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    peak = _tree_peak_rss(proc)
-    out, err = proc.communicate()
+    err = tempfile.TemporaryFile("w+")  # not a pipe: a long run's progress would fill it
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+    timeline: list[tuple[float, float]] = []
+    peak = tree_peak_rss(proc, timeline=timeline)[0]
+    out = proc.communicate()[0]
     wall = time.perf_counter() - t0
+    err.seek(0)
     if proc.returncode != 0:
-        raise RuntimeError(err[-2000:])
+        raise RuntimeError(err.read()[-2000:])
     after = os.times()
     cpu = (after.children_user - before.children_user) + (after.children_system - before.children_system)
-    return {"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak / 2**20, "stdout": out.strip()}
+    peak_at = next((t for t, m in timeline if m >= peak / 2**20 - 0.05), wall)
+    return {"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak / 2**20, "peak_at_s": peak_at,
+            "rss_timeline_mib": timeline, "stdout": out.strip()}  # fmt: skip
 
 
 def run_build(folder: Path, out: Path) -> dict[str, float | str]:
