@@ -130,6 +130,9 @@ __all__ = [
 
 #: Samples of one full-width strip of the planning scan (float32 + bool: 5 bytes a sample).
 SCAN_STRIP_SAMPLES = 1 << 25
+#: Samples of one full-width strip of the ladder's read (:func:`_ladder_read`, beside the first units): the
+#: scan's 2^25 held some 290 MB at once there from 64 SRTM3 tiles up, the early peak of their builds.
+LADDER_STRIP_SAMPLES = 1 << 22
 #: A work unit groups g x g tiles of a level so that g * span is about this many samples.
 UNIT_SPAN_SAMPLES = 1024
 #: Largest tile window (samples) read whole; larger (coarse) tiles are meshed from a decimated copy.
@@ -299,7 +302,8 @@ def _ladder_read(src: WindowSource, pyramid: TilePyramid, method: str) -> tuple 
     if window is None:
         return None
     hh, ww, f = window(src.height, src.width, pyramid)
-    z, _, own = _decimated_window(src, 0, 0, hh - 1, ww - 1, f, SCAN_STRIP_SAMPLES)
+    # in strips of LADDER_STRIP_SAMPLES: this read runs beside the first work units
+    z, _, own = _decimated_window(src, 0, 0, hh - 1, ww - 1, f, LADDER_STRIP_SAMPLES)
     nr, nc = len(range(0, hh, f)), len(range(0, ww, f))  # without the last row/column appended
     return np.ascontiguousarray(z[:nr, :nc]), np.ascontiguousarray(own[:nr, :nc])
 
@@ -755,7 +759,7 @@ _LARGE_UNITS_IN_FLIGHT = 1
 
 def _large_unit(job: tuple[Any, ...]) -> bool:
     """Whether a unit's job (:func:`build_unit`'s arguments) meshes a tile whose window is over
-    ``MEASURE_STRIP_SAMPLES`` samples (one tile of span 2048 or more: the coarse levels)."""
+    ``MEASURE_STRIP_SAMPLES`` samples (one tile of span 1024 or more: the coarse levels)."""
     src, tile_size, _, codes = job[:4]
     span = TilePyramid(src.width, src.height, tile_size).span(codes[0][0])
     return bool((min(span, src.height - 1) + 1) * (min(span, src.width - 1) + 1) > MEASURE_STRIP_SAMPLES)
