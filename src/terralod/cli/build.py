@@ -12,7 +12,7 @@ import click
 from terralod.cli._console import console, print_store_summary, print_tin_summary
 from terralod.cli._errors import require_extra
 from terralod.cli._inputs import run_build
-from terralod.cli._options import check_output, check_raster_size, load, memory_option, read_options
+from terralod.cli._options import check_output, check_raster_size, load, memory_option, numbers, read_options
 from terralod.output import scratch_beside
 
 
@@ -65,11 +65,18 @@ from terralod.output import scratch_beside
 @click.option(
     "--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2)."
 )
+@click.option(
+    "--bbox",
+    default=None,
+    metavar="W,S,E,N",
+    help="LAS/LAZ surveys: build the part inside this box (degrees west,south,east,north); COPC files are "
+    "read through their octree (only the nodes meeting the box), tiles outside it are skipped.",
+)
 @memory_option
 @read_options
 def build(
     input_paths: tuple[str, ...], output: str, tile_size: int | None, method: str, sub_blocks: str, base_fraction: float,
-    workers, resume, overwrite, fractal_levels, epoch, dask_address, dask_workers, memory_bytes, **read: Any,
+    workers, resume, overwrite, fractal_levels, epoch, dask_address, dask_workers, bbox, memory_bytes, **read: Any,
 ) -> None:  # fmt: skip
     """Build the level-of-detail tile store of a DEM (or of a mosaic of DEM tiles on one grid), or the
     detail-increment TIN of a LAS/LAZ cloud. Mosaics (files, a folder, a quoted glob), --dask and rasters
@@ -94,9 +101,15 @@ def build(
                                      param_hint="INPUT")  # fmt: skip
         if workers is not None and workers < 1:
             raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
+        if bbox is not None and not survey:
+            raise click.BadParameter("a build's --bbox is for LAS/LAZ surveys (export --bbox takes a part of a "
+                                     "DEM's tiles)", param_hint="--bbox")  # fmt: skip
         build_tin(survey or input_path, output, sub_blocks, base_fraction, overwrite, read, workers=workers,
-                  dask_address=dask_address, dask_workers=dask_workers)  # fmt: skip
+                  dask_address=dask_address, dask_workers=dask_workers, bbox_deg=_bbox_deg(bbox))  # fmt: skip
         return
+    if bbox is not None:
+        raise click.BadParameter("a build's --bbox is for LAS/LAZ surveys (export --bbox takes a part of a "
+                                 "DEM's tiles)", param_hint="--bbox")  # fmt: skip
     if tile_size is None:
         tile_size = default_tile_size(method) if method in METHODS else 65
     if not is_valid_tile_size(tile_size) or tile_size > 257:
@@ -174,9 +187,24 @@ def _las_survey(input_paths: tuple[str, ...]) -> list[Path]:
     return las_inputs(input_paths)
 
 
+def _bbox_deg(text: str | None) -> tuple[float, float, float, float] | None:
+    """``--bbox W,S,E,N`` as degrees, checked by the export's rule (west < east, south < north, on the globe)."""
+    from terralod.export.quantized_mesh import Part
+
+    box = numbers(text, 4, "--bbox", "W,S,E,N in degrees (west,south,east,north)")
+    if box is None:
+        return None
+    try:
+        Part(bbox=box)  # type: ignore[arg-type]
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--bbox") from None
+    return (box[0], box[1], box[2], box[3])
+
+
 def build_tin(input_path: str | list[Path], output: str, sub_blocks: str, base_fraction: float, overwrite: bool,
               read: dict[str, Any], *, workers: int | None = None, dask_address: str | None = None,
-              dask_workers: int | None = None) -> None:  # fmt: skip
+              dask_workers: int | None = None,
+              bbox_deg: tuple[float, float, float, float] | None = None) -> None:  # fmt: skip
     """``build --method tin``: LAS/LAZ points (or a DEM's samples) → detail-increment TIN store; sub-blocks
     simplified on ``workers`` threads, or on Dask workers with ``dask_address`` (the same store)."""
     from terralod.errors import StoreError
@@ -208,7 +236,7 @@ def build_tin(input_path: str | list[Path], output: str, sub_blocks: str, base_f
         if isinstance(input_path, list):
             model = DetailIncrementModel.from_las(input_path, sub_blocks=blocks, base_fraction=base_fraction,
                                                   workers=workers, executor=executor, timings=stages,
-                                                  crs=read.get("crs"))  # fmt: skip
+                                                  crs=read.get("crs"), bbox_deg=bbox_deg)  # fmt: skip
         else:
             model = DetailIncrementModel.from_heightfield(load(input_path, **read), sub_blocks=blocks,
                                                           base_fraction=base_fraction, workers=workers,

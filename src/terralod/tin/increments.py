@@ -305,19 +305,21 @@ class DetailIncrementModel:
         timings: dict[str, float] | None = None,
         executor: Any = None,
         crs: Any = None,
+        bbox_deg: tuple[float, float, float, float] | None = None,
     ) -> DetailIncrementModel:
         """:meth:`from_points` of a LAS/LAZ survey's points (ground only when classified, metres): one file
         or several tiles of one survey (``path`` a sequence), read as one cloud in a canonical order, so
         tiles cut from one cloud build the same TIN as the merged file.
 
-        See :func:`terralod.tin.pointcloud.read_las_survey` for ``ground_only``, ``units`` and ``crs``,
+        See :func:`terralod.tin.pointcloud.read_las_survey` for ``ground_only``, ``units``, ``crs`` and
+        ``bbox_deg`` (a part: the points inside a box in degrees, COPC files read through their octree),
         :meth:`from_points` for ``workers``, ``timings`` (plus "read") and ``executor``.
         """
         from terralod.tin.pointcloud import read_las_survey
 
         clock = _Clock(timings)
         paths = [path] if isinstance(path, str | os.PathLike) else list(path)
-        pc = read_las_survey(paths, ground_only=ground_only, units=units, crs=crs)
+        pc = read_las_survey(paths, ground_only=ground_only, units=units, crs=crs, bbox_deg=bbox_deg)
         clock("read")
         return cls.from_points(
             pc.xyz_m,

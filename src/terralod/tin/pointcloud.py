@@ -18,6 +18,11 @@ cloud was processed ... such as points filtering and thinning"). The paper gives
   south-west corner) are one location; the **lowest** point is kept (for LiDAR the lowest return of a
   location is the one nearest the ground). Two points closer than ``tol_m`` but on either side of a cell
   edge both stay; the triangulator then drops any that still coincide, so the TIN never sees a duplicate.
+- **A part of a survey** (``bbox_deg``, the build's ``--bbox``): a point is kept when its longitude and
+  latitude fall in the box (ends included). A file whose header bounds miss the box is not opened further; a
+  COPC file (LAZ with its octree, https://copc.io) is read through its hierarchy, decoding only the nodes
+  whose cubes meet the box (laspy's ``CopcReader.query``); any other file is read in chunks and filtered.
+  The ground rule is decided on the points decoded, before the box cuts them.
 """
 
 from __future__ import annotations
@@ -191,7 +196,8 @@ def _units_from_geokeys(header) -> tuple[str, float, float | None, str | None] |
 def _probe_laz_decoding(p: Path, timeout_s: float = 600.0) -> bool:
     """Decode a LAZ file once in a forked child first: lazrs aborts the whole process (a Rust allocation
     failure, not an exception) on some corrupt compressed points (found by fuzzing), which must become one
-    line instead. POSIX only; elsewhere, and for uncompressed LAS, nothing is done. Returns True for LAZ."""
+    line instead. POSIX only; elsewhere, and for uncompressed LAS, nothing is done. Returns True for LAZ.
+    (A COPC file's part is read in a child of its own: :func:`_copc_part`.)"""
     import signal
     import time
 
@@ -535,6 +541,7 @@ def read_las(
     ground_only: bool | None = None,
     units: str | float | None = None,
     crs: Any = None,
+    bbox_deg: tuple[float, float, float, float] | None = None,
 ) -> PointCloud:
     """Read a LAS/LAZ cloud as metres, ground points only when it is classified.
 
@@ -546,6 +553,8 @@ def read_las(
     units : override the file's unit: "m", "ft" (international foot), "us-ft" (US survey foot), or
         metres per unit as a number (applied to x, y and z).
     crs : the CRS of the file's coordinates (EPSG code, WKT, PROJ string), instead of the file's own.
+    bbox_deg : (west, south, east, north) in degrees: only the points inside (see the module docstring);
+        the cloud may then hold no point (a tile of a survey outside the box), with a note.
 
     Returns
     -------
@@ -563,18 +572,32 @@ def read_las(
     if not p.exists():
         raise InputNotFoundError("file not found", src)
     check_las_header(p)
-    compressed = _probe_laz_decoding(p)
+    part = copc_box = None
+    if bbox_deg is not None:  # a part: the file's box first (a tile outside it is not decoded at all)
+        try:
+            with laspy.open(src) as f:
+                header = f.header
+        except (KeyboardInterrupt, SystemExit):
+            raise
+        except BaseException as exc:
+            raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
+        part = _native_part(header, src, crs, units, bbox_deg)
+        if part is None:
+            return _empty_part(header, src, crs, units, "its header bounds miss --bbox")
+        copc_box = part.box if _is_copc(header) else None
+    compressed = copc_box is not None or _probe_laz_decoding(p)  # a COPC part: read in a child process
     # Points are read in chunks of LAS_CHUNK_POINTS (laspy's chunk iterator): only the kept points' xyz
     # (24 bytes a point) outlive a chunk, never the whole file's records and dimensions.
     backend = {"laz_backend": laspy.LazBackend.Lazrs} if compressed else {}
     kept: list[np.ndarray] = []  # xyz of the points kept so far, file units
     unclassified: list[np.ndarray] = []  # every point's xyz until a ground point shows up (ground_only None)
     n_read = n_ground = 0
+    notes: list[str] = []
     try:  # the decoder the probe proved on this file (the parallel one may fail differently)
         with laspy.open(src, **backend) as f:
             header = f.header
             has_cls = "classification" in header.point_format.dimension_names
-            for pts in f.chunk_iterator(LAS_CHUNK_POINTS):
+            for pts in _records(f, src, copc_box, notes):
                 n = len(pts)
                 if n == 0:
                     break
@@ -584,6 +607,11 @@ def read_las(
                 xyz_c[:, 1] = np.asarray(pts.y, dtype=np.float64)
                 xyz_c[:, 2] = np.asarray(pts.z, dtype=np.float64)
                 ground = (np.asarray(pts.classification) == GROUND) if has_cls else np.zeros(n, np.bool_)
+                if part is not None:  # the ground rule on every decoded point; the box's points kept
+                    inside = part.contains(xyz_c)
+                    n_ground += int(np.count_nonzero(ground & ~inside)) if ground_only is not False else 0
+                    xyz_c, ground = xyz_c[inside], ground[inside]
+                    n = len(xyz_c)
                 g = int(np.count_nonzero(ground))
                 if ground_only is False:
                     kept.append(xyz_c)
@@ -598,11 +626,14 @@ def read_las(
                     unclassified.append(xyz_c)
     except (KeyboardInterrupt, SystemExit):
         raise
+    except InputError:
+        raise
     except BaseException as exc:  # laspy raises its own, OSError/ValueError, and lazrs pyo3 PanicException
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
-    notes: list[str] = []
     n_file = _records_in_file(p, header)
-    if n_read != int(header.point_count) or (n_file is not None and n_file != n_read):
+    if part is not None:
+        pass  # a part: the records decoded are not the file's (COPC: the nodes meeting the box)
+    elif n_read != int(header.point_count) or (n_file is not None and n_file != n_read):
         held = f"the file holds {n_file}" if n_file is not None else f"{n_read} could be read"
         notes.append(
             f"header point count {int(header.point_count)} disagrees with the records ({held}); read {n_read}"
@@ -629,10 +660,137 @@ def read_las(
     xyz[:, 2] *= fv
     if classified and ground_only is not False:
         notes.append(f"kept {xyz.shape[0]} ground points (class 2) of {n_read}")
+    if part is not None:
+        xyz = xyz[part.contains_lonlat(xyz, wkt)] if xyz.shape[0] else xyz
+        notes.append(f"{xyz.shape[0]:,} points inside --bbox")
+        if xyz.shape[0] == 0:
+            return PointCloud(xyz, wkt, src, n_read, classified, tuple(notes))
     if xyz.shape[0] == 0:
         raise InputError("the file has no points", src)
     xyz = check_points(xyz, src)
     return PointCloud(xyz, wkt, src, n_read, classified, tuple(notes))
+
+
+@dataclass(frozen=True)
+class _Part:
+    """The file-coordinate box around a --bbox (``box``: x0, y0, x1, y1 in the file's units), and the
+    test of metre coordinates against the box in degrees."""
+
+    box: tuple[float, float, float, float]
+    bbox_deg: tuple[float, float, float, float]
+
+    def contains(self, xyz_file: np.ndarray) -> np.ndarray:
+        x0, y0, x1, y1 = self.box
+        x, y = xyz_file[:, 0], xyz_file[:, 1]
+        return (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+
+    def contains_lonlat(self, xyz_m: np.ndarray, wkt: str | None) -> np.ndarray:
+        from pyproj import CRS, Transformer
+
+        t = Transformer.from_crs(CRS.from_user_input(wkt), "EPSG:4326", always_xy=True)
+        lon, lat = t.transform(xyz_m[:, 0], xyz_m[:, 1])
+        w, s, e, n = self.bbox_deg
+        return (lon >= w) & (lon <= e) & (lat >= s) & (lat <= n)
+
+
+def _native_part(header, src: str, crs: Any, units: str | float | None,
+                 bbox_deg: tuple[float, float, float, float]) -> _Part | None:  # fmt: skip
+    """The --bbox as a box of the file's own coordinates (the box in degrees transformed with its edges
+    densified, enlarged by a part in a million for rounding), or None when the file's header bounds miss
+    it. InputError for a cloud without a CRS (a box in degrees places nothing in a local frame)."""
+    from pyproj import CRS, Transformer
+
+    wkt, fh, _, _, native = _las_frame(header, src, crs, units)
+    if wkt is None:
+        raise InputError("--bbox needs the cloud's CRS: the file has none (give --crs)", src)
+    own = CRS.from_user_input(native if native is not None else wkt)
+    to_own = Transformer.from_crs("EPSG:4326", own, always_xy=True)
+    x0, y0, x1, y1 = to_own.transform_bounds(*bbox_deg, densify_pts=64)
+    if units is not None and native is not None:  # coordinates in the given units, not the CRS's
+        k = _las_frame(header, src, crs, None)[1] / fh
+        x0, y0, x1, y1 = (v * k for v in (x0, y0, x1, y1))
+    pad = 1e-6 * max(x1 - x0, y1 - y0) + 0.01 / fh  # fh: metres per file unit
+    box = (x0 - pad, y0 - pad, x1 + pad, y1 + pad)
+    mins, maxs = header.mins, header.maxs
+    if box[0] > maxs[0] or box[2] < mins[0] or box[1] > maxs[1] or box[3] < mins[1]:
+        return None
+    return _Part(box, bbox_deg)
+
+
+def _empty_part(header, src: str, crs: Any, units: str | float | None, why: str) -> PointCloud:
+    """The empty cloud of a survey tile outside --bbox (its CRS checked like any other tile's)."""
+    wkt = _las_frame(header, src, crs, units)[0]
+    return PointCloud(np.zeros((0, 3)), wkt, src, 0, False, (f"{Path(src).name}: {why}",))
+
+
+def _is_copc(header) -> bool:
+    """A COPC file: a LAZ 1.4 file whose first VLR is the COPC info record (user "copc", record 1)."""
+    return any(getattr(v, "user_id", "") == "copc" and getattr(v, "record_id", -1) == 1 for v in header.vlrs)
+
+
+#: The child process that reads a part of a COPC file (:func:`_copc_part`): laspy and numpy only.
+_COPC_CHILD = """
+import sys
+import numpy as np, laspy
+src, out = sys.argv[1], sys.argv[2]
+x0, y0, x1, y1 = (float(v) for v in sys.argv[3:7])
+with laspy.CopcReader.open(src) as r:
+    z0, z1 = float(r.header.mins[2]) - 1.0, float(r.header.maxs[2]) + 1.0
+    p = r.query(bounds=laspy.copc.Bounds(mins=np.array([x0, y0, z0]), maxs=np.array([x1, y1, z1])))
+    np.savez(out, x=np.asarray(p.x, np.float64), y=np.asarray(p.y, np.float64), z=np.asarray(p.z, np.float64),
+             classification=np.asarray(p.classification, np.uint8))
+"""
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """Points as a chunk of a LAS read offers them (x, y, z in file units, classification)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    z: np.ndarray
+    classification: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+
+def _copc_part(src: str, box: tuple, timeout_s: float = 600.0) -> _Chunk:
+    """The points of the COPC file ``src`` in the octree nodes whose cubes meet ``box`` (x0, y0, x1, y1 of
+    the file; every height), by laspy's ``CopcReader.query``, run in a fresh child process. The child is
+    the probe of :func:`_probe_laz_decoding` for this read (a corrupt node that aborts the decoder becomes
+    one line), and a fresh one because the query decodes on lazrs's thread pool, which a forked child of a
+    process that already started one would wait on for ever."""
+    import subprocess
+    import sys
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="terralod-copc-") as d:
+        out = Path(d) / "part.npz"
+        try:
+            r = subprocess.run([sys.executable, "-c", _COPC_CHILD, src, str(out), *(repr(float(v)) for v in box)],
+                               capture_output=True, text=True, timeout=timeout_s)  # fmt: skip
+        except subprocess.TimeoutExpired:
+            raise InputError(f"decoding the COPC nodes took over {timeout_s:g} s; the file is probably corrupt",
+                             src) from None  # fmt: skip
+        if r.returncode != 0 or not out.exists():
+            lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+            why = lines[-1] if lines else f"the decoder ended with {r.returncode}"
+            raise InputError(f"cannot read the COPC octree ({why})", src)
+        with np.load(out) as f:
+            return _Chunk(f["x"], f["y"], f["z"], f["classification"])
+
+
+def _records(f, src: str, copc_box: tuple | None, notes: list[str]):
+    """The point records to read from the open LAS/LAZ ``f``: every chunk, or for a part of a COPC file
+    (``copc_box``) the points of the octree nodes meeting it (:func:`_copc_part`)."""
+    if copc_box is None:
+        yield from f.chunk_iterator(LAS_CHUNK_POINTS)
+        return
+    pts = _copc_part(src, copc_box)
+    notes.append(f"COPC: decoded {len(pts):,} of {int(f.header.point_count):,} points (the octree nodes "
+                 "meeting --bbox)")  # fmt: skip
+    yield pts
 
 
 def _las_frame(
@@ -739,8 +897,10 @@ def read_las_survey(
     ground_only: bool | None = None,
     units: str | float | None = None,
     crs: Any = None,
+    bbox_deg: tuple[float, float, float, float] | None = None,
 ) -> PointCloud:
-    """The points of a survey delivered as several LAS/LAZ tiles, as one cloud in metres.
+    """The points of a survey delivered as several LAS/LAZ tiles, as one cloud in metres (``bbox_deg``:
+    only those inside a box in degrees, see :func:`read_las`).
 
     Each file is read by :func:`read_las` (the same classes, units and CRS checks as one file); every file
     must place its points in the same CRS (the metre frame a build uses): a file that disagrees is named in
@@ -754,7 +914,7 @@ def read_las_survey(
     files = [Path(p) for p in paths]
     if not files:
         raise InputError("no point-cloud files given")
-    clouds = [read_las(f, ground_only=ground_only, units=units, crs=crs) for f in files]
+    clouds = [read_las(f, ground_only=ground_only, units=units, crs=crs, bbox_deg=bbox_deg) for f in files]
     first = clouds[0]
     for f, pc in zip(files[1:], clouds[1:], strict=True):
         same = (pc.crs is None) == (first.crs is None) and (
@@ -770,11 +930,19 @@ def read_las_survey(
     notes = list(first.notes)
     parts = []
     for f, pc in zip(files, clouds, strict=True):
+        if bbox_deg is not None and f is not files[0]:
+            notes += [n for n in pc.notes if "--bbox" in n]
+        if pc.xyz_m.shape[0] == 0:
+            continue
         if classified and not pc.classified and ground_only is not False:
             notes.append(f"{f.name}: no ground (class 2) points while other tiles have some: none taken")
             continue
         parts.append(pc.xyz_m)
     xyz = np.concatenate(parts) if parts else np.zeros((0, 3))
+    if xyz.shape[0] == 0:
+        w, s, e, n = bbox_deg if bbox_deg is not None else (0.0, 0.0, 0.0, 0.0)
+        raise InputError(f"no point inside --bbox {w:g},{s:g},{e:g},{n:g} (west,south,east,north in degrees)",
+                         str(files[0]) if len(files) == 1 else f"{len(files)} LAS/LAZ files")  # fmt: skip
     order = np.lexsort((xyz[:, 2], xyz[:, 1], xyz[:, 0]))
     notes.append(f"{len(files)} LAS/LAZ files read as one survey ({xyz.shape[0]:,} points)")
     source = str(files[0]) if len(files) == 1 else f"{len(files)} LAS/LAZ files ({files[0].name}, ...)"
