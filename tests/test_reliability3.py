@@ -416,3 +416,36 @@ def test_export_from_a_geographic_dem_beyond_the_in_memory_limit_reads_it_by_win
         assert p.returncode == 0, p.stdout + p.stderr
         outs.append({f.relative_to(out): f.read_bytes() for f in out.rglob("*") if f.is_file()})
     assert outs[0] == outs[1] and len(outs[0]) > 3
+
+
+@needs_data
+def test_a_geographic_build_counts_its_spill_files_against_the_free_disk(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An out-of-core build of a geographic DEM writes spill files (warped blocks) beside its store while it
+    runs: a disk that would hold the store alone but not the store and the spill is refused in one line that
+    says so, before anything is written."""
+    from terralod.cli._windowed import SPILL_BYTES_PER_SAMPLE, STORE_BYTES_PER_SAMPLE
+    from terralod.io.windowed import open_source
+
+    vrt = _vrt(tmp_path, 20_000, srs="EPSG:4326")
+    src = open_source([str(vrt)])
+    samples = src.width * src.height  # the UTM grid the warp makes
+    out = tmp_path / "region.terra"
+    seen: list[str] = []
+    usage = collections.namedtuple("usage", "total used free")
+
+    def disk(p):  # room for the store, and half its spill
+        seen.append(str(p))
+        return usage(10**13, 0, int((STORE_BYTES_PER_SAMPLE + SPILL_BYTES_PER_SAMPLE / 2) * samples))
+
+    def no_build(*a, **k):  # a check that let it through fails here, not after an hour of building
+        raise AssertionError("the build started")
+
+    monkeypatch.setattr(shutil, "disk_usage", disk)
+    monkeypatch.setattr("terralod.pyramid.distributed.build_store_windowed", no_build)
+    p = terralod("build", str(vrt), "-o", str(out))
+    lines = _errors(p)
+    assert p.returncode == 2 and seen, p.stdout + p.stderr
+    assert len(lines) == 1 and str(out) in lines[0] and "spill files" in lines[0], p.stderr
+    assert SPILL_BYTES_PER_SAMPLE > 8 and not out.exists()

@@ -21,24 +21,33 @@ _GDAL_SUFFIXES = (".tif", ".tiff", ".vrt", ".img", ".hgt")
 STORE_BYTES_PER_SAMPLE = 12.0
 
 
-def check_store_space(output: str, samples: int, resume: bool = False) -> None:
+#: Bytes a grid sample of a warped (geographic) source can take in its spill file beside the output while
+#: the build runs (:class:`terralod.io.windowed.WarpedSource`: heights as float64 and a bit of validity).
+SPILL_BYTES_PER_SAMPLE = 8.125
+
+
+def check_store_space(output: str, samples: int, resume: bool = False, scratch_bytes: int = 0) -> None:
     """Refuse (InputError, one line naming the output) an out-of-core build whose store would need more
     than its disk has free: about :data:`STORE_BYTES_PER_SAMPLE` a sample of the build's grid, less what a
-    store being resumed already holds (a store being replaced stays until the new one is whole)."""
+    store being resumed already holds (a store being replaced stays until the new one is whole), plus
+    ``scratch_bytes`` of spill files written beside it while it runs."""
     import shutil
 
     from terralod.errors import InputError
 
     p = Path(output).resolve()
     have = p.stat().st_size if resume and p.is_file() else 0
-    need = int(STORE_BYTES_PER_SAMPLE * samples) - have
+    need = int(STORE_BYTES_PER_SAMPLE * samples) - have + int(scratch_bytes)
     folder = p.parent
     while not folder.exists() and folder != folder.parent:
         folder = folder.parent
     free = shutil.disk_usage(folder).free
     if need > free:
+        spill = (
+            f", of which {scratch_bytes / 1e9:.2f} GB of spill files while it runs" if scratch_bytes else ""
+        )
         raise InputError(
-            f"the store needs about {need / 1e9:.2f} GB ({samples:,} grid samples) and its disk has "
+            f"the store needs about {need / 1e9:.2f} GB ({samples:,} grid samples{spill}) and its disk has "
             f"{free / 1e9:.2f} GB free; free some space or write it to another disk",
             output,
         )
@@ -98,7 +107,11 @@ def run_windowed_build(
 
         src.crs, note = crs_with_vertical_datum(src.crs, read["vertical_datum"], src.source)
         src.notes = (*src.notes, note)
-    check_store_space(output, src.width * src.height, resume)  # before a worker starts or a file is written
+    from terralod.io.windowed import WarpedSource
+
+    samples = src.width * src.height
+    spill = int(SPILL_BYTES_PER_SAMPLE * samples) if isinstance(src, WarpedSource) else 0
+    check_store_space(output, samples, resume, spill)  # before a worker starts or a file is written
     from terralod.memory import plan_memory
 
     try:
