@@ -132,3 +132,53 @@ def test_a_block_far_from_the_data_takes_one_value_without_a_window_that_grows_w
         r1, c1 = int(rng.integers(r0 + 1, 1801)), int(rng.integers(c0 + 1, 1801))
         wz, wok = again.read(r0, c0, r1, c1)
         assert np.array_equal(wz, z[r0:r1, c0:c1]) and np.array_equal(wok, ok[r0:r1, c0:c1])
+
+
+def test_the_region_reader_fills_a_block_far_from_the_data_with_one_value_read_a_block_at_a_time(
+    islet: Path,
+) -> None:
+    """The export's region reader (DEM tiles read straight, no store) follows the window sources' rule: a
+    block with no valid sample within FILL_HALO_EXACT_MAX is the value of the valid sample nearest its
+    centre, found with reads of a block at a time (never a window grown to the coast); blocks near the data
+    keep their haloed fill; a second reader reading in another order gives the same heights."""
+    import numpy as np
+
+    from terralod.io.region import FILL_BLOCK, FILL_HALO_EXACT_MAX, RegionReader, resolve_region
+
+    reader = RegionReader(resolve_region([islet]))
+    reader.open()
+    sizes: list[int] = []
+    raw = reader.read_raw
+
+    def counted(r0: int, r1: int, c0: int, c1: int):
+        sizes.append((r1 - r0) * (c1 - c0))
+        return raw(r0, r1, c0, c1)
+
+    reader.read_raw = counted  # type: ignore[method-assign]
+    b = FILL_BLOCK
+    n = -(-1800 // b)
+    blocks = {(i, j): reader.block(i, j) for i in range(n) for j in range(n)}
+    assert max(sizes) <= (b + 2 * FILL_HALO_EXACT_MAX) ** 2
+    data, valid = raw(0, 1800, 0, 1800)
+    vr, vc = np.nonzero(valid)
+    far = 0
+    for (i, j), (z, ok) in blocks.items():
+        r0, c0 = i * b, j * b
+        r1, c1 = min(r0 + b, 1800), min(c0 + b, 1800)
+        assert np.array_equal(z[ok], data[r0:r1, c0:c1][ok])  # valid samples kept
+        near = valid[max(r0 - FILL_HALO_EXACT_MAX, 0) : r1 + FILL_HALO_EXACT_MAX,
+                     max(c0 - FILL_HALO_EXACT_MAX, 0) : c1 + FILL_HALO_EXACT_MAX].any()  # fmt: skip
+        if near:
+            continue
+        far += 1
+        d2 = (vr - (r0 + r1 - 1) / 2.0) ** 2 + (vc - (c0 + c1 - 1) / 2.0) ** 2
+        k = np.lexsort((vc, vr, d2))[0]
+        assert np.all(z == data[vr[k], vc[k]]), (i, j)
+    assert far >= 4
+    again = RegionReader(resolve_region([islet]))
+    again.open()
+    for i, j in sorted(blocks, reverse=True):
+        z, ok = again.block(i, j)
+        assert np.array_equal(z, blocks[(i, j)][0]) and np.array_equal(ok, blocks[(i, j)][1])
+    reader.close()
+    again.close()

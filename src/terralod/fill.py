@@ -12,6 +12,8 @@ blocks (:mod:`terralod.io.windowed`) and a DEM read on its own lattice for a web
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy import ndimage
 
@@ -101,3 +103,42 @@ def fill_nodata(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
     # Relax only inside holes; the valid rim stays fixed, so the membrane meets the data without a step.
     hr, hc = np.nonzero(~valid)
     return relax_holes(out, hr.astype(np.int64), hc.astype(np.int64), FILL_SMOOTH_ITERATIONS)
+
+
+def nearest_valid_value(
+    block_rc: tuple[int, int],
+    n_blocks: tuple[int, int],
+    centre_rc: tuple[float, float],
+    has_valid: Callable[[int, int], bool],
+    block: Callable[[int, int], tuple[np.ndarray, np.ndarray, int, int]],
+) -> float | None:
+    """The one value a window source gives a fill block far from every valid sample: the height of the
+    valid sample nearest the block's centre ``centre_rc`` (row, column of the whole grid) among the blocks
+    of the nearest ring of blocks around ``block_rc`` that holds one (ties: the lowest row, then column).
+    ``has_valid(i, j)`` says whether block (i, j) holds a valid sample (the caller keeps a flag a block);
+    ``block(i, j)`` reads it as (values, valid, first row, first column). Only a ring's perimeter is
+    visited, a block at a time, so memory is one block whatever the distance. None: no block holds one."""
+    br, bc = block_rc
+    nbr, nbc = n_blocks
+    cr, cc = centre_rc
+    for k in range(1, max(nbr, nbc) + 1):
+        best: tuple[float, int, int, float] | None = None
+        ring = [(br - k, j) for j in range(bc - k, bc + k + 1)] + [
+            (br + k, j) for j in range(bc - k, bc + k + 1)
+        ]
+        ring += [(i, bc - k) for i in range(br - k + 1, br + k)] + [
+            (i, bc + k) for i in range(br - k + 1, br + k)
+        ]
+        for i, j in ring:
+            if not (0 <= i < nbr and 0 <= j < nbc) or not has_valid(i, j):
+                continue
+            values, ok, ra, ca = block(i, j)
+            rr, cc_ = np.nonzero(ok)
+            d2 = (rr + ra - cr) ** 2 + (cc_ + ca - cc) ** 2
+            m = int(np.lexsort((cc_ + ca, rr + ra, d2))[0])
+            cand = (float(d2[m]), int(rr[m]) + ra, int(cc_[m]) + ca, float(values[rr[m], cc_[m]]))
+            if best is None or cand[:3] < best[:3]:
+                best = cand
+        if best is not None:
+            return best[3]
+    return None

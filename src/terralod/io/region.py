@@ -26,9 +26,12 @@ The rules, and why:
   grid: every hole cell within the relaxation's reach (``FILL_SMOOTH_ITERATIONS`` samples) of the block
   has its nearest valid sample strictly closer than the halo's open edges, and those edges are further
   than that reach from the block (the relaxation is edge-clamped). Holes larger than that (a missing tile,
-  an ocean of nodata) are filled on the largest halo, grown further only until it holds a valid sample:
-  there the values are the block's own fill, still a pure function of the block, so neighbouring tiles
-  agree on every shared vertex.
+  an ocean of nodata) are filled on the largest halo when it holds a valid sample: there the values are
+  the block's own fill, still a pure function of the block, so neighbouring tiles agree on every shared
+  vertex. A block with no valid sample within the largest halo takes one value, the valid sample nearest
+  its centre found block by block (:func:`terralod.fill.nearest_valid_value`, the window sources' rule),
+  instead of a window grown until it reaches the data: from the open sea of a coastal region that window
+  grew with the distance to the coast (up to the whole region).
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ import numpy as np
 from affine import Affine
 
 from terralod.errors import InputError, InputNotFoundError
-from terralod.fill import FILL_SMOOTH_ITERATIONS, fill_nodata
+from terralod.fill import FILL_SMOOTH_ITERATIONS, fill_nodata, nearest_valid_value
 from terralod.output import SpillFile, pack_block, unpack_block
 
 __all__ = [
@@ -763,10 +766,36 @@ class RegionReader:
                 break
             if whole:
                 raise InputError("has no valid samples", self.region.name)
+            if halo >= FILL_HALO_EXACT_MAX:  # far from every valid sample: one value, found block by block
+                del wv, wok
+                self.fill_halos[(r0 // FILL_BLOCK, c0 // FILL_BLOCK)] = max(self.height, self.width)
+                return np.full((r1 - r0, c1 - c0), self._far_value(r0, r1, c0, c1), self.dtype)
             halo *= 2
         self.fill_halos[(r0 // FILL_BLOCK, c0 // FILL_BLOCK)] = halo
         filled: np.ndarray = fill_nodata(wv, wok).astype(self.dtype)
         return np.ascontiguousarray(filled[r0 - ra : r1 - ra, c0 - ca : c1 - ca])
+
+    def _far_value(self, r0: int, r1: int, c0: int, c1: int) -> float:
+        """The one value of the block [r0, r1) x [c0, c1) with no valid sample within FILL_HALO_EXACT_MAX
+        (:func:`terralod.fill.nearest_valid_value`; a flag a block says which hold valid samples)."""
+        b = FILL_BLOCK
+        flags = self.__dict__.setdefault("_has_valid", {})
+
+        def block(i: int, j: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+            values, ok = self.read_raw(i * b, min(i * b + b, self.height), j * b, min(j * b + b, self.width))
+            return values, ok, i * b, j * b
+
+        def has_valid(i: int, j: int) -> bool:
+            got = flags.get((i, j))
+            if got is None:
+                got = flags[(i, j)] = bool(block(i, j)[1].any())
+            return got
+
+        got = nearest_valid_value((r0 // b, c0 // b), (-(-self.height // b), -(-self.width // b)),
+                                  ((r0 + r1 - 1) / 2.0, (c0 + c1 - 1) / 2.0), has_valid, block)  # fmt: skip
+        if got is None:
+            raise InputError("has no valid samples", self.region.name)
+        return got
 
     def _note_water(self, br: int, bc: int, values: np.ndarray, ok: np.ndarray) -> None:
         """Record the block's water flags (and its packed bits where it holds some water and some land)."""

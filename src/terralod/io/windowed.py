@@ -61,7 +61,7 @@ import numpy as np
 from affine import Affine
 
 from terralod.errors import InputError, InputNotFoundError
-from terralod.fill import MIN_SIDE, fill_nodata
+from terralod.fill import MIN_SIDE, fill_nodata, nearest_valid_value
 from terralod.heightfield import Heightfield
 from terralod.io.georef import to_crs
 from terralod.io.raster import crs_text, vertical_unit_m
@@ -268,34 +268,25 @@ class _BlockFilled(WindowSource):
 
     def _far_value(self, br: int, bc: int) -> float:
         """The one value of a block with no valid sample within ``FILL_HALO_EXACT_MAX`` of it (deviation
-        1): the valid sample nearest its centre among the fill blocks of the nearest ring of blocks that
-        holds one (ties: the lowest row, then column). Blocks are visited one at a time, each read for
-        its validity once per source, so memory stays one block whatever the distance (a haloed window
-        grown to reach the data held up to (FILL_BLOCK + 2 x distance)² samples: the exterior wedges of
-        a 64-tile SRTM3 region warped to UTM are thousands of samples wide)."""
+        1): :func:`terralod.fill.nearest_valid_value`, blocks read one at a time, each read for its
+        validity once per source, so memory stays one block whatever the distance (a haloed window grown to
+        reach the data held up to (FILL_BLOCK + 2 x distance)² samples: the exterior wedges of a 64-tile
+        SRTM3 region warped to UTM are thousands of samples wide)."""
         b = FILL_BLOCK
-        nbr, nbc = -(-self.height // b), -(-self.width // b)
-        cr = (br * b + min((br + 1) * b, self.height) - 1) / 2.0
-        cc = (bc * b + min((bc + 1) * b, self.width) - 1) / 2.0
-        for k in range(1, max(nbr, nbc) + 1):
-            best: tuple[float, int, int, float] | None = None
-            for i in range(br - k, br + k + 1):
-                for j in range(bc - k, bc + k + 1):
-                    if max(abs(i - br), abs(j - bc)) != k or not (0 <= i < nbr and 0 <= j < nbc):
-                        continue
-                    if not self._block_has_valid(i, j):
-                        continue
-                    ra, ca = i * b, j * b
-                    values, ok = self.read_raw(ra, ca, min(ra + b, self.height), min(ca + b, self.width))
-                    rr, cc_ = np.nonzero(ok)
-                    d2 = (rr + ra - cr) ** 2 + (cc_ + ca - cc) ** 2
-                    m = int(np.lexsort((cc_ + ca, rr + ra, d2))[0])
-                    cand = (float(d2[m]), int(rr[m]) + ra, int(cc_[m]) + ca, float(values[rr[m], cc_[m]]))
-                    if best is None or cand[:3] < best[:3]:
-                        best = cand
-            if best is not None:
-                return best[3]
-        raise InputError("band has no valid samples (all nodata)", self.source)
+
+        def block(i: int, j: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+            values, ok = self.read_raw(i * b, j * b, min(i * b + b, self.height), min(j * b + b, self.width))
+            return values, ok, i * b, j * b
+
+        centre = (
+            (br * b + min((br + 1) * b, self.height) - 1) / 2.0,
+            (bc * b + min((bc + 1) * b, self.width) - 1) / 2.0,
+        )
+        got = nearest_valid_value((br, bc), (-(-self.height // b), -(-self.width // b)), centre,
+                                  self._block_has_valid, block)  # fmt: skip
+        if got is None:
+            raise InputError("band has no valid samples (all nodata)", self.source)
+        return got
 
     def _block_has_valid(self, i: int, j: int) -> bool:
         """Whether fill block (i, j) holds a valid sample (one bool a block, kept for the source)."""
