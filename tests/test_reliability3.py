@@ -425,7 +425,11 @@ def test_a_geographic_build_counts_its_spill_files_against_the_free_disk(
     """An out-of-core build of a geographic DEM writes spill files (warped blocks) beside its store while it
     runs: a disk that would hold the store alone but not the store and the spill is refused in one line that
     says so, before anything is written."""
-    from terralod.cli._windowed import SPILL_BYTES_PER_SAMPLE, STORE_BYTES_PER_SAMPLE
+    from terralod.cli._windowed import (
+        POSITION_SPILL_BYTES_PER_SAMPLE,
+        SPILL_BYTES_PER_SAMPLE,
+        STORE_BYTES_PER_SAMPLE,
+    )
     from terralod.io.windowed import open_source
 
     vrt = _vrt(tmp_path, 20_000, srs="EPSG:4326")
@@ -435,9 +439,13 @@ def test_a_geographic_build_counts_its_spill_files_against_the_free_disk(
     seen: list[str] = []
     usage = collections.namedtuple("usage", "total used free")
 
+    spill = (
+        SPILL_BYTES_PER_SAMPLE * samples + POSITION_SPILL_BYTES_PER_SAMPLE * 20_000**2
+    )  # warped, positions
+
     def disk(p):  # room for the store, and half its spill
         seen.append(str(p))
-        return usage(10**13, 0, int((STORE_BYTES_PER_SAMPLE + SPILL_BYTES_PER_SAMPLE / 2) * samples))
+        return usage(10**13, 0, int(STORE_BYTES_PER_SAMPLE * samples + spill / 2))
 
     def no_build(*a, **k):  # a check that let it through fails here, not after an hour of building
         raise AssertionError("the build started")

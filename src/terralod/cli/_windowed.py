@@ -24,6 +24,9 @@ STORE_BYTES_PER_SAMPLE = 12.0
 #: Bytes a grid sample of a warped (geographic) source can take in its spill file beside the output while
 #: the build runs (:class:`terralod.io.windowed.WarpedSource`: heights as float64 and a bit of validity).
 SPILL_BYTES_PER_SAMPLE = 8.125
+#: Bytes a sample of a resampled source's own grid can take in the positions' spill file (the samples'
+#: metre coordinates, two float64: :mod:`terralod.pyramid.original`).
+POSITION_SPILL_BYTES_PER_SAMPLE = 16
 
 
 def check_store_space(output: str, samples: int, resume: bool = False, scratch_bytes: int = 0) -> None:
@@ -111,6 +114,8 @@ def run_windowed_build(
 
     samples = src.width * src.height
     spill = int(SPILL_BYTES_PER_SAMPLE * samples) if isinstance(src, WarpedSource) else 0
+    own = getattr(src.original_grid, "shape", None)  # a resampled source: its own samples' positions
+    spill += int(POSITION_SPILL_BYTES_PER_SAMPLE * own[0] * own[1]) if own is not None else 0
     check_store_space(output, samples, resume, spill)  # before a worker starts or a file is written
     from terralod.memory import plan_memory
 
