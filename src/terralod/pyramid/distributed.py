@@ -140,8 +140,8 @@ MAX_WINDOW_SAMPLES = 4097 * 4097
 #: Samples per strip when a coarse tile streams its full-resolution window (or its original samples). A
 #: strip's measurement holds some 200 bytes a sample at once (the window, its mask, the original samples'
 #: coordinates, the kernels' arrays): 2^22 made every coarse tile of a build a 350-450 MiB spike over the
-#: fine units beside it (1,117 MiB peak for 16 SRTM3 tiles, py-spy and an RSS sampler by unit); 2^20
-#: takes it to 804 MiB at the same CPU time.
+#: fine units beside it (an RSS sampler by unit in flight); 2^20 took the build of 16 SRTM3 tiles from
+#: 1,094 to 847-870 MiB peak (benchmarks/region.py) at the same CPU time.
 MEASURE_STRIP_SAMPLES = 1 << 20
 
 
