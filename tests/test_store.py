@@ -88,3 +88,41 @@ def test_truncated_store(small_store: Path, tmp_path: Path) -> None:
     with pytest.raises(CorruptStoreError, match=r"cut\.terra"):
         with open_store(cut) as s:
             s.verify()
+
+
+@settings(max_examples=6, deadline=None)
+@given(
+    w=st.integers(40, 200), h=st.integers(40, 200), tile=st.sampled_from([9, 17, 33]), seed=st.integers(0, 50)
+)
+def test_the_store_summary_summed_by_sqlite_is_the_per_tile_sum(tmp_path_factory, w: int, h: int, tile: int,
+                                                                seed: int) -> None:  # fmt: skip
+    """``store_summary`` (what ``build`` prints and ``info`` shows), summed by SQLite a level at a time so
+    that a region's summary holds no row a tile, gives the per-tile loop's figures: counts and maxima
+    exactly, the RMS to rounding; and ``info``'s elevation range is the range of the tiles with vertices."""
+    import math
+
+    from terralod.cli.info import grid_extent
+    from terralod.pyramid.builder import store_summary
+
+    hf = Heightfield.from_array(fractal_terrain(h, w, seed), 20.0)
+    hf.valid[: h // 3, : w // 4] = False  # a corner of nodata: tiles without vertices
+    p = tmp_path_factory.mktemp("summary") / "s.terra"
+    build_store(hf, p, tile_size=tile)
+    with open_store(p) as s:
+        got = store_summary(s)
+        rows = s.tile_summaries()
+        rng = grid_extent(s)["elevation_range_m"]
+    assert got["tiles"] == len(rows) == got["tiles_planned"]
+    for level, d in got["per_level"].items():
+        mine = [r for r in rows if r["level"] == level]
+        assert d["tiles"] == len(mine)
+        for key, col in (("vertices", "n_vertices"), ("triangles", "n_triangles"), ("samples", "n_samples"),
+                         ("bytes", "bytes")):  # fmt: skip
+            assert d[key] == sum(r[col] for r in mine)
+        assert d["max_error_m"] == max(r["error_m"] for r in mine)
+        assert d["max_vertical_error_m"] == max(r["vertical_error_m"] for r in mine)
+        n = sum(r["n_samples"] for r in mine)
+        want = math.sqrt(sum(r["rms_error_m"] ** 2 * r["n_samples"] for r in mine) / n) if n else 0.0
+        assert math.isclose(d["rms_error_m"], want, rel_tol=1e-12, abs_tol=1e-12)
+    live = [r for r in rows if r["n_vertices"] > 0]
+    assert rng == [min(r["z_min_m"] for r in live), max(r["z_max_m"] for r in live)]

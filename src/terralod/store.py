@@ -678,6 +678,20 @@ class TileStore(EpochTables):
         rows = self._conn.execute(f"SELECT level, x, y, error_m, vertical_error_m FROM {self._tiles_src}")
         return (((k, x, y), (e, v)) for k, x, y, e, v in rows)
 
+    def level_summaries(self) -> dict[int, dict[str, Any]]:
+        """{level: tiles, vertices, triangles, max errors, sum of RMS² x samples, samples, bytes, and the
+        z range of its tiles with vertices} over the stored tiles, summed by SQLite (one row a level held:
+        a region's summary without a row a tile in memory)."""
+        q = (
+            "SELECT level, COUNT(*), SUM(n_vertices), SUM(n_triangles), MAX(error_m), MAX(vertical_error_m), "
+            "SUM(rms_error_m * rms_error_m * n_samples), SUM(n_samples), SUM(length(vertices) + length(triangles)), "
+            "MIN(CASE WHEN n_vertices > 0 THEN z_min_m END), MAX(CASE WHEN n_vertices > 0 THEN z_max_m END) "
+            f"FROM {self._tiles_src} GROUP BY level"
+        )
+        names = ("tiles", "vertices", "triangles", "max_error_m", "max_vertical_error_m", "sum_rms_sq", "samples",
+                 "bytes", "z_min_m", "z_max_m")  # fmt: skip
+        return {int(r[0]): dict(zip(names, r[1:], strict=True)) for r in self._conn.execute(q)}
+
     def tile_summaries(self) -> list[dict[str, Any]]:
         """Per-tile scalars (no geometry): code, errors, z-range, counts."""
         cols = (

@@ -54,8 +54,9 @@ def grid_extent(s) -> dict[str, Any]:
     w, h = int(s.meta.get("width", 0)), int(s.meta.get("height", 0))
     a, _, c, _, e, f = (float(v) for v in t[:6])
     bounds = [min(c, c + w * a), min(f, f + h * e), max(c, c + w * a), max(f, f + h * e)]
-    rows = [r for r in s.tile_summaries() if r["n_vertices"] > 0]
-    rng = [min(r["z_min_m"] for r in rows), max(r["z_max_m"] for r in rows)] if rows else [0.0, 0.0]
+    lo = [d["z_min_m"] for d in s.level_summaries().values() if d["z_min_m"] is not None]
+    hi = [d["z_max_m"] for d in s.level_summaries().values() if d["z_max_m"] is not None]
+    rng = [min(lo), max(hi)] if lo else [0.0, 0.0]
     out = extent_info(s.crs, bounds)
     out["elevation_range_m"] = [float(rng[0]), float(rng[1])]
     nf = s.meta.get("nodata_fraction")

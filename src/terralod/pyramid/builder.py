@@ -581,31 +581,23 @@ def build_store(
 
 
 def store_summary(store: TileStore) -> dict[str, Any]:
-    """Per-level table of a store: tiles, vertices, triangles, max/mean error, bytes."""
+    """Per-level table of a store: tiles, vertices, triangles, max/mean error, bytes (summed by SQLite:
+    memory independent of the tiles' number)."""
     per: dict[int, dict[str, Any]] = {}
-    for r in store.tile_summaries():
-        d = per.setdefault(
-            r["level"],
-            {"tiles": 0, "vertices": 0, "triangles": 0, "max_error_m": 0.0, "max_vertical_error_m": 0.0,
-             "sum_rms_sq": 0.0, "samples": 0, "bytes": 0},
-        )  # fmt: skip
-        d["tiles"] += 1
-        d["vertices"] += r["n_vertices"]
-        d["triangles"] += r["n_triangles"]
-        d["max_error_m"] = max(d["max_error_m"], r["error_m"])
-        d["max_vertical_error_m"] = max(d["max_vertical_error_m"], r["vertical_error_m"])
-        d["sum_rms_sq"] += r["rms_error_m"] ** 2 * r["n_samples"]
-        d["samples"] += r["n_samples"]
-        d["bytes"] += r["bytes"]
-    for d in per.values():
-        d["rms_error_m"] = math.sqrt(d.pop("sum_rms_sq") / d["samples"]) if d["samples"] else 0.0
+    for level, d in store.level_summaries().items():
+        d = dict(d)
+        d.pop("z_min_m")
+        d.pop("z_max_m")
+        sum_rms_sq = d.pop("sum_rms_sq") or 0.0
+        d["rms_error_m"] = math.sqrt(sum_rms_sq / d["samples"]) if d["samples"] else 0.0
+        per[level] = d
     return {
         "path": str(store.path),
         "complete": store.complete,
         "levels": len(store.levels),
         "tile_size": store.tile_size,
         "tiles": sum(d["tiles"] for d in per.values()),
-        "tiles_planned": len(store.pyramid.all_codes()),
+        "tiles_planned": sum(nx * ny for nx, ny in map(store.pyramid.grid_count, store.pyramid.levels)),
         "size_bytes": store.size_bytes(),
         "per_level": dict(sorted(per.items())),
         # the adaptive error ladder the store states (target max vertical error per level, metres)
