@@ -278,3 +278,61 @@ def test_las_header_count_disagrees(tmp_path: Path, capsys) -> None:
     p.write_bytes(bytes(b))
     with pytest.raises(InputError, match="variable-length records"):
         read_las(p)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_check_finds_what_a_whole_store_reading_finds(built, tmp_path: Path, seed: int) -> None:
+    """``check`` reads a level in raster order with two rows of tiles and the errors as arrays (memory
+    bounded by a row, not the region); it finds exactly what reading the whole store at once finds: tiles
+    re-written (checksums valid) with errors below their children's or their own measurement (and every
+    tile above those), missing tiles, a tile beyond the plan, and one border check per stored pair of east
+    / south neighbours."""
+    import dataclasses
+
+    from terralod.tiles import parent
+
+    _, store = built
+    s = _copy(store, tmp_path / "t.terra")
+    rng = np.random.default_rng(seed)
+    with TileStore.open(s, writable=True) as w:
+        codes = w.tile_codes()
+        picks = [codes[i] for i in rng.choice(len(codes), 6, replace=False)]
+        low = [dataclasses.replace(w.raw_tile(*c), error_m=0.0) for c in picks[:3]]
+        w.write_tiles(low)
+    con = sqlite3.connect(s)
+    for c in picks[3:5]:
+        con.execute("DELETE FROM tiles WHERE level=? AND x=? AND y=?", c)
+    cur = con.execute("SELECT * FROM tiles WHERE level=? AND x=? AND y=?", picks[5])
+    names = [d[0] for d in cur.description]
+    row = list(cur.fetchone())
+    row[names.index("x")] += 1000  # beyond the pyramid's plan
+    con.execute(f"INSERT INTO tiles ({', '.join(names)}) VALUES ({', '.join('?' * len(names))})", row)
+    stray = (picks[5][0], picks[5][1] + 1000, picks[5][2])
+    con.commit()
+    con.close()
+    with open_store(s) as r:
+        errs = r.tile_errors()
+        rows = {c: errs[c] for c in r.tile_codes() if c != stray}
+        meas = {(t["level"], t["x"], t["y"]): (t["measured_error_m"], t["measured_vertical_error_m"])
+                for t in r.tile_summaries()}  # fmt: skip
+        pyr = r.pyramid
+        planned = sum(nx * ny for nx, ny in map(pyr.grid_count, pyr.levels))
+    want: set = {stray}
+    for c, (e, v) in rows.items():
+        if e < meas[c][0] or v < meas[c][1]:
+            want.add(c)
+        kids = [k for k in pyr.children(c) if k in rows]
+        if kids and (e < max(rows[k][0] for k in kids) or v < max(rows[k][1] for k in kids)):
+            q = c
+            while q is not None:
+                want.add(q)
+                q = parent(q)
+    pairs = sum((c[0], c[1] + 1, c[2]) in rows for c in rows) + sum(
+        (c[0], c[1], c[2] + 1) in rows for c in rows
+    )
+    rep = check_store(s)
+    assert rep.broken_tiles == want and want, (sorted(rep.broken_tiles ^ want), rep.problems)
+    assert rep.missing_tiles == planned - len(rows) == 2
+    assert f"{pairs} shared borders" in rep.checked
+    assert f"{len(rows)}/{len(rows) + 1} tiles decode and pass their checksums" in rep.checked
+    assert any("not in the pyramid's plan" in p for p in rep.problems)

@@ -136,81 +136,112 @@ def _check_meta_values(store: TileStore, rep: CheckReport) -> None:
 
 
 def _check_tiles(store: TileStore, rep: CheckReport) -> None:
+    """Every stored tile decoded, inside its tile, its borders shared with its east and south neighbours,
+    its errors at least its measurement and its children's. A level is read in raster order keeping two
+    rows of decoded tiles, and the errors as two arrays a level: memory bounded by a row of tiles, not
+    by the region (a 256-SRTM3-tile store holds some 850,000 tiles)."""
     pyr = store.pyramid
-    planned = set(pyr.all_codes())
-    try:
-        stored = store.tile_codes()
-        errors = store.tile_errors()
-        summaries = {(r["level"], r["x"], r["y"]): r for r in store.tile_summaries()}
-    except sqlite3.DatabaseError as exc:
-        rep.problems.append(f"tiles table cannot be read ({exc})")
-        return
-    stray = [c for c in stored if c not in planned]
-    for c in stray:
-        rep.problems.append(f"tile {c} is not in the pyramid's plan")
-        rep.broken_tiles.add(c)
-    rep.missing_tiles = len(planned - set(stored))
-    if rep.missing_tiles:
-        state = "marked complete, but " if store.complete else "incomplete: "
-        rep.problems.append(
-            f"{state}{rep.missing_tiles} of {len(planned)} tiles missing; finish with "
-            f"`terralod build {rep.source or 'SOURCE'} -o {store.path} --resume`"
-        )
+    n_planned = sum(nx * ny for nx, ny in map(pyr.grid_count, pyr.levels))
     x0 = store.transform.c + 0.5 * store.transform.a
     y0 = store.transform.f + 0.5 * store.transform.e
     has_cut_footprint = float(store.meta.get("nodata_fraction") or 0.0) > 0.0
-    n_decoded = n_borders = n_parents = 0
-    for level in store.levels:
-        tiles = {}
-        for c in store.tile_codes(level):
-            if c not in planned:
-                continue
-            try:
-                t = store.tile(*c)
-            except TerralodError as exc:
-                rep.problems.append(exc.message)
-                rep.broken_tiles.add(c)
-                continue
-            except KeyError:  # listed by the index, absent from the table: the file's b-trees disagree
-                rep.problems.append(f"tile {c} is listed but cannot be read (damaged index)")
-                rep.broken_tiles.add(c)
-                continue
-            n_decoded += 1
-            tiles[c] = t
-            _check_tile_bounds(store, t, x0, y0, rep)
-        for c, t in tiles.items():
-            for nb, axis in (((c[0], c[1] + 1, c[2]), 1), ((c[0], c[1], c[2] + 1), 0)):
-                if nb in tiles:
+    n_stored = n_planned_stored = n_decoded = n_borders = n_parents = 0
+    below: list[np.ndarray] = []  # the finer level's (error, vertical error) arrays, NaN where not stored
+    try:
+        levels = sorted(set(store.stored_levels()) | set(pyr.levels), reverse=True)
+        for level in levels:
+            nx, ny = pyr.grid_count(level) if 0 <= level <= pyr.max_level else (0, 0)
+            err = np.full((2, ny, nx), np.nan)
+            prev: dict[int, Any] = {}
+            row: dict[int, Any] = {}
+            row_y = -1
+            for c in store.each_tile_code(level):
+                n_stored += 1
+                if not pyr.exists(c):
+                    rep.problems.append(f"tile {c} is not in the pyramid's plan")
+                    rep.broken_tiles.add(c)
+                    continue
+                n_planned_stored += 1
+                if c[2] != row_y:  # a new row: the one above it is the previous row, if adjacent
+                    prev, row = (row if c[2] == row_y + 1 else {}), {}
+                    row_y = c[2]
+                t = _decode(store, c, rep)
+                if t is None:
+                    continue
+                n_decoded += 1
+                _check_tile_bounds(store, t, x0, y0, rep)
+                if c[1] - 1 in row:
                     n_borders += 1
-                    _check_border(store, t, tiles[nb], axis, has_cut_footprint, rep)
-    for c, (e, ev) in errors.items():
-        if c not in planned:
-            continue
-        s = summaries.get(c)
-        if s and (e < s["measured_error_m"] or ev < s["measured_vertical_error_m"]):
-            rep.problems.append(f"tile {c} stores an error below its own measurement")
-            rep.broken_tiles.add(c)
-        kids = [k for k in pyr.children(c) if k in errors]
-        if not kids:
-            continue
-        n_parents += 1
-        ke = max(errors[k][0] for k in kids)
-        kv = max(errors[k][1] for k in kids)
-        if e < ke or ev < kv:
-            rep.problems.append(
-                f"tile {c} error {e:.6g} m / {ev:.6g} m is below its children's {ke:.6g} m / {kv:.6g} m "
-                "(errors not monotone)"
-            )
-            q: TileCode | None = c
-            while q is not None:  # the parent and everything above it derive from the children
-                rep.broken_tiles.add(q)
-                q = parent(q)
+                    _check_border(store, row[c[1] - 1], t, 1, has_cut_footprint, rep)
+                if c[1] in prev:
+                    n_borders += 1
+                    _check_border(store, prev[c[1]], t, 0, has_cut_footprint, rep)
+                row[c[1]] = t
+            for (k, x, y), (e, ev), (me, mev) in store.each_tile_error_measured(level):
+                if not pyr.exists((k, x, y)):
+                    continue
+                err[0, y, x], err[1, y, x] = e, ev
+                if e < me or ev < mev:
+                    rep.problems.append(f"tile {(k, x, y)} stores an error below its own measurement")
+                    rep.broken_tiles.add((k, x, y))
+            if below and nx and ny:
+                n_parents += _check_monotone(level, err, below[0], rep)
+            below = [err]
+    except sqlite3.DatabaseError as exc:
+        rep.problems.append(f"tiles table cannot be read ({exc})")
+        return
+    rep.missing_tiles = n_planned - n_planned_stored
+    if rep.missing_tiles:
+        state = "marked complete, but " if store.complete else "incomplete: "
+        rep.problems.append(
+            f"{state}{rep.missing_tiles} of {n_planned} tiles missing; finish with "
+            f"`terralod build {rep.source or 'SOURCE'} -o {store.path} --resume`"
+        )
     rep.checked += [
-        f"{n_decoded}/{len(stored)} tiles decode and pass their checksums",
+        f"{n_decoded}/{n_stored} tiles decode and pass their checksums",
         f"errors monotone over {n_parents} parents",
         f"{n_borders} shared borders",
         "vertices inside their tiles and z-ranges",
     ]
+
+
+def _decode(store: TileStore, c: TileCode, rep: CheckReport) -> Any:
+    """Tile ``c`` decoded (checksum checked), or None with the problem reported."""
+    try:
+        return store.tile(*c)
+    except TerralodError as exc:
+        rep.problems.append(exc.message)
+    except KeyError:  # listed by the index, absent from the table: the file's b-trees disagree
+        rep.problems.append(f"tile {c} is listed but cannot be read (damaged index)")
+    rep.broken_tiles.add(c)
+    return None
+
+
+def _check_monotone(level: int, err: np.ndarray, kids: np.ndarray, rep: CheckReport) -> int:
+    """Parents of ``level`` (errors ``err``, (2, ny, nx), NaN where not stored) against the largest error of
+    their stored children (``kids``, the finer level's): a parent below them, and everything above it,
+    is broken. Returns the parents checked (stored, with a stored child)."""
+    _, ny, nx = err.shape
+    _, cy, cx = kids.shape
+    pad = np.full((2, 2 * ny, 2 * nx), np.nan)
+    pad[:, : min(cy, 2 * ny), : min(cx, 2 * nx)] = kids[:, : 2 * ny, : 2 * nx]
+    blocks = pad.reshape(2, ny, 2, nx, 2)
+    have = ~np.isnan(blocks).all(axis=(2, 4))
+    top = np.where(have, np.nanmax(np.where(np.isnan(blocks), -np.inf, blocks), axis=(2, 4)), np.nan)
+    checked = have[0] & ~np.isnan(err[0])
+    bad = checked & ((err[0] < top[0]) | (err[1] < top[1]))
+    for y, x in zip(*np.nonzero(bad), strict=True):
+        c = (level, int(x), int(y))
+        e, ev, ke, kv = err[0, y, x], err[1, y, x], top[0, y, x], top[1, y, x]
+        rep.problems.append(
+            f"tile {c} error {e:.6g} m / {ev:.6g} m is below its children's {ke:.6g} m / {kv:.6g} m "
+            "(errors not monotone)"
+        )
+        q: TileCode | None = c
+        while q is not None:  # the parent and everything above it derive from the children
+            rep.broken_tiles.add(q)
+            q = parent(q)
+    return int(checked.sum())
 
 
 def _check_tile_bounds(store: TileStore, t: Any, x0: float, y0: float, rep: CheckReport) -> None:

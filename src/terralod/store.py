@@ -662,6 +662,30 @@ class TileStore(EpochTables):
             key=lambda c: (c[0], c[2], c[1]),
         )
 
+    def each_tile_code(self, level: int) -> Iterator[TileCode]:
+        """Codes of the stored tiles of ``level`` in raster order (y, then x), read as taken."""
+        q = f"SELECT x, y FROM {self._tiles_src} WHERE level = ? ORDER BY y, x"
+        return ((level, int(x), int(y)) for x, y in self._conn.execute(q, (level,)))
+
+    def each_tile_error_measured(
+        self, level: int
+    ) -> Iterator[tuple[TileCode, tuple[float, float], tuple[float, float]]]:
+        """(code, (error_m, vertical_error_m), (measured_error_m, measured_vertical_error_m)) of the stored
+        tiles of ``level``, read as taken."""
+        q = (f"SELECT x, y, error_m, vertical_error_m, measured_error_m, measured_vertical_error_m "
+             f"FROM {self._tiles_src} WHERE level = ?")  # fmt: skip
+        return (
+            ((level, int(x), int(y)), (e, v), (me, mv))
+            for x, y, e, v, me, mv in self._conn.execute(q, (level,))
+        )
+
+    def stored_levels(self) -> list[int]:
+        """The levels that hold at least one stored tile (whatever the pyramid plans)."""
+        return [
+            int(k)
+            for (k,) in self._conn.execute(f"SELECT DISTINCT level FROM {self._tiles_src} ORDER BY level")
+        ]
+
     def __contains__(self, code: object) -> bool:
         if not (isinstance(code, tuple) and len(code) == 3):
             return False
