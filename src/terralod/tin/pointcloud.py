@@ -631,9 +631,8 @@ def read_las(
     except BaseException as exc:  # laspy raises its own, OSError/ValueError, and lazrs pyo3 PanicException
         raise InputError(f"cannot read as LAS/LAZ ({type(exc).__name__}: {exc})", src) from exc
     n_file = _records_in_file(p, header)
-    if part is not None:
-        pass  # a part: the records decoded are not the file's (COPC: the nodes meeting the box)
-    elif n_read != int(header.point_count) or (n_file is not None and n_file != n_read):
+    whole = part is None  # a part's records decoded are not the file's (COPC: the nodes meeting the box)
+    if whole and (n_read != int(header.point_count) or (n_file is not None and n_file != n_read)):
         held = f"the file holds {n_file}" if n_file is not None else f"{n_read} could be read"
         notes.append(
             f"header point count {int(header.point_count)} disagrees with the records ({held}); read {n_read}"
