@@ -212,3 +212,89 @@ def test_dask_gives_the_local_numbers_and_bytes(pair, tmp_path: Path) -> None:
     _same(there, here)
     assert there["extremes"] == here["extremes"]
     assert (tmp_path / "there" / "dod.tif").read_bytes() == (tmp_path / "here" / "dod.tif").read_bytes()
+
+
+@pytest.fixture(scope="module")
+def epoch_store(pair, tmp_path_factory) -> Path:
+    """A store of BEFORE (epoch 2000-01-01) updated with AFTER (epoch 2001-01-01): it keeps both grids."""
+    d = tmp_path_factory.mktemp("epoch_store")
+    store = d / "pair.terra"
+    r = terralod_cli("build", str(pair["before"]), "-o", str(store), "--epoch", "2000-01-01")
+    assert r.returncode == 0, r.stderr
+    r = terralod_cli("update", str(store), str(pair["after"]), "--epoch", "2001-01-01")
+    assert r.returncode == 0, r.stderr
+    return store
+
+
+def test_an_epoch_read_a_window_at_a_time_is_the_epoch(epoch_store: Path) -> None:
+    """EpochSource.read of any window (block-aligned or not, one cell to the whole grid) is that window of
+    epoch_heightfield, values and validity; a pickled copy reads the same; a window outside is refused."""
+    import pickle
+
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from terralod.change.epochs import EpochSource, epoch_heightfield
+
+    dates = ("2000-01-01", "2001-01-01")
+    wholes = {d: epoch_heightfield(epoch_store, d) for d in dates}
+    sources = {d: EpochSource(epoch_store, d) for d in dates}
+    copies = {d: pickle.loads(pickle.dumps(s)) for d, s in sources.items()}
+    for d in dates:
+        src, whole = sources[d], wholes[d]
+        assert (src.height, src.width) == whole.elevation_m.shape
+        assert tuple(src.transform) == tuple(whole.transform) and src.crs == whole.crs
+        with pytest.raises(ValueError, match="inside"):
+            src.read(0, 0, N + 1, 10)
+
+    @settings(max_examples=60, deadline=None, derandomize=True)
+    @given(
+        st.sampled_from(dates),
+        st.integers(0, N - 1),
+        st.integers(0, N - 1),
+        st.integers(1, N),
+        st.integers(1, N),
+    )
+    def check(date: str, r0: int, c0: int, h: int, w: int) -> None:
+        r1, c1 = min(N, r0 + h), min(N, c0 + w)
+        for s in (sources[date], copies[date]):
+            z, ok = s.read(r0, c0, r1, c1)
+            assert np.array_equal(z, wholes[date].elevation_m[r0:r1, c0:c1])
+            assert np.array_equal(ok, wholes[date].valid[r0:r1, c0:c1])
+
+    check()
+    assert not np.array_equal(sources[dates[0]].read(0, 0, N, N)[0], sources[dates[1]].read(0, 0, N, N)[0])
+
+
+def _run_epochs(store: Path, out: Path, *extra: str) -> dict:
+    r = terralod_cli("change", str(store), "--from", "2000-01-01", "--to", "2001-01-01", "-o", str(out),
+                     "--no-views", *extra)  # fmt: skip
+    assert r.returncode == 0, r.stdout + r.stderr
+    return json.loads((out / "summary.json").read_text())
+
+
+def test_two_epochs_of_a_store_change_window_by_window_as_two_files(
+    pair, epoch_store: Path, tmp_path: Path, monkeypatch
+) -> None:
+    """``terralod change STORE --from A --to B`` past the windowed size reads both epochs window by window and
+    gives the figures and dod.tif cells of the same two grids given as GeoTIFFs; under it, the in-memory chain."""
+    import terralod.cli.change as cli_change
+    from terralod.change.epochs import epoch_heightfield
+
+    zones = ("--zones", str(pair["zones"]))
+    assert "windowed" not in _run_epochs(epoch_store, tmp_path / "small", *zones)
+    files = []
+    for date in ("2000-01-01", "2001-01-01"):
+        hf = epoch_heightfield(epoch_store, date)
+        assert hf.valid.all()  # the crop has no nodata: the GeoTIFF is the grid
+        files.append(_write(tmp_path / f"{date}.tif", hf.elevation_m, hf.transform, hf.crs))
+    monkeypatch.setattr(cli_change, "WINDOWED_MIN_CELLS", 0)
+    got = _run_epochs(epoch_store, tmp_path / "epochs", *zones)
+    assert got["windowed"]["sample_whole_grid"]
+    assert (got["before"]["date"], got["after"]["date"]) == ("2000-01-01", "2001-01-01")
+    want = _run(files[0], files[1], tmp_path / "files", *zones)
+    _same(got, want)
+    # the same cells (the files differ in the tags naming BEFORE and AFTER)
+    assert np.array_equal(
+        _dod(tmp_path / "epochs" / "dod.tif"), _dod(tmp_path / "files" / "dod.tif"), equal_nan=True
+    )

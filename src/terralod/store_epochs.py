@@ -442,37 +442,76 @@ class EpochTables:
     def epoch_source(self, name: str | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """(elevation_m float32 (H, W), valid bool) of epoch ``name`` (default: the selected one) exactly as
         built, or None when the store does not keep that epoch's samples."""
+        eid = self.epoch_source_id(name)
+        if eid is None:
+            return None
+        w, h = int(self.meta["width"]), int(self.meta["height"])
+        label = f"epoch {self.epoch_info(name)['name']!r}"
+        return source_window(self._conn, eid, w, h, 0, 0, h, w, str(self.path), label)
+
+    def epoch_source_id(self, name: str | None = None) -> int | None:
+        """The id of epoch ``name`` (default: the selected one) when the store keeps all its samples (every
+        block of the grid), None when it keeps none; CorruptStoreError when it keeps only some."""
         from terralod.errors import CorruptStoreError
 
         if not self.has_epochs or (name is None and self.epoch is None):
             return None
         info = self.epoch_info(name)
-        rows = self._conn.execute(
-            "SELECT s.block, b.data, s.digest FROM epoch_source s JOIN source_blocks b ON b.digest = s.digest "
-            "WHERE s.epoch = ? ORDER BY s.block",
-            (info["id"],),
-        ).fetchall()
-        if not rows:
+        (n,) = self._conn.execute(
+            "SELECT COUNT(*) FROM epoch_source WHERE epoch = ?", (info["id"],)
+        ).fetchone()
+        if n == 0:
             return None
-        w, h = int(self.meta["width"]), int(self.meta["height"])
         b = SOURCE_BLOCK
-        nbx, nby = -(-w // b), -(-h // b)
-        if len(rows) != nbx * nby:
+        if n != -(-int(self.meta["width"]) // b) * -(-int(self.meta["height"]) // b):
             raise CorruptStoreError(f"epoch {info['name']!r}: source blocks missing", str(self.path))
-        z = np.empty((h, w), np.float32)
-        v = np.empty((h, w), bool)
+        return int(info["id"])
+
+
+def source_window(
+    conn: sqlite3.Connection,
+    eid: int,
+    width: int,
+    height: int,
+    r0: int,
+    c0: int,
+    r1: int,
+    c1: int,
+    where: str,
+    label: str = "epoch",
+) -> tuple[np.ndarray, np.ndarray]:
+    """(elevation_m float32, valid bool) of rows [r0, r1), columns [c0, c1) of epoch ``eid``'s kept samples
+    on a ``height`` x ``width`` grid: only the :data:`SOURCE_BLOCK`-sample blocks the window touches are
+    read (one range query per block row), each checked against its digest. CorruptStoreError (naming
+    ``where`` and the epoch's ``label``) for a missing block or one that fails its checksum."""
+    from terralod.errors import CorruptStoreError
+
+    b = SOURCE_BLOCK
+    nbx = -(-width // b)
+    z = np.empty((r1 - r0, c1 - c0), np.float32)
+    v = np.empty((r1 - r0, c1 - c0), bool)
+    bx0, bx1 = c0 // b, -(-c1 // b)
+    for by in range(r0 // b, -(-r1 // b)):
+        rows = conn.execute(
+            "SELECT s.block, b.data, s.digest FROM epoch_source s JOIN source_blocks b ON b.digest = s.digest "
+            "WHERE s.epoch = ? AND s.block BETWEEN ? AND ? ORDER BY s.block",
+            (int(eid), by * nbx + bx0, by * nbx + bx1 - 1),
+        ).fetchall()
+        if len(rows) != bx1 - bx0:
+            raise CorruptStoreError(f"{label}: source blocks missing", where)
         for blk, data, digest in rows:
             if hashlib.sha256(bytes(data)).hexdigest() != digest:
-                raise CorruptStoreError(
-                    f"epoch {info['name']!r}: a source block fails its checksum", str(self.path)
-                )
+                raise CorruptStoreError(f"{label}: a source block fails its checksum", where)
             raw = zlib.decompress(data)
-            by, bx = divmod(int(blk), nbx)
-            r0, c0 = by * b, bx * b
-            bh, bw = min(b, h - r0), min(b, w - c0)
+            bx = int(blk) - by * nbx
+            br0, bc0 = by * b, bx * b
+            bh, bw = min(b, height - br0), min(b, width - bc0)
             n = bh * bw
-            z[r0 : r0 + bh, c0 : c0 + bw] = np.frombuffer(raw[: 4 * n], "<f4").reshape(bh, bw)
-            v[r0 : r0 + bh, c0 : c0 + bw] = np.unpackbits(np.frombuffer(raw[4 * n :], np.uint8))[:n].reshape(
-                bh, bw
-            )
-        return z, v
+            bz = np.frombuffer(raw[: 4 * n], "<f4").reshape(bh, bw)
+            bv = np.unpackbits(np.frombuffer(raw[4 * n :], np.uint8))[:n].reshape(bh, bw).astype(bool)
+            # the block's part inside the window
+            ra, rb = max(br0, r0), min(br0 + bh, r1)
+            ca, cb = max(bc0, c0), min(bc0 + bw, c1)
+            z[ra - r0 : rb - r0, ca - c0 : cb - c0] = bz[ra - br0 : rb - br0, ca - bc0 : cb - bc0]
+            v[ra - r0 : rb - r0, ca - c0 : cb - c0] = bv[ra - br0 : rb - br0, ca - bc0 : cb - bc0]
+    return z, v

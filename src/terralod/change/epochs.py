@@ -2,6 +2,8 @@
 
 - :func:`epoch_heightfield` — the elevation grid of one epoch, exactly as it was built (the samples the
   store keeps with each epoch; see :mod:`terralod.store_epochs`).
+- :class:`EpochSource` — the same grid read a window at a time (a :class:`~terralod.io.windowed.WindowSource`:
+  the windowed change reads a store's epochs as it reads two mosaics, without holding either).
 - :func:`epoch_names` — the epochs of a store, oldest first (in the order they were added).
 - :func:`difference` — ``after - before`` of two epochs on the store's grid (metres), for overlays.
 - Edits, each a new epoch through :func:`terralod.pyramid.update.update_store` (only the dirty tiles are
@@ -19,17 +21,21 @@ from __future__ import annotations
 
 import datetime
 import os
+import sqlite3
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from terralod.errors import InputError
+from terralod.errors import InputError, StoreError
 from terralod.heightfield import Heightfield
+from terralod.io.windowed import WindowSource
 
 __all__ = [
     "EditResult",
+    "EpochSource",
     "apply_patch",
     "difference",
     "edit_store",
@@ -53,6 +59,62 @@ def epoch_heightfield(store_path: str | os.PathLike[str], date: str | None = Non
 
     with open_store(store_path, epoch=date) as s:
         return stored_heightfield(s)
+
+
+class EpochSource(WindowSource):
+    """Epoch ``date`` of the store at ``store_path`` read a window at a time: the samples the store keeps
+    with the epoch (:func:`terralod.store_epochs.source_window`: only the 64 x 64 blocks a window touches,
+    each checked against its digest), the same values as :func:`epoch_heightfield` gives for those cells.
+
+    The store is opened and checked once here (its epoch, and that it keeps every block of the epoch's
+    samples); reads go through one read-only SQLite connection per thread, opened on first use, so the
+    source pickles (Dask workers read their own windows). StoreError when the epoch does not exist,
+    :class:`NoSamplesKept` when the store keeps none of its samples (a store built without ``--epoch``,
+    whose first epoch is re-read from its source file by :func:`epoch_heightfield`).
+    """
+
+    def __init__(self, store_path: str | os.PathLike[str], date: str | None = None) -> None:
+        from affine import Affine
+
+        from terralod.store import open_store
+
+        self.path = str(Path(store_path).resolve())
+        with open_store(store_path, epoch=date) as s:
+            eid = s.epoch_source_id(s.epoch)
+            if eid is None:
+                raise NoSamplesKept(
+                    f"keeps no samples of epoch {s.epoch!r} to read a window at a time", str(store_path)
+                )
+            info = s.epoch_info(s.epoch)
+            self.eid, self.epoch, self.label = eid, str(s.epoch), f"epoch {s.epoch!r}"
+            self.width, self.height = int(s.meta["width"]), int(s.meta["height"])
+            self.transform, self.crs = Affine(*s.meta["transform"][:6]), s.crs
+        self.source = str(info.get("source", ""))
+        self.fill_method = str(info.get("fill_method", ""))
+        self.notes = tuple(info.get("notes", ()))
+        self._local = threading.local()
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        del state["_local"]  # connections are per process and thread
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._local = threading.local()
+
+    def read(self, r0: int, c0: int, r1: int, c1: int) -> tuple[np.ndarray, np.ndarray]:
+        from terralod.store_epochs import source_window
+
+        self._check_window(r0, c0, r1, c1)
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = self._local.conn = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True)
+        return source_window(conn, self.eid, self.width, self.height, r0, c0, r1, c1, self.path, self.label)
+
+
+class NoSamplesKept(StoreError):
+    """A store epoch whose samples the store does not keep (see :class:`EpochSource`)."""
 
 
 def epoch_names(store_path: str | os.PathLike[str]) -> list[str]:

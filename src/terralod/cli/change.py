@@ -201,17 +201,21 @@ def change(
     lidar = _lidar_pair(inputs)
     if dask_address and lidar is not None:
         raise click.BadParameter("is for DEM files or regions, not LiDAR surveys", param_hint="--dask")
+    epoch_sides = _epoch_sides(inputs, date_from, date_to, read, with_site, forced=bool(dask_address))
     if dask_address:
         require_extra("change --dask", "dask")
-        if not (len(inputs) == 2 and _windowed(inputs, read, with_site, forced=True)):
-            raise click.BadParameter("is for a BEFORE AFTER pair of DEM files or regions (no --site, --encoding, "
-                                     "--tile or --spacing)", param_hint="--dask")  # fmt: skip
-    if lidar is None and len(inputs) == 2 and _windowed(inputs, read, with_site, forced=bool(dask_address)):
+        if epoch_sides is None and not (len(inputs) == 2 and _windowed(inputs, read, with_site, forced=True)):
+            raise click.BadParameter("is for a BEFORE AFTER pair of DEM files or regions, or two epochs of a store "
+                                     "that keeps their samples (no --site, --encoding, --tile or --spacing)",
+                                     param_hint="--dask")  # fmt: skip
+    if epoch_sides is not None or (
+        lidar is None and len(inputs) == 2 and _windowed(inputs, read, with_site, forced=bool(dask_address))
+    ):
         _change_windowed(
             inputs, output_of, out, zones=zones, stable=stable, exclude=exclude, no_coregister=no_coregister,
             coreg_method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
             dates=dates, no_views=no_views, min_slope_deg=min_slope_deg, read=read,
-            dask=(dask_address, dask_workers),
+            dask=(dask_address, dask_workers), epoch_sides=epoch_sides,
         )  # fmt: skip
         return
     notes: list[str] = []
@@ -382,6 +386,32 @@ def _windowed(inputs, read: dict, with_site: bool, forced: bool = False) -> bool
     return all(Path(p).is_file() for p in inputs) and max(_cells(p) for p in inputs) > WINDOWED_MIN_CELLS
 
 
+def _epoch_sides(inputs, date_from, date_to, read: dict, with_site: bool, forced: bool = False):  # noqa: ANN001, ANN202
+    """(BEFORE, AFTER) as :class:`terralod.change.epochs.EpochSource` when the input is one store, ``--from``
+    and ``--to`` are given and the pair is read window by window (the rule of :func:`_windowed`: more than
+    :data:`WINDOWED_MIN_CELLS` cells, or ``forced``); None otherwise, and for a store that keeps no samples of
+    an epoch (its first epoch re-read from the source file, in memory)."""
+    first = inputs[0]
+    if (
+        len(inputs) != 1
+        or not (date_from and date_to)
+        or not Path(first).is_file()
+        or not is_store(Path(first))
+    ):
+        return None
+    if with_site or read.get("encoding") or read.get("tile_zxy") or read.get("spacing"):
+        return None
+    from terralod.change.epochs import EpochSource, NoSamplesKept
+
+    try:
+        sides = EpochSource(first, date_from), EpochSource(first, date_to)
+    except NoSamplesKept:
+        return None
+    if not forced and sides[0].width * sides[0].height <= WINDOWED_MIN_CELLS:
+        return None
+    return sides
+
+
 def _open_side(path: str, read: dict):  # noqa: ANN001
     """The window source of one side: a file, a folder, a quoted glob or a VRT; every file of a region read
     once first (an unreadable tile named in one line, before anything is written)."""
@@ -399,26 +429,33 @@ def _open_side(path: str, read: dict):  # noqa: ANN001
 
 def _change_windowed(inputs, output_of, out: Path, *, zones, stable, exclude, no_coregister, coreg_method,
                      sigma_m, corr_range_m, confidence, dates, no_views, min_slope_deg, read,
-                     dask=(None, None)) -> None:  # fmt: skip  # noqa: ANN001
+                     dask=(None, None), epoch_sides=None) -> None:  # fmt: skip  # noqa: ANN001
     """BEFORE AFTER read window by window (:func:`terralod.change.windowed.measure_change_windowed`), the
-    windows differenced on Dask workers with ``dask`` = (address, local workers)."""
+    windows differenced on Dask workers with ``dask`` = (address, local workers); ``epoch_sides``: two
+    epochs of the one store ``inputs`` names (:func:`_epoch_sides`) instead of two DEMs."""
     from terralod.change.difference import check_vertical_units
     from terralod.change.report import write_report
     from terralod.change.windowed import measure_change_windowed
     from terralod.io.region import expand_inputs
 
-    before, after = (_open_side(p, read) for p in inputs)
-    firsts = [expand_inputs([p])[0][1] for p in inputs]
-    notes = check_vertical_units(firsts[0], firsts[1])
+    if epoch_sides is not None:
+        before, after = epoch_sides
+        notes = []
+        ds = [before.epoch, after.epoch]
+        names = (before.source or f"{inputs[0]} {ds[0]}", after.source or f"{inputs[0]} {ds[1]}")
+    else:
+        before, after = (_open_side(p, read) for p in inputs)
+        firsts = [expand_inputs([p])[0][1] for p in inputs]
+        notes = check_vertical_units(firsts[0], firsts[1])
+        ds = [_date_of(p) for p in firsts]
+        names = (Path(inputs[0]).name, Path(inputs[1]).name)
     notes += [f"BEFORE note: {n}" for n in before.notes] + [f"AFTER note: {n}" for n in after.notes]
-    ds = [_date_of(p) for p in firsts]
     if dates:
         given = [d.strip() for d in dates.split(",")]
         if len(given) != 2:
             raise click.BadParameter(f"expected 2 dates, got {len(given)}", param_hint="--dates")
         ds = given
     pair_dates = (ds[0], ds[1])
-    names = (Path(inputs[0]).name, Path(inputs[1]).name)
     client = None
     if dask[0]:
         from terralod.pyramid.distributed import dask_client
