@@ -100,12 +100,14 @@ def test_a_store_to_both_formats_on_dask_is_the_local_export(
     dem = _small_dem(tmp_path / "small.tif")
     main(["build", str(dem), "-o", str(tmp_path / "s.terra")])
     store = tmp_path / "s.terra"
-    monkeypatch.setattr(dist, "BATCH_TILES", 3)  # a batch's neighbourhood is then part of its level
+    monkeypatch.setattr(dist, "BATCH_TILES", 3)
+    monkeypatch.setattr(dist, "BLOCK_NODES", 3)  # a block's neighbourhood is then part of its level
     with open_terrain(store) as terrain:
         view = Tiles3D(terrain)
         finest = max(n.code[0] for n in view.tree)
         level = [n.code for n in view.tree if n.code[0] == finest]
-        assert len(dist.neighbourhood(view, level[:3])) < len(level)
+        blocks = list(dist.level_blocks(view, level))
+        assert len(blocks) > 2 and all(len(near) < len(level) for _, near in blocks)
     addr = dask_address.scheduler.address
     for fmt in ("3dtiles", "quantized-mesh"):
         want = _export(tmp_path / f"local-{fmt}", store, "--format", fmt)

@@ -94,3 +94,38 @@ def test_a_box_that_meets_nothing_is_one_line(store: Path, tmp_path: Path, capsy
     err = capsys.readouterr().err.strip()
     assert exc.value.code == 2 and "has no tile that meets the box" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+def _files(out: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("block_nodes", [1, 5])
+def test_blocks_of_any_size_give_the_whole_level_glbs(
+    store: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, block_nodes: int
+) -> None:
+    """A level encoded block by block (its normals summed over each block and its neighbours only) gives
+    the bytes of every file the level encoded whole gives (one block a level); a node asked for alone
+    (``terralod serve``) gives its file's bytes too."""
+    import terralod.export.distributed as dist
+    from terralod.export.tiles3d import Tiles3D, node_uri
+    from terralod.terrain import open_terrain
+
+    monkeypatch.setattr(dist, "BLOCK_NODES", 10**9)
+    main(["export", str(store), "--format", "3dtiles", "-o", str(tmp_path / "whole-levels")])
+    want = _files(tmp_path / "whole-levels")
+    monkeypatch.setattr(dist, "BLOCK_NODES", block_nodes)
+    with open_terrain(store) as terrain:
+        view = Tiles3D(terrain)
+        finest = max(n.code[0] for n in view.tree)
+        level = [n.code for n in view.tree if n.code[0] == finest]
+        blocks = list(dist.level_blocks(view, level))
+        assert len(blocks) >= len(level) // (2 * block_nodes) > 1
+        assert sorted(c for b, _ in blocks for c in b) == sorted(level)  # each node in one block
+        assert max(len(near) for _, near in blocks) < len(level)
+        for code in level[:: max(1, len(level) // 5)] + [view.tree[0].code]:
+            assert view.glb(code) == want[node_uri(code)], code
+    main(["export", str(store), "--format", "3dtiles", "-o", str(tmp_path / "blocks")])
+    got = _files(tmp_path / "blocks")
+    assert len(want) > 20 and got.keys() == want.keys()
+    assert [k for k in want if got[k] != want[k]] == []

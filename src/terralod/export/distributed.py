@@ -42,7 +42,7 @@ __all__ = [
     "Recipe",
     "encode_3dtiles",
     "encode_quantized_mesh",
-    "neighbourhood",
+    "level_blocks",
     "quantized_mesh_record",
     "recipe_of",
     "tiles3d_result",
@@ -59,6 +59,10 @@ KEEP_OPENED = 2
 #: share a vertex position with it (positions are merged at 0.1 mm; extra neighbours cost time, not bytes).
 NEIGHBOUR_PAD = 0.01
 NEIGHBOUR_PAD_M = 1.0
+#: 3D Tiles nodes of one block (about 16 x 16 of a level): a level is encoded block by block, each block's
+#: normals summed over it and its neighbours only, so memory holds one block's meshes whatever the level's
+#: size (the whole finest level of 16 SRTM3 tiles took 5.4 GiB), at (18 / 16)² of the meshes' reading.
+BLOCK_NODES = 256
 
 Code = tuple[int, ...]
 Result = tuple[Any, bytes | None, dict[str, Any] | None]
@@ -169,20 +173,57 @@ def _qm_batch(recipe: Recipe, codes: list[Code], gzip_tiles: bool,
     return out, made
 
 
-def neighbourhood(view: Any, codes: Sequence[Any]) -> set[Any]:
-    """``codes`` and the nodes of their level whose boxes (padded) meet any of theirs: every node that may
-    share a vertex position with one of them."""
-    level = [n for n in view.tree if n.code[0] == codes[0][0]]
-    box = np.array([n.box_m for n in level], np.float64)[:, [0, 1, 3, 4]]  # west, south, east, north
-    pad = NEIGHBOUR_PAD * np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]) + NEIGHBOUR_PAD_M
-    box = box + np.stack([-pad, -pad, pad, pad], axis=1)
-    idx = {n.code: i for i, n in enumerate(level)}
-    mine = box[[idx[c] for c in codes]]
-    meets = np.any(
-        (box[:, None, 0] <= mine[None, :, 2]) & (mine[None, :, 0] <= box[:, None, 2])
-        & (box[:, None, 1] <= mine[None, :, 3]) & (mine[None, :, 1] <= box[:, None, 3]), axis=1,
-    )  # fmt: skip
-    return {n.code for n, m in zip(level, meets.tolist(), strict=True) if m} | set(codes)
+def level_blocks(
+    view: Any, codes: Sequence[Any], block_nodes: int | None = None
+) -> Iterator[tuple[list[Any], set[Any]]]:
+    """``codes`` (3D Tiles nodes of ``view``) as (block, neighbourhood) pairs: level by level (ascending),
+    each level's codes grouped by square cells of about ``block_nodes`` (default :data:`BLOCK_NODES`) of its
+    nodes (cells in raster order,
+    nodes in the tree's order within a cell); a block's neighbourhood is the block and every node of its
+    level (in ``codes`` or not) whose padded box meets the box of the block's padded boxes: a superset of
+    the nodes that may share a vertex position with one of the block's, which is all a node's normals need
+    (extra neighbours cost time, not bytes).
+
+    Found through the cells: a node whose padded box is at most a cell wide meets only nodes whose centres
+    lie in its own cell or the eight around it; the wider ones are checked against every block."""
+    block_nodes = BLOCK_NODES if block_nodes is None else block_nodes
+    by_level: dict[int, list[Any]] = {}
+    for c in codes:
+        by_level.setdefault(c[0], []).append(c)
+    for lv in sorted(by_level):
+        level, box = view.level_nodes(lv), view.level_boxes(lv)
+        size = np.maximum(box[:, 2] - box[:, 0], box[:, 3] - box[:, 1])
+        pad = NEIGHBOUR_PAD * size + NEIGHBOUR_PAD_M
+        pbox = box + np.stack([-pad, -pad, pad, pad], axis=1)
+        side = max(float(np.median(size + 2 * pad)), 1e-9) * max(1.0, float(np.sqrt(block_nodes)))
+        cx = 0.5 * (box[:, 0] + box[:, 2]) - pbox[:, 0].min()
+        cy = pbox[:, 3].max() - 0.5 * (box[:, 1] + box[:, 3])  # rows from the north
+        bx, by = (cx // side).astype(np.int64), (cy // side).astype(np.int64)
+        nbx = int(bx.max()) + 1
+        key = by * nbx + bx
+        wide = np.flatnonzero(np.maximum(pbox[:, 2] - pbox[:, 0], pbox[:, 3] - pbox[:, 1]) > side)
+        pos = {n.code: i for i, n in enumerate(level)}
+        want = np.zeros(len(level), bool)
+        want[[pos[c] for c in by_level[lv]]] = True
+        order = np.argsort(key, kind="stable")  # the tree's order within a cell
+        keys, starts = np.unique(key[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        cell = {
+            int(k): order[a:b] for k, a, b in zip(keys.tolist(), starts.tolist(), ends.tolist(), strict=True)
+        }
+        for k, members in cell.items():
+            mine = members[want[members]]
+            if not mine.size:
+                continue
+            ky, kx = divmod(k, nbx)
+            near = [cell[(ky + dy) * nbx + kx + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)
+                    if 0 <= kx + dx < nbx and (ky + dy) * nbx + kx + dx in cell]  # fmt: skip
+            cand = np.unique(np.concatenate([*near, wide]))
+            w, s, e, n = pbox[mine, 0].min(), pbox[mine, 1].min(), pbox[mine, 2].max(), pbox[mine, 3].max()
+            pc = pbox[cand]
+            hit = cand[(pc[:, 0] <= e) & (w <= pc[:, 2]) & (pc[:, 1] <= n) & (s <= pc[:, 3])]
+            block = [level[i].code for i in mine.tolist()]
+            yield block, {level[i].code for i in hit.tolist()} | set(block)
 
 
 def tiles3d_result(view: Any, code: Any) -> Result:
@@ -194,16 +235,24 @@ def tiles3d_result(view: Any, code: Any) -> Result:
     return code, data, {"bytes": len(data), "moved_m": shift, "triangles": int(view._triangles.get(code, 0))}
 
 
-def _3dtiles_batch(recipe: Recipe, codes: list[Any]) -> tuple[list[Result], None]:
-    """A batch of one level's 3D Tiles nodes on a worker: that level built over their neighbourhood only."""
-    view = _opened(recipe)
-    view.only = neighbourhood(view, codes)
+def _block_results(view: Any, codes: list[Any], near: set[Any]) -> list[Result]:
+    """:func:`tiles3d_result` of a block of one level's nodes, that level built over ``near`` (the block's
+    neighbourhood, :func:`level_blocks`) only and released after."""
+    view.only = near
     view.release(codes[0][0])
     try:
-        return [tiles3d_result(view, c) for c in codes], None
+        return [tiles3d_result(view, c) for c in codes]
     finally:
         view.release(codes[0][0])
         view.only = None
+
+
+def _3dtiles_batch(recipe: Recipe, codes: list[Any], near: set[Any]) -> tuple[list[Result], None]:
+    """A block of one level's 3D Tiles nodes on a worker (:func:`_block_results`)."""
+    view = _opened(recipe)
+    try:
+        return _block_results(view, codes, near), None
+    finally:
         for c in codes:
             view._content.pop(c, None)
 
@@ -276,25 +325,23 @@ def encode_quantized_mesh(qm: Any, codes: Sequence[Code], *, gzip_tiles: bool = 
 
 def encode_3dtiles(view: Any, codes: Sequence[Any], *, client: Any = None,
                    recipe: Recipe | None = None) -> Iterator[Result]:  # fmt: skip
-    """``(code, glb bytes or None without content, record)`` of every 3D Tiles node of ``codes`` (sorted by
-    level), in that order: here (each level built once and released when the next starts), or on
-    ``client``'s workers, a batch's level built over its neighbourhood only (:func:`neighbourhood`). The
-    driver's view learns each node's content and triangles from the records (its tileset needs no mesh)."""
+    """``(code, glb bytes or None without content, record)`` of every 3D Tiles node of ``codes``, in the
+    order of :func:`level_blocks` (level by level, block by block): here, or on ``client``'s workers, a block
+    at a time; either way a block's level is built over the block's neighbourhood only, so memory holds a
+    block's meshes, not a level's. The driver's view learns each node's content and triangles from the
+    records (its tileset needs no mesh)."""
+    blocks = level_blocks(view, codes)
     if client is None:
-        for i, c in enumerate(codes):
-            if i and codes[i - 1][0] != c[0]:
-                view.release(codes[i - 1][0])
-            yield tiles3d_result(view, c)
-        if codes:
-            view.release(codes[-1][0])
+        for block, near in blocks:
+            yield from _block_results(view, block, near)
         return
     if recipe is None:
         raise ValueError("Expected the store's recipe with a client")
 
-    def submit(cl: Any, b: list[Any]) -> Any:
-        return cl.submit(_3dtiles_batch, recipe, b, pure=False)
+    def submit(cl: Any, b: tuple[list[Any], set[Any]]) -> Any:
+        return cl.submit(_3dtiles_batch, recipe, b[0], b[1], pure=False)
 
-    for code, data, r in _stream(client, _batches(codes, BATCH_TILES), submit):
+    for code, data, r in _stream(client, blocks, submit):
         view._content[code] = data is not None
         view._triangles[code] = int((r or {}).get("triangles", 0))
         yield code, data, r

@@ -232,6 +232,9 @@ class Tiles3D:
         if max_error_m is not None:
             self._prune(float(max_error_m))
         self._levels: dict[int, _Level] = {}
+        self._by_level: dict[int, list[Any]] | None = None  # level_nodes(), made on first use
+        self._tree_pos: dict[Any, int] = {}
+        self._boxes: dict[int, np.ndarray] = {}
         self._content: dict[Any, bool] = {}
         self._triangles: dict[Any, int] = {}  # triangles of each node made, before the nodata drop
         # a point array shared by several nodes (a TIN's), converted once: lon, lat, ellipsoidal height,
@@ -248,6 +251,7 @@ class Tiles3D:
         (declared errors fall down the tree, so the kept nodes are a subtree)."""
         keep = [n for n in self.tree if n.parent is None or self.tile_error_m(n.parent) > max_error_m]
         self.tree = keep
+        self._by_level, self._boxes = None, {}
         self.nodes = {n.code: n for n in keep}
         self.children = {}
         for n in keep:
@@ -441,11 +445,35 @@ class Tiles3D:
     #: (:func:`terralod.export.distributed.neighbourhood`), whose glbs are then the whole level's.
     only: set[Any] | None = None
 
+    def level_nodes(self, group: int) -> list[Any]:
+        """The nodes of level ``group``, in the tree's order."""
+        if self._by_level is None:
+            self._by_level = {}
+            self._tree_pos = {}
+            for i, n in enumerate(self.tree):
+                self._by_level.setdefault(n.code[0], []).append(n)
+                self._tree_pos[n.code] = i
+        return self._by_level.get(group, [])
+
+    def level_boxes(self, group: int) -> np.ndarray:
+        """(N, 4) west, south, east, north of level ``group``'s nodes (:meth:`level_nodes`' order), metres."""
+        got = self._boxes.get(group)
+        if got is None:
+            nodes = self.level_nodes(group)
+            got = self._boxes[group] = np.array([n.box_m for n in nodes], np.float64).reshape(-1, 6)[
+                :, [0, 1, 3, 4]
+            ]
+        return got
+
     def _level_codes(self, group: int) -> list[Any]:
         """The codes of level ``group``'s nodes (of ``only``), in the tree's order (the order their normals
         are summed)."""
-        only = self.only
-        return [n.code for n in self.tree if n.code[0] == group and (only is None or n.code in only)]
+        nodes = self.level_nodes(group)
+        if self.only is None:
+            return [n.code for n in nodes]
+        return sorted(
+            (c for c in self.only if c[0] == group and c in self.nodes), key=self._tree_pos.__getitem__
+        )
 
     def _level(self, group: int) -> _Level:
         """The nodes of level ``group`` and their normals: the nodes merged by position (rounded to 0.1 mm)
@@ -513,7 +541,17 @@ class Tiles3D:
         """False for a node whose every triangle is nodata (it gets no content in the tileset); a stored
         tile wholly over nodata has no triangle at all (terralod.pyramid.footprint)."""
         if code not in self._content:
-            self._content[code] = bool(self.mesh(code)[1].size)
+            lv = self._levels.get(code[0])
+            if lv is not None and code in lv.nodes:
+                self._content[code] = bool(self.mesh(code)[1].size)
+            else:  # the node's own mesh, without its level's normals (a tileset asks of every node)
+                v, t = self.terrain.lod_mesh(code)
+                t = np.asarray(t)
+                self._triangles.setdefault(code, len(t))
+                if self._hf is not None and t.size:
+                    cen = np.asarray(v, np.float64)[t].mean(axis=1)
+                    t = t[valid_at(self._hf, cen[:, 0], cen[:, 1])]
+                self._content[code] = bool(t.size)
         return self._content[code]
 
     def _geodesy(self, code: Any, v: np.ndarray) -> tuple[Any, ...]:
@@ -535,8 +573,20 @@ class Tiles3D:
         return (lon, lat, h, self.geo.ecef_lonlat(lon, lat, h), *enu_frame(lon, lat), None)
 
     def glb(self, code: Any) -> bytes:
-        """The binary glTF of node ``code``."""
-        return self.encode(code)[0]
+        """The binary glTF of node ``code`` (on request, as ``terralod serve`` asks: its level built over the
+        node's neighbourhood only, :func:`terralod.export.distributed.level_blocks`; the same bytes)."""
+        if self.only is not None:
+            return self.encode(code)[0]
+        from terralod.export.distributed import level_blocks
+
+        block, near = next(level_blocks(self, [code]))
+        self.only = near
+        self.release(code[0])
+        try:
+            return self.encode(code)[0]
+        finally:
+            self.release(code[0])
+            self.only = None
 
     def encode(self, code: Any) -> tuple[bytes, float]:
         """(the binary glTF of node ``code``, the largest distance its encoding moved a vertex, metres)."""
@@ -892,8 +942,8 @@ def export_3dtiles(
     rep = ExportReport(Path(out))
     moved = 0.0
     with output as o:
-        # level by level (a TIN's tree is sub-block by sub-block): each level's meshes are made once and
-        # dropped when its tiles are written, so memory holds one level, whatever the pyramid's size
+        # level by level, block by block (terralod.export.distributed.level_blocks): a block's meshes are
+        # made with its neighbours' and dropped when its tiles are written, so memory holds one block
         codes = sorted((n.code for n in view.tree), key=lambda c: c[0])
         if wanted is not None:  # a part: its nodes from its first level with content
             codes = [c for c in codes if c in wanted and c[0] >= part.min_zoom]
@@ -905,22 +955,27 @@ def export_3dtiles(
                 if prev is not None and prev.get("deps") is not None and prev["deps"] == deps.of(c):
                     o.keep(node_uri(c), prev)
         todo = [c for c in codes if o.record(node_uri(c)) is None]  # the others: finished by the run resumed
-        made = encode_3dtiles(view, todo, client=client, recipe=recipe)  # here or on the Dask workers
-        for i, code in enumerate(codes):
+        done = 0
+        for code in codes:
             r = o.record(node_uri(code))
-            if r is None:
-                _, data, r = next(made)
-                if data is None:  # every triangle over nodata: no content
-                    continue
-                o.write(node_uri(code), data, {**r, "deps": deps.of(code)})
-            else:
+            if r is not None:
                 view._content[code] = True
                 view._triangles.setdefault(code, int(r.get("triangles", 0)))
+                rep.tiles += 1
+                rep.bytes += r["bytes"]
+                moved = max(moved, float(r.get("moved_m", 0.0)))
+                done += 1
+        # here or on the Dask workers, level by level and block by block (encode_3dtiles' order)
+        for code, data, r in encode_3dtiles(view, todo, client=client, recipe=recipe):
+            done += 1
+            if progress is not None:
+                progress(done, len(codes))
+            if data is None:  # every triangle over nodata: no content
+                continue
+            o.write(node_uri(code), data, {**r, "deps": deps.of(code)})
             rep.tiles += 1
             rep.bytes += r["bytes"]
             moved = max(moved, float(r.get("moved_m", 0.0)))
-            if progress is not None:
-                progress(i + 1, len(codes))
         view.close()
         whole = view.tileset(part)
         files = {"tileset.json": whole} if split_levels is None else split_tileset(whole, split_levels)
