@@ -214,17 +214,31 @@ def test_a_build_the_disk_cannot_hold_is_refused_before_anything_is_written(
 def test_large_tiles_measure_original_samples_in_strips(
     region, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Tiles over MEASURE_STRIP_SAMPLES take their original samples in strips of rows: the same geometry
-    and sample counts as one window of the whole footprint, errors up to rounding (each strip's samples
-    are placed from its own north edge)."""
+    """Tiles over MEASURE_STRIP_SAMPLES take their original samples in blocks of rows and columns: the same
+    geometry and sample counts as one window of the whole footprint, errors up to rounding (each block's
+    samples are placed from its own north-west corner), and no block takes more than a few times
+    MEASURE_STRIP_SAMPLES samples, however wide the tile (strips of a tile's whole width took its width)."""
     import terralod.pyramid.distributed as dist
+    import terralod.pyramid.original as original
 
     merged, tiles = region
     whole = tmp_path / "whole.terra"
     build_store_windowed(open_source(tiles), whole, **BUILD)
-    monkeypatch.setattr(dist, "MEASURE_STRIP_SAMPLES", 40)
+    monkeypatch.setattr(dist, "MEASURE_STRIP_SAMPLES", 16)
+    taken: list[int] = []
+    tile_samples = original.tile_samples
+
+    def counted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        got = tile_samples(*args, **kwargs)
+        taken.append(got[0].size)
+        return got
+
+    monkeypatch.setattr(original, "tile_samples", counted)
     strips = tmp_path / "strips.terra"
     build_store_windowed(open_source(tiles), strips, **BUILD)
+    assert taken and max(taken) <= 4 * 16, max(taken)
+    with rasterio.open(merged) as ds:
+        assert ds.width > 4 * 16  # a full-width strip of the coarsest tile takes more
     a, b = _rows(whole), _rows(strips)
     # code, sample count, heights, geometry exactly; the five error columns to rounding
     assert [r[:3] + r[8:-1] for r in a] == [r[:3] + r[8:-1] for r in b]

@@ -2,7 +2,7 @@
 
 :func:`encode_quantized_mesh` and :func:`encode_3dtiles` take the codes an export needs encoded (after
 ``--resume`` and whatever filter an export applies) and yield ``(code, bytes, record)`` for each, in the
-order given. Without a client they encode in this process, one tile at a time, as the exports always did.
+order given (3D Tiles: in :func:`level_blocks`' order). Without a client they encode in this process.
 With a ``dask.distributed`` client the codes go out in batches of :data:`BATCH_TILES` consecutive codes of
 one level (level by level, rows then columns: neighbouring tiles, so a worker's block cache is reused),
 at most :data:`BATCHES_PER_WORKER` per worker thread in flight, submitted in order and yielded in order as
@@ -18,9 +18,10 @@ and handed to the children's batches (a worker that lacks it meshes the parent a
 
 3D Tiles: a glb's normals are those of its whole level merged (:meth:`~terralod.export.tiles3d.Tiles3D._level`),
 but a node's normals only take sums from the nodes that share a vertex position with it, added in the
-level's node order. A worker therefore builds, per batch, only the batch's nodes and the level's nodes whose
-boxes meet theirs (padded), in the level's order (``Tiles3D.only``): the same sums in the same order, so
-the same bytes, without any worker building a whole level.
+level's node order. So a level is encoded in blocks (:func:`level_blocks`: square cells of about
+:data:`BLOCK_NODES` nodes), here or on a worker, each built with only the block's nodes and the level's nodes
+whose boxes meet theirs (padded), in the level's order (``Tiles3D.only``): the same sums in the same order,
+so the same bytes, without building a whole level anywhere. On a cluster a block is one task.
 
 This module imports neither tiler (they import it): a recipe carries its view's class, pickled by name.
 """

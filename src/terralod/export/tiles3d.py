@@ -2,13 +2,16 @@
 
 Where a tile's bytes are decided: all here. The mesh is the store's own node (no re-meshing), the
 normals, skirts and ECEF positions are made in :meth:`Tiles3D.glb` and written by ``_write_glb``. A glb is
-a function of the store and the node's code alone (each level's normals are computed from the whole
-level at once, the same whichever of its nodes is asked for first), whatever was encoded before it.
+a function of the store and the node's code alone (a node's normals are summed over the nodes of its level
+that share its vertex positions, in the level's order: the same whichever block of the level it is encoded
+with, see below), whatever was encoded before it.
 
 Cost: linear in the triangles exported. The topology (lone edges, used vertices, positions merged) is
 made by the kernels of :mod:`terralod.kernels.meshtopo` (counting sorts and hashing, not row sorts), a point
 array shared by every node (a TIN's) is converted to geographic and ECEF coordinates once, and the export
-walks the tree level by level, keeping one level's meshes at a time.
+walks the tree level by level and each level block by block (:func:`terralod.export.distributed.level_blocks`:
+square cells of about 256 nodes, each built with the nodes around it), keeping one block's meshes at a time:
+a whole level's (the finest level of 16 SRTM3 tiles: 62 M triangles) took 5.4 GiB.
 
 The tileset is the terrain's static LOD tree (:meth:`terralod.terrain.Terrain.lod_tree`) as stored:
 REPLACE refinement. ``geometricError`` as the specification defines it: a tile's is the error of drawing it

@@ -655,30 +655,39 @@ def _build_decimated(src, pyramid, code, quant, mesh_fn, child_errors, max_windo
 def _original_streamed(src, grid, local, tris, r0, c0, r1, c1) -> tuple[float, float, int]:
     """(max vertical gap, sum of squares, samples) of a tile mesh (``local``: metres east and south of the
     tile's north-west sample) against the original samples of its footprint, rows [r0, r1] x cols [c0, c1]
-    of the grid, taken in strips of grid rows (``MEASURE_STRIP_SAMPLES`` original samples or so each: memory
-    independent of the tile's size); a sample on a strip's south edge is left to the next strip."""
+    of the grid, taken in blocks of grid rows and columns of about ``MEASURE_STRIP_SAMPLES`` original samples
+    each (memory independent of the tile's size); a sample on a block's south or east edge is left to the
+    next block.
+
+    Blocks, not strips of the tile's whole width: a row of a wide region's grid (a Transverse Mercator
+    across 16° of longitude) is a curve in the source's latitude, and the source window that holds a
+    full-width strip of it was 7x the strip's samples on 256 SRTM3 tiles (about 300 MB more, for the
+    minutes the whole-region tile took)."""
     from terralod.pyramid.original import original_error, tile_samples
 
     dx, dy = src.spacing_m
     t = src.transform
     origin = (float(t.c + 0.5 * dx), float(t.f - 0.5 * dy))
     gt = grid.transform
-    per_row = max(
-        1.0, (c1 - c0 + 1) * dx / abs(gt.a * _metres_per_unit(grid))
-    )  # original samples a row, about
-    step = max(1, int(MEASURE_STRIP_SAMPLES / per_row * abs(gt.e * _metres_per_unit(grid)) / dy))
+    side = math.sqrt(MEASURE_STRIP_SAMPLES)  # original samples a block side, about
+    col_step = max(1, int(side * abs(gt.a * _metres_per_unit(grid)) / dx))
+    row_step = max(1, int(side * abs(gt.e * _metres_per_unit(grid)) / dy))
     worst = sumsq = 0.0
     n = 0
-    for a in range(r0, r1, step):
-        b = min(a + step, r1)
-        x, y, z = tile_samples(grid, str(src.crs), origin, (dx, dy), (a, c0), (b, c1))
-        if b < r1:
-            keep = y < (b - a) * dy
-            x, y, z = x[keep], y[keep], z[keep]
-        rep = original_error(local, tris, x, y + (a - r0) * dy, z)
-        worst = max(worst, rep.max_vertical_m)
-        sumsq += rep.sumsq_m2
-        n += rep.n_samples
+    for a in range(r0, r1, row_step):
+        b = min(a + row_step, r1)
+        for ca in range(c0, c1, col_step):
+            cb = min(ca + col_step, c1)
+            x, y, z = tile_samples(grid, str(src.crs), origin, (dx, dy), (a, ca), (b, cb))
+            keep = np.ones(x.shape, bool)
+            if b < r1:
+                keep &= y < (b - a) * dy
+            if cb < c1:
+                keep &= x < (cb - ca) * dx
+            rep = original_error(local, tris, x[keep] + (ca - c0) * dx, y[keep] + (a - r0) * dy, z[keep])
+            worst = max(worst, rep.max_vertical_m)
+            sumsq += rep.sumsq_m2
+            n += rep.n_samples
     return worst, sumsq, n
 
 
