@@ -20,7 +20,9 @@ after start-up over the largest mosaic's (the issue's ≤ 1.3x, Cesium Terrain B
 The ``build`` stage: ``terralod build FOLDER -o region.terra`` (out of core: the region warped block by
 block to the UTM zone of its centre, every tile also measured against the original samples), wall, CPU
 and the peak RSS summed over the process tree (psutil, sampled every 50 ms), tiles in the store, µs of
-wall per original sample. Writes benchmarks/results/region_build.json and region_build.md.
+wall per original sample. Writes benchmarks/results/region_build.json and region_build.md. With
+``--store-exports quantized-mesh,3dtiles`` each store just built is exported to those formats (a fresh
+process each: wall, CPU, peak RSS of the tree, files and bytes): benchmarks/results/region_store_export.*.
 """
 
 from __future__ import annotations
@@ -137,11 +139,60 @@ def run_build(folder: Path, out: Path) -> dict[str, float | str]:
     return run_tree([sys.executable, "-m", "terralod", "build", str(folder), "-o", str(out)])
 
 
-def build_stage(src: Path, counts: list[int]) -> None:
-    """The build rows (see the module docstring)."""
+def store_export_rows(store: Path, count: int, samples: int, formats: list[str]) -> list[dict]:
+    """``terralod export STORE --format F -o OUT`` of a region store just built, for each of ``formats``, in
+    a fresh process: wall, CPU, peak RSS of the tree, tiles (files) and bytes written."""
+    rows = []
+    for fmt in formats:
+        out = store.parent / f"export-{fmt}"
+        r = run_tree(
+            [sys.executable, "-m", "terralod", "export", str(store), "--format", fmt, "-o", str(out)]
+        )
+        files = [f for f in out.rglob("*") if f.is_file() and f.suffix in (".terrain", ".glb")]
+        rows.append({"srtm_tiles": count, "format": fmt, "samples": samples, "tiles": len(files),
+                     "bytes": sum(f.stat().st_size for f in out.rglob("*") if f.is_file()),
+                     "date": time.strftime("%Y-%m-%d %H:%M"), "load_1min": os.getloadavg()[0],
+                     **{k: v for k, v in r.items() if k != "stdout"}, "summary": r["stdout"][-2000:]})  # fmt: skip
+        print(rows[-1], flush=True)
+        shutil.rmtree(out, ignore_errors=True)
+    return rows
+
+
+def write_store_export(src: Path, rows: list[dict]) -> None:
+    """benchmarks/results/region_store_export.{json,md}: the rows of this run and the earlier ones of
+    other (size, format) pairs."""
+    import json
+
+    p = Path(__file__).resolve().parent / "results" / "region_store_export.json"
+    try:
+        earlier = json.loads(p.read_text())["runs"]
+    except (OSError, KeyError, ValueError):
+        earlier = []
+    mine = {(r["srtm_tiles"], r["format"]) for r in rows}
+    runs = sorted([r for r in earlier if (r["srtm_tiles"], r["format"]) not in mine] + rows,
+                  key=lambda r: (r["format"], r["srtm_tiles"]))  # fmt: skip
+    table = md_table(
+        ["store of", "format", "tiles", "wall s", "CPU s", "peak RSS MiB", "µs CPU/sample", "bytes", "run"],
+        [[f"{r['srtm_tiles']} SRTM3 tiles", r["format"], r["tiles"], round(float(r["wall_s"]), 1),
+          round(float(r["cpu_s"]), 1), round(float(r["peak_rss_mib"]), 1),
+          round(float(r["cpu_s"]) / r["samples"] * 1e6, 3), f"{r['bytes'] / 1e6:.1f} MB", r["date"]]
+         for r in runs],
+    )  # fmt: skip
+    note = (
+        "\n`terralod export region.terra --format F -o OUT` (a fresh process, start-up included) of the store "
+        f"`terralod build` made of SRTM3 {src.stem} mirror-tiled into separate 1° GeoTIFFs (EPSG:4326); peak RSS "
+        "summed over the process tree. Reproduce: `python benchmarks/region.py --stages build "
+        "--store-exports quantized-mesh,3dtiles`.\n"
+    )
+    write_results("region_store_export", {"source": src.stem, "runs": runs}, table + note)
+
+
+def build_stage(src: Path, counts: list[int], store_exports: list[str] | None = None) -> None:
+    """The build rows (see the module docstring), and with ``store_exports`` the exports of each store."""
     import sqlite3
 
     results = _earlier_runs("region_build", counts)  # a 64-tile run adds its row to the 16-tile one
+    exported: list[dict] = []
     for count in counts:
         n = int(round(count**0.5))
         with tempfile.TemporaryDirectory(prefix="terralod-region-build-") as d:
@@ -157,6 +208,9 @@ def build_stage(src: Path, counts: list[int]) -> None:
             )
             con.close()
             nbytes = out.stat().st_size
+            if store_exports:
+                exported += store_export_rows(out, count, samples, store_exports)
+                write_store_export(src, exported)
         wall = float(r["wall_s"])
         res = {"srtm_tiles": count, "samples": samples, "grid": [w, h], "tiles": tiles, "bytes": nbytes,
                "us_per_sample": wall / samples * 1e6, "load_1min": os.getloadavg()[0],
@@ -218,11 +272,15 @@ def main() -> None:
     )
     ap.add_argument("--source", default="srtm3_N41E001", help="the real SRTM3 tile mirrored")
     ap.add_argument("--stages", default="export,build", help="export, build or both")
+    ap.add_argument("--store-exports", default="", help="with build: export each store to these formats "
+                    "(quantized-mesh, 3dtiles; comma-separated) into region_store_export")  # fmt: skip
     args = ap.parse_args()
     src = SHARED / "dem" / f"{args.source}.tif"
     stages = args.stages.split(",")
     if "build" in stages:
-        build_stage(src, [int(v) for v in args.tiles.split(",")])
+        build_stage(
+            src, [int(v) for v in args.tiles.split(",")], [f for f in args.store_exports.split(",") if f]
+        )
     if "export" not in stages:
         return
     results = _earlier_runs("region", [int(v) for v in args.tiles.split(",")])
