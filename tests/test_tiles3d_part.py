@@ -129,3 +129,35 @@ def test_blocks_of_any_size_give_the_whole_level_glbs(
     got = _files(tmp_path / "blocks")
     assert len(want) > 20 and got.keys() == want.keys()
     assert [k for k in want if got[k] != want[k]] == []
+
+
+def test_the_tileset_files_made_as_they_go_are_the_split_whole_tileset(store: Path, tmp_path: Path) -> None:
+    """Tiles3D.tileset_files (each external tileset yielded as its subtree is made, never the whole tree)
+    gives split_tileset(tileset())'s files, the same JSON in the same order, for any split depth, a part,
+    and a TIN store's tree of several roots."""
+    import json
+
+    from terralod.export.quantized_mesh import Part
+    from terralod.export.tiles3d import Tiles3D, split_tileset
+    from terralod.io.reader import read_heightfield
+    from terralod.terrain import open_terrain
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.terra import save_model_to_store
+
+    tin = tmp_path / "tin.terra"  # a TIN's tree: one root a sub-block
+    crop = crop_geotiff(store.parent / "k.tif", tmp_path / "crop.tif", 0, 0, 65)
+    save_model_to_store(DetailIncrementModel.from_heightfield(read_heightfield(crop), sub_blocks=4), tin)
+    roots = []
+    for path in (store, tin):
+        with open_terrain(path) as terrain:
+            view = Tiles3D(terrain)
+            roots.append(len(view.children[None]))
+            w, s, e, n = view.lonlat_box(view.tree[0].code)
+            parts = [None, Part(bbox=(w, s, w + 0.3 * (e - w), s + 0.3 * (n - s)), min_zoom=1, max_zoom=3)]
+            for part in parts:
+                for levels in (1, 2, 3, 4):
+                    want = list(split_tileset(view.tileset(part), levels).items())
+                    got = list(view.tileset_files(part, levels))
+                    assert [k for k, _ in got] == [k for k, _ in want]
+                    assert [json.dumps(v) for _, v in got] == [json.dumps(v) for _, v in want], (path, levels)
+    assert roots[0] == 1 and roots[1] > 1, roots
