@@ -118,3 +118,24 @@ def test_update_refuses_odd_epoch_names(tmp_path: Path, small_store: Path, name:
     assert r.returncode == 2, r.stdout + r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "epoch name" in r.stderr, r.stderr
     assert store.read_bytes() == small_store.read_bytes()
+
+
+@needs_data
+@pytest.mark.parametrize("fmt", ["3dtiles", "quantized-mesh"])
+def test_export_of_a_store_without_tiles_is_one_line(tmp_path: Path, small_store: Path, fmt: str) -> None:
+    """A store whose tiles are gone (its meta intact) is refused in one line naming it, exit 2, nothing
+    written; the check looks at one row, not a tree of every tile."""
+    import sqlite3
+
+    store = tmp_path / "empty.terra"
+    store.write_bytes(small_store.read_bytes())
+    con = sqlite3.connect(store)
+    with con:
+        con.execute("DELETE FROM tiles")
+    con.close()
+    out = tmp_path / "out"
+    r = terralod("export", str(store), "--format", fmt, "-o", str(out), cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "has no tiles" in lines[0] and str(store) in lines[0], r.stderr
+    assert not out.exists()

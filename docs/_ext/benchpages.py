@@ -38,6 +38,9 @@ COMMANDS = {
     "scale_tin_pinned": "python benchmarks/scale.py --tin --pin --name scale_tin_pinned --repeat 3",
     "change": "python benchmarks/change.py",
     "epochs": "python benchmarks/epochs.py",
+    "region_build": "python benchmarks/region.py --stages build --tiles 16,64,256",
+    "region_store_export": "python benchmarks/region.py --stages build --tiles 16,256 "
+    "--store-exports quantized-mesh,3dtiles",
 }
 
 #: Results files name the methods by the project's paper numbers; the guide names them by their authors.

@@ -679,6 +679,10 @@ class TileStore(EpochTables):
             for x, y, e, v, me, mv in self._conn.execute(q, (level,))
         )
 
+    def has_tiles(self) -> bool:
+        """Whether the store (its selected epoch) holds any tile: one row looked at, not every one."""
+        return self._conn.execute(f"SELECT 1 FROM {self._tiles_src} LIMIT 1").fetchone() is not None
+
     def stored_levels(self) -> list[int]:
         """The levels that hold at least one stored tile (whatever the pyramid plans)."""
         return [

@@ -34,7 +34,8 @@ def check_exportable(terrain: Any, epoch: str | None = None) -> None:
     meta = getattr(terrain, "meta", {}) or {}
     if meta.get("complete") is False:
         raise StoreError("is incomplete (being written or interrupted); finish the build first", where)
-    if not terrain.lod_tree():
+    store = getattr(terrain, "store", None)  # a tile store answers from one row, not a tree of every tile
+    if not (store.has_tiles() if hasattr(store, "has_tiles") else terrain.lod_tree()):
         raise StoreError("has no tiles", where)
     if epoch is not None:
         if not terrain.epochs:
