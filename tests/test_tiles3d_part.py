@@ -96,8 +96,35 @@ def test_a_box_that_meets_nothing_is_one_line(store: Path, tmp_path: Path, capsy
     assert not (tmp_path / "o").exists()
 
 
+@pytest.fixture(scope="module")
+def tin(store: Path) -> Path:
+    """A TIN store of a 65² crop: its tree has a root a sub-block, and its nodes share one point array."""
+    from terralod.io.reader import read_heightfield
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.terra import save_model_to_store
+
+    out = store.parent / "tin.terra"
+    crop = crop_geotiff(store.parent / "k.tif", store.parent / "crop.tif", 0, 0, 65)
+    save_model_to_store(DetailIncrementModel.from_heightfield(read_heightfield(crop), sub_blocks=4), out)
+    return out
+
+
 def _files(out: Path) -> dict[str, bytes]:
     return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+def test_a_tins_blocks_give_its_whole_level_glbs(
+    tin: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same for a TIN store, whose nodes share one point array (one block a node)."""
+    import terralod.export.distributed as dist
+
+    monkeypatch.setattr(dist, "BLOCK_NODES", 10**9)
+    main(["export", str(tin), "--format", "3dtiles", "-o", str(tmp_path / "whole-levels")])
+    monkeypatch.setattr(dist, "BLOCK_NODES", 1)
+    main(["export", str(tin), "--format", "3dtiles", "-o", str(tmp_path / "blocks")])
+    want, got = _files(tmp_path / "whole-levels"), _files(tmp_path / "blocks")
+    assert len(want) > 10 and got == want
 
 
 @pytest.mark.parametrize("block_nodes", [1, 5])
@@ -131,7 +158,7 @@ def test_blocks_of_any_size_give_the_whole_level_glbs(
     assert [k for k in want if got[k] != want[k]] == []
 
 
-def test_the_tileset_files_made_as_they_go_are_the_split_whole_tileset(store: Path, tmp_path: Path) -> None:
+def test_the_tileset_files_made_as_they_go_are_the_split_whole_tileset(store: Path, tin: Path) -> None:
     """Tiles3D.tileset_files (each external tileset yielded as its subtree is made, never the whole tree)
     gives split_tileset(tileset())'s files, the same JSON in the same order, for any split depth, a part,
     and a TIN store's tree of several roots."""
@@ -139,14 +166,8 @@ def test_the_tileset_files_made_as_they_go_are_the_split_whole_tileset(store: Pa
 
     from terralod.export.quantized_mesh import Part
     from terralod.export.tiles3d import Tiles3D, split_tileset
-    from terralod.io.reader import read_heightfield
     from terralod.terrain import open_terrain
-    from terralod.tin import DetailIncrementModel
-    from terralod.tin.terra import save_model_to_store
 
-    tin = tmp_path / "tin.terra"  # a TIN's tree: one root a sub-block
-    crop = crop_geotiff(store.parent / "k.tif", tmp_path / "crop.tif", 0, 0, 65)
-    save_model_to_store(DetailIncrementModel.from_heightfield(read_heightfield(crop), sub_blocks=4), tin)
     roots = []
     for path in (store, tin):
         with open_terrain(path) as terrain:
