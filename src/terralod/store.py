@@ -731,6 +731,15 @@ class TileStore(EpochTables):
         rows = self._conn.execute(f"SELECT {cols} FROM {self._tiles_src}")
         return [dict(zip(names, r, strict=True)) for r in rows]
 
+    def each_tile_extent(self) -> Iterator[tuple[int, int, int, float, float, float, float]]:
+        """(level, x, y, error_m, vertical_error_m, z_min_m, z_max_m) of every tile, by level, then row, then
+        column, read as a stream (what a LOD tree needs, without a row object a tile)."""
+        q = (
+            f"SELECT level, x, y, error_m, vertical_error_m, z_min_m, z_max_m FROM {self._tiles_src} "
+            "ORDER BY level, y, x"
+        )
+        yield from self._conn.execute(q)
+
     def write_tiles(self, tiles: list[EncodedTile]) -> None:
         """Insert finished tiles in one transaction."""
         if not self.writable:
