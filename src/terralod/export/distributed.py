@@ -3,10 +3,11 @@
 :func:`encode_quantized_mesh` and :func:`encode_3dtiles` take the codes an export needs encoded (after
 ``--resume`` and whatever filter an export applies) and yield ``(code, bytes, record)`` for each, in the
 order given (3D Tiles: in :func:`level_blocks`' order). Without a client they encode in this process.
-With a ``dask.distributed`` client the codes go out in batches of :data:`BATCH_TILES` consecutive codes of
-one level (level by level, rows then columns: neighbouring tiles, so a worker's block cache is reused),
-at most :data:`BATCHES_PER_WORKER` per worker thread in flight, submitted in order and yielded in order as
-they finish; the driver keeps writing through :class:`terralod.output.Output`.
+With a ``dask.distributed`` client the quantized-mesh codes go out in batches of :data:`BATCH_TILES`
+consecutive codes of one level (level by level, rows then columns: neighbouring tiles, so a worker's block
+cache is reused), the 3D Tiles nodes a block at a time, at most :data:`BATCHES_PER_WORKER` per worker thread
+in flight, submitted in order and yielded in order as they finish; the driver keeps writing through
+:class:`terralod.output.Output`.
 
 What travels: a :class:`Recipe` (a store's path and epoch, a region's file list and scan, a DEM's path, and
 the export's options: bytes, never samples) to the workers, and each tile's bytes and record back. A worker
@@ -179,11 +180,10 @@ def level_blocks(
 ) -> Iterator[tuple[list[Any], set[Any]]]:
     """``codes`` (3D Tiles nodes of ``view``) as (block, neighbourhood) pairs: level by level (ascending),
     each level's codes grouped by square cells of about ``block_nodes`` (default :data:`BLOCK_NODES`) of its
-    nodes (cells in raster order,
-    nodes in the tree's order within a cell); a block's neighbourhood is the block and every node of its
-    level (in ``codes`` or not) whose padded box meets the box of the block's padded boxes: a superset of
-    the nodes that may share a vertex position with one of the block's, which is all a node's normals need
-    (extra neighbours cost time, not bytes).
+    nodes (cells in raster order, nodes in the tree's order within a cell); a block's neighbourhood is the
+    block and every node of its level (in ``codes`` or not) whose padded box meets the box of the block's
+    padded boxes: a superset of the nodes that may share a vertex position with one of the block's, which
+    is all a node's normals need (extra neighbours cost time, not bytes).
 
     Found through the cells: a node whose padded box is at most a cell wide meets only nodes whose centres
     lie in its own cell or the eight around it; the wider ones are checked against every block."""
