@@ -500,7 +500,7 @@ class Tiles3D:
         }  # fmt: skip
 
     # -- content -----------------------------------------------------------------------------------------
-    #: The nodes a level is built over (None: all): a Dask worker's batch and its neighbours
+    #: The nodes a level is built over (None: all): a block of the level and its neighbours
     #: (:func:`terralod.export.distributed.level_blocks`), whose glbs are then the whole level's.
     only: set[Any] | None = None
 
