@@ -379,11 +379,16 @@ def _windowed(inputs, read: dict, with_site: bool, forced: bool = False) -> bool
     """Whether a BEFORE AFTER pair is read window by window (:mod:`terralod.change.windowed`): either side a
     region (folder, glob, VRT), or a pair of more than :data:`WINDOWED_MIN_CELLS` cells; never with
     options only the in-memory readers know (--encoding, --tile, --spacing) or --site."""
-    if with_site or read.get("encoding") or read.get("tile_zxy") or read.get("spacing"):
+    if _in_memory_options(read, with_site):
         return False
     if forced or any(_is_region_input(p) for p in inputs):
         return True
     return all(Path(p).is_file() for p in inputs) and max(_cells(p) for p in inputs) > WINDOWED_MIN_CELLS
+
+
+def _in_memory_options(read: dict, with_site: bool) -> bool:
+    """Whether options only the in-memory chain knows are given (--site, --encoding, --tile, --spacing)."""
+    return bool(with_site or read.get("encoding") or read.get("tile_zxy") or read.get("spacing"))
 
 
 def _epoch_sides(inputs, date_from, date_to, read: dict, with_site: bool, forced: bool = False):  # noqa: ANN001, ANN202
@@ -399,7 +404,7 @@ def _epoch_sides(inputs, date_from, date_to, read: dict, with_site: bool, forced
         or not is_store(Path(first))
     ):
         return None
-    if with_site or read.get("encoding") or read.get("tile_zxy") or read.get("spacing"):
+    if _in_memory_options(read, with_site):
         return None
     from terralod.change.epochs import EpochSource, NoSamplesKept
 

@@ -591,10 +591,14 @@ class Tiles3D:
         lv = self._level(code[0])
         pts, used, t = lv.nodes[code]
         v = pts[used]
-        if self._hf is not None and t.size:
-            cen = v[t].mean(axis=1)
-            t = t[valid_at(self._hf, cen[:, 0], cen[:, 1])]
-        return v, t, lv.normals[code]
+        return v, self._over_data(v, t), lv.normals[code]
+
+    def _over_data(self, v: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """The triangles of ``t`` (rows of vertices ``v``) whose centre lies over a valid source sample."""
+        if self._hf is None or not t.size:
+            return t
+        cen = np.asarray(v, np.float64)[t].mean(axis=1)
+        return t[valid_at(self._hf, cen[:, 0], cen[:, 1])]
 
     def has_content(self, code: Any) -> bool:
         """False for a node whose every triangle is nodata (it gets no content in the tileset); a stored
@@ -607,10 +611,7 @@ class Tiles3D:
                 v, t = self.terrain.lod_mesh(code)
                 t = np.asarray(t)
                 self._triangles.setdefault(code, len(t))
-                if self._hf is not None and t.size:
-                    cen = np.asarray(v, np.float64)[t].mean(axis=1)
-                    t = t[valid_at(self._hf, cen[:, 0], cen[:, 1])]
-                self._content[code] = bool(t.size)
+                self._content[code] = bool(self._over_data(v, t).size)
         return self._content[code]
 
     def _geodesy(self, code: Any, v: np.ndarray) -> tuple[Any, ...]:
