@@ -7,7 +7,7 @@ recorded), the time from opening the page to the first full view and per epoch s
 Sites: the St Helens pair (``terralod change 2000.tif 2007.tif -o OUT --site``) and, unless --no-series, the
 27-epoch St Helens series (``terralod change series.npz -o OUT --site``), from ../shared/data/change. Each site
 is served by ``python -m http.server`` (a plain static host); --mosaic N adds a pair of N x N real SRTM3 tiles
-with a planted change (N = 4: 23 M cells a survey). The first full view's bytes come from resource timing. Writes benchmarks/results/site.json and site.md.
+with a planted change (N = 4: 23 M cells a survey), given as two folders (read window by window). The first full view's bytes come from resource timing. Writes benchmarks/results/site.json and site.md.
 """
 
 from __future__ import annotations
@@ -31,36 +31,23 @@ SERIES = "change/st_helens_crater_timeseries_2000-2007_10m.npz"
 
 
 def mosaic_pair(n: int, tmp: Path) -> list[Path]:
-    """BEFORE / AFTER GeoTIFFs of n x n real SRTM3 tiles (benchmarks/region.py's mosaic) with
-    benchmarks/change_region.py's planted mound and pit, each merged into one file (``change --site`` reads
-    its pair in memory)."""
-    import rasterio
-    from rasterio.merge import merge
-
+    """BEFORE / AFTER folders of n x n real SRTM3 tiles (benchmarks/region.py's mosaic) with
+    benchmarks/change_region.py's planted mound and pit: two regions, which ``change --site`` reads window by
+    window (each side's store built out of core)."""
     from change_region import write_after
     from region import write_mosaic
 
     before = write_mosaic(SHARED / "dem" / "srtm3_N41E001.tif", n, tmp / "mosaic_before")
     write_after(before, tmp / "mosaic_after", n)
-    out = []
-    for side in ("before", "after"):
-        paths = sorted((tmp / f"mosaic_{side}").glob("*.tif"))
-        z, tr = merge([str(p) for p in paths])
-        with rasterio.open(paths[0]) as ds:
-            prof = ds.profile
-        prof.update(width=z.shape[2], height=z.shape[1], transform=tr, BIGTIFF="IF_SAFER")
-        p = tmp / f"mosaic_{side}.tif"
-        with rasterio.open(p, "w", **prof) as ds:
-            ds.write(z)
-        out.append(p)
-    return out
+    return [tmp / "mosaic_before", tmp / "mosaic_after"]
 
 
-def make_site(inputs: list[Path], out: Path) -> tuple[Path, float]:
+def make_site(inputs: list[Path], out: Path) -> tuple[Path, float, float]:
+    """``terralod change BEFORE AFTER -o OUT --site``: (the site, seconds, peak RSS MiB by GNU time)."""
     t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "terralod", "change", *map(str, inputs), "-o", str(out), "--site",
-                    "--no-views"], check=True, capture_output=True)  # fmt: skip
-    return out / "site", time.perf_counter() - t0
+    r = subprocess.run(["/usr/bin/time", "-f", "%M", sys.executable, "-m", "terralod", "change", *map(str, inputs),
+                        "-o", str(out), "--site", "--no-views"], check=True, capture_output=True, text=True)  # fmt: skip
+    return out / "site", time.perf_counter() - t0, int(r.stderr.strip().splitlines()[-1]) / 1024
 
 
 def size_figures(site: Path) -> dict:
@@ -136,18 +123,19 @@ def main() -> None:
         if a.mosaic:
             cases[f"SRTM3 mosaic {a.mosaic}² tiles, planted"] = mosaic_pair(a.mosaic, Path(tmp))
         for k, (name, inputs) in enumerate(cases.items()):
-            site, secs = make_site(inputs, Path(tmp) / f"site{k}")
+            site, secs, rss_mib = make_site(inputs, Path(tmp) / f"site{k}")
             sz = size_figures(site)
             epochs = [e["name"] for e in json.loads((site / "site.json").read_text())["epochs"]]
             tm = browser_times(site, epochs, a.runs)
-            payload["sites"][name] = {"size": sz, "browser": tm, "change_site_seconds": secs}
+            payload["sites"][name] = {"size": sz, "browser": tm, "change_site_seconds": secs,
+                                      "change_site_peak_rss_mib": rss_mib}  # fmt: skip
             rows.append([name, sz["epochs"], sz["pairs"], f"{sz['bytes'] / 1e6:.1f}", f"{sz['parts']['cesium'] / 1e6:.1f}",
                          f"{sz['data_bytes_per_km2'] / 1e6:.2f}", f"{sz['epoch_bytes_each'] / 1e6:.2f}",
                          f"{sz['glb_files']:,} / {sz['tile_references']:,}",
                          f"{sz['cells'] / 1e6:.2f}", f"{sz['largest_data_file'][1] / 1e6:.2f}",
                          f"{tm['first_view_data_bytes_max'] / 1e6:.2f}", f"{tm['ready_ms_median'] / 1e3:.1f}",
                          f"{tm['switch_ms_median']:.0f} (max {tm['switch_ms_max']:.0f})", f"{tm['swipe_ms_median']:.0f}",
-                         tm["errors"], f"{secs:.1f}"])  # fmt: skip
+                         tm["errors"], f"{secs:.1f}", f"{rss_mib:,.0f}"])  # fmt: skip
             renderer = tm["renderer"]
     md = (
         "# The change site: size and load times\n\n"
@@ -174,6 +162,7 @@ def main() -> None:
                 "swipe ms",
                 "console errors",
                 "`change --site` s",
+                "`change --site` peak RSS MiB",
             ],
             rows,
         )  # fmt: skip

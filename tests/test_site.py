@@ -162,6 +162,42 @@ def test_lattice_maps_lonlat_to_the_grid_within_a_centimetre(fx: float, fy: floa
     assert abs(at(X) - x) < tol and abs(at(Y) - y) < tol
 
 
+@settings(max_examples=12, deadline=None)
+@given(st.sampled_from(["EPSG:26910", "EPSG:32633", "EPSG:3857"]), st.integers(40, 900), st.integers(40, 900),
+       st.floats(1.0, 30.0), st.integers(0, 2**16))  # fmt: skip
+def test_the_drape_puts_each_cell_centre_on_its_texel_centre(
+    crs: str, h: int, w: int, step: float, seed: int
+) -> None:
+    """The page maps a point's local east/north metres to the overlay's texture coordinates with the drape's
+    affine map; a cell's centre, at its own height, must land on ((c + 0.5) / w, (r + 0.5) / h) within the
+    fit's stated residual (half a cell off would put the whole drape beside the ground it measures)."""
+    from affine import Affine
+
+    from terralod.export.geodesy import Geodesy, ecef_lonlat
+    from terralod.heightfield import Heightfield
+    from terralod.site.data import drape_map
+
+    origin = {
+        "EPSG:26910": (560000, 5120000),
+        "EPSG:32633": (400000, 5000000),
+        "EPSG:3857": (1500000, 6000000),
+    }
+    rng = np.random.default_rng(seed)
+    z = (500 + 300 * rng.random((h, w))).astype(np.float32)
+    hf = Heightfield(
+        z, np.ones(z.shape, bool), Affine(step, 0, origin[crs][0], 0, -step, origin[crs][1]), crs=crs
+    )
+    d = drape_map(hf)
+    r, c = rng.integers(0, h, 50), rng.integers(0, w, 50)
+    x, y = hf.transform @ (c + 0.5, r + 0.5)
+    lon, lat = Geodesy(crs, geographic=True).lonlat(x, y)
+    p = ecef_lonlat(lon, lat, z[r, c].astype(np.float64)) - np.asarray(d["centre_ecef"])
+    A = np.stack([np.ones(len(p)), p @ np.asarray(d["east"]), p @ np.asarray(d["north"])], axis=1)
+    u, v = A @ np.asarray(d["u"]), A @ np.asarray(d["v"])
+    assert np.abs(u * w - (c + 0.5)).max() <= d["residual_cells"] + 0.05
+    assert np.abs(v * h - (r + 0.5)).max() <= d["residual_cells"] + 0.05
+
+
 def test_site_folder_is_whole_and_names_no_machine(change_run: Path) -> None:
     site = change_run / "site"
     for f in ("index.html", "site.js", "site.css", "site.json", "README.txt", "cesium/Cesium.js",

@@ -201,21 +201,21 @@ def change(
     lidar = _lidar_pair(inputs)
     if dask_address and lidar is not None:
         raise click.BadParameter("is for DEM files or regions, not LiDAR surveys", param_hint="--dask")
-    epoch_sides = _epoch_sides(inputs, date_from, date_to, read, with_site, forced=bool(dask_address))
+    epoch_sides = _epoch_sides(inputs, date_from, date_to, read, forced=bool(dask_address))
     if dask_address:
         require_extra("change --dask", "dask")
-        if epoch_sides is None and not (len(inputs) == 2 and _windowed(inputs, read, with_site, forced=True)):
+        if epoch_sides is None and not (len(inputs) == 2 and _windowed(inputs, read, forced=True)):
             raise click.BadParameter("is for a BEFORE AFTER pair of DEM files or regions, or two epochs of a store "
-                                     "that keeps their samples (no --site, --encoding, --tile or --spacing)",
+                                     "that keeps their samples (no --encoding, --tile or --spacing)",
                                      param_hint="--dask")  # fmt: skip
     if epoch_sides is not None or (
-        lidar is None and len(inputs) == 2 and _windowed(inputs, read, with_site, forced=bool(dask_address))
+        lidar is None and len(inputs) == 2 and _windowed(inputs, read, forced=bool(dask_address))
     ):
         _change_windowed(
             inputs, output_of, out, zones=zones, stable=stable, exclude=exclude, no_coregister=no_coregister,
             coreg_method=coreg_method, sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
             dates=dates, no_views=no_views, min_slope_deg=min_slope_deg, read=read,
-            dask=(dask_address, dask_workers), epoch_sides=epoch_sides,
+            dask=(dask_address, dask_workers), epoch_sides=epoch_sides, with_site=with_site,
         )  # fmt: skip
         return
     notes: list[str] = []
@@ -375,23 +375,23 @@ def _cells(path: str) -> int:
         return 0
 
 
-def _windowed(inputs, read: dict, with_site: bool, forced: bool = False) -> bool:  # noqa: ANN001
+def _windowed(inputs, read: dict, forced: bool = False) -> bool:  # noqa: ANN001
     """Whether a BEFORE AFTER pair is read window by window (:mod:`terralod.change.windowed`): either side a
     region (folder, glob, VRT), or a pair of more than :data:`WINDOWED_MIN_CELLS` cells; never with
-    options only the in-memory readers know (--encoding, --tile, --spacing) or --site."""
-    if _in_memory_options(read, with_site):
+    options only the in-memory readers know (--encoding, --tile, --spacing)."""
+    if _in_memory_options(read):
         return False
     if forced or any(_is_region_input(p) for p in inputs):
         return True
     return all(Path(p).is_file() for p in inputs) and max(_cells(p) for p in inputs) > WINDOWED_MIN_CELLS
 
 
-def _in_memory_options(read: dict, with_site: bool) -> bool:
-    """Whether options only the in-memory chain knows are given (--site, --encoding, --tile, --spacing)."""
-    return bool(with_site or read.get("encoding") or read.get("tile_zxy") or read.get("spacing"))
+def _in_memory_options(read: dict) -> bool:
+    """Whether options only the in-memory chain knows are given (--encoding, --tile, --spacing)."""
+    return bool(read.get("encoding") or read.get("tile_zxy") or read.get("spacing"))
 
 
-def _epoch_sides(inputs, date_from, date_to, read: dict, with_site: bool, forced: bool = False):  # noqa: ANN001, ANN202
+def _epoch_sides(inputs, date_from, date_to, read: dict, forced: bool = False):  # noqa: ANN001, ANN202
     """(BEFORE, AFTER) as :class:`terralod.change.epochs.EpochSource` when the input is one store, ``--from``
     and ``--to`` are given and the pair is read window by window (the rule of :func:`_windowed`: more than
     :data:`WINDOWED_MIN_CELLS` cells, or ``forced``); None otherwise, and for a store that keeps no samples of
@@ -404,7 +404,7 @@ def _epoch_sides(inputs, date_from, date_to, read: dict, with_site: bool, forced
         or not is_store(Path(first))
     ):
         return None
-    if _in_memory_options(read, with_site):
+    if _in_memory_options(read):
         return None
     from terralod.change.epochs import EpochSource, NoSamplesKept
 
@@ -434,10 +434,12 @@ def _open_side(path: str, read: dict):  # noqa: ANN001
 
 def _change_windowed(inputs, output_of, out: Path, *, zones, stable, exclude, no_coregister, coreg_method,
                      sigma_m, corr_range_m, confidence, dates, no_views, min_slope_deg, read,
-                     dask=(None, None), epoch_sides=None) -> None:  # fmt: skip  # noqa: ANN001
+                     dask=(None, None), epoch_sides=None, with_site=False) -> None:  # fmt: skip  # noqa: ANN001
     """BEFORE AFTER read window by window (:func:`terralod.change.windowed.measure_change_windowed`), the
     windows differenced on Dask workers with ``dask`` = (address, local workers); ``epoch_sides``: two
-    epochs of the one store ``inputs`` names (:func:`_epoch_sides`) instead of two DEMs."""
+    epochs of the one store ``inputs`` names (:func:`_epoch_sides`) instead of two DEMs; ``with_site``:
+    OUT/site/ too (:func:`terralod.site.build.site_from_windowed`: each side's 3D Tiles from a store built
+    out of core here, or the store's own epochs)."""
     from terralod.change.difference import check_vertical_units
     from terralod.change.report import write_report
     from terralod.change.windowed import measure_change_windowed
@@ -480,6 +482,16 @@ def _change_windowed(inputs, output_of, out: Path, *, zones, stable, exclude, no
             )
             write_report(result, tmp / "report.html", views=not no_views, figures_dir=tmp / "figures")
             (tmp / "summary.json").write_text(json.dumps(_jsonable(result.summary), indent=2) + "\n")
+            if with_site:
+                from terralod.site.build import site_from_windowed
+
+                rep = site_from_windowed(
+                    (before, after), [d or f"survey-{i + 1}" for i, d in enumerate(pair_dates)], result,
+                    tmp / "dod.tif", tmp / "site", store=inputs[0] if epoch_sides is not None else None,
+                )  # fmt: skip
+                console.print(
+                    f"site: {rep.bytes / 1e6:.1f} MB in site/ (open it with `python -m http.server` there)"
+                )
     finally:
         if client is not None:
             cluster = client.cluster if dask[0] == "local" else None

@@ -332,3 +332,60 @@ def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results:
             rep = _write(o.folder, plan, terrains)
     rep.path = out
     return rep
+
+
+def site_from_windowed(sides: Sequence[Any], names: Sequence[str], result: Any, dod_path: str | Path,
+                       out: str | Path, *, store: str | Path | None = None, title: str | None = None,
+                       workers: int | None = None, options: SiteOptions | None = None) -> SiteReport:  # fmt: skip
+    """The site of a pair measured window by window (``terralod change`` over a region, ``--site``).
+
+    ``sides`` are BEFORE's and AFTER's window sources (:mod:`terralod.io.windowed`; or two epochs of
+    ``store``, :class:`terralod.change.epochs.EpochSource`), ``result`` their measured change
+    (:func:`terralod.change.windowed.measure_change_windowed`) and ``dod_path`` its ``dod.tif``. Each side's 3D
+    Tiles come from a store built out of core (:func:`terralod.pyramid.distributed.build_store_windowed`, in
+    the output's scratch folder, never part of the site) or, for two epochs of ``store``, from that store;
+    the pair's rasters are read in strips of rows from ``dod.tif`` and BEFORE's source and their tiles kept on
+    disk (:func:`terralod.site.plan.plan_windowed_site`). Nothing here holds a whole grid: the memory is the
+    out-of-core build's, then the 3D Tiles export's, then a strip of rows and two tile rows a pyramid level."""
+    from contextlib import ExitStack
+
+    import numpy as np
+
+    from terralod.output import Output
+    from terralod.pyramid.distributed import build_store_windowed
+    from terralod.site.data import PairRasters
+    from terralod.site.plan import plan_windowed_site
+    from terralod.site.tiles import FolderFiles, raster_rows
+    from terralod.terrain import open_terrain
+
+    out = Path(out)
+    epochs = tuple(_epoch_name(n, i) for i, n in enumerate(names))
+    before = sides[0]
+    valid = [0]
+
+    def before_rows(r0: int, r1: int) -> np.ndarray:
+        z, ok = before.read(r0, 0, r1, before.width)
+        valid[0] += int(np.count_nonzero(ok))
+        return np.where(ok, z, np.nan).astype("<f4")
+
+    with Output(out) as o, ExitStack() as stack:
+        if store is None:
+            terrains = []
+            for i, src in enumerate(sides):
+                build_store_windowed(src, o.scratch / f"epoch-{i}.terra", workers=workers)
+                terrains.append(stack.enter_context(open_terrain(o.scratch / f"epoch-{i}.terra")))
+        else:
+            terrain = stack.enter_context(open_terrain(store))
+            terrains = [stack.enter_context(terrain.with_epoch(s.epoch)) for s in sides]
+        dod_rows, shape, close = raster_rows(dod_path)
+        stack.callback(close)
+        ranges = [t.elevation_range_m for t in terrains]
+        plan = plan_windowed_site(
+            epochs, result, PairRasters(dod_rows, before_rows, shape, before.transform), crs=before.crs,
+            valid_cells=lambda: valid[0], title=title or "How the ground changed",
+            elevation_range_m=(min(r[0] for r in ranges), max(r[1] for r in ranges)),
+            files=FolderFiles(o.scratch / "pair-tiles"), options=options or SiteOptions(),
+        )  # fmt: skip
+        rep = _write(o.folder, plan, terrains)
+    rep.path = out
+    return rep

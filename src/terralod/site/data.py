@@ -14,11 +14,13 @@ tested). Every coordinate transform is
 from __future__ import annotations
 
 import math
+from collections.abc import MutableMapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from terralod.site.tiles import array_rows, write_pyramid
+from terralod.site.tiles import RowReader, array_rows, write_pyramid
 
 #: Lattice nodes per side (lon/lat → grid CRS coordinates).
 LATTICE_NODES = 33
@@ -44,22 +46,25 @@ def lattice(hf: Any, nodes: int = LATTICE_NODES) -> dict[str, Any]:
             "nodes": nodes, "x_m": [round(float(v), 4) for v in x], "y_m": [round(float(v), 4) for v in y]}  # fmt: skip
 
 
-def drape_map(hf: Any) -> dict[str, Any]:
+def drape_map(hf: Any, grid: tuple[Any, tuple[int, int]] | None = None) -> dict[str, Any]:
     """The affine map from local east/north metres (about the grid's centre, Earth-fixed) to the overlay's
-    texture coordinates (u = column / width, v = row / height), least-squares on a 17² sample of cells at
-    their own heights; ``residual_cells`` is its worst error in cells."""
+    texture coordinates (u = column / width, v = row / height: a cell's centre at ((c + 0.5) / w, (r + 0.5)
+    / h)), least-squares on a 17² sample of cell centres at their own heights; ``residual_cells`` is its worst
+    error in cells. ``grid``: (transform, shape) of the overlay's grid when it is not ``hf``'s (a region
+    measured window by window: ``hf`` is then the report's decimated copy, each sampled centre's height taken
+    from the copy's cell holding it)."""
     from terralod.export.geodesy import Geodesy, ecef_lonlat
 
-    h, w = hf.shape
-    rows = np.linspace(0, h - 1, 17)
-    cols = np.linspace(0, w - 1, 17)
-    R, C = np.meshgrid(rows, cols, indexing="ij")
-    r_i, c_i = R.round().astype(int), C.round().astype(int)
+    t, (h, w) = grid if grid is not None else (hf.transform, hf.shape)
+    R, C = np.meshgrid(np.linspace(0, h - 1, 17).round(), np.linspace(0, w - 1, 17).round(), indexing="ij")
+    x, y = t @ (C + 0.5, R + 0.5)  # the sampled cells' centres
+    hr, hc = hf.sample_rc(x, y)
+    r_i = np.clip(np.round(hr), 0, hf.height - 1).astype(int)
+    c_i = np.clip(np.round(hc), 0, hf.width - 1).astype(int)
     z = np.asarray(hf.elevation_m, np.float64)
     valid = np.asarray(hf.valid, bool)
     zmed = float(np.median(z[valid])) if valid.any() else 0.0
     zz = np.where(valid[r_i, c_i], z[r_i, c_i], zmed)
-    x, y = hf.world_xy(R + 0.5, C + 0.5)
     lon, lat = Geodesy(hf.crs, geographic=True).lonlat(np.ravel(x), np.ravel(y))
     p = ecef_lonlat(lon, lat, zz.ravel())
     lon_c, lat_c = float(np.mean(lon)), float(np.mean(lat))
@@ -114,20 +119,39 @@ def legend_of(dod: np.ndarray, lod_m: float) -> dict[str, Any]:
             "lod_rgba": list(LOD_GREY_RGBA)}  # fmt: skip
 
 
+@dataclass(frozen=True)
+class PairRasters:
+    """A pair's rasters on the full grid, read in strips of rows (:data:`terralod.site.tiles.RowReader`): the
+    difference and BEFORE's heights (float metres, NaN = no data), the grid's shape and affine transform. A
+    pair measured window by window gives these, its result's arrays being the report's decimated copies."""
+
+    dod: RowReader
+    before: RowReader
+    shape: tuple[int, int]
+    transform: Any
+
+
 def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tuple[str, str], key: str,
-                 *, summary_lines: list[str] | None = None) -> tuple[dict[str, Any], dict[str, bytes]]:  # fmt: skip
-    """(description, files) of one pair for the page: ``pairs/KEY.json``'s content and the rasters."""
+                 *, summary_lines: list[str] | None = None, rasters: PairRasters | None = None,
+                 files: MutableMapping[str, bytes] | None = None) -> tuple[dict[str, Any], MutableMapping[str, bytes]]:  # fmt: skip
+    """(description, files) of one pair for the page: ``pairs/KEY.json``'s content and the rasters' tiles
+    (put in ``files`` when given: a :class:`terralod.site.tiles.FolderFiles` keeps them on disk).
+
+    ``rasters``: the full grid's rasters when ``result`` holds decimated copies (a pair measured window by
+    window): the tiles, the grid and the drape come from them; the legend's colour scale from the copy (as
+    the report's map)."""
     from terralod.change.report import plain_summary
 
     hf = result.pair.before
     dod = np.asarray(result.dod, np.float32)
-    before = np.where(np.asarray(hf.valid, bool), np.asarray(hf.elevation_m, np.float32), np.nan).astype(
-        "<f4"
-    )
     unc = result.uncertainty
     legend = legend_of(dod, unc.level_of_detection_m)
-    dod_desc, dod_files = write_pyramid(array_rows(dod), dod.shape, f"pairs/{key}-dod")
-    before_desc, before_files = write_pyramid(array_rows(before), before.shape, f"pairs/{key}-before")
+    if rasters is None:
+        before = np.where(np.asarray(hf.valid, bool), np.asarray(hf.elevation_m, np.float32), np.nan)
+        rasters = PairRasters(array_rows(dod), array_rows(before.astype("<f4")), dod.shape, hf.transform)
+    files = {} if files is None else files
+    dod_desc, _ = write_pyramid(rasters.dod, rasters.shape, f"pairs/{key}-dod", files=files)
+    before_desc, _ = write_pyramid(rasters.before, rasters.shape, f"pairs/{key}-before", files=files)
     s = result.summary
     ext = {}
     for k in ("max_rise", "max_drop"):
@@ -135,19 +159,19 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
         if e and "lon_deg" in e:
             ext[k] = {"lon_deg": e["lon_deg"], "lat_deg": e["lat_deg"], "value_m": e["value_m"]}
     big = max(ext.values(), key=lambda e: abs(e["value_m"]), default=None)
-    tr = hf.transform
+    tr = rasters.transform
     meta = {
         "key": key,
         "from": labels[0],
         "to": labels[1],
         "dates": list(dates),
         "grid": {
-            "shape": list(dod.shape),
+            "shape": list(rasters.shape),
             "transform": [tr.a, tr.b, tr.c, tr.d, tr.e, tr.f],
             "cell_area_m2": float(unc.cell_area_m2),
         },  # fmt: skip
         "lattice": lattice(hf),
-        "drape": drape_map(hf),
+        "drape": drape_map(hf, (rasters.transform, rasters.shape)),
         "error_model": {
             "sigma_m": unc.sigma_m,
             "t": unc.t,
@@ -167,7 +191,7 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
         "rasters": {"dod": dod_desc, "before": before_desc},
         "olympic_pool_m3": OLYMPIC_POOL_M3,
     }
-    return meta, {**dod_files, **before_files}
+    return meta, files
 
 
 def pairs_of(epochs: list[str]) -> list[tuple[str, str]]:

@@ -18,16 +18,16 @@ A :class:`SitePlan` holds:
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping, MutableMapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from terralod.site.data import epoch_label, pair_payload, pairs_of
+from terralod.site.data import PairRasters, epoch_label, pair_payload, pairs_of
 from terralod.site.tiles import ENCODING
 
-__all__ = ["PlannedPair", "SiteOptions", "SitePlan", "plan_site", "plan_store_site"]
+__all__ = ["PlannedPair", "SiteOptions", "SitePlan", "plan_site", "plan_store_site", "plan_windowed_site"]
 
 
 @dataclass(frozen=True)
@@ -188,3 +188,45 @@ def plan_store_site(terrain: Any, options: SiteOptions = SiteOptions(), *, measu
     title = f"{stem}: how the ground changed" if measure else stem
     return plan_site(epochs, title=title, elevation_range_m=terrain.elevation_range_m, options=options,
                      measure=measure)  # fmt: skip
+
+
+def plan_windowed_site(
+    names: tuple[str, str],
+    result: Any,
+    rasters: PairRasters,
+    *,
+    crs: Any,
+    valid_cells: Any,
+    title: str,
+    elevation_range_m: Sequence[float],
+    files: MutableMapping[str, bytes],
+    options: SiteOptions = SiteOptions(),
+) -> SitePlan:
+    """The plan of a site of one pair measured window by window (``terralod change`` over a region, or of two
+    epochs of a store, with ``--site``; :func:`terralod.change.windowed.measure_change_windowed`): ``result``
+    is that pair's (its arrays the report's decimated copies), ``rasters`` the full grid's difference and
+    BEFORE's heights read in strips, their tiles put in ``files`` (on disk for a region). ``valid_cells()``
+    gives BEFORE's valid cells once its rows have been read (the area). The page is the same as a pair's
+    measured in memory: level 0 of the pyramids is each cell's own value, the figures are the result's."""
+    from terralod.export.geodesy import Geodesy
+
+    a, b = names
+    dates = _dates(a, b)
+    meta, files = pair_payload(result, dates, (a, b), "0", rasters=rasters, files=files)
+    t = rasters.transform
+    h, w = rasters.shape
+    geo = Geodesy(crs, geographic=True)
+    lo, hi = elevation_range_m
+    return SitePlan(
+        heights=MappingProxyType({**height_words(geo.vertical), "conversion": geo.vertical_record()}),
+        title=title,
+        epochs=(a, b),
+        pairs=(PlannedPair(a, b, dates, result),),
+        bounds_deg=geo.lonlat_bounds((t.c, t.f + h * t.e, t.c + w * t.a, t.f)),
+        elevation_range_m=(float(lo), float(hi)),
+        area_km2=float(valid_cells()) * abs(t.a * t.e) / 1e6,
+        keep_error_m=result.uncertainty.level_of_detection_m if options.prune else 0.0,
+        share_tiles=options.share_tiles,
+        pair_meta=(meta,),
+        files=files,
+    )

@@ -26,13 +26,15 @@ from __future__ import annotations
 
 import gzip
 import hashlib
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator, MutableMapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["ENCODING", "NODATA_Q", "STEP_M", "TILE_PX", "decode_tile", "encode_tile", "raster_rows",
-           "write_pyramid"]  # fmt: skip
+__all__ = ["ENCODING", "NODATA_Q", "STEP_M", "TILE_PX", "FolderFiles", "decode_tile", "encode_tile",
+           "raster_rows", "write_pyramid"]  # fmt: skip
 
 #: Samples per tile side.
 TILE_PX = 256
@@ -132,21 +134,26 @@ class _Level:
             self.next.finish()
 
 
-def write_pyramid(read: RowReader, shape: tuple[int, int], prefix: str, *, strip_rows: int = 4 * TILE_PX
-                  ) -> tuple[dict[str, Any], dict[str, bytes]]:  # fmt: skip
+def write_pyramid(read: RowReader, shape: tuple[int, int], prefix: str, *, strip_rows: int = 4 * TILE_PX,
+                  files: MutableMapping[str, bytes] | None = None,
+                  ) -> tuple[dict[str, Any], MutableMapping[str, bytes]]:  # fmt: skip
     """The pyramid of a raster of ``shape`` whose rows ``read(row0, row1)`` gives (float metres, NaN = no data),
-    read ``strip_rows`` at a time: (its description for the pair's JSON, {file name: bytes}). The description
-    holds ``url`` (``prefix``), ``tile_px``, each level's ``shape`` and ``tiles`` (which exist) and ``sha256``
-    (of every tile's name and bytes: two pyramids of the same digest are the same files)."""
+    read ``strip_rows`` at a time: (its description for the pair's JSON, {file name: bytes}: ``files`` when
+    given, with this pyramid's tiles added). The description holds ``url`` (``prefix``), ``tile_px``, each
+    level's ``shape`` and ``tiles`` (which exist) and ``sha256`` (of every tile's name and bytes: two
+    pyramids of the same digest are the same files)."""
     h, w = int(shape[0]), int(shape[1])
-    files: dict[str, bytes] = {}
+    files = {} if files is None else files
+    own: list[str] = []
     written: dict[int, set[tuple[int, int]]] = {}
     shapes: dict[int, tuple[int, int]] = {}
 
     def emit(k: int, tr: int, tc: int, block: np.ndarray) -> None:
         written.setdefault(k, set())
         if np.isfinite(block).any():
-            files[f"{prefix}/{k}/{tr}_{tc}.i32.gz"] = encode_tile(block)
+            name = f"{prefix}/{k}/{tr}_{tc}.i32.gz"
+            files[name] = encode_tile(block)
+            own.append(name)
             written[k].add((tr, tc))
 
     top = _Level(0, (h, w), emit)
@@ -167,10 +174,40 @@ def write_pyramid(read: RowReader, shape: tuple[int, int], prefix: str, *, strip
         have = written.get(k, set())
         levels.append({"shape": [lh, lw], "tiles": "".join("1" if (r, c) in have else "0"
                                                           for r in range(nr) for c in range(nc))})  # fmt: skip
-    for name in sorted(files):
+    for name in sorted(own):
         digest.update(name[len(prefix) :].encode() + b"\0" + files[name])
     desc = {"url": prefix, "tile_px": TILE_PX, "levels": levels, "sha256": digest.hexdigest()}
     return desc, files
+
+
+class FolderFiles(MutableMapping[str, bytes]):
+    """A mapping of file names to bytes kept as files under ``root`` (the tiles of a region's pyramids, which
+    would not fit in memory as a dict): setting writes the file, getting reads it back."""
+
+    def __init__(self, root: str | os.PathLike[str]) -> None:
+        self.root = Path(root)
+        self._names: set[str] = set()
+
+    def __setitem__(self, name: str, data: bytes) -> None:
+        f = self.root / name
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_bytes(data)
+        self._names.add(name)
+
+    def __getitem__(self, name: str) -> bytes:
+        if name not in self._names:
+            raise KeyError(name)
+        return (self.root / name).read_bytes()
+
+    def __delitem__(self, name: str) -> None:
+        self._names.remove(name)
+        (self.root / name).unlink()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(sorted(self._names))
+
+    def __len__(self) -> int:
+        return len(self._names)
 
 
 def array_rows(a: np.ndarray) -> RowReader:
