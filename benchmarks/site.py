@@ -64,8 +64,8 @@ def size_figures(site: Path) -> dict:
     largest = max((f for f in site.rglob("*") if f.is_file()), key=lambda f: f.stat().st_size)
     largest_data = max((f for p in ("epochs", "pairs") for f in (site / p).rglob("*") if f.is_file()),
                        key=lambda f: f.stat().st_size)  # fmt: skip
-    refs = sum(
-        json.loads(t.read_text()).__repr__().count(".glb") for t in (site / "epochs").glob("*/tileset.json")
+    refs = sum(  # every tileset file (the root and the external ones it splits into)
+        json.loads(t.read_text()).__repr__().count(".glb") for t in (site / "epochs").glob("*/tileset*.json")
     )
     return {"bytes": total, "parts": parts, "epochs": len(m["epochs"]), "pairs": len(m["pairs"]), "area_km2": cells_km2,
             "bytes_per_km2": total / cells_km2, "data_bytes_per_km2": (total - parts["cesium"]) / cells_km2,

@@ -226,6 +226,7 @@ def test_site_folder_is_whole_and_names_no_machine(change_run: Path) -> None:
                 assert (site / "epochs" / str(i) / n["content"]["uri"]).resolve().is_file()
     h, w = pair["grid"]["shape"]
     assert pair["rasters"]["dod"]["levels"][0]["shape"] == [h, w]  # the tiles: tests/test_site_tiles.py
+    assert not [p for p in site.rglob(".*")]  # nothing hidden is published (an export's journal, a temporary)
     assert m["rasters"]["step_m"] <= 0.001
     home = str(Path.home())
     for f in [*site.glob("*.json"), *site.glob("pairs/*.json"), site / "README.txt", change_run / "report.html",

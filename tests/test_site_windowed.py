@@ -122,5 +122,6 @@ def test_each_epoch_stops_at_the_level_of_detection(runs: tuple[Path, Path]) -> 
                 assert n["geometricError"] <= lod
         assert leaves > 1
     assert not list(windowed.rglob("*.terra"))  # the stores were scratch
+    assert not list(site.rglob(".*"))  # nor the exports' journals
     biggest = max((p.stat().st_size for p in site.rglob("*") if p.is_file()), default=0)
     assert biggest <= 8 << 20

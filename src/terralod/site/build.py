@@ -231,12 +231,14 @@ def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
     """The site of ``plan`` into ``tmp``: each of ``terrains`` (one per epoch, in order) as 3D Tiles, pruned
     and shared as the plan says, the pairs' files, the manifest, the page and CesiumJS."""
     from terralod.export.tiles3d import export_3dtiles, split_tileset
+    from terralod.output import RECORDS
 
     rep = SiteReport(tmp, epochs=len(plan.epochs), pairs=len(plan.pairs), area_km2=plan.area_km2)
     (tmp / "epochs").mkdir()
     pruned = 0
     for i, t in enumerate(terrains):
         export_3dtiles(t, tmp / "epochs" / str(i), split_levels=None)  # pruned and shared whole, then split
+        (tmp / "epochs" / str(i) / RECORDS).unlink(missing_ok=True)  # the export's own journal, not the site's
         pruned += prune_tiles(tmp / "epochs" / str(i), plan.keep_error_m)
     rep.keep_error_m = plan.keep_error_m
     shared = share_tiles(tmp / "epochs", len(terrains)) if plan.share_tiles else 0
