@@ -74,7 +74,9 @@ def size_figures(site: Path) -> dict:
             "largest_data_file": [largest_data.relative_to(site).as_posix(), largest_data.stat().st_size]}  # fmt: skip
 
 
-def browser_times(site: Path, epochs: list[str], runs: int) -> dict:
+def browser_times(site: Path, epochs: list[str], runs: int, shots: str = "") -> dict:
+    """Open the site ``runs`` times in headless Chromium; with ``shots`` (a path prefix), the first run's first
+    full view, its "largest change" view and its swipe are saved as PNGs."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -87,9 +89,13 @@ def browser_times(site: Path, epochs: list[str], runs: int) -> dict:
         steps += [{"op": "setEpoch", "args": [e]} for e in switches]
         steps.append({"op": "setSwipe", "args": [epochs[0], epochs[-1], 0.5]})
         out = []
-        for _ in range(runs):
-            job = {"url": f"http://127.0.0.1:{port}/", "shots": "", "steps": steps, "timeoutMs": 240000,
-                   "width": 1280, "height": 720}  # fmt: skip
+        for k in range(runs):
+            run_steps = steps
+            if shots and k == 0:
+                run_steps = [{**steps[0], "shot": "first-view"}, *steps[1:-1], {**steps[-1], "shot": "swipe"},
+                             {"op": "press", "args": ["largest"], "shot": "largest", "settleMs": 6000}]  # fmt: skip
+            job = {"url": f"http://127.0.0.1:{port}/", "shots": shots if k == 0 else "", "steps": run_steps,
+                   "timeoutMs": 240000, "width": 1280, "height": 720}  # fmt: skip
             r = subprocess.run(["node", str(ROOT / "benchmarks" / "web" / "site_check.mjs")], input=json.dumps(job),
                                capture_output=True, text=True, timeout=600, cwd=ROOT)  # fmt: skip
             out.append(json.loads(r.stdout.strip().splitlines()[-1]))
@@ -114,6 +120,8 @@ def main() -> None:
     ap.add_argument("--no-series", action="store_true")
     ap.add_argument("--mosaic", type=int, default=0, metavar="N",
                     help="also a pair of N x N real SRTM3 tiles with a planted mound and pit (change_region.py's)")  # fmt: skip
+    ap.add_argument("--shots", default="", metavar="DIR",
+                    help="save each site's first full view, swipe and largest-change view as PNGs in DIR")  # fmt: skip
     a = ap.parse_args()
     cases = {"St Helens pair (2000, 2007)": [SHARED / p for p in PAIR]}
     if not a.no_series:
@@ -126,7 +134,11 @@ def main() -> None:
             site, secs, rss_mib = make_site(inputs, Path(tmp) / f"site{k}")
             sz = size_figures(site)
             epochs = [e["name"] for e in json.loads((site / "site.json").read_text())["epochs"]]
-            tm = browser_times(site, epochs, a.runs)
+            shots = ""
+            if a.shots:
+                Path(a.shots).mkdir(parents=True, exist_ok=True)
+                shots = str(Path(a.shots).resolve() / f"site{k}-")
+            tm = browser_times(site, epochs, a.runs, shots)
             payload["sites"][name] = {"size": sz, "browser": tm, "change_site_seconds": secs,
                                       "change_site_peak_rss_mib": rss_mib}  # fmt: skip
             rows.append([name, sz["epochs"], sz["pairs"], f"{sz['bytes'] / 1e6:.1f}", f"{sz['parts']['cesium'] / 1e6:.1f}",
