@@ -555,7 +555,12 @@
       const { lon_deg, lat_deg } = P.largest;
       const r = await S.changeAt(lon_deg, lat_deg, a, b);
       const target = Cesium.Cartesian3.fromDegrees(lon_deg, lat_deg, r.after_m || 0);
-      page.viewer.camera.flyToBoundingSphere(new Cesium.BoundingSphere(target, 600), { offset: new Cesium.HeadingPitchRange(0, Cesium.Math.toRadians(-40), 2500), duration: 2 });
+      // far enough to see the change around it: three radii of a disc of the area that changed measurably
+      // (St Helens' dome: 2.3 km, so the 2.5 km floor; a 47 km² mound: 12 km), at most 200 km
+      const t = P.totals || {};
+      const area = Math.max(t.area_gain_m2 || 0, t.area_loss_m2 || 0);
+      const range = Math.min(200000, Math.max(2500, 3 * Math.sqrt(area / Math.PI)));
+      page.viewer.camera.flyToBoundingSphere(new Cesium.BoundingSphere(target, range / 4), { offset: new Cesium.HeadingPitchRange(0, Cesium.Math.toRadians(-40), range), duration: 2 });
       $("answer").textContent = await describeChange(lon_deg, lat_deg);
     });
   }
