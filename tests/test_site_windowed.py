@@ -125,3 +125,32 @@ def test_each_epoch_stops_at_the_level_of_detection(runs: tuple[Path, Path]) -> 
     assert not list(site.rglob(".*"))  # nor the exports' journals
     biggest = max((p.stat().st_size for p in site.rglob("*") if p.is_file()), default=0)
     assert biggest <= 8 << 20
+
+
+def test_two_epochs_of_a_store_make_the_same_pair(
+    runs: tuple[Path, Path], shared_data: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``change STORE --from A --to B --site`` read window by window (the threshold lowered to take that path
+    on a small store): its 3D Tiles are the store's own epochs, its pair the folder pair's (the same grid and
+    samples: the same description and the same tiles)."""
+    import terralod.cli.change as change_cli
+
+    store = tmp_path / "pair.terra"
+    for args in (["build", str(shared_data / BEFORE), "-o", str(store), "--epoch", "2000-09-25"],
+                 ["update", str(store), str(shared_data / AFTER), "--epoch", "2007-07-05"]):  # fmt: skip
+        try:
+            main(args)
+        except SystemExit as exc:
+            assert exc.code in (0, None)
+    monkeypatch.setattr(change_cli, "WINDOWED_MIN_CELLS", 0)
+    _change([str(store), "--from", "2000-09-25", "--to", "2007-07-05", "-o", str(tmp_path / "out")])
+    assert "windowed" in json.loads((tmp_path / "out/summary.json").read_text())
+    got = json.loads((tmp_path / "out/site/pairs/0.json").read_text())
+    want = json.loads((runs[0] / "site/pairs/0.json").read_text())
+    for key in ("grid", "lattice", "legend", "rasters", "error_model"):
+        assert got[key] == want[key], key
+    for key, v in want["totals"].items():
+        assert got["totals"][key] == pytest.approx(v, rel=1e-9), key
+    for i in (0, 1):
+        assert (tmp_path / "out/site/epochs" / str(i) / "tileset.json").is_file()
+    assert not list((tmp_path / "out").rglob("*.terra"))
