@@ -238,7 +238,9 @@ def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
     pruned = 0
     for i, t in enumerate(terrains):
         export_3dtiles(t, tmp / "epochs" / str(i), split_levels=None)  # pruned and shared whole, then split
-        (tmp / "epochs" / str(i) / RECORDS).unlink(missing_ok=True)  # the export's own journal, not the site's
+        (tmp / "epochs" / str(i) / RECORDS).unlink(
+            missing_ok=True
+        )  # the export's own journal, not the site's
         pruned += prune_tiles(tmp / "epochs" / str(i), plan.keep_error_m)
     rep.keep_error_m = plan.keep_error_m
     shared = share_tiles(tmp / "epochs", len(terrains)) if plan.share_tiles else 0
@@ -347,8 +349,10 @@ def site_from_windowed(sides: Sequence[Any], names: Sequence[str], result: Any, 
     Tiles come from a store built out of core (:func:`terralod.pyramid.distributed.build_store_windowed`, in
     the output's scratch folder, never part of the site) or, for two epochs of ``store``, from that store;
     the pair's rasters are read in strips of rows from ``dod.tif`` and BEFORE's source and their tiles kept on
-    disk (:func:`terralod.site.plan.plan_windowed_site`). Nothing here holds a whole grid: the memory is the
-    out-of-core build's, then the 3D Tiles export's, then a strip of rows and two tile rows a pyramid level."""
+    disk (:func:`terralod.site.plan.plan_windowed_site`). The memory is the out-of-core build's, then the 3D
+    Tiles export's, then a strip of rows and two tile rows a pyramid level; one exception: the 3D Tiles of a
+    store's epochs read each epoch's grid whole to drop its nodata triangles
+    (:func:`terralod.export.common.source_heightfield`), as ``terralod export`` of an epoch does."""
     from contextlib import ExitStack
 
     import numpy as np

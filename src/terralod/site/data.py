@@ -186,8 +186,14 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
         "summary": summary_lines if summary_lines is not None else plain_summary(result, dates),
         "totals": {
             k: s[k]
-            for k in ("net_m3", "net_uncertainty_m3", "gain_m3_above_lod", "loss_m3_above_lod", "area_gain_m2",
-                      "area_loss_m2")  # fmt: skip
+            for k in (
+                "net_m3",
+                "net_uncertainty_m3",
+                "gain_m3_above_lod",
+                "loss_m3_above_lod",
+                "area_gain_m2",
+                "area_loss_m2",
+            )  # fmt: skip
         },
         "largest": big,
         "rasters": {"dod": dod_desc, "before": before_desc},
