@@ -181,4 +181,17 @@ def test_the_tileset_files_made_as_they_go_are_the_split_whole_tileset(store: Pa
                     got = list(view.tileset_files(part, levels))
                     assert [k for k, _ in got] == [k for k, _ in want]
                     assert [json.dumps(v) for _, v in got] == [json.dumps(v) for _, v in want], (path, levels)
+            made = [0]  # the files go as they are made: the first before most of the tree is
+            head = view._tile_head
+
+            def counted(*a, _head=head, _made=made):  # noqa: ANN001, ANN202
+                _made[0] += 1
+                return _head(*a)
+
+            view._tile_head = counted
+            gen = view.tileset_files(None, 1)
+            next(gen)
+            first = made[0]
+            rest = list(gen)
+            assert rest and first < made[0] / 2, (path, first, made[0])
     assert roots[0] == 1 and roots[1] > 1, roots

@@ -74,7 +74,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -411,39 +411,46 @@ class Tiles3D:
         16-tile SRTM3 store: some 1.1 GB at the 853,358 nodes of 256 tiles)."""
         self._part = None if part is None or part.whole else self.part_nodes(part)
         self._part_from = 0 if part is None else int(part.min_zoom)
-        done: list[tuple[str, dict[str, Any]]] = []
         counter = [0]
         head = self._tileset_head()
         asset = head["asset"]
+        File = tuple[str, dict[str, Any]]
 
-        def cut(code: Any, above: np.ndarray, depth: int) -> dict[str, Any]:
-            # split_tileset's cut, made from the tree as it goes (the same keys in the same order)
+        def cut(code: Any, above: np.ndarray, depth: int) -> Generator[File, None, dict[str, Any]]:
+            # split_tileset's cut, made from the tree as it goes (the same keys in the same order); yields
+            # each external file as its subtree is done and returns the node's tile
             tile, c, kids = self._tile_head(code, above)
             if depth > 0 and depth % levels == 0 and kids:
                 counter[0] += 1
                 name = f"tileset-{counter[0]}.json"
                 root = {k: v for k, v in tile.items() if k != "transform"}
-                root["children"] = [cut(k, c, 1) for k in kids]
+                children = []
+                for k in kids:
+                    children.append((yield from cut(k, c, 1)))
+                root["children"] = children
                 root["refine"] = "REPLACE"
-                done.append((name, {"asset": asset, "geometricError": tile["geometricError"], "root": root}))
+                yield name, {"asset": asset, "geometricError": tile["geometricError"], "root": root}
                 ref = {k: tile[k] for k in ("boundingVolume", "geometricError", "transform") if k in tile}
                 ref["content"] = {"uri": name}
                 return ref
             if kids:
-                tile["children"] = [cut(k, c, depth + 1) for k in kids]
+                children = []
+                for k in kids:
+                    children.append((yield from cut(k, c, depth + 1)))
+                tile["children"] = children
             return tile
 
         try:
             roots = [c for c in self.children.get(None, []) if self._part is None or c in self._part]
             zero = np.zeros(3)
             if len(roots) == 1:
-                root = cut(roots[0], zero, 0)
+                root = yield from cut(roots[0], zero, 0)
             else:  # split_tileset cuts the made-up root's children at depth 1
-                kids = [cut(c, zero, 1) for c in roots]
+                kids = []
+                for c in roots:
+                    kids.append((yield from cut(c, zero, 1)))
                 root = self._common_root(kids)
             root["refine"] = "REPLACE"
-            while done:
-                yield done.pop(0)
             yield "tileset.json", {**head, "root": root}
         finally:
             self._part, self._part_from = None, 0
