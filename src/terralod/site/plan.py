@@ -116,6 +116,11 @@ def height_words(vertical: Any) -> dict[str, str]:
     return {"datum": vertical.key, "words": "as surveyed (the survey does not say above what)"}
 
 
+def _heights(geo: Any) -> Mapping[str, Any]:
+    """The plan's ``heights``: the page's words for them and what the 3D Tiles did with them."""
+    return MappingProxyType({**height_words(geo.vertical), "conversion": geo.vertical_record()})
+
+
 def _dates(a: str, b: str) -> tuple[str | None, str | None]:
     return (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
 
@@ -163,7 +168,7 @@ def plan_site(
     lo, hi = elevation_range_m
     geo = Geodesy(first.crs, geographic=True)
     return SitePlan(
-        heights=MappingProxyType({**height_words(geo.vertical), "conversion": geo.vertical_record()}),
+        heights=_heights(geo),
         title=title,
         epochs=tuple(names),
         pairs=tuple(pairs),
@@ -218,7 +223,7 @@ def plan_windowed_site(
     geo = Geodesy(crs, geographic=True)
     lo, hi = elevation_range_m
     return SitePlan(
-        heights=MappingProxyType({**height_words(geo.vertical), "conversion": geo.vertical_record()}),
+        heights=_heights(geo),
         title=title,
         epochs=(a, b),
         pairs=(PlannedPair(a, b, dates, result),),
