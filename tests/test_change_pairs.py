@@ -37,7 +37,7 @@ from scipy import ndimage
 import change_plants
 from change_plants import FLATTEST, TERRAINS, bowl, lake, landslide, make_after
 from terralod import read_heightfield
-from terralod.change.coregister import nmad
+from terralod.change.coregister import MAX_SHIFT_SE_CELLS, nmad
 from terralod.change.difference import dem_of_difference
 from terralod.change.report import plain_summary
 from terralod.change.volumes import budget, measure_change
@@ -87,8 +87,11 @@ def check_pair(
     out = {"mode": co["mode"], "shift_err_cells": err_cells, "bias_err_m": s["shift_m"][2] - want[2],
            "shift_se_cells": co["shift_se_cells"]}  # fmt: skip
     sentences = " ".join(plain_summary(r, (None, None)))
-    if can == "shift":
-        assert co["mode"] == "shift and bias", (terrain, co)
+    if can == "shift" and co["mode"] != "shift and bias":
+        # sloping ground enough for a shift in general; a draw may still leave the fit above the acceptance
+        # bar (a 1.5x coarser AFTER, a shift of several cells and >= 1 m of noise on the coast: ±0.11 cell):
+        # declined then by the rule, and said
+        assert co["shift_se_cells"] > MAX_SHIFT_SE_CELLS, (terrain, co)
     if can == "bias":
         assert co["mode"] == "bias only", (terrain, co)
     if co["mode"] == "shift and bias":  # a shift is reported only when it is right
@@ -144,6 +147,14 @@ def test_planted_pair_recovered(terrain, shift_px, bias_m, noise_m, factor, seed
     check_pair(
         terrain, shift_px, bias_m, noise_m, factor, seed, method, max_err_cells=0.2 if coarse_prairie else 0.1
     )
+
+
+def test_a_coast_draw_whose_shift_is_declined_stays_honest() -> None:
+    """A draw CI met: the coast, AFTER 1.5x coarser, shifted (4.0, -3.18) cells, 1.1 m of noise. Its 773
+    sloping stable cells leave the shift uncertain by ±0.11 cell, over the acceptance bar: the bias alone
+    is fitted and said, and the volumes, their intervals and σ still hold (check_pair's assertions)."""
+    out = check_pair("coast_kattegat", (4.0, -3.18), 2.945, 1.097, 1.5, 7516, "xdem")
+    assert out["mode"] == "bias only" and out["shift_se_cells"] > MAX_SHIFT_SE_CELLS
 
 
 def test_prairie_coarser_after_seeds_0_to_9() -> None:

@@ -101,14 +101,19 @@ def test_adaptive_ladder_from_a_decimated_root_window_is_the_same_in_and_out_of_
 )  # fmt: skip
 def test_streamed_plan_is_the_in_memory_plan(h: int, w: int, m: int, strip: int, seed: int) -> None:
     """The streamed scan (strips of any height, merged up the quadtree) gives plan_quantisation's lattices for
-    both kinds of mesher and Heightfield.digest's digest."""
+    both kinds of mesher, with and without
+    an epoch store's headroom, Heightfield.digest's digest and the elevation range."""
     z = fractal_terrain(h, w, seed=seed, relief_m=300.0)
     hf = Heightfield.from_array(z, 10.0)
     pyr = TilePyramid(w, h, m)
     plan = scan_source(ArraySource(hf), pyr, strip_samples=strip)
     assert plan.digest == hf.digest()
-    assert plan.quant_grid == plan_quantisation(hf, pyr, grid_vertices=True)
-    assert plan.quant_all == plan_quantisation(hf, pyr, grid_vertices=False)
+    for grid in (True, False):
+        for headroom in (False, True):  # a store of epochs plans its lattice with headroom
+            assert plan.quant(grid, headroom) == plan_quantisation(
+                hf, pyr, grid_vertices=grid, headroom=headroom
+            )
+    assert plan.z_range_m == hf.valid_range_m()
 
 
 @pytest.mark.parametrize("method", ["chunked", "cohesion"])

@@ -253,11 +253,21 @@ class EpochTables:
     def start_first_epoch(self, name: str, hf: Any) -> int:
         """A build with ``--epoch``: begin (or, resumed, find) the store's first epoch ``name`` and keep
         the heightfield ``hf``'s samples with it. Tiles already in table ``tiles`` join its map."""
+        return self.start_first_epoch_from(
+            name, epoch_record(hf, "build"), lambda eid: self.put_epoch_source(eid, hf.elevation_m, hf.valid),
+            hf.valid_range_m(),
+        )  # fmt: skip
+
+    def start_first_epoch_from(self, name: str, record: dict[str, Any], put_source: Any,
+                               z_range_m: tuple[float, float]) -> int:  # fmt: skip
+        """:meth:`start_first_epoch` of a grid never held whole: ``record`` (:func:`epoch_record`),
+        ``put_source(eid)`` keeps the samples (e.g. :meth:`put_epoch_source_strips`), ``z_range_m`` their
+        elevation range."""
         from terralod.errors import BuildMismatchError
 
         rows = self.epoch_rows()
         if not rows:
-            eid = self.begin_epoch(name, epoch_record(hf, "build"))
+            eid = self.begin_epoch(name, record)
             with self._conn:
                 self._conn.execute(
                     f"INSERT OR REPLACE INTO epoch_tiles SELECT {eid}, level, x, y, 0 FROM tiles"
@@ -268,15 +278,18 @@ class EpochTables:
             )
         else:
             eid = int(rows[0]["id"])
-        if self.epoch_source(name) is None:
-            self.put_epoch_source(eid, hf.elevation_m, hf.valid)
-        self.widen_colour_range(hf)
+        if self.epoch_source_id(name) is None:
+            put_source(eid)
+        self.widen_colour_range_m(*z_range_m)
         return eid
 
     def widen_colour_range(self, hf: Any) -> None:
         """Record in meta ``colour_range_m`` the elevation range of every epoch so far (with ``hf``'s), so
         all epochs are drawn on one colour ramp (terralod.render.offscreen.terrain_colours)."""
-        lo, hi = hf.valid_range_m()
+        self.widen_colour_range_m(*hf.valid_range_m())
+
+    def widen_colour_range_m(self, lo: float, hi: float) -> None:
+        """:meth:`widen_colour_range` with an epoch's elevation range (metres) given."""
         old = self.meta.get("colour_range_m")
         if old:
             lo, hi = min(lo, float(old[0])), max(hi, float(old[1]))
@@ -409,35 +422,50 @@ class EpochTables:
         a block without a changed sample takes that epoch's block as it is (not compressed again)."""
         z = np.ascontiguousarray(elevation_m, np.float32)
         v = np.ascontiguousarray(valid, bool)
-        h, w = z.shape
         b = SOURCE_BLOCK
-        nbx = -(-w // b)
-        blocks, maps = {}, []
+        strips = (
+            (r0, z[r0 : r0 + b], v[r0 : r0 + b], None if changed is None else changed[r0 : r0 + b])
+            for r0 in range(0, z.shape[0], b)
+        )
+        self.put_epoch_source_strips(eid, z.shape[1], strips, like=like if changed is not None else None)
+
+    def put_epoch_source_strips(self, eid: int, width: int, strips: Any, *, like: int | None = None) -> None:
+        """:meth:`put_epoch_source` a strip of :data:`SOURCE_BLOCK` rows at a time (a grid never held whole):
+        ``strips`` yields ``(row0, elevation_m, valid, changed)`` for rows ``row0 = 0, 64, 128, ...`` (each 64
+        rows but the last, the grid's whole ``width``; ``changed`` None or where they differ from epoch
+        ``like``). One transaction: the epoch keeps all its samples or none (its earlier rows replaced)."""
+        b = SOURCE_BLOCK
+        nbx = -(-int(width) // b)
         prior: dict[int, str] = {}
-        if like is not None and changed is not None:
+        if like is not None:
             q = "SELECT block, digest FROM epoch_source WHERE epoch = ?"
             prior = {int(k): str(d) for k, d in self._conn.execute(q, (int(like),))}
-        for by in range(-(-h // b)):
-            for bx in range(nbx):
-                k = by * nbx + bx
-                if k in prior and not changed[by * b : (by + 1) * b, bx * b : (bx + 1) * b].any():  # type: ignore[index]
-                    maps.append((int(eid), k, prior[k]))
-                    continue
-                zz = z[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
-                vv = v[by * b : (by + 1) * b, bx * b : (bx + 1) * b]
-                raw = zz.astype("<f4").tobytes() + np.packbits(vv).tobytes()
-                data = zlib.compress(raw, 6)
-                d = hashlib.sha256(data).hexdigest()  # of the bytes stored (terralod check verifies them)
-                blocks[d] = data
-                maps.append((int(eid), by * nbx + bx, d))
         with self._conn:
-            have = {r[0] for r in self._conn.execute("SELECT digest FROM source_blocks")}
-            self._conn.executemany(
-                "INSERT INTO source_blocks VALUES (?, ?)",
-                [(d, data) for d, data in blocks.items() if d not in have],
-            )
             self._conn.execute("DELETE FROM epoch_source WHERE epoch = ?", (int(eid),))
-            self._conn.executemany("INSERT INTO epoch_source VALUES (?, ?, ?)", maps)
+            for row0, z, v, changed in strips:
+                self._put_source_strip(eid, nbx, int(row0) // b, z, v, changed, prior)
+
+    def _put_source_strip(
+        self, eid: int, nbx: int, by: int, z: Any, v: Any, changed: Any, prior: dict
+    ) -> None:
+        """One strip of :meth:`put_epoch_source_strips` (inside its transaction)."""
+        b = SOURCE_BLOCK
+        z = np.ascontiguousarray(z, np.float32)
+        v = np.ascontiguousarray(v, bool)
+        blocks, maps = {}, []
+        for bx in range(nbx):
+            k = by * nbx + bx
+            if k in prior and changed is not None and not changed[:, bx * b : (bx + 1) * b].any():
+                maps.append((int(eid), k, prior[k]))
+                continue
+            zz, vv = z[:, bx * b : (bx + 1) * b], v[:, bx * b : (bx + 1) * b]
+            raw = np.ascontiguousarray(zz).astype("<f4").tobytes() + np.packbits(vv).tobytes()
+            data = zlib.compress(raw, 6)
+            d = hashlib.sha256(data).hexdigest()  # of the bytes stored (terralod check verifies them)
+            blocks[d] = data
+            maps.append((int(eid), k, d))
+        self._conn.executemany("INSERT OR IGNORE INTO source_blocks VALUES (?, ?)", list(blocks.items()))
+        self._conn.executemany("INSERT INTO epoch_source VALUES (?, ?, ?)", maps)
 
     def epoch_source(self, name: str | None = None) -> tuple[np.ndarray, np.ndarray] | None:
         """(elevation_m float32 (H, W), valid bool) of epoch ``name`` (default: the selected one) exactly as
@@ -448,6 +476,12 @@ class EpochTables:
         w, h = int(self.meta["width"]), int(self.meta["height"])
         label = f"epoch {self.epoch_info(name)['name']!r}"
         return source_window(self._conn, eid, w, h, 0, 0, h, w, str(self.path), label)
+
+    def epoch_source_window(self, eid: int, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(elevation_m, valid) of rows [r0, r1), the grid's whole width, of epoch ``eid``'s kept samples
+        (an id :meth:`epoch_source_id` gave)."""
+        w, h = int(self.meta["width"]), int(self.meta["height"])
+        return source_window(self._conn, eid, w, h, r0, 0, r1, w, str(self.path), f"epoch id {eid}")
 
     def epoch_source_id(self, name: str | None = None) -> int | None:
         """The id of epoch ``name`` (default: the selected one) when the store keeps all its samples (every

@@ -1,10 +1,13 @@
-"""``terralod build`` out of core: a mosaic, ``--dask local|tcp://HOST:PORT``, or a raster too large to
-hold, built by :func:`terralod.pyramid.distributed.build_store_windowed` with a progress bar. A geographic
+"""``terralod build`` and ``terralod update`` out of core: a mosaic, ``--dask local|tcp://HOST:PORT``, or a
+raster too large to hold, built by :func:`terralod.pyramid.distributed.build_store_windowed` (an epoch added by
+:func:`terralod.pyramid.update.update_store_windowed`) with a progress bar. A geographic
 or Mercator input is a :class:`terralod.io.windowed.WarpedSource` (warped block by block, every error also
 measured against its own samples)."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -82,17 +85,10 @@ def is_region(path: str) -> bool:
     return p.is_dir() or (not p.exists() and _is_glob(path))
 
 
-def run_windowed_build(
-    input_paths: tuple[str, ...], output: str, *, tile_size: int, method: str, workers: int | None, resume: bool,
-    overwrite: bool, dask_address: str | None, dask_workers: int | None, read: dict[str, Any],
-    memory_bytes: int | None = None,
-):  # fmt: skip
-    """Open the window source, connect to Dask (before anything is written), build, close the cluster. The
-    memory budget (:func:`terralod.memory.plan_memory`) decides the units in flight: threads here, or the
-    local Dask workers, their threads and their memory limit."""
+def open_window_source(input_paths: tuple[str, ...], read: dict[str, Any]):
+    """The window source of the inputs with the read options (:func:`terralod.io.windowed.open_source`)."""
     from terralod.errors import InputError
     from terralod.io.windowed import open_source
-    from terralod.pyramid.distributed import build_store_windowed, dask_client
 
     if read.get("encoding") or read.get("tile_zxy"):
         raise InputError(
@@ -110,14 +106,19 @@ def run_windowed_build(
 
         src.crs, note = crs_with_vertical_datum(src.crs, read["vertical_datum"], src.source)
         src.notes = (*src.notes, note)
-    from terralod.io.windowed import WarpedSource
+    return src
 
-    samples = src.width * src.height
-    spill = int(SPILL_BYTES_PER_SAMPLE * samples) if isinstance(src, WarpedSource) else 0
-    own = getattr(src.original_grid, "shape", None)  # a resampled source: its own samples' positions
-    spill += int(POSITION_SPILL_BYTES_PER_SAMPLE * own[0] * own[1]) if own is not None else 0
-    check_store_space(output, samples, resume, spill)  # before a worker starts or a file is written
+
+@contextlib.contextmanager
+def windowed_runner(
+    memory_bytes: int | None, workers: int | None, dask_address: str | None, dask_workers: int | None
+) -> Iterator[tuple[int | None, Any]]:
+    """(threads, Dask client or None) within the memory budget (:func:`terralod.memory.plan_memory`: the
+    units in flight, or the local Dask workers, their threads and their memory limit); the client (and a
+    local cluster) closed after."""
+    from terralod.errors import InputError
     from terralod.memory import plan_memory
+    from terralod.pyramid.distributed import dask_client
 
     try:
         plan = plan_memory(memory_bytes, threads=workers, dask_workers=dask_workers,
@@ -131,6 +132,34 @@ def run_windowed_build(
     else:
         workers = plan.threads
     try:
+        yield workers, client
+    finally:
+        if client is not None:
+            cluster = client.cluster if dask_address == "local" else None
+            client.close()
+            if cluster is not None:
+                cluster.close()
+
+
+def run_windowed_build(
+    input_paths: tuple[str, ...], output: str, *, tile_size: int, method: str, workers: int | None, resume: bool,
+    overwrite: bool, dask_address: str | None, dask_workers: int | None, read: dict[str, Any],
+    memory_bytes: int | None = None, epoch: str | None = None,
+):  # fmt: skip
+    """Open the window source, connect to Dask (before anything is written), build, close the cluster. The
+    memory budget (:func:`terralod.memory.plan_memory`) decides the units in flight: threads here, or the
+    local Dask workers, their threads and their memory limit."""
+    from terralod.io.windowed import WarpedSource
+    from terralod.pyramid.distributed import build_store_windowed
+
+    src = open_window_source(input_paths, read)
+    samples = src.width * src.height
+    spill = int(SPILL_BYTES_PER_SAMPLE * samples) if isinstance(src, WarpedSource) else 0
+    own = getattr(src.original_grid, "shape", None)  # a resampled source: its own samples' positions
+    spill += int(POSITION_SPILL_BYTES_PER_SAMPLE * own[0] * own[1]) if own is not None else 0
+    # before a worker starts or a file is written; a store of epochs also keeps its samples (about 3 B each)
+    check_store_space(output, samples, resume, spill + (3 * samples if epoch is not None else 0))
+    with windowed_runner(memory_bytes, workers, dask_address, dask_workers) as (workers, client):
         with progress("building") as prog:
             task = prog.add_task(Path(output).name, total=None)
 
@@ -138,10 +167,25 @@ def run_windowed_build(
                 prog.update(task, completed=done, total=total)
 
             return build_store_windowed(src, output, tile_size=tile_size, method=method, workers=workers,
-                                        client=client, resume=resume, overwrite=overwrite, progress=cb)  # fmt: skip
-    finally:
-        if client is not None:
-            cluster = client.cluster if dask_address == "local" else None
-            client.close()
-            if cluster is not None:
-                cluster.close()
+                                        client=client, resume=resume, overwrite=overwrite, progress=cb,
+                                        epoch=epoch)  # fmt: skip
+
+
+def run_windowed_update(
+    input_paths: tuple[str, ...], store: str, epoch: str, *, base: str | None, resume: bool, workers: int | None,
+    dask_address: str | None, dask_workers: int | None, read: dict[str, Any], memory_bytes: int | None = None,
+):  # fmt: skip
+    """``terralod update`` of a survey read window by window: open it, connect to Dask, add the epoch."""
+    from terralod.pyramid.update import update_store_windowed
+
+    src = open_window_source(input_paths, read)
+    check_store_space(store, 0, False, int(3 * src.width * src.height))  # the epoch's samples, at most
+    with windowed_runner(memory_bytes, workers, dask_address, dask_workers) as (workers, client):
+        with progress("updating") as prog:
+            task = prog.add_task(Path(store).name, total=None)
+
+            def cb(done: int, total: int) -> None:
+                prog.update(task, completed=done, total=total)
+
+            return update_store_windowed(src, store, epoch, base=base, resume=resume, workers=workers,
+                                         client=client, progress=cb)  # fmt: skip

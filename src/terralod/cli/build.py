@@ -122,19 +122,20 @@ def build(
         )
     if workers is not None and workers < 1:
         raise click.BadParameter(f"expected >= 1, got {workers}", param_hint="--workers")
+    if epoch is not None:
+        from terralod.pyramid.update import validate_epoch_name
+
+        epoch = validate_epoch_name(epoch, output)
     if windowed_build(input_paths, dask_address, epoch, memory_bytes):
         from terralod.cli._windowed import run_windowed_build
 
         with scratch_beside(output):  # spill files (positions of a geographic source) on the store's disk
             rep = run_windowed_build(input_paths, output, tile_size=tile_size, method=method, workers=workers,
                                      resume=resume, overwrite=overwrite, dask_address=dask_address,
-                                     dask_workers=dask_workers, read=read, memory_bytes=memory_bytes)  # fmt: skip
+                                     dask_workers=dask_workers, read=read, memory_bytes=memory_bytes,
+                                     epoch=epoch)  # fmt: skip
     else:
         hf = load(input_path, **read)
-        if epoch is not None:
-            from terralod.pyramid.update import validate_epoch_name
-
-            epoch = validate_epoch_name(epoch, output)
         with scratch_beside(output):
             rep = run_build(
                 hf, output, tile_size=tile_size, method=method, workers=workers, resume=resume,
@@ -157,18 +158,14 @@ def windowed_build(
 ) -> bool:
     """True when the build reads windows (:mod:`terralod.pyramid.distributed`): a mosaic (several files, a
     folder or a quoted glob), --dask, or one GDAL raster of more samples than an in-memory build holds
-    within ``--memory`` (:func:`terralod.memory.in_memory_samples`: 62 M at 2 GiB); --epoch keeps the samples in
-    the store and builds in memory. Geographic and Mercator mosaics are warped block by block to a metric
-    grid (:class:`terralod.io.windowed.WarpedSource`)."""
+    within ``--memory`` (:func:`terralod.memory.in_memory_samples`: 62 M at 2 GiB); with --epoch the store
+    keeps the samples either way (read again in strips). Geographic and Mercator mosaics are warped block by
+    block to a metric grid (:class:`terralod.io.windowed.WarpedSource`)."""
     from terralod.cli._windowed import is_large_raster, is_region
 
     if len(input_paths) > 1 or dask_address or is_region(input_paths[0]):
-        if epoch is not None:
-            raise click.BadParameter(
-                "--epoch builds in memory; not with a mosaic or --dask", param_hint="--epoch"
-            )
         return True
-    return epoch is None and is_large_raster(input_paths[0], memory_bytes)
+    return is_large_raster(input_paths[0], memory_bytes)
 
 
 def _las_survey(input_paths: tuple[str, ...]) -> list[Path]:

@@ -486,8 +486,8 @@ def _change_windowed(inputs, output_of, out: Path, *, zones, stable, exclude, no
                 from terralod.site.build import site_from_windowed
 
                 rep = site_from_windowed(
-                    (before, after), [d or f"survey-{i + 1}" for i, d in enumerate(pair_dates)], result,
-                    tmp / "dod.tif", tmp / "site", store=inputs[0] if epoch_sides is not None else None,
+                    (before, after), [d or f"survey-{i + 1}" for i, d in enumerate(pair_dates)], [result],
+                    [tmp / "dod.tif"], tmp / "site", store=inputs[0] if epoch_sides is not None else None,
                 )  # fmt: skip
                 console.print(
                     f"site: {rep.bytes / 1e6:.1f} MB in site/ (open it with `python -m http.server` there)"

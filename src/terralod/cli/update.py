@@ -8,7 +8,7 @@ from typing import Any
 import click
 
 from terralod.cli._console import console, progress
-from terralod.cli._options import load, read_options
+from terralod.cli._options import check_raster_size, load, memory_option, read_options
 
 
 def print_update(rep: Any) -> None:
@@ -43,21 +43,46 @@ def run_update(hf, store: str, epoch: str, **kw: Any):
 
 @click.command()
 @click.argument("store")
-@click.argument("dem")
+@click.argument("dem", metavar="DEM...", nargs=-1, required=True)
 @click.option("--epoch", required=True, help="Name of the new epoch, e.g. the survey date 2007-07-05.")
 @click.option(
     "--from", "base", default=None, help="Epoch to share unchanged tiles with (default: the latest)."
 )
 @click.option("--resume", is_flag=True, help="Finish an interrupted update of the same epoch and DEM.")
 @click.option("--workers", type=click.IntRange(1, 256), default=None, help="Threads (default: all cores).")
+@click.option(
+    "--dask", "dask_address", default=None,
+    help="Rebuild on Dask (window by window): local (a LocalCluster) or tcp://HOST:PORT (a scheduler).",
+)  # fmt: skip
+@click.option(
+    "--dask-workers", type=click.IntRange(1), default=None, help="Worker processes of --dask local (2)."
+)
+@memory_option
 @read_options
-def update(store: str, dem: str, epoch: str, base, resume: bool, workers, **read: Any) -> None:
-    """Add DEM as epoch EPOCH of STORE (same grid and CRS), rebuilding only the tiles that changed."""
+def update(store: str, dem: tuple[str, ...], epoch: str, base, resume: bool, workers, dask_address,
+           dask_workers, memory_bytes, **read: Any) -> None:  # fmt: skip
+    """Add DEM as epoch EPOCH of STORE (same grid and CRS), rebuilding only the tiles that changed.
+
+    DEM may be a mosaic (several files, a folder, a quoted glob, a VRT) or a raster too large to hold: it is
+    then read window by window, compared with the base epoch's samples the store keeps (a store built with
+    ``--epoch``), and the dirty tiles rebuilt as ``terralod build`` does out of core (``--dask`` too)."""
+    from terralod.cli.build import windowed_build
     from terralod.pyramid.update import check_update
     from terralod.store import open_store
 
-    with open_store(store):  # a missing or foreign store is named before the DEM is read
-        pass
-    hf = load(dem, **read)
+    with open_store(store) as s:  # a missing or foreign store is named before the DEM is read
+        samples = int(s.meta.get("width", 0)) * int(s.meta.get("height", 0))
+    for path in dem:  # the size limit before anything is read
+        check_raster_size(path)
+    from terralod.memory import in_memory_samples
+
+    if windowed_build(dem, dask_address, epoch, memory_bytes) or samples > in_memory_samples(memory_bytes):
+        from terralod.cli._windowed import run_windowed_update
+
+        print_update(run_windowed_update(dem, store, epoch, base=base, resume=resume, workers=workers,
+                                         dask_address=dask_address, dask_workers=dask_workers, read=read,
+                                         memory_bytes=memory_bytes))  # fmt: skip
+        return
+    hf = load(dem[0], **read)
     check_update(store, hf, epoch, base=base, resume=resume)  # bad input: one line, before any progress
     print_update(run_update(hf, store, epoch, base=base, resume=resume, workers=workers))

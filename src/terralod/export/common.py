@@ -23,6 +23,7 @@ __all__ = [
     "export_inputs",
     "export_key",
     "source_heightfield",
+    "source_validity",
     "streamed_digest",
     "valid_at",
 ]
@@ -69,6 +70,85 @@ def source_heightfield(terrain: Any) -> Any:
     except Exception:  # noqa: BLE001 - a source that no longer reads is simply not used
         return None
     return hf if hf.digest() == digest else None
+
+
+#: A store epoch of more samples than this has its validity read block by block (:class:`KeptValidity`).
+WHOLE_VALIDITY_SAMPLES = 1 << 24
+
+
+def source_validity(terrain: Any) -> Any:
+    """What the exports drop nodata triangles against: :func:`source_heightfield`, except for an epoch of a
+    store of more than :data:`WHOLE_VALIDITY_SAMPLES` samples, whose validity is read only where asked
+    (:class:`KeptValidity`), never the grid whole."""
+    store = getattr(terrain, "store", None)
+    if getattr(terrain, "epochs", None) and store is not None:
+        meta = store.meta
+        if int(meta["width"]) * int(meta["height"]) > WHOLE_VALIDITY_SAMPLES:
+            eid = store.epoch_source_id(terrain.epoch)
+            if eid is not None:
+                return KeptValidity(
+                    store.path, eid, int(meta["width"]), int(meta["height"]), store.meta["transform"]
+                )
+    return source_heightfield(terrain)
+
+
+class KeptValidity:
+    """The validity of one store epoch's kept samples (:mod:`terralod.store_epochs`) where
+    :func:`valid_at` asks: ``valid[rows, cols]`` reads only the 64 x 64 blocks those samples fall in (each
+    checked against its digest), through a read-only connection per thread. ``valid.all()`` answers False
+    (unknown without reading every block: the triangles are checked)."""
+
+    def __init__(self, path: Any, eid: int, width: int, height: int, transform: Any) -> None:
+        import threading
+
+        from affine import Affine
+
+        self.path, self.eid, self.width, self.height = str(path), int(eid), int(width), int(height)
+        self.transform = Affine(*list(transform)[:6])
+        self._local = threading.local()
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k != "_local"}  # connections stay per process
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        import threading
+
+        self.__dict__.update(state)
+        self._local = threading.local()
+
+    @property
+    def valid(self) -> KeptValidity:
+        return self
+
+    def all(self) -> bool:
+        return False
+
+    def __getitem__(self, index: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        import sqlite3
+
+        from terralod.store_epochs import SOURCE_BLOCK, source_window
+
+        rows, cols = (np.asarray(i, np.int64) for i in index)
+        out = np.zeros(rows.shape, bool)
+        if not rows.size:
+            return out
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = self._local.conn = sqlite3.connect(
+                f"file:{self.path}?mode=ro", uri=True, check_same_thread=False
+            )
+        b = SOURCE_BLOCK
+        nbx = -(-self.width // b)
+        key = (rows // b) * nbx + cols // b
+        order = np.argsort(key, kind="stable")
+        bounds = np.flatnonzero(np.diff(key[order])) + 1
+        for part in np.split(order, bounds):
+            by, bx = divmod(int(key[part[0]]), nbx)
+            r0, c0 = by * b, bx * b
+            _, ok = source_window(conn, self.eid, self.width, self.height, r0, c0, min(r0 + b, self.height),
+                                  min(c0 + b, self.width), self.path, f"epoch id {self.eid}")  # fmt: skip
+            out[part] = ok[rows[part] - r0, cols[part] - c0]
+        return out
 
 
 #: Samples per strip of :func:`streamed_digest` (a few tens of MB at a time).

@@ -81,7 +81,7 @@ from typing import Any
 
 import numpy as np
 
-from terralod.export.common import check_exportable, export_inputs, export_key, source_heightfield, valid_at
+from terralod.export.common import check_exportable, export_inputs, export_key, source_validity, valid_at
 from terralod.export.geodesy import Geodesy
 
 __all__ = ["ExportReport", "Tiles3D", "export_3dtiles", "node_uri", "split_tileset"]
@@ -245,7 +245,7 @@ class Tiles3D:
         self._shared: np.ndarray | None = None
         self._shared_frame: tuple[np.ndarray, ...] | None = None
         self._shared_groups: np.ndarray | None = None
-        self._hf = source_heightfield(terrain) if drop_nodata else None
+        self._hf = source_validity(terrain) if drop_nodata else None
         if self._hf is not None and bool(self._hf.valid.all()):
             self._hf = None
 

@@ -113,6 +113,7 @@ from terralod.store import (
     remove_store_files,
     replacement_path,
 )
+from terralod.store_epochs import SOURCE_BLOCK, epoch_record
 from terralod.tiles import TileCode, TilePyramid, is_valid_tile_size, parent
 
 log = logging.getLogger(__name__)
@@ -207,19 +208,29 @@ class StreamPlan:
     Attributes
     ----------
     digest : :meth:`Heightfield.digest` of the source as read (filled elevations, mask, frame).
-    quant_grid, quant_all : per level, the builder's lattice for grid-vertex meshers (Chunked LOD) and
-        for meshers whose vertices may sit on any sample (cohesion).
+    range_grid_m, range_all_m : per level, the largest vertex-height range of a tile, over the level's grid
+        vertices (meshers such as Chunked LOD) and over every sample (cohesion), metres.
+    xy_frac_bits : per level, the pyramid's horizontal fractional bits.
     n_invalid : nodata samples.
+    z_range_m : (lowest, highest) valid elevation, metres.
     """
 
     digest: str
-    quant_grid: dict[int, LevelQuantisation]
-    quant_all: dict[int, LevelQuantisation]
+    range_grid_m: tuple[float, ...]
+    range_all_m: tuple[float, ...]
+    xy_frac_bits: tuple[int, ...]
     n_invalid: int
     n_samples: int
+    z_range_m: tuple[float, float] = (0.0, 0.0)
 
-    def quant(self, grid_vertices: bool) -> dict[int, LevelQuantisation]:
-        return self.quant_grid if grid_vertices else self.quant_all
+    def quant(self, grid_vertices: bool, headroom: bool = False) -> dict[int, LevelQuantisation]:
+        """The builder's lattices (:func:`~terralod.pyramid.builder.plan_quantisation`, ``headroom`` for a
+        store of epochs) from the measured ranges."""
+        out = {}
+        for k, r in enumerate(self.range_grid_m if grid_vertices else self.range_all_m):
+            rng = max(2.0 * r, r + builder.EPOCH_HEADROOM_M) if headroom else r
+            out[k] = LevelQuantisation(self.xy_frac_bits[k], max(float(rng) / 65534.0, 1e-6))
+        return out
 
 
 def scan_source(
@@ -286,13 +297,9 @@ def scan_source(
     hz.update(repr(tuple(src.transform)[:6]).encode())
     hz.update((src.crs or "").encode())
 
-    def lattices(rng: np.ndarray) -> dict[int, LevelQuantisation]:
-        return {
-            k: LevelQuantisation(pyramid.xy_frac_bits(k), max(float(rng[k]) / 65534.0, 1e-6))
-            for k in pyramid.levels
-        }
-
-    return StreamPlan(hz.hexdigest(), lattices(rng_grid), lattices(rng_all), n_invalid, h * w)
+    return StreamPlan(hz.hexdigest(), tuple(map(float, rng_grid)), tuple(map(float, rng_all)),
+                      tuple(pyramid.xy_frac_bits(k) for k in pyramid.levels), n_invalid, h * w,
+                      (zmin, zmax))  # fmt: skip
 
 
 def _ladder_read(src: WindowSource, pyramid: TilePyramid, method: str) -> tuple | None:
@@ -956,6 +963,21 @@ _AHEAD_UNITS_PER_SLOT = 4
 _EARLY_UNITS_PER_SLOT = 2
 
 
+def unit_job(shared: Any, tile_size: int, method: str, unit: list[TileCode],
+             quant: dict[int, LevelQuantisation], max_window_samples: int | None, options: dict | None) -> tuple:  # fmt: skip
+    """The arguments of :func:`build_unit` for the tiles ``unit`` of one level (a runner's job)."""
+    return (
+        shared,
+        tile_size,
+        method,
+        unit,
+        quant[unit[0][0]],
+        {c: [] for c in unit},
+        max_window_samples,
+        options,
+    )
+
+
 def _unit_order(
     pyramid: TilePyramid, todo: dict[int, np.ndarray], unit_span: int, early_units: int
 ) -> tuple[list[list[TileCode]], Iterator[list[TileCode]]]:
@@ -1032,6 +1054,13 @@ class TileErrors(MutableMapping):
             got = self._levels[level] = (np.zeros((ny, nx)), np.zeros((ny, nx)), np.zeros((ny, nx), bool))
         return got
 
+    def forget(self, level: int, mask: np.ndarray) -> None:
+        """Drop the errors of the tiles of ``level`` where the (ny, nx) ``mask`` is set."""
+        got = self._levels.get(level)
+        if got is not None:
+            self._n -= int(np.count_nonzero(got[2] & mask))
+            got[2][mask] = False
+
     def have(self, level: int) -> np.ndarray:
         """A (ny, nx) copy of which tiles of ``level`` have their errors."""
         got = self._levels.get(level)
@@ -1098,6 +1127,7 @@ def build_store_windowed(
     max_window_samples: int | None = MAX_WINDOW_SAMPLES,
     unit_span_samples: int = UNIT_SPAN_SAMPLES,
     retries: int = 3,
+    epoch: str | None = None,
 ) -> builder.BuildReport:
     """Build the tile store of a window source at ``path``, out of core (see the module docstring).
 
@@ -1111,6 +1141,10 @@ def build_store_windowed(
     max_window_samples : tiles with larger windows are meshed from a decimated copy (None: never).
     unit_span_samples : samples a side of a work unit's window (tiles grouped to about this).
     retries : Dask retries of a unit whose worker died.
+    epoch : name of the store's first epoch, as :func:`terralod.pyramid.builder.build_store`'s: the lattice
+        planned with headroom, the samples kept in the store (read again in strips of
+        :data:`~terralod.store_epochs.SOURCE_BLOCK` rows, one transaction) so that
+        :func:`update_store_windowed` can add epochs.
     """
     if isinstance(src, Heightfield):
         src = ArraySource(src)
@@ -1124,7 +1158,7 @@ def build_store_windowed(
     t_start = time.perf_counter()
     pyramid = TilePyramid(src.width, src.height, tile_size)
     plan = scan_source(src, pyramid)
-    quant = plan.quant(grid_vertices=(method == "chunked"))
+    quant = plan.quant(grid_vertices=(method == "chunked"), headroom=epoch is not None)
 
     def make_meta() -> dict:
         return builder._store_meta(_FrameMeta(src, plan, _ladder_read(src, pyramid, method)), pyramid,
@@ -1155,6 +1189,7 @@ def build_store_windowed(
         errors = TileErrors(pyramid)
         if not fresh:
             store, target = _open_or_create(p, meta_f.result(), resume, overwrite)
+            _first_epoch(store, epoch, src, plan)
             errors.update(store.each_tile_error())
         total = sum(nx * ny for nx, ny in map(pyramid.grid_count, pyramid.levels))
         n_skipped = len(errors)
@@ -1165,8 +1200,7 @@ def build_store_windowed(
         slots = runner.slots()
 
         def job(unit: list[TileCode], options: dict | None) -> tuple:
-            return (shared, tile_size, method, unit, quant[unit[0][0]], {c: [] for c in unit},
-                    max_window_samples, options)  # fmt: skip
+            return unit_job(shared, tile_size, method, unit, quant, max_window_samples, options)
 
         def jobs() -> Iterator[tuple]:
             _, now = _unit_order(
@@ -1190,9 +1224,11 @@ def build_store_windowed(
         if store is None:  # tiles built before the store exists wait here (errors recorded for parents)
             held = builder.hold_until(ordered, meta_f, errors)
             store, target = _open_or_create(p, meta_f.result(), resume, overwrite)
+            _first_epoch(store, epoch, src, plan)
         built = builder.commit_streamed(store, itertools.chain(held, ordered), errors, built,
                                         lambda n: progress(n_skipped + n, total) if progress else None)  # fmt: skip
         if n_skipped + built == total:
+            store.complete_first_epoch()
             store.set_meta("complete", True)
     except BaseException:
         runner.close()
@@ -1214,6 +1250,27 @@ def build_store_windowed(
     seconds = time.perf_counter() - t_start
     log.info("built %d tiles (%d already present) in %.2f s, out of core", built, n_skipped, seconds)
     return builder.BuildReport(p, total, built, n_skipped, seconds, src.width * src.height)
+
+
+def source_strips(
+    src: WindowSource, rows: int = SOURCE_BLOCK
+) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """``(row0, elevation_m, valid)`` of ``src`` in full-width strips of ``rows`` rows, top to bottom."""
+    for r0 in range(0, src.height, rows):
+        z, ok = src.read(r0, 0, min(r0 + rows, src.height), src.width)
+        yield r0, z, ok
+
+
+def _first_epoch(store: TileStore, epoch: str | None, src: WindowSource, plan: StreamPlan) -> None:
+    """A build with ``epoch``: begin (or find, resumed) the store's first epoch and keep ``src``'s samples
+    with it, read in strips (:meth:`~terralod.store.TileStore.start_first_epoch_from`)."""
+    if epoch is None:
+        return
+    strips = ((r0, z, ok, None) for r0, z, ok in source_strips(src))
+    store.start_first_epoch_from(
+        str(epoch), epoch_record(_FrameMeta(src, plan), "build"),
+        lambda eid: store.put_epoch_source_strips(eid, src.width, strips), plan.z_range_m,
+    )  # fmt: skip
 
 
 def _check_new_target(p: Path, overwrite: bool) -> None:

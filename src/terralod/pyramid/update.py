@@ -24,11 +24,12 @@ update leaves the earlier epochs untouched; ``resume=True`` skips the tiles alre
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,7 +40,7 @@ from affine import Affine
 
 from terralod.errors import InputError, StoreError
 from terralod.heightfield import Heightfield
-from terralod.pyramid.builder import METHODS, _level_max_range, build_tile
+from terralod.pyramid.builder import METHODS, _level_max_range, build_tile, commit_streamed
 from terralod.pyramid.cohesion import CohesionOptions
 from terralod.store import EncodedTile, TileStore
 from terralod.store_epochs import DEFAULT_EPOCH, epoch_record
@@ -136,13 +137,18 @@ def _same_crs(a: str | None, b: str | None) -> bool:
         return False
 
 
-def check_quantisation(store: TileStore, hf: Heightfield, where: str) -> None:
-    """Refuse an epoch whose relief leaves the store's fixed 16-bit vertical lattice at some level."""
+def check_quantisation(store: TileStore, hf: Any, where: str, ranges: Sequence[float] | None = None) -> None:
+    """Refuse an epoch whose relief leaves the store's fixed 16-bit vertical lattice at some level.
+    ``ranges``: each level's largest tile relief as measured by a streamed scan (else taken from ``hf``)."""
     method = str(store.meta.get("method"))
     p = store.pyramid
     for k in p.levels:
         s = p.stride(k)
-        rng = float(_level_max_range(hf.elevation_m, s, p.tile_size, s if method == "chunked" else 1))
+        rng = (
+            float(ranges[k])
+            if ranges is not None
+            else float(_level_max_range(hf.elevation_m, s, p.tile_size, s if method == "chunked" else 1))
+        )
         cap = 65534.0 * store.quantisation[k].z_step_m
         if rng > cap:
             raise InputError(
@@ -267,8 +273,12 @@ def finish_advice(store_path: str | os.PathLike[str], row: dict[str, Any]) -> st
     return f"finish it with `{cmd} --epoch {q(name)}{base} --resume` or remove it with {drop}"
 
 
-def _check_update(store: TileStore, hf: Heightfield, epoch: str, resume: bool) -> dict[str, Any] | None:
-    """Refuse an update that cannot go ahead (one line); the interrupted row of ``epoch`` when resuming."""
+def _check_update(
+    store: TileStore, hf: Any, epoch: str, resume: bool, digest: str | None = None,
+    ranges: Sequence[float] | None = None,
+) -> dict[str, Any] | None:  # fmt: skip
+    """Refuse an update that cannot go ahead (one line); the interrupted row of ``epoch`` when resuming.
+    ``hf``: the new epoch's heightfield, or a window source with its streamed ``digest`` and ``ranges``."""
     p = store.path
     if not store.complete:
         raise StoreError("is an incomplete build; finish it with `terralod build ... --resume` first", str(p))
@@ -284,13 +294,13 @@ def _check_update(store: TileStore, hf: Heightfield, epoch: str, resume: bool) -
         raise StoreError(
             f"an update to epoch {others[0]['name']!r} was interrupted; {finish_advice(p, others[0])}", str(p)
         )
-    if same is not None and same["info"].get("source_digest") != hf.digest():
+    if same is not None and same["info"].get("source_digest") != (digest or hf.digest()):
         raise StoreError(
             f"cannot resume epoch {epoch!r}: it was started from other data ({same['info'].get('source')})",
             str(p),
         )
     check_same_grid(store, hf, hf.source)
-    check_quantisation(store, hf, hf.source)
+    check_quantisation(store, hf, hf.source, ranges)
     method = str(store.meta["method"])
     if method not in METHODS:
         raise StoreError(f"was built with mesher {method!r}, which this terralod does not have", str(p))
@@ -428,3 +438,187 @@ def _rebuild(
                 if progress:
                     progress(n_skipped + built, total)
     return built, time.perf_counter() - t0
+
+
+# -- window by window -----------------------------------------------------------------------------------
+class DirtyTiles:
+    """:func:`dirty_tiles` found strip by strip: each level's (ny, nx) mask of the tiles whose source window
+    (the mesher's margin plus one sample) holds a changed sample, from the changed samples of full-width
+    strips of rows given in any order. The same tiles as :func:`dirty_tiles` of the whole mask; memory: one
+    byte a tile."""
+
+    def __init__(self, pyramid: TilePyramid, method: str) -> None:
+        self.pyramid, self.method = pyramid, method
+        self.masks = {}
+        for k in pyramid.levels:
+            nx, ny = pyramid.grid_count(k)
+            self.masks[k] = np.zeros((ny, nx), bool)
+        self.changed_samples = 0
+
+    def add(self, row0: int, changed: np.ndarray) -> None:
+        """Record the changed samples ``changed`` ((rows, W) bool) of rows ``row0 ..``."""
+        n = int(np.count_nonzero(changed))
+        if n == 0:
+            return
+        self.changed_samples += n
+        p = self.pyramid
+        h, w = p.height, p.width
+        a, b = int(row0), int(row0) + changed.shape[0]
+        tx = np.arange(self.masks[p.max_level].shape[1] + 1)
+        for k, mask in self.masks.items():
+            span = p.span(k)
+            m = window_margin(self.method, p.stride(k)) + 1
+            ny, nx = mask.shape
+            c0 = tx[:nx] * span
+            ca, cb = np.maximum(c0 - m, 0), np.minimum(c0 + span + m, w - 1) + 1
+            for ty in range(max(0, (a - span - m - 1) // span), min(ny, (b + m - 1) // span + 1)):
+                ra, rb = max(ty * span - m, 0), min(ty * span + span + m, h - 1) + 1
+                lo, hi = max(ra, a), min(rb, b)
+                if lo >= hi:
+                    continue
+                cum = np.zeros(w + 1, np.int64)
+                np.cumsum(changed[lo - a : hi - a].any(axis=0), out=cum[1:])
+                mask[ty] |= (cum[cb] - cum[ca]) > 0
+
+    def codes(self) -> list[TileCode]:
+        """The dirty tiles, finest level first."""
+        out: list[TileCode] = []
+        for k in sorted(self.masks, reverse=True):
+            ys, xs = np.nonzero(self.masks[k])
+            out += [(k, int(x), int(y)) for y, x in zip(ys.tolist(), xs.tolist(), strict=True)]
+        return out
+
+
+def update_store_windowed(
+    src: Any,
+    path: str | os.PathLike[str],
+    epoch: str,
+    *,
+    base: str | None = None,
+    resume: bool = False,
+    workers: int | None = None,
+    client: Any = None,
+    progress: Callable[[int, int], None] | None = None,
+    stop_after: int | None = None,
+    retries: int = 3,
+) -> UpdateReport:
+    """:func:`update_store` of a survey never held whole: ``src`` is a window source on the store's grid
+    (:mod:`terralod.io.windowed`: a mosaic, a region of geographic tiles warped to the store's frame) and the
+    store keeps the base epoch's samples (built with ``epoch=``, in memory or by
+    :func:`terralod.pyramid.distributed.build_store_windowed`).
+
+    1. One streamed pass over ``src`` (:func:`~terralod.pyramid.distributed.scan_source`): its digest and
+       per-level relief, refused in one line, before anything is written, when the store's fixed lattice
+       cannot hold it or the grid is not the store's.
+    2. One pass in strips of :data:`~terralod.store_epochs.SOURCE_BLOCK` rows: the base epoch's kept
+       samples and the survey's compared bit for bit (:func:`changed_samples`), the dirty tiles found
+       (:class:`DirtyTiles`: :func:`dirty_tiles`' rule), the new samples kept (a block without a change
+       shares the base's), in one transaction.
+    3. The dirty tiles rebuilt by the out-of-core builder's work units (the same runner, threads or Dask,
+       the same decimation of coarse tiles and measurement against every sample, also a resampled source's
+       own), written under the new epoch's rev, their errors made monotone with the clean children's; then
+       the epoch's map and ``complete`` in one transaction, as :func:`update_store`.
+
+    Each rebuilt tile is the tile :func:`~terralod.pyramid.distributed.build_store_windowed` makes of the
+    survey with the store's lattice; with a source read whole it is :func:`update_store`'s. Memory: a strip
+    of each epoch, the units in flight and a byte or two a tile (the dirty masks, the errors)."""
+    from terralod.pyramid import distributed as dist
+    from terralod.store_epochs import SOURCE_BLOCK
+
+    p = Path(path)
+    t_start = time.perf_counter()
+    epoch = validate_epoch_name(epoch, str(p))
+    with TileStore.open(p, epoch=base) as ro:
+        pyramid = ro.pyramid
+        check_same_grid(ro, src, src.source)  # before the pass over the survey
+        plan = dist.scan_source(src, pyramid)
+        method = str(ro.meta["method"])
+        ranges = plan.range_grid_m if method == "chunked" else plan.range_all_m
+        same = _check_update(ro, src, epoch, resume, digest=plan.digest, ranges=ranges)
+        base_src = ro.epoch_source_id(ro.epoch) if ro.has_epochs else None
+        if base_src is None:
+            raise StoreError(
+                f"keeps no samples of {'epoch ' + repr(ro.epoch) if ro.epoch else 'its tiles'} to compare a "
+                "survey with window by window; build it with `terralod build INPUT -o STORE --epoch DATE`",
+                str(p),
+            )
+    store = TileStore.open(p, writable=True, epoch=base)
+    runner = None
+    try:
+        base_epoch = str(store.epoch)
+        base_id = int(store.epoch_id or 0)
+        record = epoch_record(dist._FrameMeta(src, plan), "update", base=base_epoch)
+        if same is None:
+            eid = store.begin_epoch(epoch, record)
+        else:
+            eid = int(same["id"])
+            store.resume_epoch(eid)
+        dirty = DirtyTiles(pyramid, method)
+
+        def strips() -> Any:
+            for r0, z, ok in dist.source_strips(src, SOURCE_BLOCK):
+                ch = changed_samples(store.epoch_source_window(base_src, r0, r0 + z.shape[0]), (z, ok))
+                dirty.add(r0, ch)
+                yield r0, z, ok, ch
+
+        store.put_epoch_source_strips(eid, src.width, strips(), like=base_src)
+        errors = dist.TileErrors(pyramid)
+        errors.update(store.each_tile_error())  # the base epoch's
+        done = store.rev_tile_errors(eid)
+        errors.update(done)
+        todo = {k: m.copy() for k, m in dirty.masks.items()}
+        for k, x, y in done:
+            todo[k][y, x] = False
+        n_dirty = sum(int(m.sum()) for m in dirty.masks.values())
+        n_skipped = n_dirty - sum(int(m.sum()) for m in todo.values())
+        if stop_after is not None:
+            left = max(0, stop_after)
+            for k in sorted(todo, reverse=True):  # finest first: a tile's children come before it
+                flat = todo[k].reshape(-1)
+                at = np.flatnonzero(flat)
+                flat[at[left:]] = False
+                left = max(0, left - len(at))
+        for k, m in todo.items():
+            errors.forget(k, m)  # rebuilt: a parent waits for the new errors, not the base's
+        if progress:
+            progress(n_skipped, n_dirty)
+        runner = (
+            dist._DaskRunner(client, retries)
+            if client is not None
+            else dist._ThreadRunner(max(1, workers or os.cpu_count() or 1))
+        )
+        shared, slots = runner.share(src), runner.slots()
+        options, quant, tile_size = store.meta.get("build_options"), store.quantisation, pyramid.tile_size
+        early, rest = dist._unit_order(
+            pyramid, todo, dist.UNIT_SPAN_SAMPLES, dist._EARLY_UNITS_PER_SLOT * slots
+        )
+        jobs = (dist.unit_job(shared, tile_size, method, u, quant, dist.MAX_WINDOW_SAMPLES, options)
+                for u in itertools.chain(early, rest))  # fmt: skip
+        c_build, t_build = time.process_time(), time.perf_counter()
+        measured = (e for tiles in runner.stream(jobs, dist._AHEAD_UNITS_PER_SLOT * slots) for e in tiles)
+        built = commit_streamed(store, dist._monotone(measured, pyramid, errors), errors, 0,
+                                lambda n: progress(n_skipped + n, n_dirty) if progress else None)  # fmt: skip
+        c_build, t_build = time.process_time() - c_build, time.perf_counter() - t_build
+        complete = n_skipped + built == n_dirty
+        if complete:
+            revs = store.epoch_tile_revs(base_id)
+            for c in dirty.codes():
+                revs[c] = eid
+            record.update(tiles_rebuilt=n_dirty, tiles_shared=len(revs) - n_dirty,
+                          changed_samples=dirty.changed_samples)  # fmt: skip
+            store.commit_epoch(eid, revs, record)
+            store.widen_colour_range_m(*plan.z_range_m)
+    finally:
+        if runner is not None:
+            runner.close()
+        store.close()
+    seconds = time.perf_counter() - t_start
+    log.info(
+        "epoch %s: %d dirty tiles, %d rebuilt now, in %.2f s, window by window",
+        epoch,
+        n_dirty,
+        built,
+        seconds,
+    )
+    return UpdateReport(p, epoch, base_epoch, len(pyramid.all_codes()), n_dirty, built, n_skipped,
+                        dirty.changed_samples, seconds, t_build, complete, c_build)  # fmt: skip

@@ -14,7 +14,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from terralod.site.plan import SiteOptions, SitePlan, plan_site, plan_store_site
+from terralod.site.plan import SiteOptions, SitePlan, pair_dates, plan_site, plan_store_site
 
 #: The page's files (package data of :mod:`terralod.site`).
 PAGE_FILES = ("index.html", "site.js", "site.css")
@@ -270,20 +270,60 @@ def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
     return rep
 
 
+#: A store of epochs whose grid has more cells than this makes its site window by window.
+WINDOWED_SITE_CELLS = 1 << 24
+
+
 def site_from_store(store: str | Path, out: str | Path, *, overwrite: bool = False,
-                    coregistration: bool = True, update: bool = False) -> SiteReport:  # fmt: skip
+                    coregistration: bool = True, update: bool = False,
+                    windowed: bool | None = None) -> SiteReport:  # fmt: skip
     """The site of a store's epochs (``terralod export STORE --format site -o OUT``): every epoch's 3D Tiles,
     the pairs :func:`terralod.site.plan.plan_store_site` plans, measured as ``terralod change`` measures them.
     ``update``: rewrite, in the existing site ``out``, only the files whose bytes change (see
-    :func:`_atomic_site`)."""
+    :func:`_atomic_site`). ``windowed`` (default: a store of epochs whose grid has more than
+    :data:`WINDOWED_SITE_CELLS` cells): each pair measured window by window from the samples the store keeps
+    (:func:`terralod.change.windowed.measure_change_windowed`, as ``terralod change STORE --from --to``), its
+    rasters tiled from its ``dod.tif`` in strips (:func:`_fill_windowed`), never a grid whole."""
     from terralod.terrain import open_terrain
 
     store, out = Path(store), Path(out)
     with open_terrain(store) as terrain:
-        plan = plan_store_site(terrain, SiteOptions(coregistration=coregistration))
         names = list(terrain.epochs)
+        if windowed is None:
+            meta = getattr(terrain, "meta", {}) or {}
+            windowed = int(meta.get("width", 0)) * int(meta.get("height", 0)) > WINDOWED_SITE_CELLS
+        if windowed and len(names) >= 2:
+            return _atomic_site(out, overwrite, [store], lambda tmp: _store_site_windowed(
+                tmp, store, names, coregistration), update)  # fmt: skip
+        plan = plan_store_site(terrain, SiteOptions(coregistration=coregistration))
         terrains = [terrain.with_epoch(e) for e in names] if names else [terrain]
         return _atomic_site(out, overwrite, [store], lambda tmp: _write(tmp, plan, terrains), update)
+
+
+def _store_site_windowed(folder: Path, store: Path, names: list[str], coregistration: bool) -> SiteReport:
+    """The site of a store's epochs, each pair measured window by window (:func:`site_from_store`); the
+    pairs' ``dod.tif`` and tiles in a scratch folder beside ``folder``, removed after."""
+    import tempfile
+
+    from terralod.change.epochs import EpochSource
+    from terralod.change.windowed import measure_change_windowed
+    from terralod.site.data import pairs_of
+
+    sides = [EpochSource(store, n) for n in names]
+    by_name = dict(zip(names, sides, strict=True))
+    with tempfile.TemporaryDirectory(prefix=".site-", dir=folder.parent) as tmp:
+        scratch = Path(tmp)
+        results, dods = [], []
+        for k, (a, b) in enumerate(pairs_of(names)):
+            dod = scratch / f"{k}-dod.tif"
+            results.append(measure_change_windowed(
+                by_name[a], by_name[b], names=(f"{store.name} {a}", f"{store.name} {b}"), dod_path=dod,
+                sigma_path=scratch / f"{k}-sigma.tif", coregistration=coregistration, dates=pair_dates(a, b),
+            ))  # fmt: skip
+            dods.append(dod)
+        return _fill_windowed(folder, scratch, sides, names, results, dods, store=store,
+                              title=f"{store.stem}: how the ground changed", workers=None,
+                              options=SiteOptions(coregistration=coregistration))  # fmt: skip
 
 
 def _on_grid_of(first: Any, hf: Any) -> Any:
@@ -338,60 +378,79 @@ def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results:
     return rep
 
 
-def site_from_windowed(sides: Sequence[Any], names: Sequence[str], result: Any, dod_path: str | Path,
-                       out: str | Path, *, store: str | Path | None = None, title: str | None = None,
-                       workers: int | None = None, options: SiteOptions | None = None) -> SiteReport:  # fmt: skip
-    """The site of a pair measured window by window (``terralod change`` over a region, ``--site``).
+def site_from_windowed(sides: Sequence[Any], names: Sequence[str], results: Sequence[Any],
+                       dod_paths: Sequence[str | Path], out: str | Path, *, store: str | Path | None = None,
+                       title: str | None = None, workers: int | None = None,
+                       options: SiteOptions | None = None) -> SiteReport:  # fmt: skip
+    """The site of epochs measured window by window (``terralod change`` over a region, ``--site``).
 
-    ``sides`` are BEFORE's and AFTER's window sources (:mod:`terralod.io.windowed`; or two epochs of
-    ``store``, :class:`terralod.change.epochs.EpochSource`), ``result`` their measured change
-    (:func:`terralod.change.windowed.measure_change_windowed`) and ``dod_path`` its ``dod.tif``. Each side's 3D
-    Tiles come from a store built out of core (:func:`terralod.pyramid.distributed.build_store_windowed`, in
-    the output's scratch folder, never part of the site) or, for two epochs of ``store``, from that store;
-    the pair's rasters are read in strips of rows from ``dod.tif`` and BEFORE's source and their tiles kept on
-    disk (:func:`terralod.site.plan.plan_windowed_site`). The memory is the out-of-core build's, then the 3D
-    Tiles export's, then a strip of rows and two tile rows a pyramid level; one exception: the 3D Tiles of a
-    store's epochs read each epoch's grid whole to drop its nodata triangles
-    (:func:`terralod.export.common.source_heightfield`), as ``terralod export`` of an epoch does."""
+    ``sides`` are the epochs' window sources (:mod:`terralod.io.windowed`; or epochs of ``store``,
+    :class:`terralod.change.epochs.EpochSource`), oldest first, ``results`` and ``dod_paths`` each pair's
+    measured change (:func:`terralod.change.windowed.measure_change_windowed`) and its ``dod.tif``, in
+    :func:`~terralod.site.data.pairs_of`'s order. Each epoch's 3D Tiles come from a store built out of core
+    (:func:`terralod.pyramid.distributed.build_store_windowed`, in the output's scratch folder, never part of
+    the site) or, for epochs of ``store``, from that store; the pairs' rasters are read in strips of rows from
+    each ``dod.tif`` and BEFORE's source and their tiles kept on disk
+    (:func:`terralod.site.plan.plan_windowed_site`). The memory is the out-of-core build's, then the 3D Tiles
+    export's, then a strip of rows and two tile rows a pyramid level."""
+    from terralod.output import Output
+
+    out = Path(out)
+    with Output(out) as o:
+        rep = _fill_windowed(o.folder, o.scratch, sides, names, results, dod_paths, store=store,
+                             title=title or "How the ground changed", workers=workers, options=options)  # fmt: skip
+    rep.path = out
+    return rep
+
+
+def _fill_windowed(folder: Path, scratch: Path, sides: Sequence[Any], names: Sequence[str], results: Sequence[Any],
+                   dod_paths: Sequence[str | Path], *, store: str | Path | None, title: str,
+                   workers: int | None, options: SiteOptions | None) -> SiteReport:  # fmt: skip
+    """:func:`site_from_windowed` into ``folder``, its stores and tiles in ``scratch``."""
     from contextlib import ExitStack
 
     import numpy as np
 
-    from terralod.output import Output
     from terralod.pyramid.distributed import build_store_windowed
-    from terralod.site.data import PairRasters
+    from terralod.site.data import PairRasters, pairs_of
     from terralod.site.plan import plan_windowed_site
     from terralod.site.tiles import FolderFiles, raster_rows
     from terralod.terrain import open_terrain
 
-    out = Path(out)
     epochs = tuple(_epoch_name(n, i) for i, n in enumerate(names))
-    before = sides[0]
+    by_name = dict(zip(epochs, sides, strict=True))
     valid = [0]
 
-    def before_rows(r0: int, r1: int) -> np.ndarray:
-        z, ok = before.read(r0, 0, r1, before.width)
-        valid[0] += int(np.count_nonzero(ok))
-        return np.where(ok, z, np.nan).astype("<f4")
+    def rows_of(src: Any, count: bool) -> Any:
+        def rows(r0: int, r1: int) -> np.ndarray:
+            z, ok = src.read(r0, 0, r1, src.width)
+            if count:
+                valid[0] += int(np.count_nonzero(ok))
+            return np.where(ok, z, np.nan).astype("<f4")
 
-    with Output(out) as o, ExitStack() as stack:
+        return rows
+
+    with ExitStack() as stack:
         if store is None:
             terrains = []
             for i, src in enumerate(sides):
-                build_store_windowed(src, o.scratch / f"epoch-{i}.terra", workers=workers)
-                terrains.append(stack.enter_context(open_terrain(o.scratch / f"epoch-{i}.terra")))
+                build_store_windowed(src, scratch / f"epoch-{i}.terra", workers=workers)
+                terrains.append(stack.enter_context(open_terrain(scratch / f"epoch-{i}.terra")))
         else:
             terrain = stack.enter_context(open_terrain(store))
             terrains = [stack.enter_context(terrain.with_epoch(s.epoch)) for s in sides]
-        dod_rows, shape, close = raster_rows(dod_path)
-        stack.callback(close)
+        pairs = []
+        for k, ((a, _), result, dod) in enumerate(
+            zip(pairs_of(list(epochs)), results, dod_paths, strict=True)
+        ):
+            dod_rows, shape, close = raster_rows(dod)
+            stack.callback(close)
+            before = by_name[a]
+            pairs.append((result, PairRasters(dod_rows, rows_of(before, k == 0), shape, before.transform)))
         ranges = [t.elevation_range_m for t in terrains]
         plan = plan_windowed_site(
-            epochs, result, PairRasters(dod_rows, before_rows, shape, before.transform), crs=before.crs,
-            valid_cells=lambda: valid[0], title=title or "How the ground changed",
+            epochs, pairs, crs=sides[0].crs, valid_cells=lambda: valid[0], title=title,
             elevation_range_m=(min(r[0] for r in ranges), max(r[1] for r in ranges)),
-            files=FolderFiles(o.scratch / "pair-tiles"), options=options or SiteOptions(),
+            files=FolderFiles(scratch / "pair-tiles"), options=options or SiteOptions(),
         )  # fmt: skip
-        rep = _write(o.folder, plan, terrains)
-    rep.path = out
-    return rep
+        return _write(folder, plan, terrains)

@@ -121,7 +121,28 @@ def _heights(geo: Any) -> Mapping[str, Any]:
     return MappingProxyType({**height_words(geo.vertical), "conversion": geo.vertical_record()})
 
 
-def _dates(a: str, b: str) -> tuple[str | None, str | None]:
+def _share_pyramids(meta: dict[str, Any], written: dict[str, dict[str, Any]], files: MutableMapping[str, bytes],
+                    own: Mapping[str, bytes] | None = None) -> dict[str, Any]:  # fmt: skip
+    """A pair's description with each raster pyramid another pair already has (``written``: digest → its
+    description) pointing at that one: a pyramid several pairs share is kept once. ``own``: the pair's tiles,
+    of which the new pyramids' go into ``files``; without it they are in ``files`` already and a shared
+    pyramid's copy is removed from there."""
+    for role, desc in list(meta["rasters"].items()):
+        prefix = desc["url"] + "/"
+        if desc["sha256"] in written:
+            meta["rasters"][role] = written[desc["sha256"]]
+            if own is None:
+                for name in [n for n in files if n.startswith(prefix)]:
+                    del files[name]
+        else:
+            written[desc["sha256"]] = desc
+            if own is not None:
+                files.update((n, b) for n, b in own.items() if n.startswith(prefix))
+    return meta
+
+
+def pair_dates(a: str, b: str) -> tuple[str | None, str | None]:
+    """The dates a pair of epoch names gives the page (None for a name that is no date)."""
     return (a if epoch_label(a) != a else None, b if epoch_label(b) != b else None)
 
 
@@ -145,7 +166,7 @@ def plan_site(
     measured = measured or {}
     pairs = []
     for a, b in pairs_of(names) if measure else []:
-        dates = _dates(a, b)
+        dates = pair_dates(a, b)
         res = measured.get((a, b))
         if res is None:
             res = measure_change(hfs[a], hfs[b], dates=dates, coregistration=options.coregistration,
@@ -153,17 +174,11 @@ def plan_site(
         pairs.append(PlannedPair(a, b, dates, res))
     lods = [p.result.uncertainty.level_of_detection_m for p in pairs]
     files: dict[str, bytes] = {}
-    written: dict[str, dict[str, Any]] = {}  # pyramid digest -> its description: one several pairs share is
-    metas = []  # written once
+    written: dict[str, dict[str, Any]] = {}
+    metas = []
     for k, p in enumerate(pairs):
         meta, own = pair_payload(p.result, p.dates, (p.before, p.after), str(k))
-        for role, desc in list(meta["rasters"].items()):
-            if desc["sha256"] in written:
-                meta["rasters"][role] = written[desc["sha256"]]
-            else:
-                written[desc["sha256"]] = desc
-                files.update((n, b) for n, b in own.items() if n.startswith(desc["url"] + "/"))
-        metas.append(meta)
+        metas.append(_share_pyramids(meta, written, files, own))
     t = first.transform
     lo, hi = elevation_range_m
     geo = Geodesy(first.crs, geographic=True)
@@ -196,9 +211,8 @@ def plan_store_site(terrain: Any, options: SiteOptions = SiteOptions(), *, measu
 
 
 def plan_windowed_site(
-    names: tuple[str, str],
-    result: Any,
-    rasters: PairRasters,
+    names: Sequence[str],
+    pairs: Sequence[tuple[Any, PairRasters]],
     *,
     crs: Any,
     valid_cells: Any,
@@ -207,31 +221,38 @@ def plan_windowed_site(
     files: MutableMapping[str, bytes],
     options: SiteOptions = SiteOptions(),
 ) -> SitePlan:
-    """The plan of a site of one pair measured window by window (``terralod change`` over a region, or of two
-    epochs of a store, with ``--site``; :func:`terralod.change.windowed.measure_change_windowed`): ``result``
-    is that pair's (its arrays the report's decimated copies), ``rasters`` the full grid's difference and
-    BEFORE's heights read in strips, their tiles put in ``files`` (on disk for a region). ``valid_cells()``
-    gives BEFORE's valid cells once its rows have been read (the area). The page is the same as a pair's
-    measured in memory: level 0 of the pyramids is each cell's own value, the figures are the result's."""
+    """The plan of a site of epochs ``names`` whose pairs (:func:`~terralod.site.data.pairs_of`, in its order)
+    were measured window by window (``terralod change`` over a region with ``--site``, ``terralod export
+    --format site`` of a regional store of epochs; :func:`terralod.change.windowed.measure_change_windowed`):
+    ``pairs[K]`` is pair K's result (its arrays the report's decimated copies) and its rasters, the full grid's
+    difference and BEFORE's heights read in strips, their tiles put in ``files`` (on disk for a region; a
+    pyramid two pairs share kept once). ``valid_cells()`` gives the first epoch's valid cells once pair 0's
+    BEFORE rows have been read (the area). The page is the same as for pairs measured in memory: level 0 of
+    the pyramids is each cell's own value, the figures are the results'."""
     from terralod.export.geodesy import Geodesy
 
-    a, b = names
-    dates = _dates(a, b)
-    meta, files = pair_payload(result, dates, (a, b), "0", rasters=rasters, files=files)
-    t = rasters.transform
-    h, w = rasters.shape
+    planned, metas = [], []
+    written: dict[str, dict[str, Any]] = {}
+    for k, ((a, b), (result, rasters)) in enumerate(zip(pairs_of(list(names)), pairs, strict=True)):
+        dates = pair_dates(a, b)
+        meta, files = pair_payload(result, dates, (a, b), str(k), rasters=rasters, files=files)
+        metas.append(_share_pyramids(meta, written, files))
+        planned.append(PlannedPair(a, b, dates, result))
+    t = pairs[0][1].transform
+    h, w = pairs[0][1].shape
     geo = Geodesy(crs, geographic=True)
     lo, hi = elevation_range_m
+    lods = [p.result.uncertainty.level_of_detection_m for p in planned]
     return SitePlan(
         heights=_heights(geo),
         title=title,
-        epochs=(a, b),
-        pairs=(PlannedPair(a, b, dates, result),),
+        epochs=tuple(names),
+        pairs=tuple(planned),
         bounds_deg=geo.lonlat_bounds((t.c, t.f + h * t.e, t.c + w * t.a, t.f)),
         elevation_range_m=(float(lo), float(hi)),
         area_km2=float(valid_cells()) * abs(t.a * t.e) / 1e6,
-        keep_error_m=result.uncertainty.level_of_detection_m if options.prune else 0.0,
+        keep_error_m=min(lods) if options.prune else 0.0,
         share_tiles=options.share_tiles,
-        pair_meta=(meta,),
+        pair_meta=tuple(metas),
         files=files,
     )
