@@ -220,6 +220,9 @@ def test_a_series_site_window_by_window_and_its_update(
     assert kept and all(f not in upd.rewritten for f in kept)  # the first epoch's tiles untouched
     assert set(upd.rewritten) == {f for f in after if after[f] != before.get(f)}
     assert any(f.startswith("epochs/2/") for f in upd.rewritten)
+    # the pair the site had (2000 → 2007) keeps its tiles under the same names, untouched
+    first = [f for f in before if f.startswith(got["rasters"]["dod"]["url"] + "/")]
+    assert first and all(after.get(f) == before[f] for f in first)
 
 
 @settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

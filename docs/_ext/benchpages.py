@@ -38,6 +38,7 @@ COMMANDS = {
     "scale_tin_pinned": "python benchmarks/scale.py --tin --pin --name scale_tin_pinned --repeat 3",
     "change": "python benchmarks/change.py",
     "epochs": "python benchmarks/epochs.py",
+    "series_region": "python benchmarks/series_region.py --counts 2 4",
     "region_build": "python benchmarks/region.py --stages build --tiles 16,64,256",
     "region_store_export": "python benchmarks/region.py --stages build --tiles 16,256 "
     "--store-exports quantized-mesh,3dtiles",

@@ -18,8 +18,9 @@ What the page reads (relative URLs, so a folder on any static host works; ``serv
   a lon/lat lattice of grid coordinates (the page maps a point to its cell without a projection library),
   the error model (σ, t, variogram), the legend (with the colour table the page colours the drape with), the
   plain-language summary, and where its rasters' tiles are: the difference and the BEFORE heights as tile
-  pyramids ``pairs/K-dod/LEVEL/ROW_COL.i32.gz`` (:mod:`terralod.site.tiles`: 256² tiles of int32 millimetres,
-  gzip'd, which the page inflates itself, so no host configuration is needed; level 0 is the grid, which
+  pyramids ``pairs/KEY-dod/LEVEL/ROW_COL.i32.gz``, KEY a function of the pair's two epochs
+  (:func:`terralod.site.data.pair_key`: a site updated with a new survey keeps its pairs' tiles)
+  (:mod:`terralod.site.tiles`: 256² tiles of int32 millimetres, gzip'd, which the page inflates itself, so no host configuration is needed; level 0 is the grid, which
   "how much changed here?" and the volume read, coarser levels the block means the drape shows), the page
   fetching only the tiles its view or its answer needs;
 - ``epochs/I/tileset.json`` — 3D Tiles of epoch I; ``cesium/`` — CesiumJS's build.

@@ -249,7 +249,10 @@ def _write(tmp: Path, plan: SitePlan, terrains: Sequence[Any]) -> SiteReport:
         for name, js in split_tileset(json.loads(ts_path.read_text())).items():
             (ts_path.parent / name).write_text(json.dumps(js, separators=(",", ":")))
     (tmp / "pairs").mkdir()
-    for name, data in plan.files.items():  # the rasters' tiles (terralod.site.tiles): pairs/K-ROLE/LEVEL/R_C
+    for (
+        name,
+        data,
+    ) in plan.files.items():  # the rasters' tiles (terralod.site.tiles): pairs/KEY-ROLE/LEVEL/R_C
         (tmp / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp / name).write_bytes(data)
     for k, meta in enumerate(plan.pair_meta):

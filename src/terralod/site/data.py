@@ -131,6 +131,15 @@ class PairRasters:
     transform: Any
 
 
+def pair_key(before: str, after: str) -> str:
+    """The name a pair's raster pyramids go under (``pairs/KEY-dod/``, ``pairs/KEY-before/``): a function of
+    its two epochs only, so that a site updated with a new survey keeps the pairs it had under the same names
+    (``--update`` leaves their tiles as they are) whatever place the new pairs take in the list."""
+    import hashlib
+
+    return hashlib.sha256(f"{before}\n{after}".encode()).hexdigest()[:12]
+
+
 def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tuple[str, str], key: str,
                  *, summary_lines: list[str] | None = None, rasters: PairRasters | None = None,
                  files: MutableMapping[str, bytes] | None = None) -> tuple[dict[str, Any], MutableMapping[str, bytes]]:  # fmt: skip

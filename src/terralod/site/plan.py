@@ -24,7 +24,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from terralod.site.data import PairRasters, epoch_label, pair_payload, pairs_of
+from terralod.site.data import PairRasters, epoch_label, pair_key, pair_payload, pairs_of
 from terralod.site.tiles import ENCODING
 
 __all__ = ["PlannedPair", "SiteOptions", "SitePlan", "plan_site", "plan_store_site", "plan_windowed_site"]
@@ -176,8 +176,8 @@ def plan_site(
     files: dict[str, bytes] = {}
     written: dict[str, dict[str, Any]] = {}
     metas = []
-    for k, p in enumerate(pairs):
-        meta, own = pair_payload(p.result, p.dates, (p.before, p.after), str(k))
+    for p in pairs:
+        meta, own = pair_payload(p.result, p.dates, (p.before, p.after), pair_key(p.before, p.after))
         metas.append(_share_pyramids(meta, written, files, own))
     t = first.transform
     lo, hi = elevation_range_m
@@ -233,9 +233,9 @@ def plan_windowed_site(
 
     planned, metas = [], []
     written: dict[str, dict[str, Any]] = {}
-    for k, ((a, b), (result, rasters)) in enumerate(zip(pairs_of(list(names)), pairs, strict=True)):
+    for (a, b), (result, rasters) in zip(pairs_of(list(names)), pairs, strict=True):
         dates = pair_dates(a, b)
-        meta, files = pair_payload(result, dates, (a, b), str(k), rasters=rasters, files=files)
+        meta, files = pair_payload(result, dates, (a, b), pair_key(a, b), rasters=rasters, files=files)
         metas.append(_share_pyramids(meta, written, files))
         planned.append(PlannedPair(a, b, dates, result))
     t = pairs[0][1].transform
