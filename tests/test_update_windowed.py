@@ -280,3 +280,22 @@ def test_cli_series_of_geographic_regions(tmp_path: Path) -> None:
         assert "32631" in str(s.meta["crs"])  # the metric frame of the region (UTM 31N)
     checked = check_against_original(merged2, store)  # asserts |mesh - sample| <= each tile's errors
     assert len(checked) == 4 and all(n > 0 for n, _ in checked.values())
+
+
+def test_an_interrupted_windowed_update_resumes_to_the_same_epoch(tmp_path: Path) -> None:
+    """An update stopped after a few tiles leaves the earlier epoch as it was and no new complete epoch;
+    ``resume=True`` finishes it with the tiles already written kept: the epoch of an uninterrupted update."""
+    z0 = fractal_terrain(193, 225, seed=9, relief_m=400.0)
+    src0 = RasterSource(str(_write_tif(tmp_path / "a.tif", z0)))
+    src1 = RasterSource(str(_write_tif(tmp_path / "b.tif", _planted(z0, 100, 120, 30, 8.0))))
+    whole, cut = tmp_path / "whole.terra", tmp_path / "cut.terra"
+    for p in (whole, cut):
+        build_store_windowed(src0, p, method="cohesion", workers=1, epoch="2000")
+    update_store_windowed(src1, whole, "2007", workers=2)
+    part = update_store_windowed(src1, cut, "2007", workers=2, stop_after=3)
+    assert not part.complete and part.tiles_built == 3
+    with TileStore.open(cut) as s:
+        assert s.epochs == ["2000"]
+    rest = update_store_windowed(src1, cut, "2007", workers=2, resume=True)
+    assert rest.complete and rest.tiles_skipped == 3 and rest.tiles_built == rest.tiles_dirty - 3
+    assert _epoch_rows(cut, "2007") == _epoch_rows(whole, "2007")

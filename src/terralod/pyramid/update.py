@@ -20,6 +20,12 @@ of the new epoch is byte-identical to a fresh ``build_store(new, quantisation=st
 Transactions: rebuilt tiles are committed in batches under the new epoch's rev (invisible to readers);
 the epoch's map and ``complete`` state in one last transaction (:mod:`terralod.store_epochs`). A killed
 update leaves the earlier epochs untouched; ``resume=True`` skips the tiles already written.
+
+Window by window (:func:`update_store_windowed`): a survey never held whole (a region, a raster too large)
+is compared with the base epoch's kept samples in strips of rows, the dirty tiles found strip by strip
+(:class:`DirtyTiles`, the same rule) and rebuilt by the out-of-core builder's work units
+(:mod:`terralod.pyramid.distributed`), so each rebuilt tile is the one an out-of-core build of the survey
+with the store's lattice makes.
 """
 
 from __future__ import annotations
