@@ -114,8 +114,9 @@ def test_nice_spacing() -> None:
 
 
 def test_folder_of_tiles_and_site(pair, tmp_path: Path, capsys) -> None:
-    """AFTER as a folder of LAS tiles (the survey resolver, las_inputs) and --site: both epochs as the gridded
-    surfaces' 3D Tiles."""
+    """AFTER as a folder of LAS tiles (the survey resolver, las_inputs) and --site: both epochs as their
+    surveys' continuous-scale TINs (issue 55 #4): the site's epoch 0 is the 3D Tiles of ``terralod build
+    BEFORE.laz`` (a TIN store) at its root, not the gridded surface's."""
     pytest.importorskip("terralod.site")
     before, after, _ = pair
     las = laspy.read(str(after))
@@ -136,3 +137,14 @@ def test_folder_of_tiles_and_site(pair, tmp_path: Path, capsys) -> None:
     assert len(site["epochs"]) == 2
     for e in site["epochs"]:
         assert (out / "site" / e["tileset"]).is_file()
+    from terralod.export.tiles3d import export_3dtiles
+    from terralod.terrain import open_terrain
+
+    assert _run(capsys, "build", before, "-o", tmp_path / "tin.terra")[0] == 0
+    with open_terrain(tmp_path / "tin.terra") as t:
+        assert t.kind == "tin"
+        export_3dtiles(t, tmp_path / "tin3d")
+    want = json.loads((tmp_path / "tin3d" / "tileset.json").read_text())["root"]
+    got = json.loads((out / "site" / site["epochs"][0]["tileset"]).read_text())["root"]
+    assert got["boundingVolume"] == want["boundingVolume"]
+    assert got["geometricError"] == want["geometricError"]

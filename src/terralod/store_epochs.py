@@ -402,8 +402,11 @@ class EpochTables:
             ).fetchone()[0]
             if missing:
                 out.append(f"epoch {r['name']!r}: {missing} tiles of its map are not stored")
-            try:
-                self.epoch_source(r["name"])
+            try:  # read in strips of 1,024 rows: a region's epoch is never held whole
+                eid = self.epoch_source_id(r["name"])
+                h = int(self.meta["height"])
+                for r0 in range(0, h if eid is not None else 0, 16 * SOURCE_BLOCK):
+                    self.epoch_source_window(eid, r0, min(r0 + 16 * SOURCE_BLOCK, h), f"epoch {r['name']!r}")  # type: ignore[arg-type]
             except Exception as exc:  # noqa: BLE001 - reported, not raised
                 out.append(f"epoch {r['name']!r}: source samples unreadable ({getattr(exc, 'message', exc)})")
         return out
@@ -477,11 +480,13 @@ class EpochTables:
         label = f"epoch {self.epoch_info(name)['name']!r}"
         return source_window(self._conn, eid, w, h, 0, 0, h, w, str(self.path), label)
 
-    def epoch_source_window(self, eid: int, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
+    def epoch_source_window(
+        self, eid: int, r0: int, r1: int, label: str | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(elevation_m, valid) of rows [r0, r1), the grid's whole width, of epoch ``eid``'s kept samples
-        (an id :meth:`epoch_source_id` gave)."""
+        (an id :meth:`epoch_source_id` gave; ``label`` names the epoch in an error)."""
         w, h = int(self.meta["width"]), int(self.meta["height"])
-        return source_window(self._conn, eid, w, h, r0, 0, r1, w, str(self.path), f"epoch id {eid}")
+        return source_window(self._conn, eid, w, h, r0, 0, r1, w, str(self.path), label or f"epoch id {eid}")
 
     def epoch_source_id(self, name: str | None = None) -> int | None:
         """The id of epoch ``name`` (default: the selected one) when the store keeps all its samples (every

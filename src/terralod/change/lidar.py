@@ -76,6 +76,9 @@ class LidarGrid:
     points: tuple[int, int]
     points_per_cell: tuple[float, float]
     statement: str
+    #: each survey's LAS/LAZ files (what a continuous-scale TIN of it is built from: the site's 3D Tiles)
+    files: tuple[tuple[str, ...], ...] = ()
+    crs: Any = None
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -206,4 +209,5 @@ def grid_survey_pair(
         f": {ppc[0]:.1f} and {ppc[1]:.1f} points per cell) on one grid over the area both cover; cells in a "
         f"triangle with a side over {max_edge:g} m (a gap in the ground points) or outside a survey are left out"
     )
-    return LidarGrid(hfs[0], hfs[1], spacing, source, n, ppc, statement)
+    return LidarGrid(hfs[0], hfs[1], spacing, source, n, ppc, statement,
+                     tuple(tuple(str(q) for q in f) for f in files), crs)  # fmt: skip

@@ -287,7 +287,7 @@ def change(
         if with_site:
             _write_site(tmp / "site", result, series_hf or [before, after], list(ds) if series_hf else list(pair_dates),
                         dict(sigma_m=sigma_m, corr_range_m=corr_range_m, confidence=confidence,
-                             coregistration=not no_coregister, method=coreg_method))  # fmt: skip
+                             coregistration=not no_coregister, method=coreg_method), gridding)  # fmt: skip
     _print_result(result, pair_dates, out)
 
 
@@ -524,9 +524,10 @@ def _without_folders(v, paths: list[str]):
     return clean(v)
 
 
-def _write_site(dest: Path, result, hfs: list, dates: list, options: dict) -> None:  # noqa: ANN001
+def _write_site(dest: Path, result, hfs: list, dates: list, options: dict, gridding=None) -> None:  # noqa: ANN001
     """OUT/site/ (:mod:`terralod.site`): each epoch's 3D Tiles, the first → last pair (this run's result) and,
-    for a series, the other pairs a site carries (:func:`terralod.site.data.pairs_of`) measured the same way."""
+    for a series, the other pairs a site carries (:func:`terralod.site.data.pairs_of`) measured the same way.
+    A LiDAR pair (``gridding``): each epoch's 3D Tiles are its survey's continuous-scale TIN."""
     from terralod.change.volumes import measure_change
     from terralod.site import site_from_change
     from terralod.site.data import pairs_of
@@ -538,7 +539,8 @@ def _write_site(dest: Path, result, hfs: list, dates: list, options: dict) -> No
         i, j = index[a], index[b]
         r = measure_change(hfs[i], hfs[j], dates=(dates[i], dates[j]), **options)
         pairs.append((a, b, r))
-    rep = site_from_change(hfs, names, pairs, dest)
+    lidar = {} if gridding is None else {"surveys": gridding.files, "crs": gridding.crs}
+    rep = site_from_change(hfs, names, pairs, dest, **lidar)
     console.print(
         f"site: {rep.bytes / 1e6:.1f} MB in {dest.name}/ (open it with `python -m http.server` there)"
     )

@@ -351,11 +351,19 @@ def _epoch_name(name: str, i: int) -> str:
 
 def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results: Sequence[tuple[str, str, Any]],
                      out: str | Path, *, title: str | None = None, workers: int | None = None,
-                     options: SiteOptions | None = None) -> SiteReport:  # fmt: skip
+                     options: SiteOptions | None = None, surveys: Sequence[Sequence[str]] | None = None,
+                     crs: Any = None) -> SiteReport:  # fmt: skip
     """The site of a ``terralod change`` run (``--site``): one store with an epoch per DEM (built in the
     output's scratch folder, never part of the site; later DEMs on the first one's grid, so the tiles they
     share are written once) for the 3D Tiles; ``results`` are the pairs already measured (from, to,
-    ChangeResult), used as given; the plan measures any other pair it carries with ``options``."""
+    ChangeResult), used as given; the plan measures any other pair it carries with ``options``.
+
+    ``surveys`` (LiDAR: each epoch's LAS/LAZ files, ``crs`` the one given for them): each epoch's 3D Tiles
+    are its continuous-scale TIN (Ai et al., 2019: :class:`terralod.tin.DetailIncrementModel`, ground points,
+    sub-blocks ``auto``), built in the scratch folder, instead of the gridded surface; the pairs' rasters
+    stay the gridded surfaces' (the rule ``terralod change`` states)."""
+    from contextlib import ExitStack
+
     from terralod.output import Output
     from terralod.pyramid.builder import build_store
     from terralod.pyramid.update import update_store
@@ -365,20 +373,41 @@ def site_from_change(heightfields: Sequence[Any], names: Sequence[str], results:
     epochs = [_epoch_name(n, i) for i, n in enumerate(names)]
     rename = dict(zip(names, epochs, strict=True))
     pairs = [(rename[a], rename[b], r) for a, b, r in results]
-    with Output(out) as o:  # the epochs' store in its scratch folder, the site in its folder
-        store = o.scratch / "epochs.terra"
-        first = heightfields[0]
-        build_store(first, store, workers=workers, epoch=epochs[0])
-        for hf, name in zip(heightfields[1:], epochs[1:], strict=True):
-            update_store(_on_grid_of(first, hf), store, name, workers=workers)
-        with open_terrain(store) as terrain:
-            terrains = [terrain.with_epoch(e) for e in epochs]
-            plan = plan_site(list(zip(epochs, heightfields, strict=True)), title=title or "How the ground changed",
-                             elevation_range_m=terrain.elevation_range_m, options=options or SiteOptions(),
-                             measured={(a, b): r for a, b, r in pairs})  # fmt: skip
-            rep = _write(o.folder, plan, terrains)
+    with (
+        Output(out) as o,
+        ExitStack() as stack,
+    ):  # the epochs' stores in its scratch folder, the site in its folder
+        if surveys is not None:
+            terrains = [stack.enter_context(open_terrain(_tin_store(files, o.scratch / f"epoch-{i}.terra", crs,
+                                                                    workers))) for i, files in enumerate(surveys)]  # fmt: skip
+        else:
+            store = o.scratch / "epochs.terra"
+            first = heightfields[0]
+            build_store(first, store, workers=workers, epoch=epochs[0])
+            for hf, name in zip(heightfields[1:], epochs[1:], strict=True):
+                update_store(_on_grid_of(first, hf), store, name, workers=workers)
+            terrain = stack.enter_context(open_terrain(store))
+            terrains = [stack.enter_context(terrain.with_epoch(e)) for e in epochs]
+        ranges = [t.elevation_range_m for t in terrains]
+        plan = plan_site(list(zip(epochs, heightfields, strict=True)), title=title or "How the ground changed",
+                         elevation_range_m=(min(r[0] for r in ranges), max(r[1] for r in ranges)),
+                         options=options or SiteOptions(), measured={(a, b): r for a, b, r in pairs})  # fmt: skip
+        rep = _write(o.folder, plan, terrains)
     rep.path = out
     return rep
+
+
+def _tin_store(files: Sequence[str], path: Path, crs: Any, workers: int | None) -> Path:
+    """The continuous-scale TIN store of one LiDAR survey (its ground points; ``terralod build --method tin``
+    with its defaults) at ``path``."""
+    from terralod.tin import DetailIncrementModel
+    from terralod.tin.terra import save_model_to_store
+
+    model = DetailIncrementModel.from_las(
+        [Path(f) for f in files], sub_blocks="auto", workers=workers, crs=crs
+    )
+    save_model_to_store(model, path, workers=workers)
+    return path
 
 
 def site_from_windowed(sides: Sequence[Any], names: Sequence[str], results: Sequence[Any],
