@@ -52,6 +52,41 @@ def write_third(after: Path, folder: Path, n: int) -> str:
     return name
 
 
+def _stamps(site: Path) -> dict[str, tuple[int, int]]:
+    """Each file of the site: (inode, mtime ns)."""
+    if not site.is_dir():
+        return {}
+    return {q.relative_to(site).as_posix(): (q.stat().st_ino, q.stat().st_mtime_ns) for q in site.rglob("*")
+            if q.is_file()}  # fmt: skip
+
+
+def _part(name: str) -> str:
+    """The part of the site a file belongs to: epochs/K, the pairs' tiles, the pairs' descriptions, the rest."""
+    bits = name.split("/")
+    if bits[0] == "epochs":
+        return f"epochs/{bits[1]}"
+    if bits[0] == "pairs":
+        return "pair tiles" if len(bits) > 2 else "pair descriptions"
+    return "page, manifest, CesiumJS"
+
+
+def _breakdown(before: dict, after: dict) -> str:
+    """What an update did, per part: new, rewritten, removed, untouched files."""
+    out: dict[str, list[int]] = {}
+    for f in set(before) | set(after):
+        k = out.setdefault(_part(f), [0, 0, 0, 0])
+        if f not in before:
+            k[0] += 1
+        elif f not in after:
+            k[2] += 1
+        elif after[f] != before[f]:
+            k[1] += 1
+        else:
+            k[3] += 1
+    return "; ".join(f"{p}: {a:,} new, {b:,} rewritten, {c:,} removed, {d:,} untouched"
+                     for p, (a, b, c, d) in sorted(out.items()))  # fmt: skip
+
+
 def _epochs(store: Path) -> list[dict]:
     import json
 
@@ -79,6 +114,7 @@ def run(n: int, work: Path) -> list[dict]:
     rows = []
     for step, cmd in steps:
         print(f"{n * n} tiles: {step} ...", flush=True)
+        stamps = _stamps(site)
         r = run_tree(cmd)
         out = str(r["stdout"])
         row = {"tiles": n * n, "step": step, "wall_s": r["wall_s"], "cpu_s": r["cpu_s"],
@@ -95,6 +131,7 @@ def run(n: int, work: Path) -> list[dict]:
             )
             if m:
                 row["detail"] += f"; {int(m.group(1)):,} rewritten, {int(m.group(2)):,} removed"
+                row["update"] = _breakdown(stamps, _stamps(site))
         print(f"  {row['wall_s']:.0f} s, {row['peak_rss_mib']:.0f} MiB, {row['detail']}", flush=True)
         rows.append(row)
     cells = _grid_cells(store)
@@ -136,6 +173,11 @@ def main() -> None:
         "epochs and its change site, each step a fresh `terralod` process out of core; peak RSS of the process "
         "tree (psutil, 50 ms). One run each, 2-core shared machine.\n\n"
     )
+    updates = "".join(
+        f"\n- {r['tiles']} tiles, `{r['step']}`: {r['update']}" for r in rows if r.get("update")
+    )
+    if updates:
+        table += "\n\nWhat each site update did to the files, by part of the site:\n" + updates + "\n"
     write_results("series_region", {"rows": rows}, head + table)
     print(head + table)
 

@@ -176,6 +176,9 @@ def test_a_series_site_window_by_window_and_its_update(
     import terralod.change.windowed as windowed
     from terralod.site.build import site_from_store
 
+    import terralod.export.common as common
+
+    monkeypatch.setattr(common, "WHOLE_VALIDITY_SAMPLES", 0)  # each epoch's validity read block by block too
     measured: list[Path] = []
     real = windowed.measure_change_windowed
     monkeypatch.setattr(
@@ -299,3 +302,44 @@ def test_an_interrupted_windowed_update_resumes_to_the_same_epoch(tmp_path: Path
     rest = update_store_windowed(src1, cut, "2007", workers=2, resume=True)
     assert rest.complete and rest.tiles_skipped == 3 and rest.tiles_built == rest.tiles_dirty - 3
     assert _epoch_rows(cut, "2007") == _epoch_rows(whole, "2007")
+
+
+def test_3d_tiles_of_a_regional_epoch_read_its_validity_block_by_block(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An epoch past the size read whole (the threshold lowered) is exported with its validity read block by
+    block: the same files, byte for byte, as with the grid read whole (the nodata triangles dropped alike),
+    and ``--update`` after a new epoch works on it (its digest from the kept blocks' digests)."""
+    import terralod.export.common as common
+    from terralod.export.tiles3d import export_3dtiles
+    from terralod.terrain import open_terrain
+
+    z = fractal_terrain(161, 177, seed=4, relief_m=500.0)
+    valid = np.ones(z.shape, bool)
+    valid[40:70, 20:90] = False  # a void: its triangles are dropped
+    hf = Heightfield(
+        z.astype(np.float32), valid, Heightfield.from_array(z, 30.0).transform, "EPSG:32611", "v"
+    )
+    store = tmp_path / "s.terra"
+    build_store(hf, store, method="chunked", workers=1, epoch="2000")
+    hf2 = Heightfield(_planted(hf.elevation_m, 120, 120, 15, 9.0), valid, hf.transform, hf.crs, "v2")
+    update_store(hf2, store, "2007", workers=1)
+
+    def files(d: Path) -> dict[str, bytes]:
+        return {q.relative_to(d).as_posix(): q.read_bytes() for q in d.rglob("*") if q.is_file() and
+                not q.name.startswith(".")}  # fmt: skip
+
+    with open_terrain(store) as t:
+        export_3dtiles(t.with_epoch("2007"), tmp_path / "whole")
+        monkeypatch.setattr(common, "WHOLE_VALIDITY_SAMPLES", 0)
+        asked: list[int] = []
+        real = common.KeptValidity.__getitem__
+        monkeypatch.setattr(
+            common.KeptValidity, "__getitem__", lambda kv, i: asked.append(len(i[0])) or real(kv, i)
+        )
+        export_3dtiles(t.with_epoch("2007"), tmp_path / "blocks")
+        assert sum(asked) > 1000  # the triangles were checked against the kept blocks
+        assert files(tmp_path / "blocks") == files(tmp_path / "whole")
+        export_3dtiles(t.with_epoch("2000"), tmp_path / "blocks", update=True)
+        export_3dtiles(t.with_epoch("2000"), tmp_path / "ref")
+        assert files(tmp_path / "blocks") == files(tmp_path / "ref")

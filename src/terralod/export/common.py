@@ -123,6 +123,24 @@ class KeptValidity:
     def all(self) -> bool:
         return False
 
+    def digest(self) -> str:
+        """A digest that changes whenever the epoch's kept samples do: of its blocks' digests (each the sha256
+        of a block's stored bytes, elevations and validity), read from the store, not the samples."""
+        import hashlib
+        import sqlite3
+
+        conn = sqlite3.connect(f"file:{self.path}?mode=ro", uri=True)
+        try:
+            rows = conn.execute(
+                "SELECT block, digest FROM epoch_source WHERE epoch = ? ORDER BY block", (self.eid,)
+            )
+            h = hashlib.sha256(f"{self.width}x{self.height}".encode())
+            for block, d in rows:
+                h.update(f"{block}:{d};".encode())
+        finally:
+            conn.close()
+        return h.hexdigest()
+
     def __getitem__(self, index: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         import sqlite3
 

@@ -204,7 +204,9 @@ def tiles3d_global(view: Any, options: dict[str, Any]) -> str | None:
             keep[k] = v
     hf = view._hf
     valid = None
-    if hf is not None:
+    if hf is not None and hasattr(hf, "digest") and not hasattr(hf, "elevation_m"):
+        valid = hf.digest()  # a regional epoch's validity, never read whole (export.common.KeptValidity)
+    elif hf is not None:
         valid = hashlib.sha256(np.packbits(np.ascontiguousarray(hf.valid)).tobytes()).hexdigest()
     return _sha({"v": DIGEST_VERSION, "terralod": _version(), "meta": keep, "valid": valid,
                  "heights": view.geo.vertical_record(), "options": options})  # fmt: skip
