@@ -174,9 +174,8 @@ def test_a_series_site_window_by_window_and_its_update(
     import rasterio
 
     import terralod.change.windowed as windowed
-    from terralod.site.build import site_from_store
-
     import terralod.export.common as common
+    from terralod.site.build import site_from_store
 
     monkeypatch.setattr(common, "WHOLE_VALIDITY_SAMPLES", 0)  # each epoch's validity read block by block too
     measured: list[Path] = []
