@@ -119,10 +119,13 @@ def run_tree(cmd: list[str]) -> dict[str, float | str]:
     t0 = time.perf_counter()
     before = os.times()
     err = tempfile.TemporaryFile("w+")  # not a pipe: a long run's progress would fill it
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+    got = tempfile.TemporaryFile("w+")  # nor its output (a site's update lists every file: 180 KB)
+    proc = subprocess.Popen(cmd, stdout=got, stderr=err, text=True)
     timeline: list[tuple[float, float]] = []
     peak = tree_peak_rss(proc, timeline=timeline)[0]
-    out = proc.communicate()[0]
+    proc.wait()
+    got.seek(0)
+    out = got.read()
     wall = time.perf_counter() - t0
     err.seek(0)
     if proc.returncode != 0:

@@ -342,3 +342,27 @@ def test_3d_tiles_of_a_regional_epoch_read_its_validity_block_by_block(
         export_3dtiles(t.with_epoch("2000"), tmp_path / "blocks", update=True)
         export_3dtiles(t.with_epoch("2000"), tmp_path / "ref")
         assert files(tmp_path / "blocks") == files(tmp_path / "ref")
+
+
+def test_a_dask_update_is_the_local_update(tmp_path: Path) -> None:
+    """``update --dask``: the dirty tiles rebuilt on a LocalCluster of 2 worker processes are the local
+    update's, byte for byte."""
+    pytest.importorskip("dask.distributed", reason="dask[distributed] is not installed")
+    from terralod.pyramid.distributed import dask_client
+
+    z0 = fractal_terrain(161, 193, seed=12, relief_m=300.0)
+    src0 = RasterSource(str(_write_tif(tmp_path / "a.tif", z0)))
+    src1 = RasterSource(str(_write_tif(tmp_path / "b.tif", _planted(z0, 60, 140, 20, 6.0))))
+    local, remote = tmp_path / "local.terra", tmp_path / "dask.terra"
+    for p in (local, remote):
+        build_store_windowed(src0, p, method="chunked", tile_size=33, workers=1, epoch="2000")
+    update_store_windowed(src1, local, "2007", workers=1)
+    client = dask_client("local", n_workers=2, threads=1)
+    try:
+        rep = update_store_windowed(src1, remote, "2007", client=client)
+    finally:
+        cluster = client.cluster
+        client.close()
+        cluster.close()
+    assert rep.complete and rep.tiles_dirty > 0
+    assert _epoch_rows(remote, "2007") == _epoch_rows(local, "2007")

@@ -140,9 +140,18 @@ def pair_key(before: str, after: str) -> str:
     return hashlib.sha256(f"{before}\n{after}".encode()).hexdigest()[:12]
 
 
+def epoch_key(epoch: str) -> str:
+    """The name an epoch's heights pyramid goes under (``pairs/KEY-before/``): every pair from that epoch
+    shows the same heights, kept once under one name whatever pairs a site has."""
+    import hashlib
+
+    return hashlib.sha256(f"{epoch}\n".encode()).hexdigest()[:12]
+
+
 def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tuple[str, str], key: str,
                  *, summary_lines: list[str] | None = None, rasters: PairRasters | None = None,
-                 files: MutableMapping[str, bytes] | None = None) -> tuple[dict[str, Any], MutableMapping[str, bytes]]:  # fmt: skip
+                 files: MutableMapping[str, bytes] | None = None,
+                 before_key: str | None = None) -> tuple[dict[str, Any], MutableMapping[str, bytes]]:  # fmt: skip
     """(description, files) of one pair for the page: ``pairs/KEY.json``'s content and the rasters' tiles
     (put in ``files`` when given: a :class:`terralod.site.tiles.FolderFiles` keeps them on disk).
 
@@ -160,7 +169,9 @@ def pair_payload(result: Any, dates: tuple[str | None, str | None], labels: tupl
         rasters = PairRasters(array_rows(dod), array_rows(before.astype("<f4")), dod.shape, hf.transform)
     files = {} if files is None else files
     dod_desc, _ = write_pyramid(rasters.dod, rasters.shape, f"pairs/{key}-dod", files=files)
-    before_desc, _ = write_pyramid(rasters.before, rasters.shape, f"pairs/{key}-before", files=files)
+    before_desc, _ = write_pyramid(
+        rasters.before, rasters.shape, f"pairs/{before_key or key}-before", files=files
+    )
     s = result.summary
     ext = {}
     for k in ("max_rise", "max_drop"):

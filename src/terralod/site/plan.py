@@ -24,7 +24,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from terralod.site.data import PairRasters, epoch_label, pair_key, pair_payload, pairs_of
+from terralod.site.data import PairRasters, epoch_key, epoch_label, pair_key, pair_payload, pairs_of
 from terralod.site.tiles import ENCODING
 
 __all__ = ["PlannedPair", "SiteOptions", "SitePlan", "plan_site", "plan_store_site", "plan_windowed_site"]
@@ -130,11 +130,16 @@ def _share_pyramids(meta: dict[str, Any], written: dict[str, dict[str, Any]], fi
     for role, desc in list(meta["rasters"].items()):
         prefix = desc["url"] + "/"
         if desc["sha256"] in written:
-            meta["rasters"][role] = written[desc["sha256"]]
-            if own is None:
+            kept = written[desc["sha256"]]
+            meta["rasters"][role] = kept
+            if own is None and kept["url"] != desc["url"]:  # (the same name: the same files, written over)
                 for name in [n for n in files if n.startswith(prefix)]:
                     del files[name]
         else:
+            if any(
+                d["url"] == desc["url"] for d in written.values()
+            ):  # one name, other tiles: never silently
+                raise ValueError(f"two different rasters under {desc['url']}")
             written[desc["sha256"]] = desc
             if own is not None:
                 files.update((n, b) for n, b in own.items() if n.startswith(prefix))
@@ -177,7 +182,13 @@ def plan_site(
     written: dict[str, dict[str, Any]] = {}
     metas = []
     for p in pairs:
-        meta, own = pair_payload(p.result, p.dates, (p.before, p.after), pair_key(p.before, p.after))
+        meta, own = pair_payload(
+            p.result,
+            p.dates,
+            (p.before, p.after),
+            pair_key(p.before, p.after),
+            before_key=epoch_key(p.before),
+        )
         metas.append(_share_pyramids(meta, written, files, own))
     t = first.transform
     lo, hi = elevation_range_m
@@ -235,7 +246,9 @@ def plan_windowed_site(
     written: dict[str, dict[str, Any]] = {}
     for (a, b), (result, rasters) in zip(pairs_of(list(names)), pairs, strict=True):
         dates = pair_dates(a, b)
-        meta, files = pair_payload(result, dates, (a, b), pair_key(a, b), rasters=rasters, files=files)
+        meta, files = pair_payload(
+            result, dates, (a, b), pair_key(a, b), rasters=rasters, files=files, before_key=epoch_key(a)
+        )
         metas.append(_share_pyramids(meta, written, files))
         planned.append(PlannedPair(a, b, dates, result))
     t = pairs[0][1].transform
