@@ -155,12 +155,26 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--counts", type=int, nargs="+", default=[2, 4], help="tiles a side of each mosaic")
     ap.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
+    ap.add_argument(
+        "--keep", action="store_true", help="keep the earlier results' rows of other mosaic sizes"
+    )
     a = ap.parse_args()
     rows = []
+    if a.keep:
+        import json
+
+        from _common import RESULTS
+
+        old = RESULTS / "series_region.json"
+        if old.is_file():
+            rows = [
+                r for r in json.loads(old.read_text())["rows"] if r["tiles"] not in {n * n for n in a.counts}
+            ]
     for n in a.counts:
         work = Path(tempfile.mkdtemp(prefix=f"series{n}-", dir=a.work))
         try:
             rows += run(n, work)
+            rows.sort(key=lambda r: r["tiles"])
         finally:
             shutil.rmtree(work, ignore_errors=True)
     table = md_table(
