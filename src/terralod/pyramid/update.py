@@ -390,12 +390,7 @@ def update_store(
         c_build = time.process_time() - c_build
         complete = n_skipped + built == len(dirty)
         if complete:
-            revs = store.epoch_tile_revs(base_id)
-            for c in dirty:
-                revs[c] = eid
-            record.update(tiles_rebuilt=len(dirty), tiles_shared=len(revs) - len(dirty),
-                          changed_samples=int(changed.sum()))  # fmt: skip
-            store.commit_epoch(eid, revs, record)
+            _commit_epoch(store, eid, base_id, dirty, record, int(changed.sum()))
             store.widen_colour_range(hf)
     finally:
         store.close()
@@ -403,6 +398,22 @@ def update_store(
     log.info("epoch %s: %d dirty tiles, %d rebuilt now, in %.2f s", epoch, len(dirty), built, seconds)
     return UpdateReport(p, epoch, base_epoch, len(pyramid.all_codes()), len(dirty), built, n_skipped,
                         int(changed.sum()), seconds, t_build, complete, c_build)  # fmt: skip
+
+
+def _commit_epoch(store: TileStore, eid: int, base_id: int, dirty: Any, record: dict[str, Any],
+                  changed: int) -> None:  # fmt: skip
+    """Make epoch ``eid`` complete: the base epoch's map with the ``dirty`` tiles pointing at the new rev."""
+    revs = store.epoch_tile_revs(base_id)
+    n = 0
+    for c in dirty:
+        revs[c] = eid
+        n += 1
+    record.update(tiles_rebuilt=n, tiles_shared=len(revs) - n, changed_samples=changed)
+    store.commit_epoch(eid, revs, record)
+
+
+def _tile_count(pyramid: TilePyramid) -> int:
+    return sum(nx * ny for nx, ny in map(pyramid.grid_count, pyramid.levels))
 
 
 def _rebuild(
@@ -607,12 +618,7 @@ def update_store_windowed(
         c_build, t_build = time.process_time() - c_build, time.perf_counter() - t_build
         complete = n_skipped + built == n_dirty
         if complete:
-            revs = store.epoch_tile_revs(base_id)
-            for c in dirty.codes():
-                revs[c] = eid
-            record.update(tiles_rebuilt=n_dirty, tiles_shared=len(revs) - n_dirty,
-                          changed_samples=dirty.changed_samples)  # fmt: skip
-            store.commit_epoch(eid, revs, record)
+            _commit_epoch(store, eid, base_id, dirty.codes(), record, dirty.changed_samples)
             store.widen_colour_range_m(*plan.z_range_m)
     finally:
         if runner is not None:
@@ -626,5 +632,5 @@ def update_store_windowed(
         built,
         seconds,
     )
-    return UpdateReport(p, epoch, base_epoch, len(pyramid.all_codes()), n_dirty, built, n_skipped,
+    return UpdateReport(p, epoch, base_epoch, _tile_count(pyramid), n_dirty, built, n_skipped,
                         dirty.changed_samples, seconds, t_build, complete, c_build)  # fmt: skip
