@@ -247,13 +247,19 @@ def _error_bucket(qxy, z, tris, t, w):
     return _bucket(abs(z[w] - zp))
 
 
+#: the most star-list nodes (3 a triangle slot) the replay's int32 links address: a model of up to about
+#: 715 M triangle slots (some 350 M vertices); half the bytes of int64 links, in the cache twice as often
+MAX_NODES = 2**31 - 2
+
 #: positions per chunk of the per-bucket counts (memory: N_BUCKETS / CHUNK counters a vertex)
 CHUNK = 64
 
 
 @jit
-def _set_bucket(fen, cnt, label, vpos, cbucket, w, k):
-    """Move candidate w to bucket k (-1: out of every bucket)."""
+def _set_bucket(fen, cnt, label, vpos, cbucket, pbucket, w, k):
+    """Move candidate w to bucket k (-1: out of every bucket); ``pbucket`` is ``cbucket`` by insertion
+    position (what the chunk scans read: one cache line for 64 positions, where ``cbucket[vat[p]]`` missed
+    the cache at every position)."""
     old = cbucket[w]
     if old == k:
         return
@@ -264,28 +270,29 @@ def _set_bucket(fen, cnt, label, vpos, cbucket, w, k):
         _fen_add(fen[k], vpos[w] // CHUNK, 1)
         cnt[label[w], k] += 1
     cbucket[w] = k
+    pbucket[vpos[w]] = k
 
 
 @jit
-def _bucket_below(fen, cbucket, vat, k, x):
+def _bucket_below(fen, pbucket, k, x):
     """Candidates in bucket k at insertion positions below x: whole chunks from the tree, the rest counted."""
     c = x // CHUNK
     n = _fen_sum(fen[k], c)
     for p in range(c * CHUNK, x):
-        if cbucket[vat[p]] == k:
+        if pbucket[p] == k:
             n += 1
     return n
 
 
 @jit
-def _bucket_find(fen, cbucket, vat, k, i):
+def _bucket_find(fen, pbucket, k, i):
     """Insertion position of the (i+1)-th candidate of bucket k (i >= 0); -1 when there is none."""
     c = _fen_find(fen[k], i)
     if c >= fen.shape[1] - 1:
         return -1
     i -= _fen_sum(fen[k], c)
-    for p in range(c * CHUNK, min((c + 1) * CHUNK, vat.shape[0])):
-        if cbucket[vat[p]] == k:
+    for p in range(c * CHUNK, min((c + 1) * CHUNK, pbucket.shape[0])):
+        if pbucket[p] == k:
             if i == 0:
                 return p
             i -= 1
@@ -358,18 +365,21 @@ def split_codes(
     Returns
     -------
     status, n_escapes
-        status 0, or r + 1 for the first record that does not fit (a corrupt file).
+        status 0, or r + 1 for the first record that does not fit (a corrupt file); -1: a base triangle
+        names no vertex; -2: more triangle slots than :data:`MAX_NODES` allows.
     """
     n_rec = rec_m.shape[0]
     n_base = base_tri.shape[0]
     n_slots = n_base + 2 * n_rec
     n_v = qxy.shape[0]
-    tris = np.zeros((max(n_slots, 1), 3), np.int64)
-    head = np.full(n_v, -1, np.int64)
+    if 3 * n_slots + 1 > MAX_NODES:
+        return -2, 0
+    tris = np.zeros((max(n_slots, 1), 3), np.int32)
+    head = np.full(n_v, -1, np.int32)
     n_nodes = 3 * n_slots + 1
-    nxt = np.arange(1, n_nodes + 1, dtype=np.int64)
+    nxt = np.arange(1, n_nodes + 1, dtype=np.int32)
     nxt[n_nodes - 1] = -1
-    node_tri = np.zeros(n_nodes, np.int64)
+    node_tri = np.zeros(n_nodes, np.int32)
     free = 0
     present = np.zeros(n_v, np.bool_)
     for t in range(n_base):
@@ -400,11 +410,12 @@ def split_codes(
     # every vertex still to insert (a candidate) sits in the slot holding its xy, in the bucket of its
     # vertical distance to that slot's plane; per bucket a Fenwick tree over the insertion order
     nb = seg_lo.shape[0]
-    cand_slot = np.full(n_v, -1, np.int64)
-    slot_head = np.full(max(n_slots, 1), -1, np.int64)
-    cnext = np.full(n_v, -1, np.int64)
-    cprev = np.full(n_v, -1, np.int64)
-    cbucket = np.full(n_v, -1, np.int64)
+    cand_slot = np.full(n_v, -1, np.int32)
+    slot_head = np.full(max(n_slots, 1), -1, np.int32)
+    cnext = np.full(n_v, -1, np.int32)
+    cprev = np.full(n_v, -1, np.int32)
+    cbucket = np.full(n_v, -1, np.int8)
+    pbucket = np.full(n_v, -1, np.int8)  # cbucket by insertion position (N_BUCKETS < 128)
     cnt = np.zeros((max(nb, 1), N_BUCKETS), np.int64)
     fen = np.zeros((N_BUCKETS, n_v // CHUNK + 2), np.int32)  # per bucket, a Fenwick tree over chunks
     for b in range(nb):
@@ -418,7 +429,7 @@ def split_codes(
                 if t >= 0:
                     _link(slot_head, cnext, cprev, cand_slot, t, w)
                     k = _error_bucket(qxy, z, tris, t, w)
-            _set_bucket(fen, cnt, label, vpos, cbucket, w, k)
+            _set_bucket(fen, cnt, label, vpos, cbucket, pbucket, w, k)
     fan_counts = np.zeros((2, FAN_CONTEXTS, FAN_VALUES), np.int64)  # [0]: j, [1]: after
     v_counts = np.zeros((6, V_ESCAPE), np.int64)
     moved = np.empty(16, np.int64)
@@ -432,9 +443,7 @@ def split_codes(
                 if u < 0 or u >= n_v or vpos[u] < seg_lo[b] or vpos[u] >= seg_hi[b] or cbucket[u] < 0:
                     return r + 1, n_esc
                 bu = cbucket[u]
-                rank = _bucket_below(fen, cbucket, vat, bu, vpos[u]) - _bucket_below(
-                    fen, cbucket, vat, bu, seg_lo[b]
-                )
+                rank = _bucket_below(fen, pbucket, bu, vpos[u]) - _bucket_below(fen, pbucket, bu, seg_lo[b])
                 for k in range(bu + 1, N_BUCKETS):
                     rank += cnt[b, k]
                 sym_u[r] = rank
@@ -448,9 +457,7 @@ def split_codes(
                     rank -= cnt[b, k]
                 if sym_u[r] < 0 or bu < 0:
                     return r + 1, n_esc
-                p = _bucket_find(
-                    fen, cbucket, vat, bu, rank + _bucket_below(fen, cbucket, vat, bu, seg_lo[b])
-                )
+                p = _bucket_find(fen, pbucket, bu, rank + _bucket_below(fen, pbucket, bu, seg_lo[b]))
                 if p < seg_lo[b] or p >= seg_hi[b]:
                     return r + 1, n_esc
                 u = vat[p]
@@ -463,7 +470,7 @@ def split_codes(
             t_in = cand_slot[u]
             if t_in < 0 and n_base:
                 t_in = _walk(tris, head, nxt, node_tri, qxy, hint[cell], px, py, max_steps)
-            _set_bucket(fen, cnt, label, vpos, cbucket, u, -1)
+            _set_bucket(fen, cnt, label, vpos, cbucket, pbucket, u, -1)
             _unlink(slot_head, cnext, cprev, cand_slot, u)
             # T's corners, nearest to u first (ties: corner order)
             c0 = c1 = c2 = -1
@@ -631,5 +638,5 @@ def split_codes(
                     if lo_ >= 0:
                         break
                 _link(slot_head, cnext, cprev, cand_slot, best, w)
-                _set_bucket(fen, cnt, label, vpos, cbucket, w, _error_bucket(qxy, z, tris, best, w))
+                _set_bucket(fen, cnt, label, vpos, cbucket, pbucket, w, _error_bucket(qxy, z, tris, best, w))
     return 0, n_esc

@@ -107,6 +107,9 @@ def _split_arrays(qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_
     sym = [np.zeros(rec_u.shape[0], np.int64) for _ in range(6)]
     status, n_esc = split_codes(True, qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_v, wing,
                                 rec_m, *sym)  # fmt: skip
+    if status == -2:
+        raise InputError(f"a TIN of {base.shape[0] + 2 * rec_u.shape[0]:,} triangle slots is more than one model "
+                         "codes (about 715 M): build it in parts (--bbox)")  # fmt: skip
     if status != 0:
         raise RuntimeError(f"vertex splits do not code (record {status - 1})")
     sym_u, sym_v, sym_j, after, esc_v, esc_x = sym
@@ -818,7 +821,8 @@ class DetailIncrementModel:
                                 rec_x, rec_m, sym_u, sym_v, sym_j, after, a["escape_v"].astype(np.int64),
                                 a["escape_x1"].astype(np.int64))  # fmt: skip
         if status != 0:
-            where = "base triangles" if status < 0 else f"record {max(status, 1) - 1}"
+            where = ("more triangle slots than a model codes" if status == -2 else "base triangles" if status < 0
+                     else f"record {max(status, 1) - 1}")  # fmt: skip
             raise CorruptStoreError(
                 f"inconsistent detail-increment records: {where} does not fit the mesh", src
             )
