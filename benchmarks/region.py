@@ -22,7 +22,8 @@ block to the UTM zone of its centre, every tile also measured against the origin
 and the peak RSS summed over the process tree (psutil, sampled every 50 ms), tiles in the store, µs of
 wall per original sample. Writes benchmarks/results/region_build.json and region_build.md. With
 ``--store-exports quantized-mesh,3dtiles`` each store just built is exported to those formats (a fresh
-process each: wall, CPU, peak RSS of the tree, files and bytes): benchmarks/results/region_store_export.*.
+process each: wall, CPU, peak RSS of the tree, files and bytes): benchmarks/results/region_store_export.*;
+``--stores 16=a.terra,64=b.terra --store-exports 3dtiles`` exports stores built earlier instead.
 """
 
 from __future__ import annotations
@@ -277,9 +278,20 @@ def main() -> None:
     ap.add_argument("--stages", default="export,build", help="export, build or both")
     ap.add_argument("--store-exports", default="", help="with build: export each store to these formats "
                     "(quantized-mesh, 3dtiles; comma-separated) into region_store_export")  # fmt: skip
+    ap.add_argument("--stores", default="", help="export these stores built earlier instead (COUNT=PATH, "
+                    "comma-separated; with --store-exports): no build, no other stage")  # fmt: skip
     args = ap.parse_args()
     src = SHARED / "dem" / f"{args.source}.tif"
     stages = args.stages.split(",")
+    if args.stores:
+        exported = []
+        for item in args.stores.split(","):
+            count, path = item.split("=", 1)
+            n = int(round(int(count) ** 0.5))
+            exported += store_export_rows(Path(path), int(count), (1200 * n + 1) ** 2,
+                                          [f for f in args.store_exports.split(",") if f])  # fmt: skip
+            write_store_export(src, exported)
+        return
     if "build" in stages:
         build_stage(
             src, [int(v) for v in args.tiles.split(",")], [f for f in args.store_exports.split(",") if f]

@@ -120,6 +120,7 @@ def test_a_tins_blocks_give_its_whole_level_glbs(
     import terralod.export.distributed as dist
 
     monkeypatch.setattr(dist, "BLOCK_NODES", 10**9)
+    monkeypatch.setattr(dist, "BLOCK_VERTICES", 10**15)
     main(["export", str(tin), "--format", "3dtiles", "-o", str(tmp_path / "whole-levels")])
     monkeypatch.setattr(dist, "BLOCK_NODES", 1)
     main(["export", str(tin), "--format", "3dtiles", "-o", str(tmp_path / "blocks")])
@@ -127,25 +128,33 @@ def test_a_tins_blocks_give_its_whole_level_glbs(
     assert len(want) > 10 and got == want
 
 
-@pytest.mark.parametrize("block_nodes", [1, 5])
+@pytest.mark.parametrize(("bound", "size"), [("nodes", 1), ("nodes", 5), ("vertices", 3)])
 def test_blocks_of_any_size_give_the_whole_level_glbs(
-    store: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, block_nodes: int
+    store: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, bound: str, size: int
 ) -> None:
     """A level encoded block by block (its normals summed over each block and its neighbours only) gives
     the bytes of every file the level encoded whole gives (one block a level); a node asked for alone
-    (``terralod serve``) gives its file's bytes too."""
+    (``terralod serve``) gives its file's bytes too. Blocks are cut by a count of nodes, or by a count of
+    mesh vertices (here about ``size`` nodes' worth) where the terrain counts them."""
     import terralod.export.distributed as dist
     from terralod.export.tiles3d import Tiles3D, node_uri
     from terralod.terrain import open_terrain
 
     monkeypatch.setattr(dist, "BLOCK_NODES", 10**9)
+    monkeypatch.setattr(dist, "BLOCK_VERTICES", 10**15)
     main(["export", str(store), "--format", "3dtiles", "-o", str(tmp_path / "whole-levels")])
     want = _files(tmp_path / "whole-levels")
-    monkeypatch.setattr(dist, "BLOCK_NODES", block_nodes)
+    block_nodes = size
     with open_terrain(store) as terrain:
         view = Tiles3D(terrain)
         finest = max(n.code[0] for n in view.tree)
         level = [n.code for n in view.tree if n.code[0] == finest]
+        if bound == "nodes":
+            monkeypatch.setattr(dist, "BLOCK_NODES", size)
+        else:
+            counts = view.level_vertices(finest)
+            assert counts is not None and counts.min() > 0  # a grid store counts its tiles' vertices
+            monkeypatch.setattr(dist, "BLOCK_VERTICES", int(size * counts.mean()))
         blocks = list(dist.level_blocks(view, level))
         assert len(blocks) >= len(level) // (2 * block_nodes) > 1
         assert sorted(c for b, _ in blocks for c in b) == sorted(level)  # each node in one block

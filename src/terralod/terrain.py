@@ -125,6 +125,8 @@ class Terrain(Protocol):
 
     def lod_mesh(self, code: NodeCode) -> tuple[np.ndarray, np.ndarray]: ...
 
+    def lod_vertices(self, level: int) -> dict[NodeCode, int] | None: ...
+
     def close(self) -> None: ...
 
 
@@ -290,6 +292,11 @@ class GridTerrain(_TerrainBase):
         ya, yb = t.f + (r0 + 0.5) * t.e, t.f + (r1 + 0.5) * t.e
         return (min(xa, xb), min(ya, yb), max(xa, xb), max(ya, yb))
 
+    def lod_vertices(self, level: int) -> dict[NodeCode, int] | None:
+        """{code: vertices} of level ``level``'s tiles, from the store's counts (no mesh read): what an
+        export sizes its blocks of meshes in flight by."""
+        return {(level, x, y): n for (x, y), n in self.store.tile_vertex_counts(level).items()}
+
     def lod_mesh(self, code: NodeCode) -> tuple[np.ndarray, np.ndarray]:
         """(vertices (N, 3) float64 world metres, triangles (K, 3) uint32) of tile ``code`` as stored."""
         tile = self.store.tile(*code)
@@ -393,6 +400,10 @@ class TinTerrain(_TerrainBase):
             self.model.set_block_scales(saved)
         self._tree = out
         return out
+
+    def lod_vertices(self, level: int) -> dict[NodeCode, int] | None:
+        """None: a TIN's nodes share the model's one point array (its meshes in flight are its triangles)."""
+        return None
 
     def lod_mesh(self, code: NodeCode) -> tuple[np.ndarray, np.ndarray]:
         """(vertices (N, 3) float64 world metres, triangles (K, 3) int32) of sub-block ``code[1]`` at scale

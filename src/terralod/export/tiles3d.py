@@ -531,6 +531,14 @@ class Tiles3D:
             ]
         return got
 
+    def level_vertices(self, group: int) -> np.ndarray | None:
+        """(N,) vertices of level ``group``'s nodes (:meth:`level_nodes`' order) when the terrain counts them
+        without making their meshes (a grid store does); None otherwise."""
+        got = self.terrain.lod_vertices(group)
+        if got is None:
+            return None
+        return np.array([got.get(n.code, 0) for n in self.level_nodes(group)], np.int64)
+
     def _level_codes(self, group: int) -> list[Any]:
         """The codes of level ``group``'s nodes (of ``only``), in the tree's order (the order their normals
         are summed)."""
