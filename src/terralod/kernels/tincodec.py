@@ -186,28 +186,56 @@ def _side_run(tris, head, nxt, node_tri, qxy, t, v, dx, dy, back):
 
 
 @jit
-def _to_rank(counts, ctx, value):
-    """Rank of ``value`` in context ``ctx``: most frequent so far first, ties by value (values from
-    counts.shape[1] on are their own rank)."""
-    if value >= counts.shape[1]:
-        return value
-    c = counts[ctx, value]
-    r = 0
-    for w in range(counts.shape[1]):
-        if counts[ctx, w] > c or (counts[ctx, w] == c and w < value):
-            r += 1
-    return r
+def _ranked(n_ctx, n_values):
+    """Counts of ``n_values`` symbols in ``n_ctx`` contexts, none seen yet: (counts, order, pos), ``order[c]``
+    the values most frequent first (ties by value) and ``pos[c]`` its inverse, kept so by :func:`_seen`."""
+    counts = np.zeros((n_ctx, n_values), np.int64)
+    order = np.empty((n_ctx, n_values), np.int64)
+    pos = np.empty((n_ctx, n_values), np.int64)
+    for c in range(n_ctx):
+        for w in range(n_values):
+            order[c, w] = w
+            pos[c, w] = w
+    return counts, order, pos
 
 
 @jit
-def _from_rank(counts, ctx, rank):
+def _seen(counts, order, pos, ctx, value):
+    """Count ``value`` once more in ``ctx`` (values from counts.shape[1] on are not counted): it moves
+    ahead of every value now less frequent, or as frequent and larger."""
+    if value < 0 or value >= counts.shape[1]:
+        return
+    counts[ctx, value] += 1
+    c = counts[ctx, value]
+    i = pos[ctx, value]
+    while i > 0:
+        w = order[ctx, i - 1]
+        if counts[ctx, w] > c or (counts[ctx, w] == c and w < value):
+            break
+        order[ctx, i] = w
+        pos[ctx, w] = i
+        i -= 1
+    order[ctx, i] = value
+    pos[ctx, value] = i
+
+
+@jit
+def _to_rank(pos, ctx, value):
+    """Rank of ``value`` in context ``ctx``: most frequent so far first, ties by value (values from
+    pos.shape[1] on are their own rank)."""
+    if value >= pos.shape[1]:
+        return value
+    return pos[ctx, value]
+
+
+@jit
+def _from_rank(order, ctx, rank):
     """Inverse of :func:`_to_rank` (-1 for a negative rank)."""
-    if rank >= counts.shape[1] or rank < 0:
+    if rank < 0:
+        return -1
+    if rank >= order.shape[1]:
         return rank
-    for w in range(counts.shape[1]):
-        if _to_rank(counts, ctx, w) == rank:
-            return w
-    return -1
+    return order[ctx, rank]
 
 
 #: error buckets: 0 for errors below 2^-16 m, then two a octave (1 … 63)
@@ -430,8 +458,9 @@ def split_codes(
                     _link(slot_head, cnext, cprev, cand_slot, t, w)
                     k = _error_bucket(qxy, z, tris, t, w)
             _set_bucket(fen, cnt, label, vpos, cbucket, pbucket, w, k)
-    fan_counts = np.zeros((2, FAN_CONTEXTS, FAN_VALUES), np.int64)  # [0]: j, [1]: after
-    v_counts = np.zeros((6, V_ESCAPE), np.int64)
+    j_counts, j_order, j_pos = _ranked(FAN_CONTEXTS, FAN_VALUES)  # the fan offsets j
+    a_counts, a_order, a_pos = _ranked(FAN_CONTEXTS, FAN_VALUES)  # ... and after
+    v_counts, v_order, v_pos = _ranked(6, V_ESCAPE)
     moved = np.empty(16, np.int64)
     gather = np.empty(n_v, np.int64)
     for b in range(block_ptr.shape[0] - 1):
@@ -515,9 +544,8 @@ def split_codes(
                         x = _after(tris, t, x)
                     if j < 0:
                         sv = V_ESCAPE
-                sym_v[r] = _to_rank(v_counts, cv, sv)
-                if sv < V_ESCAPE:
-                    v_counts[cv, sv] += 1
+                sym_v[r] = _to_rank(v_pos, cv, sv)
+                _seen(v_counts, v_order, v_pos, cv, sv)
                 if sv == V_ESCAPE:
                     esc_v[n_esc] = v
                     esc_x[n_esc] = x1
@@ -532,16 +560,13 @@ def split_codes(
                         tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], False
                     )
                     after = m - 1 - j
-                    sym_j[r] = _to_rank(fan_counts[0], cj, j)
-                    sym_a[r] = _to_rank(fan_counts[1], ca, after)
-                    if j < FAN_VALUES:
-                        fan_counts[0, cj, j] += 1
-                    if after < FAN_VALUES:
-                        fan_counts[1, ca, after] += 1
+                    sym_j[r] = _to_rank(j_pos, cj, j)
+                    sym_a[r] = _to_rank(a_pos, ca, after)
+                    _seen(j_counts, j_order, j_pos, cj, j)
+                    _seen(a_counts, a_order, a_pos, ca, after)
             else:
-                sv = _from_rank(v_counts, cv, sym_v[r])
-                if 0 <= sv < V_ESCAPE:
-                    v_counts[cv, sv] += 1
+                sv = _from_rank(v_order, cv, sym_v[r])
+                _seen(v_counts, v_order, v_pos, cv, sv)
                 if sv == V_ESCAPE:
                     if n_esc >= esc_v.shape[0]:
                         return r + 1, n_esc
@@ -557,14 +582,12 @@ def split_codes(
                     ca = _side_run(
                         tris, head, nxt, node_tri, qxy, t_in, v, px - qxy[v, 0], py - qxy[v, 1], False
                     )
-                    j = _from_rank(fan_counts[0], cj, sym_j[r])
-                    after = _from_rank(fan_counts[1], ca, sym_a[r])
+                    j = _from_rank(j_order, cj, sym_j[r])
+                    after = _from_rank(a_order, ca, sym_a[r])
                     if j < 0 or after < 0:
                         return r + 1, n_esc
-                    if j < FAN_VALUES:
-                        fan_counts[0, cj, j] += 1
-                    if after < FAN_VALUES:
-                        fan_counts[1, ca, after] += 1
+                    _seen(j_counts, j_order, j_pos, cj, j)
+                    _seen(a_counts, a_order, a_pos, ca, after)
                     m = after + 1 + j
                     # step back j triangles around v (clockwise) from T to the fan's first
                     t = t_in
