@@ -60,6 +60,12 @@ def test_threads_give_the_same_collapses_and_one_block_is_the_single_heap(seed, 
     a, b = _log_arrays(*one), _log_arrays(*two)
     for f in a:
         assert np.array_equal(a[f], b[f]), f
+    # a build's log (the fields its records read, the others dropped as each block ends): the same
+    lean = _log_arrays(*simplify_blocks(v, t, sb.kind, sb.tri_block, base_fraction=base, n_blocks=k * k,
+                                        workers=2, keep_rewrites=False))  # fmt: skip
+    dropped = {"cost", "del_slot", "rep_slot", "rep_old", "rep_new"}
+    for f in a:
+        assert lean[f].size == 0 if f in dropped else np.array_equal(a[f], lean[f]), f
     log, err = one
     # each block's collapses are its job's alone (run apart, they are the same) and remove FREE vertices
     # of that block only

@@ -47,7 +47,6 @@ Deviations, and why:
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -249,58 +248,69 @@ def run_block(job: BlockJob) -> BlockResult:
     return BlockResult(job.block, out, tris, alive, e)
 
 
-def _placed(job: BlockJob | None) -> BlockJob | None:
-    """``job`` without its inputs: the vertices and slots it names (all :func:`merge_blocks` reads), so a
-    finished block holds no positions, quadrics or triangles while the others run (same log)."""
-    if job is None:
-        return None
-    none = np.zeros(0)
-    return dataclasses.replace(job, p=none, world_m=none, tris=none, kind=none, q=none, w=none)
+#: The log's fields a model's records are made of (:meth:`terralod.tin.records.Increments.from_log`); the
+#: others (costs, deleted and rewritten slots, rewritten triples: about 150 bytes a collapse) only serve
+#: checks and the single-heap path, and are left empty when a build asks for the records' alone.
+REWRITE_FIELDS = ("c", "ds", "rs", "ro", "rn")
+
+
+def block_part(job: BlockJob, res: BlockResult, keep_rewrites: bool = True) -> dict[str, np.ndarray]:
+    """One block's share of the merged log, in the TIN's numbering (what :func:`merge_blocks` joins): made
+    as soon as the block is done, so the block's own result (local numbering, every kernel output) goes
+    then, not at the merge."""
+    (_, cu, cv, _, cmmqe, ccost, m0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new) = res.out
+    vi, si = job.verts.astype(np.int32), job.slots.astype(np.int32)
+    part = {
+        "u": vi[cu],
+        "v": vi[cv],
+        "b": np.full(cu.size, job.block, np.int32),
+        "mm": cmmqe,
+        "m0": m0[:1],
+        "dt": vi[del_tri],
+        "rc": np.diff(rep_ptr),  # slots rewritten by each collapse
+        "e": res.error_m,
+        "si": si,
+        "tris": vi[res.tris],
+        "alive": res.alive,
+    }
+    if keep_rewrites:
+        part.update(c=ccost, ds=si[del_slot], rs=si[rep_slot], ro=vi[rep_old], rn=vi[rep_new])
+    return part
 
 
 def merge_blocks(
-    triangles: np.ndarray, nb: int, jobs: Sequence[BlockJob | None], results: Sequence[BlockResult | None]
+    triangles: np.ndarray, nb: int, parts: Sequence[dict[str, np.ndarray] | None]
 ) -> tuple[CollapseLog, np.ndarray]:
-    """One log (block-major, each block's collapses in its order) and its measured errors, in the TIN's
-    numbering, from the per-block results (``jobs[b]``, ``results[b]``; None for an empty block; a job
-    needs only its ``verts`` and ``slots``)."""
+    """One log (block-major, each block's collapses in its order) and its measured errors, from each
+    block's :func:`block_part` (None for an empty block); the parts are emptied as they are joined (each
+    field's blocks go once it is one array), so the merge holds the log about once, not three times. The
+    fields of :data:`REWRITE_FIELDS` are empty unless every part has them."""
     tris = np.ascontiguousarray(triangles, np.int32).copy()
     alive = np.ones(tris.shape[0], np.bool_)
-    parts: dict[str, list[np.ndarray]] = {k: [] for k in
-                                          ("u", "v", "b", "mm", "c", "ds", "dt", "rp", "rs", "ro", "rn", "e")}  # fmt: skip
     mmqe0 = np.zeros(nb, np.float64)
-    nrep = 0
-    for b in range(nb):
-        job, res = jobs[b], results[b]
-        if job is None or res is None:
-            continue
-        (_, cu, cv, _, cmmqe, ccost, m0, del_slot, del_tri, rep_ptr, rep_slot, rep_old, rep_new) = res.out
-        vi, si = job.verts.astype(np.int32), job.slots.astype(np.int32)
-        mmqe0[b] = m0[0]
-        parts["u"].append(vi[cu])
-        parts["v"].append(vi[cv])
-        parts["b"].append(np.full(cu.size, b, np.int32))
-        parts["mm"].append(cmmqe)
-        parts["c"].append(ccost)
-        parts["ds"].append(si[del_slot])
-        parts["dt"].append(vi[del_tri])
-        parts["rp"].append(rep_ptr[1:] + nrep)
-        parts["rs"].append(si[rep_slot])
-        parts["ro"].append(vi[rep_old])
-        parts["rn"].append(vi[rep_new])
-        parts["e"].append(res.error_m)
-        nrep += int(rep_ptr[-1])
-        tris[si] = vi[res.tris]
-        alive[si] = res.alive
+    have = [p for p in parts if p is not None]
+    for b, p in enumerate(parts):
+        if p is not None:
+            mmqe0[b] = p["m0"][0]
+            tris[p["si"]] = p["tris"]
+            alive[p["si"]] = p["alive"]
+            for k in ("m0", "si", "tris", "alive"):
+                del p[k]
+    rewrites = bool(have) and all("c" in p for p in have)
 
     def cat(key: str, dtype: type, shape: tuple[int, ...] = (0,)) -> np.ndarray:
-        a = parts[key]
-        return np.concatenate(a).astype(dtype, copy=False) if a else np.zeros(shape, dtype)
+        a = [p.pop(key) for p in have if key in p]
+        return (
+            np.concatenate(a).astype(dtype, copy=False)
+            if a and (rewrites or key not in REWRITE_FIELDS)
+            else np.zeros(shape, dtype)
+        )
 
-    log = CollapseLog(cat("u", np.int32), cat("v", np.int32), cat("b", np.int32), cat("mm", np.float64),
-                      cat("c", np.float64), mmqe0, cat("ds", np.int32), cat("dt", np.int32, (0, 3)),
-                      np.concatenate([[0], cat("rp", np.int64)]).astype(np.int64), cat("rs", np.int32),
-                      cat("ro", np.int32, (0, 3)), cat("rn", np.int32, (0, 3)), tris, alive)  # fmt: skip
+    u, v, blk, mm = cat("u", np.int32), cat("v", np.int32), cat("b", np.int32), cat("mm", np.float64)
+    cost, ds, dt = cat("c", np.float64), cat("ds", np.int32), cat("dt", np.int32, (0, 3))
+    rep_ptr = np.concatenate([[0], np.cumsum(cat("rc", np.int64))]).astype(np.int64)
+    rs, ro, rn = cat("rs", np.int32), cat("ro", np.int32, (0, 3)), cat("rn", np.int32, (0, 3))
+    log = CollapseLog(u, v, blk, mm, cost, mmqe0, ds, dt, rep_ptr, rs, ro, rn, tris, alive)
     return log, cat("e", np.float64)
 
 
@@ -325,9 +335,11 @@ def simplify_blocks(
     workers: int | None = None,
     executor: Callable[[Iterable[BlockJob], Callable[[BlockJob], BlockResult]], list[BlockResult]]
     | None = None,
+    keep_rewrites: bool = True,
 ) -> tuple[CollapseLog, np.ndarray]:
     """Each sub-block simplified on its own (its seam LOCKED), ``workers`` threads, and merged: (log,
-    measured errors (C,), the per-block running max of :func:`measured_errors`).
+    measured errors (C,), the per-block running max of :func:`measured_errors`). Without
+    ``keep_rewrites`` the log's fields a model's records do not read (:data:`REWRITE_FIELDS`) are empty.
 
     The result does not depend on ``workers`` (each block's collapses are a function of its job);
     ``executor(jobs, run_block)`` may replace the thread pool: it takes the jobs as they are cut (an
@@ -338,13 +350,13 @@ def simplify_blocks(
                           shape_eps=shape_eps, n_blocks=n_blocks, vertical_weight=vertical_weight)  # fmt: skip
     jobs: list[BlockJob | None] = [None] * nb
 
-    def one(b: int) -> BlockResult | None:
+    def one(b: int) -> dict[str, np.ndarray] | None:
         job = make(b)
         if job is None:
             return None
-        res = run_block(job)
-        jobs[b] = _placed(job)  # what the merge reads: its inputs (~160 bytes a vertex) go now
-        return res
+        # in the TIN's numbering at once: the job's inputs (~160 bytes a vertex) and the block's own
+        # result go now
+        return block_part(job, run_block(job), keep_rewrites)
 
     # biggest blocks first: the pool ends together
     size = np.bincount(np.asarray(tri_block, np.int64), minlength=nb)
@@ -359,18 +371,21 @@ def simplify_blocks(
                     yield jobs[b]
 
         ran = iter(executor(cut(), run_block))
-        got = [None if jobs[b] is None else next(ran) for b in blocks]
+        got = []
         for b in blocks:
-            jobs[b] = _placed(jobs[b])
+            job = jobs[b]
+            got.append(None if job is None else block_part(job, next(ran), keep_rewrites))
+            jobs[b] = None
     elif n_threads == 1 or nb == 1:
         got = [one(b) for b in blocks]
     else:
         with ThreadPoolExecutor(min(n_threads, nb)) as pool:
             got = list(pool.map(one, blocks))
-    results: list[BlockResult | None] = [None] * nb
+    parts: list[dict[str, np.ndarray] | None] = [None] * nb
     for b, r in zip(blocks, got, strict=True):
-        results[b] = r
-    return merge_blocks(triangles, nb, jobs, results)
+        parts[b] = r
+    del got
+    return merge_blocks(triangles, nb, parts)
 
 
 def simplify(
