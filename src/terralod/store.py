@@ -667,10 +667,10 @@ class TileStore(EpochTables):
         q = f"SELECT x, y FROM {self._tiles_src} WHERE level = ? ORDER BY y, x"
         return ((level, int(x), int(y)) for x, y in self._conn.execute(q, (level,)))
 
-    def tile_vertex_counts(self, level: int) -> dict[tuple[int, int], int]:
-        """{(x, y): vertices} of the stored tiles of ``level`` (no geometry read)."""
+    def tile_vertex_counts(self, level: int) -> dict[TileCode, int]:
+        """{code: vertices} of the stored tiles of ``level`` (no geometry read)."""
         q = f"SELECT x, y, n_vertices FROM {self._tiles_src} WHERE level = ?"
-        return {(int(x), int(y)): int(n) for x, y, n in self._conn.execute(q, (level,))}
+        return {(level, int(x), int(y)): int(n) for x, y, n in self._conn.execute(q, (level,))}
 
     def each_tile_error_measured(
         self, level: int

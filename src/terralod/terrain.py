@@ -295,7 +295,8 @@ class GridTerrain(_TerrainBase):
     def lod_vertices(self, level: int) -> dict[NodeCode, int] | None:
         """{code: vertices} of level ``level``'s tiles, from the store's counts (no mesh read): what an
         export sizes its blocks of meshes in flight by."""
-        return {(level, x, y): n for (x, y), n in self.store.tile_vertex_counts(level).items()}
+        counts: dict[NodeCode, int] = self.store.tile_vertex_counts(level)
+        return counts
 
     def lod_mesh(self, code: NodeCode) -> tuple[np.ndarray, np.ndarray]:
         """(vertices (N, 3) float64 world metres, triangles (K, 3) uint32) of tile ``code`` as stored."""
