@@ -1,6 +1,6 @@
 """A detail-increment TIN's web exports: 3D Tiles and quantized-mesh of the TIN store of a 513² SRTM3 crop.
 
-    python benchmarks/tin_export.py [--keep DIR]
+    python benchmarks/tin_export.py [--keep DIR] [--repeat N] [--before OTHER_CHECKOUT/src]
 
 Two crops of ../shared/data, each built with ``terralod build crop.tif -o tin.terra --method tin`` and
 exported with ``terralod export tin.terra --format 3dtiles`` and ``--format quantized-mesh``, every command
@@ -84,10 +84,12 @@ def crop_geographic(out: Path) -> Path:
     return out
 
 
-def run(cmd: list[str]) -> tuple[dict, str]:
-    """Wall, CPU and peak RSS of a child process, and its output."""
+def run(cmd: list[str], src: str | None = None) -> tuple[dict, str]:
+    """Wall, CPU and peak RSS of a child process, and its output; ``src``: the terralod source folder it
+    imports (another checkout, for an A/B in one run) instead of the installed one."""
+    env = dict(os.environ, PYTHONPATH=src) if src else None
     t0 = time.perf_counter()
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
     _, status, ru = os.wait4(p.pid, 0)
     wall = time.perf_counter() - t0
     text = p.stdout.read().decode() if p.stdout else ""
@@ -103,16 +105,24 @@ def _tin_rate(tin_triangles: str | None, export_s: float) -> float | str:
     return int(tin_triangles.replace(",", "")) / export_s / 1e6
 
 
-def export(store: Path, fmt: str, out: Path) -> dict:
-    m, text = run([sys.executable, "-m", "terralod", "export", str(store), "--format", fmt, "-o", str(out),
-                   "--overwrite"])  # fmt: skip
-    got = re.search(r"(\d+) tiles, ([\d,]+) triangles, .* in ([\d.]+) s", text)
-    if got is None:
-        raise RuntimeError(f"no report in: {text[-500:]}")
-    m.update(tiles=int(got.group(1)), triangles=int(got.group(2).replace(",", "")),
-             export_s=float(got.group(3)))  # fmt: skip
-    m["triangles_per_s"] = m["triangles"] / m["wall_s"]
-    return m
+def export(store: Path, fmt: str, out: Path, repeat: int, src: str | None = None) -> dict:
+    """The export run ``repeat`` times (a fresh process each): medians of wall, CPU, export time and peak RSS."""
+    runs = []
+    for _ in range(repeat):
+        m, text = run([sys.executable, "-m", "terralod", "export", str(store), "--format", fmt, "-o", str(out),
+                       "--overwrite"], src)  # fmt: skip
+        got = re.search(r"(\d+) tiles, ([\d,]+) triangles, .* in ([\d.]+) s", text)
+        if got is None:
+            raise RuntimeError(f"no report in: {text[-500:]}")
+        m.update(tiles=int(got.group(1)), triangles=int(got.group(2).replace(",", "")),
+                 export_s=float(got.group(3)))  # fmt: skip
+        runs.append(m)
+    out_m = {
+        k: float(np.median([r[k] for r in runs])) for k in ("wall_s", "cpu_s", "peak_rss_mb", "export_s")
+    }
+    out_m.update(tiles=runs[0]["tiles"], triangles=runs[0]["triangles"], runs=runs)
+    out_m["triangles_per_s"] = out_m["triangles"] / out_m["wall_s"]
+    return out_m
 
 
 def main() -> None:
@@ -120,6 +130,9 @@ def main() -> None:
     ap.add_argument(
         "--keep", help="folder to keep the crops, stores and exports in (default: a temporary one)"
     )
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each export (medians reported)")
+    ap.add_argument("--before", help="another checkout's src/ folder: its exports of the same stores beside")
+    ap.add_argument("--before-label", default="before", help="the name of --before's rows")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="tin_export_") as tmp:
         d = Path(args.keep) if args.keep else Path(tmp)
@@ -135,10 +148,13 @@ def main() -> None:
             res = {"build": build, "tin_vertices": tin.group(1) if tin else None,
                    "tin_triangles": tin.group(2) if tin else None, "store_bytes": store.stat().st_size}  # fmt: skip
             for fmt in ("3dtiles", "quantized-mesh"):
-                res[fmt] = m = export(store, fmt, d / f"{stem}_{fmt}")
-                rows.append([name, res["tin_triangles"], fmt, m["tiles"], m["triangles"], m["wall_s"],
-                             m["export_s"], m["cpu_s"], m["peak_rss_mb"], m["triangles_per_s"] / 1e6,
-                             _tin_rate(res["tin_triangles"], m["export_s"])])  # fmt: skip
+                both = [(name, fmt, None)] + ([(f"{name} ({args.before_label})", f"{fmt}@before", args.before)]
+                                               if args.before else [])  # fmt: skip
+                for label, key, src in both:
+                    res[key] = m = export(store, fmt, d / f"{stem}_{fmt}", args.repeat, src)
+                    rows.append([label, res["tin_triangles"], fmt, m["tiles"], m["triangles"], m["wall_s"],
+                                 m["export_s"], m["cpu_s"], m["peak_rss_mb"], m["triangles_per_s"] / 1e6,
+                                 _tin_rate(res["tin_triangles"], m["export_s"])])  # fmt: skip
                 if name == "N50E011 utm":
                     b = BEFORE[fmt]
                     rows.append([name + " (before, ff4e3c0)", res["tin_triangles"], fmt, b["tiles"], b["triangles"],
@@ -151,7 +167,7 @@ def main() -> None:
     md = (
         "# TIN store → web exports (fresh `terralod export` process: start-up and model load included)\n\n"
         + md_table(head, rows)
-        + f"\nLoad average (1 min) on {os.cpu_count()} cores over the run: {load} (a shared machine: wall "
+        + f"\nMedians of {args.repeat} runs each. Load average (1 min) on {os.cpu_count()} cores over the run: {load} (a shared machine: wall "
         "times stretch with it, CPU times much less). "
         "'export s' is the CLI's own figure (the export after the model is loaded). The 3D Tiles pyramid of "
         "the N50E011 crop shrank from 94 to 57 tiles: the sub-blocks' ladders no longer list every scale "

@@ -139,6 +139,13 @@ def test_tin_heights_are_matplotlibs_where_the_triangle_is_the_same() -> None:
     mine = planes[t[same], 0] * q[same, 0] + planes[t[same], 1] * q[same, 1] + planes[t[same], 2]
     assert same.sum() > 0.99 * (t >= 0).sum()
     assert np.array_equal(mine, np.ma.getdata(ref)[same])
+    # the kernel the export evaluates them with: the same bits, NaN where no triangle holds the point
+    from terralod.kernels.tinlocate import plane_heights
+
+    qx, qy = np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1])
+    k = plane_heights(np.ascontiguousarray(planes, np.float64), t, qx, qy)
+    assert np.array_equal(np.isnan(k), t < 0)
+    assert np.array_equal(k[same], np.ma.getdata(ref)[same])
 
 
 def test_a_spill_file_lives_beside_the_output_and_never_eats_the_disk_reserve(

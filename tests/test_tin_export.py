@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from conftest import read_tileset
 
@@ -218,6 +220,32 @@ def test_quantized_mesh_declared_errors_bound_the_dem(crop: Path, tin: Path) -> 
         covered += int(on.sum()) if z == finest else 0
     assert covered > 0.95 * len(pts)  # the finest tiles cover the DEM: the check is not vacuous
     assert checked > 2 * len(pts)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**32 - 1), outside=st.floats(0.0, 1.0))
+def test_tin_source_heights_do_not_depend_on_the_batch(tin: Path, seed: int, outside: float) -> None:
+    """A TIN's surface at a point is the same asked alone or among others, repeated or not, inside the
+    TIN or clipped onto its bounding box from far outside (the source looks each distinct position up once)."""
+    from terralod.export.quantized_mesh import QuantizedMesh
+    from terralod.terrain import open_terrain
+
+    with open_terrain(tin) as t:
+        src = QuantizedMesh(t).ref
+    w, s, e, n = src.bbox
+    rng = np.random.default_rng(seed)
+    k = 300
+    far = rng.random(k) < outside  # these lie up to a box's width beyond it: clipped onto its edges
+    lon = w + (e - w) * np.where(far, rng.uniform(-1, 2, k), rng.random(k))
+    lat = s + (n - s) * np.where(far, rng.uniform(-1, 2, k), rng.random(k))
+    lon, lat = np.concatenate([lon, lon[::3]]), np.concatenate([lat, lat[::3]])  # repeats
+    whole = src.height_at(lon, lat)
+    alone = np.array([src.height_at(lon[i : i + 1], lat[i : i + 1])[0] for i in range(0, lon.size, 7)])
+    assert np.isfinite(whole).all()
+    np.testing.assert_array_equal(whole[::7], alone)
+    np.testing.assert_array_equal(whole[k:], whole[:k][::3])
+    square = src.height_at(lon.reshape(20, 20), lat.reshape(20, 20))  # a tile's lattice is 2-D
+    np.testing.assert_array_equal(square.ravel(), whole)
 
 
 @pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="the kill forks the export (POSIX only)")

@@ -372,12 +372,9 @@ class TinTerrain(_TerrainBase):
         below half the previous rung's error, ending at full resolution. After the first rung of error 0
         only full resolution follows: a scale of error 0 halves nothing (every later scale is exact too,
         and a client never refines a tile whose error is 0)."""
-        err = self.model.error_m(block)
-        rungs = [0]
-        for s in range(1, err.size):
-            if s == err.size - 1 or (err[rungs[-1]] > 0.0 and err[s] <= 0.5 * err[rungs[-1]]):
-                rungs.append(s)
-        return rungs
+        from terralod.kernels.qem_replay import halving_rungs
+
+        return [int(s) for s in halving_rungs(np.ascontiguousarray(self.model.error_m(block), np.float64))]
 
     def lod_tree(self) -> list[LodNode]:
         if self._tree is not None:

@@ -127,6 +127,7 @@ def _library_kernels(hf) -> None:
     from terralod.kernels.meshtopo import (
         add_rows,
         compact_triangles,
+        first_use,
         lone_edge_mask,
         merge_pairs,
         used_bounds,
@@ -136,6 +137,7 @@ def _library_kernels(hf) -> None:
     lone_edge_mask(tri, 3)
     add_rows(np.zeros((3, 3)), merge_pairs(np.ascontiguousarray(pts[:, :2]).view(np.int64)), pts)
     compact_triangles(tri, 3)
+    first_use(tri.ravel(), 3)
     used_bounds(pts, tri)
     pts.setflags(write=False)
     used_bounds(pts, tri)
@@ -153,11 +155,16 @@ def _library_kernels(hf) -> None:
 
     spherical_sum(np.arange(1.0, 4.0), np.array([2.0, 1.0]))
     # a TIN store's quantized-mesh export: the bucket grid that locates points in its triangles
-    from terralod.kernels.tinlocate import bucket_triangles, locate_points
+    from terralod.kernels.tinlocate import bucket_triangles, locate_points, plane_heights
 
     xs, ys = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])
     start, items = bucket_triangles(xs, ys, tri, 1, 1, 0.0, 0.0, 1.0, 1.0)
-    locate_points(xs, ys, tri, start, items, 1, 1, 0.0, 0.0, 1.0, 1.0, np.array([0.2]), np.array([0.2]))
+    t = locate_points(xs, ys, tri, start, items, 1, 1, 0.0, 0.0, 1.0, 1.0, np.array([0.2]), np.array([0.2]))
+    plane_heights(np.zeros((1, 3)), t, np.array([0.2]), np.array([0.2]))
+    # a TIN's ladder of scales (its 3D Tiles pyramid)
+    from terralod.kernels.qem_replay import halving_rungs
+
+    halving_rungs(np.array([1.0, 0.4, 0.0]))
 
 
 def warm_up(report: Callable[[str], None] | None = None) -> dict[str, float]:

@@ -543,7 +543,9 @@ class TinSource(SampleSource):
         xyz = allv[first[order]]
         tri = np.ascontiguousarray(rank[group][np.concatenate(ts)].reshape(-1, 3), np.int64)
         self.geo = geo
-        self._planes = mtri.Triangulation(xyz[:, 0], xyz[:, 1], tri).calculate_plane_coefficients(xyz[:, 2])
+        self._planes = np.ascontiguousarray(
+            mtri.Triangulation(xyz[:, 0], xyz[:, 1], tri).calculate_plane_coefficients(xyz[:, 2]), np.float64
+        )
         self._locator = _TriangleLocator(xyz[:, 0], xyz[:, 1], tri)
         from scipy.spatial import cKDTree
 
@@ -564,19 +566,26 @@ class TinSource(SampleSource):
         self.spacing_deg = math.sqrt((e - w) * (n - s) / max(len(xyz), 1)) / 111320.0
 
     def height_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
+        from terralod.kernels.meshtopo import merge_pairs
+        from terralod.kernels.tinlocate import plane_heights
+
         w, s, e, n = self.bbox
-        x, y = self.geo.xy(np.clip(lon, w, e), np.clip(lat, s, n))
-        x, y = np.ravel(np.asarray(x, np.float64)), np.ravel(np.asarray(y, np.float64))
-        t = self._locator.locate(x, y)
-        inside = t >= 0
-        z = np.full(x.shape, np.nan)
-        ti, xi, yi = t[inside], x[inside], y[inside]
-        z[inside] = self._planes[ti, 0] * xi + self._planes[ti, 1] * yi + self._planes[ti, 2]
+        # most of a coarse tile's points lie outside the data and are clipped onto the bounding box's edges:
+        # each distinct position is projected and looked up once (the same answers, a fraction of the work)
+        ll = np.column_stack([np.clip(np.ravel(lon), w, e), np.clip(np.ravel(lat), s, n)]).astype(np.float64)
+        ll += 0.0  # -0.0 made 0.0: equal positions, equal bits
+        group = merge_pairs(ll.view(np.int64))
+        first = np.empty(int(group.max()) + 1 if group.size else 0, np.int64)
+        first[group[::-1]] = np.arange(group.size - 1, -1, -1)  # each group's first row
+        x, y = self.geo.xy(ll[first, 0], ll[first, 1])
+        x = np.ascontiguousarray(np.ravel(np.asarray(x, np.float64)))
+        y = np.ascontiguousarray(np.ravel(np.asarray(y, np.float64)))
+        z = plane_heights(self._planes, self._locator.locate(x, y), x, y)
         bad = ~np.isfinite(z)
         if bad.any():  # outside the TIN's hull: the nearest vertex (its edge extended outward)
             _, j = self._kd.query(np.column_stack([x[bad], y[bad]]))
             z[bad] = self.xyz[j, 2]
-        return z.reshape(np.shape(lon))
+        return z[group].reshape(np.shape(lon))
 
     def water_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
         return np.zeros(np.shape(lon), bool)

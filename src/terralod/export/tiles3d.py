@@ -815,12 +815,10 @@ def _first_use(tris: np.ndarray, nv: int) -> tuple[np.ndarray, np.ndarray]:
     """(order, triangles renumbered): the vertices the triangles use, in the order they first use them (a
     vertex no triangle uses, under a dropped nodata triangle, is left out), and the triangles in the new
     numbers."""
-    flat = np.ascontiguousarray(tris, np.int64).ravel()
-    _, first = np.unique(flat, return_index=True)
-    order = flat[np.sort(first)]
-    new = np.full(nv, -1, np.int64)
-    new[order] = np.arange(order.size)
-    return order, new[flat].reshape(-1, 3)
+    from terralod.kernels.meshtopo import first_use
+
+    order, local = first_use(np.ascontiguousarray(tris, np.int64).ravel(), int(nv))
+    return order, local.reshape(-1, 3)
 
 
 def _write_glb(

@@ -13,7 +13,7 @@ import numpy as np
 
 from terralod.kernels import jit
 
-__all__ = ["add_rows", "compact_triangles", "lone_edge_mask", "merge_pairs", "used_bounds"]
+__all__ = ["add_rows", "compact_triangles", "first_use", "lone_edge_mask", "merge_pairs", "used_bounds"]
 
 #: Odd 64-bit multipliers of the position hash (the golden ratio's and xxHash's), as signed int64.
 _MIX_A = np.int64(-7046029254386353131)
@@ -81,6 +81,27 @@ def compact_triangles(tris, n_vertices):
         for j in range(3):
             local[i, j] = slot[tris[i, j]]
     return used, local
+
+
+@jit
+def first_use(flat, n_vertices):
+    """(order, local): the vertices the flat index list ``flat`` (int64, in [0, n_vertices)) uses, in the
+    order of their first use (``flat[np.sort(np.unique(flat, return_index=True)[1])]``), and ``flat``
+    renumbered into that order (int64). One pass: a vertex-cache friendly numbering for a glTF mesh."""
+    slot = np.full(n_vertices, -1, np.int64)
+    order = np.empty(min(flat.size, n_vertices), np.int64)
+    local = np.empty(flat.size, np.int64)
+    n = 0
+    for i in range(flat.size):
+        v = flat[i]
+        s = slot[v]
+        if s < 0:
+            s = n
+            slot[v] = n
+            order[n] = v
+            n += 1
+        local[i] = s
+    return order[:n], local
 
 
 @jit

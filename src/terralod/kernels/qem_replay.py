@@ -187,3 +187,21 @@ def replay_splits(n_vertices, base_tri, rec_u, rec_v, rec_x, rec_w, rec_m, encod
             arena, top = _star_add(arena, start, length, cap, top, tris[s2, k], s2)
         present[u] = True
     return 0, tris, del_tri, rep_ptr, rep_slot, rep_old, rep_new
+
+
+@jit
+def halving_rungs(err):  # pragma: no cover - numba
+    """(K,) int64 scales of a sub-block whose errors ``err`` (by scale, base first) halve: 0, then each first
+    scale at or below half the previous rung's error, and the last scale; after a rung of error 0 only the
+    last follows (see :meth:`terralod.terrain.TinTerrain.ladder`)."""
+    n = err.shape[0]
+    out = np.empty(max(n, 1), np.int64)
+    out[0] = 0
+    k = 1
+    last = 0
+    for s in range(1, n):
+        if s == n - 1 or (err[last] > 0.0 and err[s] <= 0.5 * err[last]):
+            out[k] = s
+            k += 1
+            last = s
+    return out[:k]

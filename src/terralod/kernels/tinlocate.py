@@ -20,7 +20,7 @@ import numpy as np
 from terralod.kernels import jit
 from terralod.kernels.error import csr_from_boxes
 
-__all__ = ["bucket_triangles", "locate_points"]
+__all__ = ["bucket_triangles", "locate_points", "plane_heights"]
 
 
 @jit
@@ -76,4 +76,19 @@ def locate_points(x, y, tris, start, items, nx, ny, x0, y0, inv_dx, inv_dy, px, 
                 if d1 <= 0.0 and d2 <= 0.0 and d3 <= 0.0:
                     out[p] = t
                     break
+    return out
+
+
+@jit
+def plane_heights(planes, t, px, py):  # pragma: no cover - numba
+    """(N,) float64: ``planes[t, 0] * px + planes[t, 1] * py + planes[t, 2]`` at each point whose triangle
+    ``t`` (from :func:`locate_points`) is not -1, NaN elsewhere; the operations in that order, without
+    fused multiply-adds, so each value has the bits of the numpy expression (matplotlib's
+    ``LinearTriInterpolator``)."""
+    n = px.shape[0]
+    out = np.full(n, np.nan)
+    for p in range(n):
+        k = t[p]
+        if k >= 0:
+            out[p] = planes[k, 0] * px[p] + planes[k, 1] * py[p] + planes[k, 2]
     return out
