@@ -500,13 +500,23 @@ def test_split_coder_roundtrips_with_any_geometry(seed: int, n: int, blocks: int
     mm = np.diff(inc.rep_ptr)
     sym = [np.zeros(inc.n_records, np.int64) for _ in range(6)]
     z = m.vertices_m[:, 2].copy()
-    status, n_esc = split_codes(True, q, z, label, base, inc.block_ptr, vpos, vat, lo, hi, u, v, x1, mm, *sym)
+    none = (np.zeros((0, 3), np.int32), np.zeros(0, np.int64))
+    status, n_esc, *_ = split_codes(True, q, z, label, base, inc.block_ptr, vpos, vat, lo, hi, u, v, x1, mm, *sym,
+                                    False, *none)  # fmt: skip
     assert status == 0 and n_esc == int((sym[1] == 3).sum())
     out = [np.zeros(inc.n_records, np.int64) for _ in range(4)]
-    status, n_dec = split_codes(False, q, z, label, base, inc.block_ptr, vpos, vat, lo, hi, *out, *sym[:4],
-                                sym[4][:n_esc], sym[5][:n_esc])  # fmt: skip
+    del_tri, rep_ptr = np.zeros((2 * inc.n_records, 3), np.int32), np.zeros(inc.n_records + 1, np.int64)
+    status, n_dec, rep_slot, rep_old, rep_new = split_codes(
+        False, q, z, label, base, inc.block_ptr, vpos, vat, lo, hi, *out, *sym[:4], sym[4][:n_esc], sym[5][:n_esc],
+        True, del_tri, rep_ptr,
+    )  # fmt: skip
     assert status == 0 and n_dec == n_esc
     for a, b in zip(out, (u, v, x1, mm), strict=True):
+        assert np.array_equal(a, b)
+    # what the decoder says each split does to the mesh is what the replay of the same splits derives
+    n = int(rep_ptr[-1])
+    assert np.array_equal(rep_ptr, inc.rep_ptr) and np.array_equal(del_tri, inc.del_tri)
+    for a, b in ((rep_slot[:n], inc.rep_slot), (rep_old[:n], inc.rep_old), (rep_new[:n], inc.rep_new)):
         assert np.array_equal(a, b)
 
 

@@ -352,6 +352,20 @@ def _unlink(slot_head, cnext, cprev, cand_slot, w):
 
 
 @jit
+def _grown(rep_slot, rep_old, rep_new, need):
+    """The three move arrays copied into twice the room (at least ``need`` rows)."""
+    n = max(2 * rep_slot.shape[0], need + 16)
+    s = np.zeros(n, np.int32)
+    o = np.zeros((n, 3), np.int32)
+    w = np.zeros((n, 3), np.int32)
+    k = rep_slot.shape[0]
+    s[:k] = rep_slot
+    o[:k] = rep_old
+    w[:k] = rep_new
+    return s, o, w
+
+
+@jit
 def split_codes(
     encode,
     qxy,
@@ -373,6 +387,9 @@ def split_codes(
     sym_a,
     esc_v,
     esc_x,
+    moves,
+    del_tri,
+    rep_ptr,
 ):
     """Vertex splits to symbols (``encode``) or back, replaying them from the base mesh.
 
@@ -389,10 +406,16 @@ def split_codes(
         block b's vertices to insert take positions ``seg_lo[b] … seg_hi[b] - 1``.
     rec_m : (R,) int64, triangles moved by each split (read in both directions).
     sym_u, sym_v, sym_j : (R,) int64. esc_v, esc_x : (R,) int64, the first n_escapes entries used.
+    moves : bool
+        Also write what each split does to the mesh (the fields :func:`terralod.kernels.qem_replay.replay_splits`
+        derives, the same values): ``del_tri`` (2R, 3) int32 the two triangles record r creates, ``rep_ptr``
+        (R + 1,) int64, and the returned ``rep_slot, rep_old, rep_new`` (the moved slots, their finer and
+        coarser triples: their first ``rep_ptr[R]`` rows). False: ``del_tri`` and ``rep_ptr`` are not touched
+        (pass empty arrays).
 
     Returns
     -------
-    status, n_escapes
+    status, n_escapes, rep_slot, rep_old, rep_new
         status 0, or r + 1 for the first record that does not fit (a corrupt file); -1: a base triangle
         names no vertex; -2: more triangle slots than :data:`MAX_NODES` allows.
     """
@@ -400,8 +423,15 @@ def split_codes(
     n_base = base_tri.shape[0]
     n_slots = n_base + 2 * n_rec
     n_v = qxy.shape[0]
+    n_rep = 0
+    if moves:  # grown as the fans arrive (about 4 moved triangles a split)
+        rep_ptr[0] = 0
+        n_rep = 4 * n_rec + 16
+    rep_slot = np.zeros(n_rep, np.int32)
+    rep_old = np.zeros((n_rep, 3), np.int32)
+    rep_new = np.zeros((n_rep, 3), np.int32)
     if 3 * n_slots + 1 > MAX_NODES:
-        return -2, 0
+        return -2, 0, rep_slot, rep_old, rep_new
     tris = np.zeros((max(n_slots, 1), 3), np.int32)
     head = np.full(n_v, -1, np.int32)
     n_nodes = 3 * n_slots + 1
@@ -414,7 +444,7 @@ def split_codes(
         for k in range(3):
             w = base_tri[t, k]
             if w < 0 or w >= n_v:
-                return -1, 0
+                return -1, 0, rep_slot, rep_old, rep_new
             tris[t, k] = w
             present[w] = True
             free = _star_add(head, nxt, node_tri, free, w, t)
@@ -470,7 +500,7 @@ def split_codes(
             if encode:
                 u = rec_u[r]
                 if u < 0 or u >= n_v or vpos[u] < seg_lo[b] or vpos[u] >= seg_hi[b] or cbucket[u] < 0:
-                    return r + 1, n_esc
+                    return r + 1, n_esc, rep_slot, rep_old, rep_new
                 bu = cbucket[u]
                 rank = _bucket_below(fen, pbucket, bu, vpos[u]) - _bucket_below(fen, pbucket, bu, seg_lo[b])
                 for k in range(bu + 1, N_BUCKETS):
@@ -485,14 +515,14 @@ def split_codes(
                         break
                     rank -= cnt[b, k]
                 if sym_u[r] < 0 or bu < 0:
-                    return r + 1, n_esc
+                    return r + 1, n_esc, rep_slot, rep_old, rep_new
                 p = _bucket_find(fen, pbucket, bu, rank + _bucket_below(fen, pbucket, bu, seg_lo[b]))
                 if p < seg_lo[b] or p >= seg_hi[b]:
-                    return r + 1, n_esc
+                    return r + 1, n_esc, rep_slot, rep_old, rep_new
                 u = vat[p]
                 rec_u[r] = u
             if present[u] or m < 1:
-                return r + 1, n_esc
+                return r + 1, n_esc, rep_slot, rep_old, rep_new
             px = qxy[u, 0]
             py = qxy[u, 1]
             cell = min(py >> shift, g - 1) * g + min(px >> shift, g - 1)
@@ -523,7 +553,7 @@ def split_codes(
                 v = rec_v[r]
                 x1 = rec_x[r]
                 if v < 0 or v >= n_v or not present[v]:
-                    return r + 1, n_esc
+                    return r + 1, n_esc, rep_slot, rep_old, rep_new
                 sv = V_ESCAPE
                 if v == c0:
                     sv = 0
@@ -537,7 +567,7 @@ def split_codes(
                     for i in range(m):
                         t = _edge_tri(tris, head, nxt, node_tri, v, x)
                         if t < 0:
-                            return r + 1, n_esc
+                            return r + 1, n_esc, rep_slot, rep_old, rep_new
                         if t == t_in:
                             j = i
                             break
@@ -569,7 +599,7 @@ def split_codes(
                 _seen(v_counts, v_order, v_pos, cv, sv)
                 if sv == V_ESCAPE:
                     if n_esc >= esc_v.shape[0]:
-                        return r + 1, n_esc
+                        return r + 1, n_esc, rep_slot, rep_old, rep_new
                     v = esc_v[n_esc]
                     x1 = esc_x[n_esc]
                     n_esc += 1
@@ -585,7 +615,7 @@ def split_codes(
                     j = _from_rank(j_order, cj, sym_j[r])
                     after = _from_rank(a_order, ca, sym_a[r])
                     if j < 0 or after < 0:
-                        return r + 1, n_esc
+                        return r + 1, n_esc, rep_slot, rep_old, rep_new
                     _seen(j_counts, j_order, j_pos, cj, j)
                     _seen(a_counts, a_order, a_pos, ca, after)
                     m = after + 1 + j
@@ -595,35 +625,48 @@ def split_codes(
                         a = _after(tris, t, v)
                         t = _edge_tri(tris, head, nxt, node_tri, a, v)  # (v, ., a) shares edge v-a
                         if t < 0:
-                            return r + 1, n_esc
+                            return r + 1, n_esc, rep_slot, rep_old, rep_new
                     x1 = _after(tris, t, v)
                 else:
-                    return r + 1, n_esc
+                    return r + 1, n_esc, rep_slot, rep_old, rep_new
                 if v < 0 or v >= n_v or x1 < 0 or x1 >= n_v or m < 1 or m > n_slots:
-                    return r + 1, n_esc
+                    return r + 1, n_esc, rep_slot, rep_old, rep_new
                 rec_v[r] = v
                 rec_x[r] = x1
                 rec_m[r] = m
             if not present[v]:
-                return r + 1, n_esc
+                return r + 1, n_esc, rep_slot, rep_old, rep_new
             # the split: the fan (v, x1, x2) … moves to u; (u, v, x1) and (u, x_m, v) come back
             x = x1
             if m > moved.shape[0]:
                 moved = np.empty(2 * m, np.int64)
+            q0 = 0
+            if moves:
+                q0 = rep_ptr[r]
+                if q0 + m > rep_slot.shape[0]:
+                    rep_slot, rep_old, rep_new = _grown(rep_slot, rep_old, rep_new, q0 + m)
+                rep_ptr[r + 1] = q0 + m
             for i in range(m):
                 t = _edge_tri(tris, head, nxt, node_tri, v, x)
                 if t < 0:
-                    return r + 1, n_esc
+                    return r + 1, n_esc, rep_slot, rep_old, rep_new
                 moved[i] = t
+                if moves:
+                    rep_slot[q0 + i] = t
+                    for k in range(3):
+                        rep_new[q0 + i, k] = tris[t, k]
                 for k in range(3):
                     if tris[t, k] == v:
                         tris[t, k] = u
+                if moves:
+                    for k in range(3):
+                        rep_old[q0 + i, k] = tris[t, k]
                 x = _after(tris, t, x)
                 free = _star_remove(head, nxt, node_tri, free, v, t)
                 free = _star_add(head, nxt, node_tri, free, u, t)
             xm = x
             if xm == x1 or xm == v:
-                return r + 1, n_esc
+                return r + 1, n_esc, rep_slot, rep_old, rep_new
             s1 = n_base + 2 * r
             s2 = s1 + 1
             tris[s1, 0] = u
@@ -632,6 +675,10 @@ def split_codes(
             tris[s2, 0] = u
             tris[s2, 1] = xm
             tris[s2, 2] = v
+            if moves:
+                for k in range(3):
+                    del_tri[2 * r, k] = tris[s1, k]
+                    del_tri[2 * r + 1, k] = tris[s2, k]
             for k in range(3):
                 free = _star_add(head, nxt, node_tri, free, tris[s1, k], s1)
                 free = _star_add(head, nxt, node_tri, free, tris[s2, k], s2)
@@ -662,4 +709,4 @@ def split_codes(
                         break
                 _link(slot_head, cnext, cprev, cand_slot, best, w)
                 _set_bucket(fen, cnt, label, vpos, cbucket, pbucket, w, _error_bucket(qxy, z, tris, best, w))
-    return 0, n_esc
+    return 0, n_esc, rep_slot, rep_old, rep_new

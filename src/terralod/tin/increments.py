@@ -104,8 +104,8 @@ def _split_arrays(qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_
     pass, without the GIL) of records ``rec_u, rec_v`` (int64), wings ``wing`` (x1) and fan sizes ``rec_m``
     over the base ``base`` and each vertex's inserting block ``label``."""
     sym = [np.zeros(rec_u.shape[0], np.int64) for _ in range(6)]
-    status, n_esc = split_codes(True, qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_v, wing,
-                                rec_m, *sym)  # fmt: skip
+    status, n_esc, *_ = split_codes(True, qxy, z, label, base, block_ptr, vpos, vat, lo, hi, rec_u, rec_v, wing,
+                                    rec_m, *sym, False, np.zeros((0, 3), np.int32), np.zeros(0, np.int64))  # fmt: skip
     if status == -2:
         raise InputError(f"a TIN of {base.shape[0] + 2 * rec_u.shape[0]:,} triangle slots is more than one model "
                          "codes (about 715 M): build it in parts (--bbox)")  # fmt: skip
@@ -814,10 +814,14 @@ class DetailIncrementModel:
         )
         rec_u, rec_v, rec_x, rec_m = (np.zeros(n_rec, np.int64) for _ in range(4))
         vpos, vat, lo, hi = _insert_order(label, nb)
-        status, _ = split_codes(False, _grid_xy(v), v[:, 2].copy(), label, base_tri.astype(np.int32), bptr, vpos, vat,
-                                lo, hi, rec_u, rec_v,
-                                rec_x, rec_m, sym_u, sym_v, sym_j, after, a["escape_v"].astype(np.int64),
-                                a["escape_x1"].astype(np.int64))  # fmt: skip
+        # the decoder also writes what each split does to the mesh (no second replay of the same splits)
+        del_tri = np.zeros((2 * n_rec, 3), np.int32)
+        rep_ptr = np.zeros(n_rec + 1, np.int64)
+        status, _, rep_slot, rep_old, rep_new = split_codes(
+            False, _grid_xy(v), v[:, 2].copy(), label, base_tri.astype(np.int32), bptr, vpos, vat, lo, hi, rec_u,
+            rec_v, rec_x, rec_m, sym_u, sym_v, sym_j, after, a["escape_v"].astype(np.int64),
+            a["escape_x1"].astype(np.int64), True, del_tri, rep_ptr,
+        )  # fmt: skip
         if status != 0:
             where = ("more triangle slots than a model codes" if status == -2 else "base triangles" if status < 0
                      else f"record {max(status, 1) - 1}")  # fmt: skip
@@ -835,6 +839,7 @@ class DetailIncrementModel:
             codes(a["mmqe_first"], a["mmqe_drop"]),
             codes(a["error_first"], a["error_drop"]),
             source=src,
+            moves=(del_tri, rep_ptr, *(r[: rep_ptr[-1]].copy() for r in (rep_slot, rep_old, rep_new))),
         )
         if step > 1:
             inc = inc.merged(step)

@@ -349,6 +349,7 @@ class Increments:
         error_code: np.ndarray,
         *,
         source: str | None = None,
+        moves: tuple[np.ndarray, ...] | None = None,
     ) -> tuple[Increments, np.ndarray, np.ndarray]:
         """Raw records from the compact vertex splits (what a file decodes to), by replaying them from the base.
 
@@ -361,6 +362,9 @@ class Increments:
             from the wing vertex x1 moves to u (see :func:`terralod.kernels.qem_replay.replay_splits`).
         mmqe_code : (R + B,) int, quantised monotone MMQE of every block's scales S_0 … S_{n_b}.
         error_code : (R + B,) int, quantised measured error of the same scales (:func:`quantise_error`).
+        moves : (del_tri, rep_ptr, rep_slot, rep_old, rep_new) of these splits when known (the file's decoder,
+            :func:`terralod.kernels.tincodec.split_codes`, writes them as it replays): not replayed again,
+            and the x1 ranks (``rec_w``, which nothing reads) are not derived.
 
         Returns (increments, base triples (S, 3), base alive (S,)); CorruptStoreError (naming ``source``)
         when the splits do not fit together.
@@ -368,11 +372,16 @@ class Increments:
         rec_u, rec_v, rec_x1, rec_m = (
             np.ascontiguousarray(a, np.int64) for a in (rec_u, rec_v, rec_x1, rec_m)
         )
-        rec_w = np.zeros(rec_u.size, np.int64)
         base_tri = np.ascontiguousarray(base_tri, np.int32).reshape(-1, 3)
-        status, _, del_tri, rep_ptr, rep_slot, rep_old, rep_new = replay_splits(
-            int(n_vertices), base_tri, rec_u, rec_v, rec_x1, rec_w, rec_m, True
-        )
+        rec_w: np.ndarray | None = None
+        if moves is not None:
+            status = 0
+            del_tri, rep_ptr, rep_slot, rep_old, rep_new = moves
+        else:
+            rec_w = np.zeros(rec_u.size, np.int64)
+            status, _, del_tri, rep_ptr, rep_slot, rep_old, rep_new = replay_splits(
+                int(n_vertices), base_tri, rec_u, rec_v, rec_x1, rec_w, rec_m, True
+            )
         if status != 0:
             where = "base triangles" if status < 0 else f"record {status - 1}"
             raise CorruptStoreError(
