@@ -191,8 +191,8 @@ def level_blocks(
     nodes, fewer where the terrain counts its nodes' vertices and that many would hold more than
     :data:`BLOCK_VERTICES` (cells in raster order, nodes in the tree's order within a cell); a block's
     neighbourhood is the block and every node of its level (in ``codes`` or not) whose padded box meets the
-    box of the block's padded boxes: a superset of the nodes that may share a vertex position with one of the block's, which
-    is all a node's normals need (extra neighbours cost time, not bytes).
+    box of the block's padded boxes: a superset of the nodes that may share a vertex position with one of
+    the block's, which is all a node's normals need (extra neighbours cost time, not bytes).
 
     Found through the cells: a node whose padded box is at most a cell wide meets only nodes whose centres
     lie in its own cell or the eight around it; the wider ones are checked against every block."""

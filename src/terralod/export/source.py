@@ -503,10 +503,23 @@ class _TriangleLocator:
                                         np.ascontiguousarray(py, np.float64)))  # fmt: skip
 
 
+def _distinct_xy(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(group, first): rows of ``xy`` (N, 2) with equal coordinates share a group, numbered in order of first
+    appearance (:func:`terralod.kernels.meshtopo.merge_pairs`, -0.0 taken as 0.0), and each group's first
+    row."""
+    from terralod.kernels.meshtopo import merge_pairs
+
+    bits = np.ascontiguousarray(xy, np.float64) + 0.0  # -0.0 made 0.0: equal positions, equal bits
+    group = merge_pairs(bits.view(np.int64))
+    first = np.empty(int(group.max()) + 1 if group.size else 0, np.int64)
+    first[group[::-1]] = np.arange(group.size - 1, -1, -1)
+    return group, first
+
+
 class TinSource(SampleSource):
     """A TIN store's finest surface: its vertices are the samples, its triangles the surface.
 
-    The leaves' vertices are merged where their positions agree to 0.1 mm (:func:`merge_pairs` on the
+    The leaves' vertices are merged where their positions agree to 0.1 mm (:func:`_distinct_xy` on the
     rounded coordinates, ordered as ``np.unique(..., axis=0)`` orders them); a point is located by a bucket
     grid (:mod:`terralod.kernels.tinlocate`) and its height is matplotlib's: the plane coefficients of
     ``Triangulation.calculate_plane_coefficients`` evaluated as ``LinearTriInterpolator`` does (a x + b y
@@ -514,8 +527,6 @@ class TinSource(SampleSource):
 
     def __init__(self, terrain: Any, geo: Any) -> None:
         import matplotlib.tri as mtri
-
-        from terralod.kernels.meshtopo import merge_pairs
 
         super().__init__()
         tree = terrain.lod_tree()
@@ -532,11 +543,9 @@ class TinSource(SampleSource):
             ts.append(remap[t] + base)
             base += used.size
         allv = np.concatenate(vs)
-        key = np.round(allv[:, :2], 4) + 0.0  # -0.0 made 0.0: equal positions, equal bits
-        group = merge_pairs(np.ascontiguousarray(key).view(np.int64))
-        ng = int(group.max()) + 1 if group.size else 0
-        first = np.empty(ng, np.int64)
-        first[group[::-1]] = np.arange(group.size - 1, -1, -1)  # each group's first row
+        key = np.round(allv[:, :2], 4) + 0.0  # -0.0 made 0.0 (np.unique's order, below)
+        group, first = _distinct_xy(key)
+        ng = first.size
         order = np.lexsort((key[first, 1], key[first, 0]))  # np.unique's order: x, then y
         rank = np.empty(ng, np.int64)
         rank[order] = np.arange(ng)
@@ -566,17 +575,13 @@ class TinSource(SampleSource):
         self.spacing_deg = math.sqrt((e - w) * (n - s) / max(len(xyz), 1)) / 111320.0
 
     def height_at(self, lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
-        from terralod.kernels.meshtopo import merge_pairs
         from terralod.kernels.tinlocate import plane_heights
 
         w, s, e, n = self.bbox
         # most of a coarse tile's points lie outside the data and are clipped onto the bounding box's edges:
         # each distinct position is projected and looked up once (the same answers, a fraction of the work)
-        ll = np.column_stack([np.clip(np.ravel(lon), w, e), np.clip(np.ravel(lat), s, n)]).astype(np.float64)
-        ll += 0.0  # -0.0 made 0.0: equal positions, equal bits
-        group = merge_pairs(ll.view(np.int64))
-        first = np.empty(int(group.max()) + 1 if group.size else 0, np.int64)
-        first[group[::-1]] = np.arange(group.size - 1, -1, -1)  # each group's first row
+        ll = np.column_stack([np.clip(np.ravel(lon), w, e), np.clip(np.ravel(lat), s, n)])
+        group, first = _distinct_xy(ll)
         x, y = self.geo.xy(ll[first, 0], ll[first, 1])
         x = np.ascontiguousarray(np.ravel(np.asarray(x, np.float64)))
         y = np.ascontiguousarray(np.ravel(np.asarray(y, np.float64)))
