@@ -46,8 +46,8 @@ BEFORE = {
 }
 
 
-def crop_utm(out: Path) -> Path:
-    """SRTM3 N50E011 resampled to UTM 32N at 90 m, its central 513² samples."""
+def crop_utm(out: Path, side: int = 513) -> Path:
+    """SRTM3 N50E011 resampled to UTM 32N at 90 m, its central side² samples."""
     import rasterio
     from rasterio.warp import Resampling, calculate_default_transform, reproject
     from rasterio.windows import Window, transform
@@ -59,24 +59,24 @@ def crop_utm(out: Path) -> Path:
         z = np.zeros((h, w), np.float32)
         reproject(rasterio.band(ds, 1), z, dst_transform=t, dst_crs="EPSG:32632", resampling=Resampling.bilinear,
                   dst_nodata=-32768)  # fmt: skip
-    r0, c0 = (h - 513) // 2, (w - 513) // 2
-    a = z[r0 : r0 + 513, c0 : c0 + 513]
-    prof = {"driver": "GTiff", "width": 513, "height": 513, "count": 1, "dtype": "float32", "crs": "EPSG:32632",
-            "transform": transform(Window(c0, r0, 513, 513), t), "nodata": -32768}  # fmt: skip
+    r0, c0 = (h - side) // 2, (w - side) // 2
+    a = z[r0 : r0 + side, c0 : c0 + side]
+    prof = {"driver": "GTiff", "width": side, "height": side, "count": 1, "dtype": "float32", "crs": "EPSG:32632",
+            "transform": transform(Window(c0, r0, side, side), t), "nodata": -32768}  # fmt: skip
     with rasterio.open(out, "w", **prof) as o:
         o.write(a, 1)
     return out
 
 
-def crop_geographic(out: Path) -> Path:
-    """Rows and columns 300:813 of SRTM3 N42E001, as read."""
+def crop_geographic(out: Path, side: int = 513) -> Path:
+    """Rows and columns 300:300 + side of SRTM3 N42E001, as read."""
     import rasterio
     from rasterio.windows import Window
 
     with rasterio.open(SHARED / "dem" / "srtm3_N42E001.tif") as ds:
-        win = Window(300, 300, 513, 513)
+        win = Window(300, 300, side, side)
         a = ds.read(1, window=win)
-        prof = dict(ds.profile, width=513, height=513, transform=ds.window_transform(win), tiled=False)
+        prof = dict(ds.profile, width=side, height=side, transform=ds.window_transform(win), tiled=False)
     prof.pop("blockxsize", None)
     prof.pop("blockysize", None)
     with rasterio.open(out, "w", **prof) as o:
@@ -133,14 +133,20 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="runs of each export (medians reported)")
     ap.add_argument("--before", help="another checkout's src/ folder: its exports of the same stores beside")
     ap.add_argument("--before-label", default="before", help="the name of --before's rows")
+    ap.add_argument(
+        "--side", type=int, default=513, help="crop side in samples (other than 513: tin_export_SIDE.*)"
+    )
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="tin_export_") as tmp:
         d = Path(args.keep) if args.keep else Path(tmp)
         d.mkdir(parents=True, exist_ok=True)
         rows, payload = [], {"crops": {}, "before_ff4e3c0": BEFORE, "load_average_start": os.getloadavg()}
-        for name, make in (("N50E011 utm", crop_utm), ("N42E001 [300:813]", crop_geographic)):
+        side = args.side
+        crops = ((f"N50E011 utm{'' if side == 513 else f' {side}²'}", crop_utm),
+                 (f"N42E001 [300:{300 + side}]", crop_geographic))  # fmt: skip
+        for name, make in crops:
             stem = name.split()[0]
-            dem = make(d / f"{stem}.tif")
+            dem = make(d / f"{stem}.tif", side)
             store = d / f"{stem}.terra"
             build, text = run([sys.executable, "-m", "terralod", "build", str(dem), "-o", str(store), "--method",
                                "tin", "--overwrite"])  # fmt: skip
@@ -169,15 +175,22 @@ def main() -> None:
         + md_table(head, rows)
         + f"\nMedians of {args.repeat} runs each. Load average (1 min) on {os.cpu_count()} cores over the run: {load} (a shared machine: wall "
         "times stretch with it, CPU times much less). "
-        "'export s' is the CLI's own figure (the export after the model is loaded). The 3D Tiles pyramid of "
-        "the N50E011 crop shrank from 94 to 57 tiles: the sub-blocks' ladders no longer list every scale "
-        "after the first of error 0 (tiles whose parents declare 0 are never refined to). The "
+        "'export s' is the CLI's own figure (the export after the model is loaded). "
+        + (
+            "The 3D Tiles pyramid of the N50E011 crop shrank from 94 to 57 tiles: the sub-blocks' ladders no "
+            "longer list every scale after the first of error 0 (tiles whose parents declare 0 are never "
+            "refined to). "
+            if side == 513
+            else f"Crops of {side}² samples: {(side - 1) ** 2 / 512**2:.0f}x the default crops' samples. "
+        )
+        + "The "
         "quantized-mesh export re-tiles the TIN on Cesium's geographic grid: each tile samples the TIN's "
         "surface (export/source.py TinSource: points located by a bucket grid, kernels/tinlocate.py) and "
         "simplifies those samples to the tile's error, so its pyramid holds far fewer triangles than the "
         "TIN; the last column divides the TIN's own triangles by the export's time.\n"
     )
-    write_results("tin_export", payload, md)
+    payload["side"] = side
+    write_results("tin_export" if side == 513 else f"tin_export_{side}", payload, md)
 
 
 if __name__ == "__main__":
