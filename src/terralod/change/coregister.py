@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from terralod.change.difference import AlignedPair, dem_of_difference, sample_surface
+from terralod.change.difference import AlignedPair, dem_of_difference, valid_at
 
 log = logging.getLogger(__name__)
 
@@ -206,6 +206,16 @@ def nmad(values: np.ndarray) -> float:
     return float(NMAD_FACTOR * np.median(np.abs(v - np.median(v))))
 
 
+def median_nmad(values: np.ndarray) -> tuple[float, float]:
+    """(``np.median(values)``, :func:`nmad` of them), the median found once when the values are finite
+    float64 (the same two numbers as computing each on its own)."""
+    v = np.asarray(values)
+    med = float(np.median(v))
+    if v.dtype != np.float64 or v.size == 0 or not np.isfinite(med) or not np.isfinite(v).all():
+        return med, nmad(v)
+    return med, float(NMAD_FACTOR * np.median(np.abs(v - med)))
+
+
 def stable_ground(dod: np.ndarray, given: np.ndarray | None = None) -> np.ndarray:
     """Stable cells of a DoD: ``given`` (or every finite cell) minus the change, the cells beyond
     ``OUTLIER_NMAD`` NMAD of the median (re-estimated until it settles; the threshold never below
@@ -218,7 +228,8 @@ def stable_ground(dod: np.ndarray, given: np.ndarray | None = None) -> np.ndarra
         v = dod[stable]
         if v.size < MIN_STABLE_CELLS:
             return stable
-        med, s = float(np.median(v)), max(nmad(v), NMAD_FLOOR_M)
+        med, s = median_nmad(v)
+        s = max(s, NMAD_FLOOR_M)
         change = ok & (np.abs(dod - med) > OUTLIER_NMAD * s)
         if CHANGE_BUFFER_CELLS:
             change = ndimage.binary_dilation(change, iterations=CHANGE_BUFFER_CELLS)
@@ -632,7 +643,7 @@ def _search_shift(pair: AlignedPair, land: np.ndarray) -> tuple[float, float] | 
     def cost(tx: float, ty: float) -> float:
         r, c = after.sample_rc(x - tx, y - ty)
         z = ndimage.map_coordinates(a_full, [r, c], order=1, mode="nearest")
-        _, ok = sample_surface(after, r, c, order=1)
+        ok = valid_at(after, r, c)
         if ok.sum() < MIN_STABLE_CELLS:
             return float("inf")
         return nmad(z[ok] - b[ok])
@@ -733,7 +744,7 @@ def _fit_terralod(
             r, c = after.sample_rc(x - t[0], y - t[1])
             coords = np.stack([r, c])
             a = ndimage.map_coordinates(a_coef, coords, order=3, mode="nearest", prefilter=False)
-            _, ok = sample_surface(after, r, c, order=1)
+            ok = valid_at(after, r, c)
             res = a + t[2] - b
             # r(t + δ) ≈ r(t) − ∇A(x − t)·δ + δz, and ∇A(x − t) ≈ ∇B(x) near the solution
             delta = _robust_step(res, ok, gx, gy)
@@ -750,8 +761,8 @@ def _robust_step(res: np.ndarray, ok: np.ndarray, gx: np.ndarray, gy: np.ndarray
     valid cells within ``OUTLIER_NMAD`` NMAD of their median; None when too few are left."""
     if ok.sum() < MIN_STABLE_CELLS:
         return None
-    med = np.median(res[ok])
-    s = max(nmad(res[ok]), 1e-9)
+    med, s = median_nmad(res[ok])
+    s = max(s, 1e-9)
     use = ok & (np.abs(res - med) <= OUTLIER_NMAD * s)
     if use.sum() < MIN_STABLE_CELLS:
         return None
@@ -807,8 +818,7 @@ def _after_grid_residual(pair: AlignedPair, b_coef, gx_b, gy_b, a, x, y, t):
     b = ndimage.map_coordinates(b_coef, coords, order=3, mode="nearest", prefilter=False)
     gx = ndimage.map_coordinates(gx_b, coords, order=1, mode="nearest")
     gy = ndimage.map_coordinates(gy_b, coords, order=1, mode="nearest")
-    _, ok = sample_surface(pair.before, r, c, order=1)
-    return a + t[2] - b, gx, gy, ok
+    return a + t[2] - b, gx, gy, valid_at(pair.before, r, c)
 
 
 def _before_spline(before, sigma_px: float = 0.0):
@@ -833,8 +843,8 @@ def _after_grid_standard_error_cells(pair: AlignedPair, fit: np.ndarray, shift_m
     res, gx, gy, ok = _after_grid_residual(pair, b_coef, gx_b, gy_b, a, x, y, shift_m)
     if ok.sum() < MIN_FIT_CELLS:
         return float("inf")
-    med = np.median(res[ok])
-    s = max(nmad(res[ok]), NMAD_FLOOR_M)
+    med, s = median_nmad(res[ok])
+    s = max(s, NMAD_FLOOR_M)
     use = ok & (np.abs(res - med) <= OUTLIER_NMAD * s)
     if use.sum() < MIN_FIT_CELLS:
         return float("inf")

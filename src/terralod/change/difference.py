@@ -87,10 +87,21 @@ def sample_surface(hf: Heightfield, rows: np.ndarray, cols: np.ndarray, order: i
 
     coords = np.stack([np.asarray(rows, np.float64), np.asarray(cols, np.float64)])
     z = ndimage.map_coordinates(hf.elevation_m.astype(np.float64), coords, order=order, mode="nearest")
+    return z, _valid_at(hf, coords)
+
+
+def valid_at(hf: Heightfield, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """The validity :func:`sample_surface` gives at fractional sample indices, without the elevations."""
+    return _valid_at(hf, np.stack([np.asarray(rows, np.float64), np.asarray(cols, np.float64)]))
+
+
+def _valid_at(hf: Heightfield, coords: np.ndarray) -> np.ndarray:
+    from scipy import ndimage
+
     w = ndimage.map_coordinates(hf.valid.astype(np.float32), coords, order=1, mode="constant", cval=0.0)
     h, wd = hf.shape
     inside = (coords[0] >= -0.5) & (coords[0] <= h - 0.5) & (coords[1] >= -0.5) & (coords[1] <= wd - 0.5)
-    return z, (w >= VALID_WEIGHT) & inside
+    return (w >= VALID_WEIGHT) & inside
 
 
 def same_crs(a: str | None, b: str | None) -> bool:

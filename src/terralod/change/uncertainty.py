@@ -213,7 +213,7 @@ def stable_by_slope(dod: np.ndarray, base: np.ndarray, slope_deg: np.ndarray, ou
     would take a noisy steep side for change and leave the model only its quiet cells."""
     from scipy import ndimage
 
-    from terralod.change.coregister import NMAD_FLOOR_M, nmad
+    from terralod.change.coregister import NMAD_FLOOR_M, median_nmad
 
     ok = base & np.isfinite(dod)
     if ok.sum() < MIN_MODEL_CELLS:
@@ -227,8 +227,8 @@ def stable_by_slope(dod: np.ndarray, base: np.ndarray, slope_deg: np.ndarray, ou
         for k in range(max(edges.size - 1, 1)):
             v = dod[stable & (cls == k)]
             if v.size >= MIN_BIN_CELLS:
-                med[k] = float(np.median(v))
-                thr[k] = outlier_nmad * max(nmad(v), NMAD_FLOOR_M)
+                med[k], s_k = median_nmad(v)
+                thr[k] = outlier_nmad * max(s_k, NMAD_FLOOR_M)
         change = ok & (np.abs(dod - med[cls]) > thr[cls])
         if buffer_cells:
             change = ndimage.binary_dilation(change, iterations=buffer_cells)

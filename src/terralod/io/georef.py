@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import math
 import re
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 from terralod.errors import InputError
 
@@ -235,9 +237,37 @@ class CrsSummary:
     area_deg: tuple[float, float, float, float] | None = None
 
 
+_T = TypeVar("_T")
+#: Results of :func:`crs_summary` and :func:`area_of_use` by the CRS's WKT2, which decides them (GDAL's
+#: identification in them costs about 0.1 s of CPU a call, and every reader asks for the same few CRSs)
+_BY_WKT2: dict[tuple[str, str], Any] = {}
+_BY_WKT2_LOCK = threading.Lock()
+_BY_WKT2_SIZE = 256
+
+
+def _by_wkt2(kind: str, c: Any, compute: Callable[[Any], _T]) -> _T:
+    """``compute(c)``, remembered by (``kind``, ``c``'s WKT2); a CRS GDAL cannot write as WKT2 is not."""
+    try:
+        key = (kind, c.to_wkt(version="WKT2_2019"))
+    except Exception:  # noqa: BLE001 - no WKT2: computed each time (and it has no tree either)
+        return compute(c)
+    with _BY_WKT2_LOCK:
+        if key in _BY_WKT2:
+            return _BY_WKT2[key]
+    out = compute(c)
+    with _BY_WKT2_LOCK:
+        if len(_BY_WKT2) >= _BY_WKT2_SIZE:
+            _BY_WKT2.pop(next(iter(_BY_WKT2)))
+        _BY_WKT2[key] = out
+    return out
+
+
 def crs_summary(crs: Any) -> CrsSummary:
     """The :class:`CrsSummary` of a CRS (anything :func:`to_crs` reads); InputError when unreadable."""
-    c = to_crs(crs)
+    return _by_wkt2("summary", to_crs(crs), _crs_summary)
+
+
+def _crs_summary(c: Any) -> CrsSummary:
     tree = _wkt2_tree(c)
     if tree is None:
         return CrsSummary("other", _short(c.to_string()), c.to_epsg())
@@ -348,7 +378,10 @@ def _area(tree: WktNode) -> tuple[float, float, float, float] | None:
 def area_of_use(crs: Any) -> tuple[float, float, float, float] | None:
     """(west, south, east, north) degrees where a CRS is meant to be used: its WKT's ``USAGE``, else the
     EPSG definition's when GDAL identifies the CRS (a CRS read from GeoTIFF keys carries no usage)."""
-    c = to_crs(crs)
+    return _by_wkt2("area", to_crs(crs), _area_of_use)
+
+
+def _area_of_use(c: Any) -> tuple[float, float, float, float] | None:
     tree = _wkt2_tree(c)
     area = _area(tree) if tree is not None else None
     if area is not None or tree is None or _main_node(tree).child("REMARK") is not None:
