@@ -183,3 +183,27 @@ def read_tileset(folder: Path | str, name: str = "tileset.json") -> dict:
         return out
 
     return {**ts, "root": walk(ts["root"])}
+
+
+_CPU_LOG = os.environ.get("TERRALOD_TEST_CPU")
+
+
+if _CPU_LOG:  # a per-test account of user + system CPU, this process and its reaped children: where the suite's time goes
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):  # noqa: ANN001, ANN201 - pytest's hook signature
+        import json
+        import resource
+        import time
+
+        def cpu() -> float:
+            s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+            return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
+
+        t0, c0 = time.perf_counter(), cpu()
+        yield
+        with open(_CPU_LOG, "a") as f:
+            f.write(
+                json.dumps({"id": item.nodeid, "cpu_s": cpu() - c0, "wall_s": time.perf_counter() - t0})
+                + "\n"
+            )

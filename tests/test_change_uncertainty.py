@@ -180,3 +180,36 @@ def test_the_variogram_fit_is_xdems_bit_for_bit(seed: int) -> None:
         got = fit_sum_spherical(df, bounds=bounds, p0=p0, maxfev=10000)
     want = np.ravel(np.c_[params["range"].values, params["psill"].values])
     assert np.array_equal(got, want), (got, want)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31), st.integers(300, 30_000), st.booleans())
+def test_the_slope_binning_is_xdems_bit_for_bit(seed: int, n: int, ties: bool) -> None:
+    """binned_nmad_2d gives the 2-D rows of xdem's nd_binning (NMAD by slope x curvature bins, the edges
+    the model uses) exactly: the same columns, row order, counts, NMADs (empty bins NaN) and intervals,
+    with heavy-tailed errors and, when ``ties``, slopes on a 0.5-degree lattice (values on the edges)."""
+    import warnings
+
+    import xdem
+
+    from terralod.change.uncertainty import _edges, binned_nmad_2d
+
+    rng = np.random.default_rng(seed)
+    v = rng.standard_t(3, n) * rng.uniform(0.1, 5.0)
+    s, c = rng.gamma(2.0, 8.0, n), rng.exponential(1.0, n)
+    if ties:
+        s = np.round(2 * s) / 2
+    se = _edges(s, np.linspace(0, 1, 9), 400)
+    ce = _edges(c, np.array([0, 0.5, 0.8, 0.95, 1.0]), 200)
+    if se.size < 2 or ce.size < 2:
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        want = xdem.spatialstats.nd_binning(v, [s, c], ["slope", "maxc"], statistics=[xdem.spatialstats.nmad],
+                                            list_var_bins=(se, ce))  # fmt: skip
+    want = want[want.nd == 2].reset_index(drop=True)
+    got = binned_nmad_2d(v, s, c, se, ce, ["slope", "maxc"])
+    assert list(got.columns) == list(want.columns)
+    for k in ("nd", "count", "nmad"):
+        assert np.array_equal(got[k].to_numpy(), want[k].to_numpy(), equal_nan=True), k
+    assert list(got["slope"]) == list(want["slope"]) and list(got["maxc"]) == list(want["maxc"])

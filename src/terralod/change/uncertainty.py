@@ -239,6 +239,63 @@ def stable_by_slope(dod: np.ndarray, base: np.ndarray, slope_deg: np.ndarray, ou
     return stable
 
 
+def binned_nmad_2d(
+    values: np.ndarray, x: np.ndarray, y: np.ndarray, x_edges: np.ndarray, y_edges: np.ndarray,
+    names: list[str],
+) -> Any:  # fmt: skip
+    """The 2-D rows of :func:`xdem.spatialstats.nd_binning` (``statistics=[nmad]``, bins given as edges)
+    for finite ``values`` at (``x``, ``y``): the same table, row order and numbers, bit for bit, without
+    the 1-D rows :func:`xdem.spatialstats.interp_nd_binning` does not read and without scipy's
+    per-value Python loop of a callable statistic (``binned_statistic``): the bins are scipy's
+    (``binned_statistic_2d``'s counting, its rule for the last edge included), each bin's NMAD the median
+    of its absolute deviations from its median, found on the values sorted by bin (a median does not
+    depend on the order of the values)."""
+    import pandas as pd
+    from scipy.stats import binned_statistic_2d
+
+    v = np.asarray(values, np.float64).ravel()
+    count, ex, ey, bins = binned_statistic_2d(x, y, v, statistic="count", bins=[x_edges, y_edges],
+                                              expand_binnumbers=True)  # fmt: skip
+    nx, ny = ex.size - 1, ey.size - 1
+    bx, by = bins[0] - 1, bins[1] - 1  # scipy's numbers count the outlier bins below the first edge
+    inside = (bx >= 0) & (bx < nx) & (by >= 0) & (by < ny)
+    flat = (bx * ny + by)[inside]
+    nmad_bins = np.full(nx * ny, np.nan)
+    if flat.size:
+        vi = v[inside]
+        order = np.lexsort((vi, flat))
+        key, vs = flat[order], vi[order]
+        med = _group_medians(key, vs, nx * ny)
+        dev = np.abs(vi - med[flat])
+        order = np.lexsort((dev, flat))
+        nmad_bins = 1.4826 * _group_medians(flat[order], dev[order], nx * ny)
+    ix = pd.IntervalIndex.from_breaks(ex, closed="left")
+    iy = pd.IntervalIndex.from_breaks(ey, closed="left")
+    df = pd.DataFrame()
+    df["count"] = count.flatten()
+    df["nmad"] = nmad_bins
+    df[names[0]] = [i1 for i1 in ix for _ in iy]
+    df[names[1]] = [i2 for _ in ix for i2 in iy]
+    df.insert(0, "nd", 2)
+    return df
+
+
+def _group_medians(key: np.ndarray, v: np.ndarray, n_groups: int) -> np.ndarray:
+    """``np.median`` of each group of ``v`` (sorted by ``key``, then by value), NaN for an empty group."""
+    out = np.full(n_groups, np.nan)
+    starts = np.searchsorted(key, np.arange(n_groups), side="left")
+    ends = np.searchsorted(key, np.arange(n_groups), side="right")
+    n = ends - starts
+    has = n > 0
+    lo = starts + (n - 1) // 2
+    hi = starts + n // 2
+    odd = has & (n % 2 == 1)
+    even = has & (n % 2 == 0)
+    out[odd] = v[lo[odd]]
+    out[even] = np.mean(np.stack([v[lo[even]], v[hi[even]]]), axis=0)
+    return out
+
+
 def fit_error_model(
     dod: np.ndarray, stable: np.ndarray, z_before_m: np.ndarray, valid_before: np.ndarray,
     spacing_m: tuple[float, float], candidates: np.ndarray | None = None,
@@ -266,10 +323,10 @@ def fit_error_model(
         warnings.simplefilter("ignore")
         try:
             # infer_heteroscedasticity_from_stable's own steps (xdem 0.2.3 asks arrays for a ground sampling
-            # distance it does not use): N-D binning of the NMAD, its interpolant, the two-step standardisation
+            # distance it does not use): N-D binning of the NMAD (its 2-D rows, bit for bit: binned_nmad_2d),
+            # its interpolant, the two-step standardisation
             names = ["slope", "maxc"]
-            df = ss_.nd_binning(dod[ok], [s_ok, c_ok], names, statistics=[ss_.nmad],
-                                list_var_bins=(s_edges, c_edges))  # fmt: skip
+            df = binned_nmad_2d(dod[ok], s_ok, c_ok, s_edges, c_edges, names)
             raw = ss_.interp_nd_binning(df, list_var_names=names, statistic="nmad", min_count=MIN_BIN_CELLS)
             fun = ss_.two_step_standardization(dod[ok], [s_ok, c_ok], raw)[1]
         except (ValueError, IndexError) as e:
