@@ -25,7 +25,7 @@ from terralod.pyramid.distributed import build_store_windowed, dask_client, scan
 from terralod.store import TileStore
 from terralod.tiles import TilePyramid
 
-from conftest import fractal_terrain
+from conftest import fractal_terrain, terralod_cli
 
 CRS = "EPSG:32611"
 
@@ -419,7 +419,6 @@ def test_tcp_scheduler_builds_dem_and_tin_as_the_local_build(tmp_path: Path) -> 
     import json
     import shutil
     import subprocess
-    import sys
     import time
 
     from terralod.store import read_tin_store
@@ -449,8 +448,8 @@ def test_tcp_scheduler_builds_dem_and_tin_as_the_local_build(tmp_path: Path) -> 
             c.wait_for_workers(2, timeout=120)
 
         def build(src: Path, out: Path, *extra: str) -> None:
-            r = subprocess.run([sys.executable, "-m", "terralod", "build", str(src), "-o", str(out), *extra],
-                               capture_output=True, text=True, timeout=600)  # fmt: skip
+            # the command in this process: only the cluster runs apart
+            r = terralod_cli("build", str(src), "-o", str(out), *extra)
             assert r.returncode == 0, r.stdout + r.stderr
 
         tif = _write_tif(tmp_path / "dem.tif", fractal_terrain(129, 193, seed=11, relief_m=350.0))

@@ -23,6 +23,8 @@ pytest.importorskip("pyproj")
 sys.path.insert(0, str(Path(__file__).parent))
 from test_outputs import _dem_with_bump, _small_dem  # noqa: E402
 
+from conftest import terralod_cli  # noqa: E402
+
 
 def _tree(d: Path) -> dict[str, str]:
     return {f.relative_to(d).as_posix(): hashlib.sha256(f.read_bytes()).hexdigest()
@@ -30,8 +32,8 @@ def _tree(d: Path) -> dict[str, str]:
 
 
 def _terralod(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "terralod", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=600)  # fmt: skip
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``)."""
+    return terralod_cli(*args, cwd=cwd)
 
 
 @pytest.mark.parametrize("fmt", ["quantized-mesh", "3dtiles"])

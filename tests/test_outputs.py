@@ -19,6 +19,8 @@ import pytest
 from terralod.errors import InputError, OutputBusyError
 from terralod.output import Lock, Output, check_target, refuse_inputs, restore_set_aside, work_path
 
+from conftest import terralod_cli
+
 posix = pytest.mark.skipif(os.name != "posix", reason="process ids and SIGKILL")
 
 
@@ -259,8 +261,8 @@ def _small_dem(path: Path) -> Path:
 
 
 def _terralod(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "terralod", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=600)  # fmt: skip
+    """``terralod ARGS`` in this process (tests/conftest.py ``terralod_cli``); the kill below runs a real one."""
+    return terralod_cli(*args, cwd=cwd)
 
 
 @posix
