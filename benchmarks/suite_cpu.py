@@ -4,7 +4,7 @@ included), by test file and by test, from the per-test account ``tests/conftest.
 
     python benchmarks/suite_cpu.py                       # runs the suite once, writes suite_cpu.{json,md}
     python benchmarks/suite_cpu.py --log cpu.jsonl --total-cpu-s 1219.2   # summarises a run made earlier
-    python benchmarks/suite_cpu.py --reference-cpu-s 1035.7 --reference-label "66b69d2, 535 tests"
+    python benchmarks/suite_cpu.py --reference "66b69d2, 535 tests=1035.7" --reference "111de1e=1219.2"
 
 Processes that outlive the test that started them (a shared browser, Dask workers reaped later) are counted
 in the test that reaps them or not at all (Chromium's processes are not children pytest waits for); the
@@ -43,10 +43,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--log", type=Path, help="a per-test account written earlier (TERRALOD_TEST_CPU)")
     ap.add_argument("--total-cpu-s", type=float, help="that run's user + system seconds (GNU time)")
-    ap.add_argument("--reference-cpu-s", type=float, help="another commit's whole-suite CPU, for the ratio")
-    ap.add_argument("--reference-label", default="reference")
+    ap.add_argument("--reference", action="append", default=[], metavar="LABEL=SECONDS",
+                    help="another run's whole-suite user + system seconds (e.g. an earlier commit's), for the ratio")  # fmt: skip
     ap.add_argument("--top", type=int, default=25)
     a = ap.parse_args(argv)
+    refs = [(lab, float(sec)) for lab, _, sec in (r.rpartition("=") for r in a.reference)]
     if a.log is None:
         log = Path(tempfile.mkdtemp(prefix="terralod-suite-cpu-")) / "cpu.jsonl"
         total, wall, rc = run_suite(log)
@@ -65,17 +66,17 @@ def main(argv: list[str] | None = None) -> int:
     payload = {
         "tests": len(rows), "tests_cpu_s": round(tests_cpu, 1), "run_cpu_s": total and round(total, 1),
         "run_wall_s": wall and round(wall, 1), "exit_code": rc,
-        "reference": {"label": a.reference_label, "cpu_s": a.reference_cpu_s} if a.reference_cpu_s else None,
+        "references": [{"label": lab, "cpu_s": sec} for lab, sec in refs],
         "files": {k: {"cpu_s": round(v[0], 2), "wall_s": round(v[1], 2), "tests": v[2]} for k, v in files},
         "top_tests": [{"id": r["id"], "cpu_s": round(r["cpu_s"], 2), "wall_s": round(r["wall_s"], 2)} for r in top],
     }  # fmt: skip
     head = [["tests", f"{len(rows)}"], ["sum of the tests' CPU s", f"{tests_cpu:,.1f}"]]
     if total:
         head.append(["the run's user + system s", f"{total:,.1f}"])
-    if a.reference_cpu_s:
-        head.append([f"reference: {a.reference_label}", f"{a.reference_cpu_s:,.1f}"])
+    for lab, sec in refs:
+        head.append([f"{lab}: user + system s", f"{sec:,.1f}"])
         if total:
-            head.append(["ratio to the reference", f"{total / a.reference_cpu_s:.2f}"])
+            head.append([f"this run / {lab}", f"{total / sec:.2f}"])
     md = "# The test suite's CPU, by file and by test\n\n" + md_table(["", "value"], head) + "\n\n"
     md += f"## The {min(a.top, len(files))} costliest files\n\n" + md_table(
         ["file", "tests", "CPU s", "wall s"],

@@ -23,6 +23,8 @@ OUT = DOCS / "benchmarks"
 #: The command that wrote each results file, where it is not ``python benchmarks/NAME.py``.
 COMMANDS = {
     "tin_export_1025": "python benchmarks/tin_export.py --side 1025 --repeat 1",
+    "suite_cpu": "python benchmarks/suite_cpu.py --reference '66b69d2 (before round 4), 535 tests=1035.7' "
+    "--reference '111de1e, 777 tests=1219.2'",
     "build_adaptive_dense": "python benchmarks/build.py --reps 1 --methods adaptive_dense,adaptive "
     "--name build_adaptive_dense",
     "build_ab": "python benchmarks/build_ab.py --baseline-src OLD/src",
