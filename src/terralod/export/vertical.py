@@ -17,7 +17,6 @@ case is refused here in one line, never taken.
 from __future__ import annotations
 
 import os
-import threading
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -89,27 +88,7 @@ class VerticalDatum:
         (ellipsoidal heights already, or an unknown datum: heights are written as read)."""
         if not self.known or self.is_ellipsoidal:
             return None
-        # PROJ's search for the operation costs up to seconds (NAVD88: 3.9 s of CPU); a thread keeps the
-        # converters it made (a PROJ transformer from that search must not be shared between threads)
-        made: dict[tuple, GeoidConverter] = _CONVERTERS.__dict__.setdefault("by_datum", {})
-        key = (self, _file_stamp(self.key[len("grid:") :]) if self.key.startswith("grid:") else None)
-        conv = made.get(key)
-        if conv is None:
-            conv = made[key] = GeoidConverter(self, where)
-        return conv
-
-
-#: Each thread's converters by datum (:meth:`VerticalDatum.converter`).
-_CONVERTERS = threading.local()
-
-
-def _file_stamp(path: str) -> tuple[int, int] | None:
-    """(size, mtime in ns) of a grid file, so a converter is made again when the file changes."""
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return st.st_size, st.st_mtime_ns
+        return GeoidConverter(self, where)
 
 
 UNKNOWN = VerticalDatum("unknown", "unknown (heights as read)", "nobody")
