@@ -253,6 +253,8 @@ def binned_nmad_2d(
     import pandas as pd
     from scipy.stats import binned_statistic_2d
 
+    from terralod.change.coregister import NMAD_FACTOR  # xdem's 1.4826
+
     v = np.asarray(values, np.float64).ravel()
     count, ex, ey, bins = binned_statistic_2d(x, y, v, statistic="count", bins=[x_edges, y_edges],
                                               expand_binnumbers=True)  # fmt: skip
@@ -268,7 +270,7 @@ def binned_nmad_2d(
         med = _group_medians(key, vs, nx * ny)
         dev = np.abs(vi - med[flat])
         order = np.lexsort((dev, flat))
-        nmad_bins = 1.4826 * _group_medians(flat[order], dev[order], nx * ny)
+        nmad_bins = NMAD_FACTOR * _group_medians(flat[order], dev[order], nx * ny)
     ix = pd.IntervalIndex.from_breaks(ex, closed="left")
     iy = pd.IntervalIndex.from_breaks(ey, closed="left")
     df = pd.DataFrame()
