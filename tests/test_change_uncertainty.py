@@ -238,7 +238,9 @@ def test_nuth_kaab_binned_by_np_median_is_its_default_bit_for_bit(seed: int, n: 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for stat in (np.nanmedian, np.median):
-            tables.append(xdem.spatialstats.nd_binning(dh, [aspect], ["aspect"], 72, statistics=(stat, "count")))
+            tables.append(
+                xdem.spatialstats.nd_binning(dh, [aspect], ["aspect"], 72, statistics=(stat, "count"))
+            )
     a, b = tables
     assert np.array_equal(a["nanmedian"].to_numpy(), b["median"].to_numpy(), equal_nan=True)
     assert np.array_equal(a["count"].to_numpy(), b["count"].to_numpy(), equal_nan=True)
