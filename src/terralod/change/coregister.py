@@ -686,7 +686,7 @@ def _fit_xdem(pair: AlignedPair, mask: np.ndarray, seed: int) -> tuple[tuple[flo
     )  # local frame: any metric CRS
     # np.median, not xdem's default np.nanmedian: xdem bins only finite values, where the two agree bit for
     # bit, and scipy's binned_statistic computes np.median by sorting once instead of per-bin Python lists
-    # (half the fit's CPU; tests/test_change_uncertainty.py checks the bins are the same bits)
+    # (the binning, most of the fit, at half the CPU; tests/test_change_uncertainty.py checks the same bits)
     nk = xdem.coreg.NuthKaab(subsample=MAX_FIT_CELLS, bin_statistic=np.median)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
